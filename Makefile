@@ -1,0 +1,23 @@
+# Two entry points (README): `make run` runs the default pipeline on the bundled fixture clip,
+# `make test` runs the test suite. Both create the virtual environment on first use.
+PY := .venv/bin/python
+VENV_STAMP := .venv/.installed-$(shell sha256sum pyproject.toml | cut -c1-12)
+
+.PHONY: run test bench fixtures clean
+
+$(VENV_STAMP): pyproject.toml
+	test -x $(PY) || python3 -m venv .venv
+	$(PY) -m pip install -q --disable-pip-version-check -e '.[test]'
+	rm -f .venv/.installed-* && touch $@
+
+run: $(VENV_STAMP)
+	.venv/bin/runner run pipeline.yaml --in fixtures/clips/calm.mp4 --out out
+
+test: $(VENV_STAMP)
+	$(PY) -m pytest -q tests
+
+fixtures: $(VENV_STAMP)
+	$(PY) scripts/make_fixtures.py --out fixtures
+
+clean:
+	rm -rf out .cache

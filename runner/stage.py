@@ -1,0 +1,146 @@
+"""The stage contract: what a stage declares before any data flows, and what it is handed.
+
+A stage is a class with class-level declarations (name, version, ports, parameters) and one
+method that does the work. The runner checks a pipeline against these declarations when the
+graph is loaded, and owns everything about files, caching and scheduling; a stage only sees
+values on its ports.
+
+Port types
+----------
+A port type is a string. Four have a fixed meaning to the runner:
+
+``video``   a ``pathlib.Path`` to a media file (a pipeline input); digest = file bytes.
+``dir``     a ``pathlib.Path`` to a folder (a pipeline input, e.g. an actor pack); digest = the
+            relative paths and bytes of every file under it.
+``frames``  a :class:`FrameStream`: images ``(H, W, C)`` produced chunk by chunk by a frame stage.
+``files``   a folder of files a stage writes (images, video, tables); the stage writes them under
+            ``ctx.files_dir(port)``; the runner keeps them in the cache entry and publishes them to
+            ``--out/<stage>/``.
+
+Every other type name (``points``, ``pose``, ``similarity``, ``pca_model``…) is a *bundle*: a
+``dict[str, numpy.ndarray]`` stored as ``.npz`` without pickle (so no object arrays; strings as
+fixed-width unicode arrays). Two ports connect only when their type strings are equal.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, ClassVar, Iterator, Mapping, Protocol
+
+import numpy as np
+
+RUNNER_TYPES = ("video", "dir", "frames", "files")
+
+
+@dataclass(frozen=True)
+class Param:
+    """One declared parameter: name, Python type (int, float, str, bool, list), default, help."""
+
+    name: str
+    type: type
+    default: Any
+    help: str
+    choices: tuple[Any, ...] | None = None
+
+
+@dataclass(frozen=True)
+class StreamInfo:
+    """Shape of a frame stream: frame count, frames per second, image width and height in px."""
+
+    frames: int
+    fps: float
+    width: int
+    height: int
+
+
+class FrameStream(Protocol):
+    """Frames of an upstream frame stage, read lazily chunk by chunk.
+
+    ``read(start, stop)`` returns an array ``(stop - start, H, W, C)``; indices are clamped to
+    ``[0, info.frames)`` by edge replication, so a stage with a temporal window may ask past the
+    ends of the clip.
+    """
+
+    info: StreamInfo
+
+    def read(self, start: int, stop: int) -> np.ndarray: ...
+
+    def chunks(self) -> Iterator[tuple[int, np.ndarray]]:
+        """Yield ``(first_frame_index, frames (B, H, W, C))`` over the whole stream in order."""
+        ...
+
+
+@dataclass
+class Context:
+    """What the runner hands a stage besides its inputs and parameters.
+
+    ``device`` is ``"cpu"`` or ``"cuda"`` (already resolved from ``--device auto``).
+    ``files_dir(port)`` is the empty folder to write a ``files`` output into.
+    ``progress(n)`` reports ``n`` more units (frames) done.
+    """
+
+    device: str
+    files_dir: Callable[[str], Path]
+    progress: Callable[[int], None] = lambda n: None
+    log: logging.Logger = field(default_factory=lambda: logging.getLogger("runner.stage"))
+
+
+class StageError(Exception):
+    """A failure a user can act on (bad input data, impossible parameters).
+
+    The runner prints its message on one line, naming the stage, and exits with code 1; no
+    traceback is shown. Raise it instead of letting a numpy or OpenCV error escape.
+    """
+
+
+class Stage:
+    """Base of both stage shapes; subclasses set the class attributes below."""
+
+    name: ClassVar[str]  # registered name, e.g. "track.correlation"
+    version: ClassVar[str]  # bump to invalidate cache entries made by older code
+    doc: ClassVar[str] = ""  # one line shown by `runner stages`
+    inputs: ClassVar[Mapping[str, str]] = {}  # port name -> port type
+    optional_inputs: ClassVar[frozenset[str]] = frozenset()
+    outputs: ClassVar[Mapping[str, str]] = {}
+    params: ClassVar[tuple[Param, ...]] = ()
+
+
+class SequenceStage(Stage):
+    """Sees a whole clip's arrays at once (tracking, smoothing, pose, propagation).
+
+    ``frames`` inputs arrive as :class:`FrameStream` (stream them; never hold a long clip).
+    """
+
+    def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
+        """Return one value per declared output port (bundles as dicts of arrays; ``files``
+        ports as ``None`` after writing under ``ctx.files_dir(port)``)."""
+        raise NotImplementedError
+
+
+class FrameStage(Stage):
+    """Maps over chunks of frames (decode, synthesize, write); cached chunk by chunk.
+
+    ``window`` is the number of neighbouring frames each side that ``process`` may read from
+    its ``frames`` inputs (their ``read`` clamps at the clip ends).
+    """
+
+    window: ClassVar[int] = 0
+
+    def stream_info(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> StreamInfo:
+        """Frame count, rate and size of this stage's output stream; by default those of the
+        first ``frames`` input. Stages without one (decode, synthesize) override it."""
+        for port, kind in self.inputs.items():
+            if kind == "frames" and inputs.get(port) is not None:
+                return inputs[port].info
+        raise NotImplementedError(f"{self.name} has no frames input; it must define stream_info")
+
+    def process(
+        self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context
+    ) -> dict[str, Any]:
+        """Compute frames ``[start, stop)``. Return, per output port: for ``frames`` an array
+        ``(stop - start, H, W, C)``; for a bundle a dict of arrays whose first axis is
+        ``stop - start`` (the runner concatenates chunks); for ``files`` ``None`` after writing
+        under ``ctx.files_dir(port)``. Bundle inputs arrive whole: slice ``[start:stop]``."""
+        raise NotImplementedError
