@@ -1,0 +1,203 @@
+"""``write.exr``: one OpenEXR file per frame, half float, scene-linear, premultiplied RGBA.
+
+Pixels: the synthesized frames are sRGB-encoded floats in [0, 1]; they are decoded to
+scene-linear with the IEC 61966-2-1 curve (:func:`stages.color.srgb_to_linear`), so the files
+hold linear light with Rec.709/sRGB primaries (``oiio:ColorSpace`` = ``lin_rec709_scene``).
+The face mask becomes the alpha channel with OpenEXR's convention of *associated* alpha: the
+stored R, G, B are the linear colour multiplied by alpha (outside the face they are 0). Without a
+mask, alpha is 1 and the whole frame is kept.
+
+Per-frame metadata goes into namespaced header attributes (``exmap:frame`` ...; see
+``docs/writers.md``). Each file is written under a temporary name and renamed into place, so a
+file named ``frame.%06d.exr`` is always complete.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import OpenImageIO as oiio
+
+from runner.stage import Context, FrameStage, Param, StageError
+from stages.color import srgb_to_linear, to_unit_float
+from stages.writers.atomic import atomic_write
+from stages.writers.bundles import check_bundle
+
+COMPRESSIONS = ("zip", "zips", "piz", "rle", "none")  # OpenEXR's lossless codecs
+FRAME_NAME = "frame.{:06d}.exr"  # 0-based frame index of the source clip
+PREFIX = "exmap:"
+Attribute = int | float | str | tuple[float, ...]
+
+
+def exr_name(frame: int) -> str:
+    """File name of frame ``frame`` (0-based index in the source clip): ``frame.000012.exr``."""
+    return FRAME_NAME.format(frame)
+
+
+def to_linear_rgba(srgb: np.ndarray, alpha: np.ndarray | None = None) -> np.ndarray:
+    """sRGB frame and optional alpha -> premultiplied scene-linear RGBA.
+
+    Parameters
+    ----------
+    srgb : (H, W, 3) float in [0, 1] (sRGB-encoded) or uint8
+    alpha : (H, W, 1) or (H, W) float in [0, 1], optional
+        Coverage (the face mask). ``None`` means opaque.
+
+    Returns
+    -------
+    (H, W, 4) float32: ``(R, G, B) = srgb_to_linear(srgb) * alpha`` and ``A = alpha``
+    (OpenEXR associated alpha).
+    """
+    linear = srgb_to_linear(to_unit_float(srgb).astype(np.float32, copy=False))
+    if alpha is None:
+        a = np.ones(linear.shape[:2] + (1,), np.float32)
+    else:
+        a = np.asarray(alpha, np.float32).reshape(linear.shape[:2] + (1,))
+    return np.concatenate([linear * a, a], axis=2)
+
+
+def frame_attributes(
+    frame: int,
+    *,
+    fps: float,
+    pose: Mapping[str, np.ndarray] | None = None,
+    similarity: Mapping[str, np.ndarray] | None = None,
+) -> dict[str, Attribute]:
+    """The ``exmap:`` header attributes of one frame.
+
+    Parameters
+    ----------
+    frame : 0-based frame index in the source clip.
+    fps : frame rate of the source clip; ``exmap:time_s = frame / fps``.
+    pose : one frame of a ``pose`` bundle (``rvec (3,)``, ``tvec (3,)``, ``valid ()``), optional.
+    similarity : one frame of a ``similarity`` bundle (``params (4,)`` = (a, b, tx, ty) of eq. 8,
+        ``valid ()``), optional.
+    """
+    attrs: dict[str, Attribute] = {
+        PREFIX + "frame": int(frame),
+        PREFIX + "time_s": float(frame / fps),
+        PREFIX + "fps": float(fps),
+    }
+    if pose is not None:
+        attrs[PREFIX + "pose_rvec"] = tuple(float(v) for v in pose["rvec"])
+        attrs[PREFIX + "pose_tvec"] = tuple(float(v) for v in pose["tvec"])
+        attrs[PREFIX + "pose_valid"] = int(bool(pose["valid"]))
+    if similarity is not None:
+        attrs[PREFIX + "similarity"] = tuple(float(v) for v in similarity["params"])
+        attrs[PREFIX + "similarity_valid"] = int(bool(similarity["valid"]))
+    return attrs
+
+
+def exr_spec(width: int, height: int, *, attributes: Mapping[str, Attribute], compression: str) -> oiio.ImageSpec:
+    """Header of a half-float RGBA EXR with the given extra attributes.
+
+    Float tuples are written as ``float[n]`` attributes. ``DateTime`` is set empty (not written) so
+    that the same frame always gives the same bytes (resumed runs match uninterrupted ones).
+    """
+    spec = oiio.ImageSpec(width, height, 4, "half")
+    spec.channelnames = ("R", "G", "B", "A")
+    spec.alpha_channel = 3
+    spec.attribute("compression", compression)
+    spec.attribute("oiio:ColorSpace", "lin_rec709_scene")
+    spec.attribute("DateTime", "")
+    for key, value in attributes.items():
+        if isinstance(value, tuple):
+            spec.attribute(key, oiio.TypeDesc(f"float[{len(value)}]"), value)
+        else:
+            spec.attribute(key, value)
+    return spec
+
+
+def write_exr(
+    path: Path, rgba: np.ndarray, *, attributes: Mapping[str, Attribute], compression: str = "zip"
+) -> None:
+    """Write one half-float RGBA EXR atomically (temp name in the same folder, then rename).
+
+    Parameters
+    ----------
+    path : final file name (``.exr``).
+    rgba : (H, W, 4) float32, premultiplied scene-linear RGBA (see :func:`to_linear_rgba`).
+    attributes : extra header attributes (see :func:`frame_attributes`).
+    compression : one of ``COMPRESSIONS`` (all lossless).
+
+    Raises
+    ------
+    StageError
+        The file cannot be created or written (folder missing or read-only, disk full).
+    """
+    height, width = rgba.shape[:2]
+    spec = exr_spec(width, height, attributes=attributes, compression=compression)
+    try:
+        with atomic_write(path) as tmp:
+            out = oiio.ImageOutput.create("openexr")
+            if out is None or not out.open(str(tmp), spec):
+                reason = out.geterror() if out is not None else oiio.geterror()
+                raise StageError(f"cannot write EXR {path}: {reason or 'open failed'}")
+            ok = out.write_image(np.ascontiguousarray(rgba, np.float32))
+            ok = out.close() and ok
+            if not ok:
+                raise StageError(f"cannot write EXR {path}: {out.geterror() or 'write failed'}")
+    except OSError as err:
+        raise StageError(f"cannot write EXR {path}: {err.strerror or err}") from err
+
+
+class WriteExr(FrameStage):
+    """Writes ``frame.%06d.exr`` per frame: half float, scene-linear, premultiplied RGBA, metadata."""
+
+    name = "write.exr"
+    version = "1"
+    doc = "EXR per frame: half float, scene-linear (sRGB decoded), face mask as associated alpha"
+    inputs = {"frames": "frames", "mask": "frames", "pose": "pose", "similarity": "similarity"}
+    optional_inputs = frozenset({"mask", "pose", "similarity"})
+    outputs = {"exr": "files"}
+    params = (
+        Param("compression", str, "zip", "lossless EXR compression", choices=COMPRESSIONS),
+        Param("threads", int, 0, "frames written in parallel; 0 = one per CPU core"),
+    )
+
+    def process(
+        self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context
+    ) -> dict[str, Any]:
+        stream = inputs["frames"]
+        info = stream.info
+        frames = stream.read(start, stop)
+        if frames.ndim != 4 or frames.shape[3] != 3:
+            raise StageError(f"write.exr: input 'frames' must be RGB (B, H, W, 3), got {frames.shape}")
+        masks = None
+        if inputs.get("mask") is not None:
+            masks = inputs["mask"].read(start, stop)
+            if inputs["mask"].info.frames != info.frames or masks.shape[1:] != frames.shape[1:3] + (1,):
+                raise StageError(
+                    f"write.exr: input 'mask' ({inputs['mask'].info.frames} frames of shape {masks.shape[1:]}) "
+                    f"does not match 'frames' ({info.frames} of shape {frames.shape[1:3] + (1,)})"
+                )
+        pose, similarity = inputs.get("pose"), inputs.get("similarity")
+        for port, bundle in (("pose", pose), ("similarity", similarity)):
+            if bundle is not None:
+                check_bundle(bundle, stage=self.name, port=port, kind=port, frames=info.frames)
+        folder = ctx.files_dir("exr")
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise StageError(f"write.exr: cannot create output folder {folder}: {err.strerror or err}") from err
+
+        def write_one(i: int) -> None:
+            frame = start + i
+            attributes = frame_attributes(
+                frame,
+                fps=info.fps,
+                pose=None if pose is None else {k: pose[k][frame] for k in ("rvec", "tvec", "valid")},
+                similarity=None if similarity is None else {k: similarity[k][frame] for k in ("params", "valid")},
+            )
+            rgba = to_linear_rgba(frames[i], None if masks is None else masks[i])
+            write_exr(folder / exr_name(frame), rgba, attributes=attributes, compression=params["compression"])
+
+        workers = min(params["threads"] or os.cpu_count() or 1, len(frames))
+        with ThreadPoolExecutor(max_workers=max(workers, 1), thread_name_prefix="write.exr") as pool:
+            list(pool.map(write_one, range(len(frames))))
+        return {"exr": None}

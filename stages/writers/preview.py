@@ -1,0 +1,105 @@
+"""``preview.side_by_side``: performer | result frames at a common height, for a quick-look video.
+
+The output is an 8-bit sRGB ``frames`` stream with even width and height (what H.264 in yuv420p
+needs); ``write.video`` encodes it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import cv2
+import numpy as np
+
+from runner.stage import Context, FrameStage, Param, StageError, StreamInfo
+from stages.color import to_uint8
+
+
+def _even(x: float) -> int:
+    """Nearest even integer >= 2."""
+    return max(2, 2 * round(x / 2))
+
+
+def _even_down(x: int) -> int:
+    """Largest even integer <= x, at least 2."""
+    return max(2, x - x % 2)
+
+
+def side_by_side_size(
+    performer_hw: tuple[int, int], result_hw: tuple[int, int], *, height: int = 0
+) -> tuple[int, int, int]:
+    """Layout of the preview: ``(height, performer_width, result_width)`` in px, all even.
+
+    Parameters
+    ----------
+    performer_hw, result_hw : (H, W) of the two inputs.
+    height : common height; 0 = the result's height. Rounded down to even; each panel keeps
+        its aspect ratio, its width rounded to the nearest even number.
+    """
+    common = _even_down(height or result_hw[0])
+    widths = [_even(w * common / h) for h, w in (performer_hw, result_hw)]
+    return common, widths[0], widths[1]
+
+
+def _fit(image: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Resize (H, W, 3) uint8 to (height, width, 3): area averaging down, bilinear up."""
+    if image.shape[:2] == (height, width):
+        return image
+    shrink = height < image.shape[0]
+    return cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+
+
+def side_by_side(performer: np.ndarray, result: np.ndarray, *, height: int = 0) -> np.ndarray:
+    """Put two frames side by side (performer left, result right) at a common height.
+
+    Parameters
+    ----------
+    performer : (H1, W1, 3) uint8, or float sRGB in [0, 1]
+    result : (H2, W2, 3) uint8, or float sRGB in [0, 1]
+    height : common height in px; 0 = the result's height (rounded down to even).
+
+    Returns
+    -------
+    (H, W1' + W2', 3) uint8 sRGB with H, W1', W2' even (see :func:`side_by_side_size`).
+    """
+    h, w_left, w_right = side_by_side_size(performer.shape[:2], result.shape[:2], height=height)
+    left = _fit(np.ascontiguousarray(to_uint8(performer)), h, w_left)
+    right = _fit(np.ascontiguousarray(to_uint8(result)), h, w_right)
+    return np.concatenate([left, right], axis=1)
+
+
+class SideBySide(FrameStage):
+    """Performer | result, uint8 RGB at a common even height, for ``write.video``."""
+
+    name = "preview.side_by_side"
+    version = "1"
+    doc = "performer | result frames side by side (uint8 RGB, even size) for a preview video"
+    inputs = {"performer": "frames", "result": "frames"}
+    outputs = {"frames": "frames"}
+    params = (Param("height", int, 0, "common height in px (rounded down to even); 0 = the result's height"),)
+
+    def stream_info(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> StreamInfo:
+        performer, result = inputs["performer"].info, inputs["result"].info
+        if performer.frames != result.frames:
+            raise StageError(
+                f"preview.side_by_side: 'performer' has {performer.frames} frames, 'result' {result.frames}"
+            )
+        if params["height"] < 0:
+            raise StageError(f"preview.side_by_side: 'height' must be >= 0, got {params['height']}")
+        h, w_left, w_right = side_by_side_size(
+            (performer.height, performer.width), (result.height, result.width), height=params["height"]
+        )
+        return StreamInfo(frames=result.frames, fps=result.fps, width=w_left + w_right, height=h)
+
+    def process(
+        self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context
+    ) -> dict[str, Any]:
+        self.stream_info(inputs, params)
+        performer = inputs["performer"].read(start, stop)
+        result = inputs["result"].read(start, stop)
+        for port, frames in (("performer", performer), ("result", result)):
+            if frames.ndim != 4 or frames.shape[3] != 3:
+                raise StageError(f"preview.side_by_side: input '{port}' must be RGB (B, H, W, 3), got {frames.shape}")
+        pairs = [side_by_side(p, r, height=params["height"]) for p, r in zip(performer, result)]
+        return {"frames": np.stack(pairs)}

@@ -1,0 +1,31 @@
+"""An in-memory :class:`runner.stage.FrameStream` and a stage context for calling stages directly."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from runner.stage import Context, StreamInfo
+
+
+class MemoryStream:
+    """Frames ``(T, H, W, C)`` held in memory, read with edge replication like the runner's streams."""
+
+    def __init__(self, frames: np.ndarray, *, fps: float = 25.0, chunk: int = 4) -> None:
+        self.frames = frames
+        self.chunk = chunk
+        self.info = StreamInfo(frames=len(frames), fps=fps, width=frames.shape[2], height=frames.shape[1])
+
+    def read(self, start: int, stop: int) -> np.ndarray:
+        return self.frames[np.clip(np.arange(start, stop), 0, len(self.frames) - 1)]
+
+    def chunks(self) -> Iterator[tuple[int, np.ndarray]]:
+        for start in range(0, len(self.frames), self.chunk):
+            yield start, self.read(start, min(start + self.chunk, len(self.frames)))
+
+
+def files_context(root: Path) -> Context:
+    """A CPU context whose ``files`` ports are folders ``root/<port>``."""
+    return Context(device="cpu", files_dir=lambda port: root / port)

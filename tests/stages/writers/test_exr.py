@@ -1,0 +1,189 @@
+"""write.exr: round trip through OpenImageIO, metadata, atomic writes, clear errors."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+
+from runner.stage import StageError
+from stages.color import srgb_to_linear
+from stages.writers.atomic import atomic_write, temp_name
+from stages.writers.exr import WriteExr, exr_name, to_linear_rgba, write_exr
+from tests.stages.writers.memory_stream import MemoryStream, files_context
+
+REPO = Path(__file__).resolve().parents[3]
+HALF_RTOL = 2.0**-11  # half float: 11 significant bits
+HALF_ATOL = 2.0**-24  # smallest half subnormal
+FPS = 30.0
+T, H, W = 3, 10, 14
+
+
+def _inputs(rng: np.random.Generator, *, mask: bool = True) -> dict:
+    inputs = {
+        "frames": MemoryStream(rng.random((T, H, W, 3), dtype=np.float32), fps=FPS),
+        "pose": {
+            "rvec": rng.normal(size=(T, 3)),
+            "tvec": rng.normal(size=(T, 3)) * 500,
+            "R": np.tile(np.eye(3), (T, 1, 1)),
+            "reproj_err_px": rng.random(T),
+            "valid": np.array([True, False, True]),
+        },
+        "similarity": {
+            "params": rng.normal(size=(T, 4)),
+            "residual_px": rng.random(T),
+            "valid": np.array([True, True, False]),
+        },
+    }
+    if mask:
+        inputs["mask"] = MemoryStream(rng.random((T, H, W, 1), dtype=np.float32), fps=FPS)
+    return inputs
+
+
+def _read(path: Path) -> tuple[np.ndarray, oiio.ImageSpec]:
+    inp = oiio.ImageInput.open(str(path))
+    assert inp is not None, oiio.geterror()
+    pixels = inp.read_image(oiio.FLOAT)
+    spec = inp.spec()
+    inp.close()
+    return pixels, spec
+
+
+def _params(**overrides) -> dict:
+    return {"compression": "zip", "threads": 2, **overrides}
+
+
+def test_round_trip_pixels_alpha_metadata(tmp_path: Path) -> None:
+    inputs = _inputs(np.random.default_rng(1))
+    WriteExr().process(0, T, inputs, _params(), files_context(tmp_path))
+    assert sorted(p.name for p in (tmp_path / "exr").iterdir()) == [exr_name(i) for i in range(T)]
+    for i in range(T):
+        pixels, spec = _read(tmp_path / "exr" / f"frame.{i:06d}.exr")
+        assert spec.format == oiio.TypeDesc("half")
+        assert spec.channelnames == ("R", "G", "B", "A") and spec.alpha_channel == 3
+        alpha = inputs["mask"].frames[i]
+        expected = srgb_to_linear(inputs["frames"].frames[i].astype(np.float64)) * alpha  # associated alpha
+        np.testing.assert_allclose(pixels[..., :3], expected, rtol=HALF_RTOL, atol=HALF_ATOL)
+        np.testing.assert_allclose(pixels[..., 3:], alpha, rtol=HALF_RTOL, atol=HALF_ATOL)
+        assert spec.getattribute("compression") == "zip"
+        assert spec.getattribute("exmap:frame") == i
+        assert spec.getattribute("exmap:time_s") == pytest.approx(i / FPS, rel=1e-7)
+        assert spec.getattribute("exmap:fps") == FPS
+        np.testing.assert_allclose(spec.getattribute("exmap:pose_rvec"), inputs["pose"]["rvec"][i], rtol=1e-6)
+        np.testing.assert_allclose(spec.getattribute("exmap:pose_tvec"), inputs["pose"]["tvec"][i], rtol=1e-6)
+        assert spec.getattribute("exmap:pose_valid") == int(inputs["pose"]["valid"][i])
+        np.testing.assert_allclose(
+            spec.getattribute("exmap:similarity"), inputs["similarity"]["params"][i], rtol=1e-6
+        )
+        assert spec.getattribute("exmap:similarity_valid") == int(inputs["similarity"]["valid"][i])
+
+
+def test_without_mask_is_opaque_and_chunk_uses_clip_frame_index(tmp_path: Path) -> None:
+    inputs = _inputs(np.random.default_rng(2), mask=False)
+    del inputs["pose"], inputs["similarity"]
+    WriteExr().process(1, 3, inputs, _params(compression="piz"), files_context(tmp_path))
+    assert sorted(p.name for p in (tmp_path / "exr").iterdir()) == ["frame.000001.exr", "frame.000002.exr"]
+    pixels, spec = _read(tmp_path / "exr" / "frame.000002.exr")
+    np.testing.assert_array_equal(pixels[..., 3], 1.0)
+    expected = srgb_to_linear(inputs["frames"].frames[2].astype(np.float64))
+    np.testing.assert_allclose(pixels[..., :3], expected, rtol=HALF_RTOL, atol=HALF_ATOL)
+    assert spec.getattribute("compression") == "piz"
+    assert spec.getattribute("exmap:frame") == 2
+    assert spec.getattribute("exmap:pose_rvec") is None
+
+
+def test_thread_count_does_not_change_bytes(tmp_path: Path) -> None:
+    inputs = _inputs(np.random.default_rng(3))
+    WriteExr().process(0, T, inputs, _params(threads=1), files_context(tmp_path / "one"))
+    WriteExr().process(0, T, inputs, _params(threads=3), files_context(tmp_path / "three"))
+    for i in range(T):
+        name = exr_name(i)
+        assert (tmp_path / "one/exr" / name).read_bytes() == (tmp_path / "three/exr" / name).read_bytes()
+
+
+def test_uint8_frames_are_decoded_like_floats() -> None:
+    u = np.array([[[0, 128, 255]]], np.uint8)
+    np.testing.assert_allclose(to_linear_rgba(u), to_linear_rgba(u.astype(np.float32) / 255), rtol=1e-7)
+
+
+def test_temp_name_never_matches_final_name(tmp_path: Path) -> None:
+    final = tmp_path / "frame.000007.exr"
+    names = {temp_name(final).name for _ in range(20)}
+    assert len(names) == 20
+    for name in names:
+        assert name != final.name and not Path(name).match("frame.*.exr") and name.endswith(".part")
+
+
+def test_failed_write_leaves_no_file(tmp_path: Path) -> None:
+    final = tmp_path / "frame.000000.exr"
+    with pytest.raises(RuntimeError), atomic_write(final) as tmp:
+        tmp.write_bytes(b"partial")
+        raise RuntimeError("crash in the middle of a frame")
+    assert list(tmp_path.iterdir()) == []
+    # a write OpenImageIO rejects half way (pixel buffer of the wrong size): clear error, no file
+    with pytest.raises(StageError, match="frame.000000.exr"):
+        write_exr(final, np.zeros((4, 4, 3), np.float32), attributes={})
+    assert list(tmp_path.iterdir()) == []
+
+
+KILLED_WRITER = """
+import sys, numpy as np
+from pathlib import Path
+from stages.writers.exr import write_exr, exr_name
+out = Path(sys.argv[1])
+for i in range(100000):
+    rgba = np.full((256, 256, 4), (i % 50) / 64, np.float32)
+    write_exr(out / exr_name(i % 50), rgba, attributes={"exmap:frame": i % 50})
+"""
+
+
+def test_killed_writer_leaves_only_complete_frames(tmp_path: Path) -> None:
+    proc = subprocess.Popen([sys.executable, "-c", KILLED_WRITER, str(tmp_path)], cwd=REPO)
+    try:
+        deadline = time.monotonic() + 30
+        while len(list(tmp_path.glob("frame.*.exr"))) < 3 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        time.sleep(0.05)
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+    finals = sorted(tmp_path.glob("frame.*.exr"))
+    assert finals, "the writer produced no frame before being killed"
+    for path in finals:
+        pixels, spec = _read(path)
+        index = spec.getattribute("exmap:frame")
+        assert path.name == exr_name(index)
+        np.testing.assert_array_equal(pixels, index / 64)
+    leftovers = {p.name for p in tmp_path.iterdir()} - {p.name for p in finals}
+    assert all(name.startswith(".frame.") and name.endswith(".part") for name in leftovers)
+
+
+def test_unwritable_destination_is_a_stage_error(tmp_path: Path) -> None:
+    blocker = tmp_path / "not_a_folder"
+    blocker.write_text("a file where the output folder should be")
+    inputs = _inputs(np.random.default_rng(4))
+    ctx = files_context(blocker)
+    with pytest.raises(StageError, match="not_a_folder"):
+        WriteExr().process(0, T, inputs, _params(), ctx)
+    # a folder standing where a frame file must go (os.replace cannot overwrite it)
+    (tmp_path / "exr" / exr_name(1)).mkdir(parents=True)
+    with pytest.raises(StageError, match=exr_name(1)):
+        WriteExr().process(0, T, inputs, _params(), files_context(tmp_path))
+    assert not [p for p in (tmp_path / "exr").iterdir() if p.name.endswith(".part")]
+
+
+def test_mismatched_inputs_are_stage_errors(tmp_path: Path) -> None:
+    rng = np.random.default_rng(5)
+    inputs = _inputs(rng)
+    inputs["mask"] = MemoryStream(rng.random((T, H + 2, W, 1), dtype=np.float32), fps=FPS)
+    with pytest.raises(StageError, match="'mask'"):
+        WriteExr().process(0, T, inputs, _params(), files_context(tmp_path))
+    inputs = _inputs(rng)
+    inputs["pose"] = {k: v[:2] for k, v in inputs["pose"].items()}
+    with pytest.raises(StageError, match="'pose'"):
+        WriteExr().process(0, T, inputs, _params(), files_context(tmp_path))

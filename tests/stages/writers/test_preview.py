@@ -1,0 +1,49 @@
+"""preview.side_by_side: common even height, aspect ratios kept, performer left, result right."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from runner.stage import StageError
+from stages.writers.preview import SideBySide, side_by_side, side_by_side_size
+from tests.stages.writers.memory_stream import MemoryStream, files_context
+
+
+def test_layout_sizes() -> None:
+    # performer 640x480 scaled to the result's height 800: 640 * 800 / 480 = 1066.7 -> 1066
+    assert side_by_side_size((480, 640), (800, 600)) == (800, 1066, 600)
+    assert side_by_side_size((480, 640), (800, 600), height=240) == (240, 320, 180)
+    h, w1, w2 = side_by_side_size((333, 501), (601, 799))
+    assert h % 2 == w1 % 2 == w2 % 2 == 0
+    assert abs(w1 / h - 501 / 333) < 2 / h and abs(w2 / h - 799 / 601) < 2 / h
+
+
+def test_content_left_performer_right_result() -> None:
+    performer = np.full((48, 64, 3), (10, 200, 30), np.uint8)
+    result = np.full((80, 60, 3), (0.5, 0.25, 1.0), np.float32)
+    out = side_by_side(performer, result)
+    assert out.dtype == np.uint8 and out.shape == (80, 106 + 60, 3)
+    np.testing.assert_array_equal(out[:, :106], np.broadcast_to([10, 200, 30], (80, 106, 3)))
+    np.testing.assert_array_equal(out[:, 106:], np.broadcast_to([128, 64, 255], (80, 60, 3)))
+
+
+def test_stage_stream_info_and_frames(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    performer = MemoryStream(rng.integers(0, 256, (4, 45, 61, 3), dtype=np.uint8), fps=25.0)
+    result = MemoryStream(rng.random((4, 63, 51, 3), dtype=np.float32), fps=25.0)
+    inputs = {"performer": performer, "result": result}
+    stage, params = SideBySide(), {"height": 0}
+    info = stage.stream_info(inputs, params)
+    out = stage.process(1, 3, inputs, params, files_context(tmp_path))["frames"]
+    assert out.shape == (2, info.height, info.width, 3) and out.dtype == np.uint8
+    assert (info.frames, info.fps, info.height) == (4, 25.0, 62)
+    assert info.width % 2 == 0
+    np.testing.assert_array_equal(out[0], side_by_side(performer.frames[1], result.frames[1]))
+
+
+def test_frame_count_mismatch_is_a_stage_error() -> None:
+    performer = MemoryStream(np.zeros((3, 8, 8, 3), np.uint8))
+    result = MemoryStream(np.zeros((4, 8, 8, 3), np.float32))
+    with pytest.raises(StageError, match="3 frames"):
+        SideBySide().stream_info({"performer": performer, "result": result}, {"height": 0})
