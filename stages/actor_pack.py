@@ -1,0 +1,270 @@
+"""Actor pack loader and validator: the example images of one target face (Zhang et al. 2006, Sec. 5, 8, 10, 12.1).
+
+An actor pack is a folder with a manifest ``pack.yaml`` (format in ``docs/fixtures.md``):
+
+- ``layout``: a bundled layout name (``zhang134``) or a layout file path relative to the pack;
+- ``image_size``: ``[W, H]`` in pixels, shared by every image of the pack;
+- ``intrinsics``: the 3x3 camera matrix A of eq. 10 (pixels), inline;
+- ``model3d``: a CSV ``name,x,y,z`` (mm, head frame), the generic face model of Sec. 12.1;
+- ``neutral``, ``standard``: ``{image: PNG, points: CSV}``; the standard image has the mouth open;
+- ``examples``, ``teeth_examples``: lists of ``{name, image, points}`` (Sec. 6 and Sec. 8);
+- ``captured``: the 30-40 captured geometries for PCA (Sec. 10, 14), either an ``.npz`` with key
+  ``points`` ``(K, N, 2)`` or a list of points files.
+
+A points file is a CSV with header ``name,x,y`` and one row per layout point (any order, every
+name once), or an ``.npz`` with key ``points`` ``(N, 2)`` in layout order. Pixel coordinates have
+their origin at the centre of the top-left pixel, x right, y down.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import yaml
+
+from runner.stage import StageError
+from stages.layout import Layout, load_layout
+
+MANIFEST = "pack.yaml"
+FORMAT = "actor-pack/1"
+
+
+class PackError(StageError):
+    """An actor pack is missing a file or has a wrong field; the message names both."""
+
+
+@dataclass
+class Expression:
+    """One face image with its feature points: ``image (H, W, 3) uint8`` RGB, ``points (N, 2) float64`` px."""
+
+    name: str
+    image: np.ndarray
+    points: np.ndarray
+
+
+@dataclass
+class ActorPack:
+    """A loaded, validated actor pack (see the module docstring for the files behind each field).
+
+    ``captured_points`` is ``(K, N, 2)`` px; ``model3d`` ``(N, 3)`` mm in the head frame;
+    ``intrinsics`` the ``(3, 3)`` matrix A of eq. 10; ``image_size`` is ``(W, H)``.
+    """
+
+    path: Path
+    name: str
+    layout: Layout
+    neutral: Expression
+    standard: Expression
+    examples: list[Expression]
+    teeth_examples: list[Expression]
+    captured_points: np.ndarray
+    model3d: np.ndarray
+    intrinsics: np.ndarray
+    image_size: tuple[int, int]
+
+
+def load_pack(path: str | Path) -> ActorPack:
+    """Load an actor pack folder (or its ``pack.yaml``) and validate every file it names.
+
+    Raises
+    ------
+    PackError
+        Missing or unreadable file, image of the wrong size, wrong point count for the layout,
+        unknown or missing point name, points outside the image, bad intrinsics; the message
+        names the file and the field.
+    """
+    path = Path(path)
+    manifest = path if path.is_file() else path / MANIFEST
+    root = manifest.parent
+    try:
+        data = yaml.safe_load(manifest.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise PackError(f"actor pack {manifest}: cannot read manifest ({exc.strerror or exc})") from None
+    except yaml.YAMLError as exc:
+        raise PackError(f"actor pack {manifest}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    reader = _PackReader(root, manifest, data)
+    return reader.read()
+
+
+class _PackReader:
+    """Reads one pack; ``fail`` builds the error naming the file and the field."""
+
+    def __init__(self, root: Path, manifest: Path, data: Any) -> None:
+        self.root = root
+        self.manifest = manifest
+        if not isinstance(data, dict):
+            raise PackError(f"actor pack {manifest}: expected a mapping at the top level")
+        self.data = data
+
+    def fail(self, file: Path | str, field: str, msg: str) -> PackError:
+        return PackError(f"actor pack {file}: field '{field}': {msg}")
+
+    def field(self, key: str) -> Any:
+        if key not in self.data:
+            raise self.fail(self.manifest, key, "missing")
+        return self.data[key]
+
+    def file(self, value: Any, field: str) -> Path:
+        if not isinstance(value, str) or not value:
+            raise self.fail(self.manifest, field, "expected a file path relative to the pack")
+        path = self.root / value
+        if not path.is_file():
+            raise self.fail(self.manifest, field, f"file not found: {path}")
+        return path
+
+    def read(self) -> ActorPack:
+        fmt = self.data.get("format", FORMAT)
+        if fmt != FORMAT:
+            raise self.fail(self.manifest, "format", f"expected {FORMAT!r}, got {fmt!r}")
+        layout_ref = self.field("layout")
+        if not isinstance(layout_ref, str):
+            raise self.fail(self.manifest, "layout", "expected a layout name or file path")
+        local = self.root / layout_ref
+        self.layout = load_layout(local if local.is_file() else layout_ref)
+        size = self.field("image_size")
+        if not (isinstance(size, list) and len(size) == 2 and all(isinstance(v, int) and v > 0 for v in size)):
+            raise self.fail(self.manifest, "image_size", f"expected [W, H] positive integers, got {size!r}")
+        self.size = (size[0], size[1])
+        intrinsics = self.intrinsics()
+        model3d = self.model3d()
+        neutral = self.expression(self.field("neutral"), "neutral", "neutral")
+        standard = self.expression(self.field("standard"), "standard", "standard")
+        examples = self.expressions("examples", min_count=2)
+        teeth = self.expressions("teeth_examples", min_count=1)
+        captured = self.captured()
+        return ActorPack(
+            path=self.root,
+            name=str(self.data.get("name", self.root.name)),
+            layout=self.layout,
+            neutral=neutral,
+            standard=standard,
+            examples=examples,
+            teeth_examples=teeth,
+            captured_points=captured,
+            model3d=model3d,
+            intrinsics=intrinsics,
+            image_size=self.size,
+        )
+
+    def intrinsics(self) -> np.ndarray:
+        value = self.field("intrinsics")
+        try:
+            a = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise self.fail(self.manifest, "intrinsics", "expected a 3x3 list of numbers") from None
+        if a.shape != (3, 3) or not np.all(np.isfinite(a)):
+            raise self.fail(self.manifest, "intrinsics", f"expected a 3x3 matrix of finite numbers, got shape {a.shape}")
+        if a[0, 0] <= 0 or a[1, 1] <= 0 or not np.allclose(a[2], (0, 0, 1)) or a[1, 0] != 0:
+            raise self.fail(self.manifest, "intrinsics", "expected [[fx, s, u0], [0, fy, v0], [0, 0, 1]] with fx, fy > 0")
+        return a
+
+    def model3d(self) -> np.ndarray:
+        path = self.file(self.field("model3d"), "model3d")
+        return self.named_rows(path, "model3d", ("x", "y", "z"))
+
+    def named_rows(self, path: Path, field: str, columns: tuple[str, ...]) -> np.ndarray:
+        """Read a CSV ``name,<columns>`` into ``(N, len(columns))`` in layout order."""
+        try:
+            with path.open(newline="", encoding="utf-8") as fh:
+                rows = list(csv.reader(fh))
+        except (OSError, UnicodeDecodeError) as exc:
+            raise self.fail(path, field, f"cannot read CSV ({exc})") from None
+        header = ["name", *columns]
+        if not rows or [h.strip() for h in rows[0]] != header:
+            raise self.fail(path, field, f"expected header {','.join(header)}")
+        body = rows[1:]
+        n = self.layout.n_points
+        if len(body) != n:
+            raise self.fail(path, field, f"expected {n} points for layout {self.layout.name!r}, got {len(body)}")
+        out = np.full((n, len(columns)), np.nan)
+        for k, row in enumerate(body, start=2):
+            if len(row) != len(header):
+                raise self.fail(path, field, f"line {k}: expected {len(header)} values")
+            try:
+                index = self.layout.index(row[0].strip())
+            except KeyError:
+                raise self.fail(path, field, f"line {k}: unknown point name {row[0]!r}") from None
+            try:
+                out[index] = [float(v) for v in row[1:]]
+            except ValueError:
+                raise self.fail(path, field, f"line {k}: not a number") from None
+        missing = np.flatnonzero(np.isnan(out).any(axis=1))
+        if missing.size:
+            raise self.fail(path, field, f"point {self.layout.point_names[missing[0]]!r} missing or not finite")
+        if not np.all(np.isfinite(out)):
+            raise self.fail(path, field, "values must be finite")
+        return out
+
+    def points(self, path: Path, field: str) -> np.ndarray:
+        if path.suffix == ".npz":
+            pts = self.npz_points(path, field)
+        else:
+            pts = self.named_rows(path, field, ("x", "y"))
+        self.check_inside(pts, path, field)
+        return pts
+
+    def npz_points(self, path: Path, field: str) -> np.ndarray:
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                pts = np.asarray(z["points"], dtype=np.float64)
+        except KeyError:
+            raise self.fail(path, field, "npz has no array 'points'") from None
+        except (OSError, ValueError) as exc:
+            raise self.fail(path, field, f"cannot read npz ({exc})") from None
+        n = self.layout.n_points
+        if pts.ndim < 2 or pts.shape[-2:] != (n, 2):
+            raise self.fail(path, field, f"expected points of shape (..., {n}, 2) for layout {self.layout.name!r}, got {pts.shape}")
+        if not np.all(np.isfinite(pts)):
+            raise self.fail(path, field, "points must be finite")
+        return pts
+
+    def check_inside(self, pts: np.ndarray, path: Path, field: str) -> None:
+        w, h = self.size
+        flat = pts.reshape(-1, 2)
+        bad = (flat[:, 0] < -0.5) | (flat[:, 0] > w - 0.5) | (flat[:, 1] < -0.5) | (flat[:, 1] > h - 0.5)
+        if bad.any():
+            k = int(np.flatnonzero(bad)[0])
+            name = self.layout.point_names[k % self.layout.n_points]
+            x, y = flat[k]
+            raise self.fail(path, field, f"point {name!r} at ({x:.1f}, {y:.1f}) is outside the {w}x{h} image")
+
+    def image(self, path: Path, field: str) -> np.ndarray:
+        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if img is None:
+            raise self.fail(path, field, "cannot read image")
+        h, w = img.shape[:2]
+        if (w, h) != self.size:
+            raise self.fail(path, field, f"image is {w}x{h}, the manifest's image_size is {self.size[0]}x{self.size[1]}")
+        return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+    def expression(self, entry: Any, field: str, default_name: str) -> Expression:
+        if not isinstance(entry, dict):
+            raise self.fail(self.manifest, field, "expected a mapping with 'image' and 'points'")
+        image = self.image(self.file(entry.get("image"), f"{field}.image"), f"{field}.image")
+        points = self.points(self.file(entry.get("points"), f"{field}.points"), f"{field}.points")
+        if points.ndim != 2:
+            raise self.fail(self.manifest, f"{field}.points", "expected one face's points (N, 2)")
+        return Expression(name=str(entry.get("name", default_name)), image=image, points=points)
+
+    def expressions(self, key: str, *, min_count: int) -> list[Expression]:
+        entries = self.field(key)
+        if not isinstance(entries, list) or len(entries) < min_count:
+            raise self.fail(self.manifest, key, f"expected a list of at least {min_count} expressions")
+        return [self.expression(e, f"{key}[{k}]", f"{key}_{k}") for k, e in enumerate(entries)]
+
+    def captured(self) -> np.ndarray:
+        value = self.field("captured")
+        if isinstance(value, list):
+            pts = np.stack([self.points(self.file(v, f"captured[{k}]"), f"captured[{k}]") for k, v in enumerate(value)])
+        else:
+            path = self.file(value, "captured")
+            pts = self.npz_points(path, "captured")
+            self.check_inside(pts, path, "captured")
+        if pts.ndim != 3 or pts.shape[0] < 2:
+            raise self.fail(self.manifest, "captured", f"expected at least 2 captured geometries (K, N, 2), got {pts.shape}")
+        return pts

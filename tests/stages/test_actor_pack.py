@@ -1,0 +1,126 @@
+"""Actor packs load with their arrays intact; each kind of broken pack names the file and field."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from runner.stage import StageError
+from stages.actor_pack import PackError, load_pack
+from stages.layout import load_layout
+
+REPO = Path(__file__).resolve().parents[2]
+W, H = 40, 30
+
+
+def _write_points(path: Path, names, pts) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("name,x,y\n" + "".join(f"{n},{x},{y}\n" for n, (x, y) in zip(names, pts)))
+
+
+def _make_pack(root: Path, rng: np.random.Generator) -> dict:
+    """A tiny hand-made pack (random images and points) — independent of the fixture generator."""
+    layout = load_layout("zhang134")
+    names = layout.point_names
+    n = layout.n_points
+    truth = {}
+    entries = []
+    (root / "images").mkdir(parents=True)
+    for key in ("neutral", "standard", "ex0", "ex1", "teeth0"):
+        img = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+        cv2.imwrite(str(root / "images" / f"{key}.png"), img)
+        pts = rng.uniform([0, 0], [W - 1, H - 1], (n, 2))
+        order = rng.permutation(n)  # CSV rows in any order
+        _write_points(root / "points" / f"{key}.csv", [names[i] for i in order], pts[order])
+        truth[key] = (img[..., ::-1], pts)
+        entries.append(f"{{name: {key}, image: images/{key}.png, points: points/{key}.csv}}")
+    captured = rng.uniform([0, 0], [W - 1, H - 1], (3, n, 2))
+    np.savez(root / "captured.npz", points=captured)
+    model = rng.normal(size=(n, 3))
+    (root / "model3d.csv").write_text("name,x,y,z\n" + "".join(f"{nm},{a},{b},{c}\n" for nm, (a, b, c) in zip(names, model)))
+    (root / "pack.yaml").write_text(
+        "format: actor-pack/1\nname: tiny\nlayout: zhang134\n"
+        f"image_size: [{W}, {H}]\n"
+        "intrinsics: [[50, 0, 19.5], [0, 50, 14.5], [0, 0, 1]]\n"
+        "model3d: model3d.csv\n"
+        f"neutral: {entries[0]}\nstandard: {entries[1]}\n"
+        f"examples: [{entries[2]}, {entries[3]}]\nteeth_examples: [{entries[4]}]\n"
+        "captured: captured.npz\n"
+    )
+    truth["captured"] = captured
+    truth["model3d"] = model
+    return truth
+
+
+@pytest.fixture()
+def pack_dir(tmp_path: Path):
+    root = tmp_path / "pack"
+    truth = _make_pack(root, np.random.default_rng(3))
+    return root, truth
+
+
+def test_loads_what_was_written(pack_dir):
+    root, truth = pack_dir
+    pack = load_pack(root)
+    assert pack.name == "tiny" and pack.image_size == (W, H)
+    np.testing.assert_array_equal(pack.neutral.image, truth["neutral"][0])  # RGB order
+    np.testing.assert_allclose(pack.neutral.points, truth["neutral"][1], atol=1e-9)
+    np.testing.assert_allclose(pack.examples[1].points, truth["ex1"][1], atol=1e-9)
+    assert [e.name for e in pack.examples] == ["ex0", "ex1"]
+    np.testing.assert_allclose(pack.captured_points, truth["captured"])
+    np.testing.assert_allclose(pack.model3d, truth["model3d"], atol=1e-9)
+    assert pack.intrinsics.shape == (3, 3) and pack.layout.n_points == 134
+    assert load_pack(root / "pack.yaml").name == "tiny"
+
+
+def _replace(path: Path, old: str, new: str) -> None:
+    path.write_text(path.read_text().replace(old, new))
+
+
+@pytest.mark.parametrize(
+    "breakage, expect",
+    [
+        (lambda r: (r / "images" / "ex1.png").unlink(), ["pack.yaml", "examples[1].image", "file not found"]),
+        (lambda r: (r / "images" / "ex0.png").write_bytes(b"not a png"), ["ex0.png", "examples[0].image", "cannot read image"]),
+        (lambda r: _replace(r / "points" / "standard.csv", "\nchin,", "\nXchin,"), ["standard.csv", "standard.points", "unknown point name"]),
+        (lambda r: (r / "points" / "neutral.csv").write_text("".join((r / "points" / "neutral.csv").read_text().splitlines(True)[:-1])),
+         ["neutral.csv", "neutral.points", "expected 134 points"]),
+        (lambda r: _replace(r / "points" / "teeth0.csv", "\nnose_tip,", "\nnose_tip,900"), ["teeth0.csv", "teeth_examples[0].points", "outside the 40x30 image"]),
+        (lambda r: np.savez(r / "captured.npz", points=np.zeros((3, 100, 2))), ["captured.npz", "'captured'", "(..., 134, 2)"]),
+        (lambda r: np.savez(r / "captured.npz", other=np.zeros(3)), ["captured.npz", "no array 'points'"]),
+        (lambda r: _replace(r / "pack.yaml", "[0, 0, 1]]", "[0, 0, 2]]"), ["pack.yaml", "'intrinsics'"]),
+        (lambda r: _replace(r / "pack.yaml", "image_size: [40, 30]", "image_size: [41, 30]"), ["neutral.png", "image is 40x30"]),
+        (lambda r: _replace(r / "pack.yaml", "model3d: model3d.csv", "model3d: nothing.csv"), ["'model3d'", "file not found"]),
+        (lambda r: _replace(r / "pack.yaml", "layout: zhang134", "layout: nosuchlayout"), ["nosuchlayout", "cannot read"]),
+        (lambda r: (r / "pack.yaml").unlink(), ["pack.yaml", "cannot read manifest"]),
+    ],
+)
+def test_broken_pack_errors_name_file_and_field(pack_dir, breakage, expect):
+    root, _ = pack_dir
+    breakage(root)
+    with pytest.raises(StageError) as err:
+        load_pack(root)
+    msg = str(err.value)
+    assert "\n" not in msg
+    for part in expect:
+        assert part in msg, (part, msg)
+
+
+def test_pack_error_is_a_stage_error(pack_dir):
+    root, _ = pack_dir
+    shutil.rmtree(root / "images")
+    with pytest.raises(PackError):
+        load_pack(root)
+
+
+@pytest.mark.skipif(not (REPO / "fixtures" / "packs" / "target" / "pack.yaml").exists(), reason="fixtures not generated")
+def test_committed_fixture_packs_load():
+    for name in ("performer", "target"):
+        pack = load_pack(REPO / "fixtures" / "packs" / name)
+        assert 10 <= len(pack.examples) <= 15
+        assert 30 <= pack.captured_points.shape[0] <= 40
+        assert pack.teeth_examples and pack.standard.image.shape[:2] == pack.image_size[::-1]
