@@ -127,6 +127,10 @@ class FrameStage(Stage):
     """
 
     window: ClassVar[int] = 0
+    # False for stages cheaper to recompute than to read back from disk (decoding a clip): the
+    # runner then computes their chunks on demand while a downstream stage reads them, and keys
+    # their output by the chunk's cache key instead of by its bytes.
+    cached: ClassVar[bool] = True
 
     def stream_info(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> StreamInfo:
         """Frame count, rate and size of this stage's output stream; by default those of the

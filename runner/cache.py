@@ -1,0 +1,273 @@
+"""Content-addressed cache store: atomic entries, completion records, per-entry locks.
+
+Layout under the cache root (``--cache-dir``, ``$RUNNER_CACHE_DIR``, default ``.cache/runner``)::
+
+    entries/<key[:2]>/<key>/           one entry: data files + complete.json (written last)
+    tmp/<key>.<pid>.<token>/           an entry being written; moved into place with os.replace
+    locks/<key>.lock                   JSON {pid, host, started}: who is computing <key>
+
+An entry is written in ``tmp/``; its completion record ``complete.json`` is written last and
+the folder is then renamed into ``entries/`` in one ``os.replace``, so an entry is whole or
+absent, whatever moment a process dies. Data is ``.npy``/``.npz`` (never pickled), files, JSON.
+
+A lock names its holder's PID, host and process start time. A lock whose holder on this host
+is gone (or whose PID now belongs to a younger process) is stale and is removed by the next
+process that wants the entry; stale locks are broken under a host-wide ``flock`` so that two
+processes never both break one and steal a fresh lock.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import json
+import os
+import secrets
+import shutil
+import socket
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+COMPLETE = "complete.json"
+ENV_VAR = "RUNNER_CACHE_DIR"
+DEFAULT_DIR = Path(".cache/runner")
+POLL_S = 0.05
+
+
+def default_cache_dir() -> Path:
+    return Path(os.environ.get(ENV_VAR) or DEFAULT_DIR)
+
+
+@dataclass
+class Entry:
+    """A complete cache entry: its folder and its completion record."""
+
+    key: str
+    path: Path
+    record: dict[str, Any]
+
+
+def _process_start(pid: int) -> int | None:
+    """Start time of ``pid`` in clock ticks since boot (Linux ``/proc``), None if unknown."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return int(stat.rpartition(")")[2].split()[19])
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def holder_is_stale(holder: dict[str, Any]) -> bool:
+    """True if the process named in a lock (or tmp folder) record is gone from this host."""
+    if holder.get("host") != socket.gethostname():
+        return False
+    pid = int(holder.get("pid", -1))
+    if pid <= 0 or not _pid_alive(pid):
+        return True
+    started = holder.get("started")
+    return started is not None and _process_start(pid) not in (None, started)
+
+
+class CacheStore:
+    def __init__(self, root: Path):
+        self.root = Path(root)
+        self.entries_dir = self.root / "entries"
+        self.tmp_dir = self.root / "tmp"
+        self.locks_dir = self.root / "locks"
+        self._me = {"pid": os.getpid(), "host": socket.gethostname(), "started": _process_start(os.getpid())}
+
+    # -- entries ---------------------------------------------------------------------------
+
+    def entry_path(self, key: str) -> Path:
+        return self.entries_dir / key[:2] / key
+
+    def lookup(self, key: str) -> Entry | None:
+        """The complete entry for ``key``, or None."""
+        path = self.entry_path(key)
+        try:
+            record = json.loads((path / COMPLETE).read_text())
+        except (OSError, ValueError):
+            return None
+        return Entry(key, path, record)
+
+    @contextmanager
+    def writing(self, key: str) -> Iterator[Path]:
+        """A fresh temporary folder to write the entry ``key`` into; removed on exit unless
+        :meth:`commit` moved it into place."""
+        self.tmp_dir.mkdir(parents=True, exist_ok=True)
+        tmp = self.tmp_dir / f"{key}.{os.getpid()}.{secrets.token_hex(4)}"
+        tmp.mkdir()
+        try:
+            yield tmp
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+    def commit(self, key: str, tmp: Path, record: dict[str, Any], *, replace: bool = False) -> Entry:
+        """Write the completion record into ``tmp`` and move it to the entry's place.
+
+        With ``replace`` an existing entry is swapped out (``--force``); otherwise an entry
+        committed meanwhile by another process wins and ``tmp`` is dropped.
+        """
+        record = {**record, "key": key, "created": time.time(), "pid": os.getpid()}
+        (tmp / COMPLETE).write_text(json.dumps(record, indent=1, sort_keys=True))
+        final = self.entry_path(key)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        if replace and final.exists():
+            old = self.tmp_dir / f"{key}.{os.getpid()}.{secrets.token_hex(4)}.old"
+            try:
+                os.replace(final, old)
+            except FileNotFoundError:
+                pass
+            shutil.rmtree(old, ignore_errors=True)
+        try:
+            os.replace(tmp, final)
+        except OSError as exc:
+            if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST):
+                raise
+        entry = self.lookup(key)
+        if entry is None:
+            raise OSError(f"cache entry {final} vanished while being committed")
+        return entry
+
+    def touch(self, entry: Entry) -> None:
+        """Record a use of ``entry`` (its folder's mtime), which ``gc --older-than`` reads."""
+        try:
+            os.utime(entry.path)
+        except OSError:
+            pass
+
+    def iter_entries(self) -> Iterator[Entry]:
+        if not self.entries_dir.is_dir():
+            return
+        for shard in sorted(self.entries_dir.iterdir()):
+            for path in sorted(shard.iterdir()):
+                entry = self.lookup(path.name)
+                if entry is not None:
+                    yield entry
+
+    # -- locks -----------------------------------------------------------------------------
+
+    @contextmanager
+    def locked(self, key: str, *, on_wait=None) -> Iterator[None]:
+        """Hold the lock of entry ``key``; waits while a live process holds it, breaks it if
+        its holder is dead. ``on_wait(holder)`` is called once when waiting starts."""
+        self.locks_dir.mkdir(parents=True, exist_ok=True)
+        path = self.locks_dir / f"{key}.lock"
+        mine = json.dumps({**self._me, "time": time.time(), "token": secrets.token_hex(8)})
+        waited = False
+        while True:
+            tmp = path.with_name(f"{path.name}.{os.getpid()}.{secrets.token_hex(4)}")
+            tmp.write_text(mine)
+            try:
+                os.link(tmp, path)
+                break
+            except FileExistsError:
+                pass
+            finally:
+                tmp.unlink()
+            holder = self._read_lock(path)
+            if holder is not None and holder_is_stale(holder):
+                self._break(path, holder)
+                continue
+            if not waited and on_wait is not None and holder is not None:
+                on_wait(holder)
+            waited = True
+            time.sleep(POLL_S)
+        try:
+            yield
+        finally:
+            try:
+                if path.read_text() == mine:
+                    path.unlink()
+            except OSError:
+                pass
+
+    @staticmethod
+    def _read_lock(path: Path) -> dict[str, Any] | None:
+        try:
+            return json.loads(path.read_text())
+        except (OSError, ValueError):
+            return None
+
+    def _break(self, path: Path, holder: dict[str, Any]) -> None:
+        """Remove a stale lock, unless someone replaced it meanwhile."""
+        with open(self.locks_dir / ".break", "a") as guard:
+            fcntl.flock(guard, fcntl.LOCK_EX)
+            if self._read_lock(path) == holder:
+                path.unlink(missing_ok=True)
+
+    def locks(self) -> list[tuple[Path, dict[str, Any] | None]]:
+        if not self.locks_dir.is_dir():
+            return []
+        return [(p, self._read_lock(p)) for p in sorted(self.locks_dir.glob("*.lock"))]
+
+    # -- maintenance -----------------------------------------------------------------------
+
+    def gc(self, *, older_than_s: float | None = None) -> dict[str, int]:
+        """Remove what no live process needs: temporary folders and locks of dead processes,
+        and, with ``older_than_s``, complete entries not used for that long.
+
+        Returns counts ``{"tmp": n, "locks": n, "entries": n, "bytes": n}``.
+        """
+        counts = {"tmp": 0, "locks": 0, "entries": 0, "bytes": 0}
+        if self.tmp_dir.is_dir():
+            host = socket.gethostname()
+            for tmp in self.tmp_dir.iterdir():
+                pid = tmp.name.split(".")[1] if tmp.name.count(".") >= 2 else "-1"
+                if holder_is_stale({"pid": int(pid) if pid.isdigit() else -1, "host": host}):
+                    counts["bytes"] += _size(tmp)
+                    shutil.rmtree(tmp, ignore_errors=True)
+                    counts["tmp"] += 1
+        for path, holder in self.locks():
+            if holder is not None and holder_is_stale(holder):
+                self._break(path, holder)
+                counts["locks"] += 1
+        if older_than_s is not None:
+            limit = time.time() - older_than_s
+            for entry in list(self.iter_entries()):
+                if entry.path.stat().st_mtime < limit:
+                    counts["bytes"] += _size(entry.path)
+                    self._remove_entry(entry)
+                    counts["entries"] += 1
+        return counts
+
+    def clear(self) -> dict[str, int]:
+        """Remove every entry and temporary folder (locks of live runs are left alone)."""
+        counts = {"entries": 0, "bytes": 0}
+        for entry in list(self.iter_entries()):
+            counts["bytes"] += _size(entry.path)
+            self._remove_entry(entry)
+            counts["entries"] += 1
+        counts["tmp"] = self.gc()["tmp"]
+        if self.entries_dir.is_dir():
+            shutil.rmtree(self.entries_dir, ignore_errors=True)
+        return counts
+
+    def _remove_entry(self, entry: Entry) -> None:
+        """Rename the entry away first (so it vanishes atomically), then delete it."""
+        self.tmp_dir.mkdir(parents=True, exist_ok=True)
+        gone = self.tmp_dir / f"{entry.key}.{os.getpid()}.{secrets.token_hex(4)}.old"
+        try:
+            os.replace(entry.path, gone)
+        except OSError:
+            return
+        shutil.rmtree(gone, ignore_errors=True)
+
+
+def _size(path: Path) -> int:
+    if path.is_file():
+        return path.stat().st_size
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())

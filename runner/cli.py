@@ -1,0 +1,212 @@
+"""The ``runner`` command: run a pipeline, show its graph, list stages, manage the cache.
+
+Exit codes: 0 ok, 1 a stage failed, 2 usage or configuration error, 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import sys
+import time
+from pathlib import Path
+
+import click
+
+from runner.cache import DEFAULT_DIR, ENV_VAR, CacheStore, default_cache_dir, holder_is_stale
+from runner.config import ConfigError, Issue, Where, bind_inputs, load_pipeline
+from runner.dag import to_dot, to_mermaid
+from runner.execute import Options, Runner, StageFailed, resolve_device
+from runner.registry import Registry, RegistryError
+from runner.stage import FrameStage
+
+EXIT_OK, EXIT_STAGE, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+cache_dir_option = click.option(
+    "--cache-dir", type=click.Path(file_okay=False, path_type=Path), envvar=ENV_VAR, default=None,
+    help=f"Cache folder [env {ENV_VAR}; default {DEFAULT_DIR} under the current folder].")
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+def cli() -> None:
+    """Run a DAG of stages declared in a pipeline.yaml, caching every result so that an
+    interrupted run resumes where it stopped."""
+
+
+@cli.command()
+@click.argument("pipeline", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--in", "clip", type=click.Path(path_type=Path), help="The clip bound to the pipeline's video input.")
+@click.option("--input", "named", multiple=True, metavar="NAME=PATH", help="Bind any pipeline input (repeatable).")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("out"), show_default=True,
+              help="Where `files` outputs are published, one folder per stage.")
+@click.option("--dry-run", is_flag=True, help="Say, per stage, whether it is cached or will run and why; run nothing.")
+@click.option("--force", multiple=True, metavar="STAGE", help="Recompute STAGE even if cached (repeatable).")
+@click.option("--until", metavar="STAGE", help="Run only STAGE and the stages it depends on.")
+@click.option("--set", "overrides", multiple=True, metavar="STAGE.PARAM=VALUE",
+              help="Override a parameter, typed by its schema (repeatable).")
+@click.option("--device", type=click.Choice(["cpu", "cuda", "auto"]), default="auto", show_default=True,
+              help="Where torch stages compute; auto = CUDA when available.")
+@click.option("--jobs", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Chunks of a frame stage computed at once (threads).")
+@click.option("--log-json", type=click.Path(dir_okay=False, path_type=Path),
+              help="Write one JSON event per line (stages, chunks, outcome) to this file.")
+@cache_dir_option
+def run(pipeline: Path, clip: Path | None, named: tuple[str, ...], out: Path, dry_run: bool, force: tuple[str, ...],
+        until: str | None, overrides: tuple[str, ...], device: str, jobs: int, log_json: Path | None,
+        cache_dir: Path | None) -> int:
+    """Run PIPELINE (a pipeline.yaml)."""
+    loaded = load_pipeline(pipeline, Registry.from_entry_points(), overrides=list(overrides))
+    unknown = [Issue(Where(flag), name, "unknown stage in this pipeline")
+               for flag, names in (("--force", force), ("--until", (until,) if until else ()))
+               for name in names if name not in loaded.stages]
+    if unknown:
+        raise ConfigError(unknown)
+    bound = bind_inputs(loaded, clip=clip, named=list(named))
+    resolved = resolve_device(device)
+    if resolved == "cuda" and device == "cuda":
+        import torch
+
+        if not torch.cuda.is_available():
+            raise click.UsageError("--device cuda: CUDA is not available on this machine")
+    log_file = open(log_json, "w", encoding="utf-8") if log_json else None
+
+    def log(event: dict) -> None:
+        if log_file is not None:
+            log_file.write(json.dumps({"time": time.time(), **event}) + "\n")
+            log_file.flush()
+
+    options = Options(cache=CacheStore(cache_dir or default_cache_dir()), device=resolved, jobs=jobs,
+                      force=frozenset(force), until=until, dry_run=dry_run, out=out,
+                      progress=sys.stderr.isatty(), log=log, echo=click.echo)
+    if dry_run:
+        click.echo(f"dry run of {pipeline}: nothing is run")
+    started = time.perf_counter()
+    try:
+        Runner(loaded, bound, options).run()
+        seconds = time.perf_counter() - started
+        log({"event": "run_end", "status": "ok", "exit_code": EXIT_OK, "seconds": seconds})
+    except StageFailed as exc:
+        log({"event": "run_end", "status": "failed", "exit_code": EXIT_STAGE, "error": str(exc)})
+        raise
+    except KeyboardInterrupt:
+        log({"event": "run_end", "status": "interrupted", "exit_code": EXIT_INTERRUPTED})
+        raise
+    finally:
+        if log_file is not None:
+            log_file.close()
+    if not dry_run:
+        click.echo(f"done in {seconds:.2f} s; outputs in {out}/")
+    return EXIT_OK
+
+
+@cli.command()
+@click.argument("pipeline", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--mermaid", "fmt", flag_value="mermaid", default=True, help="Mermaid flowchart (default).")
+@click.option("--dot", "fmt", flag_value="dot", help="Graphviz dot.")
+def dag(pipeline: Path, fmt: str) -> int:
+    """Print the stage graph of PIPELINE."""
+    loaded = load_pipeline(pipeline, Registry.from_entry_points())
+    click.echo(to_dot(loaded) if fmt == "dot" else to_mermaid(loaded), nl=False)
+    return EXIT_OK
+
+
+@cli.command()
+def stages() -> int:
+    """List the registered stages with their ports and parameters."""
+    registry = Registry.from_entry_points()
+    for name in registry.names():
+        cls = registry.get(name)
+        shape = "frame" if issubclass(cls, FrameStage) else "sequence"
+        click.echo(f"{name}  (v{cls.version}, {shape} stage)  {cls.doc}")
+        for port, kind in cls.inputs.items():
+            optional = ", optional" if port in cls.optional_inputs else ""
+            click.echo(f"    in   {port}: {kind}{optional}")
+        for port, kind in cls.outputs.items():
+            click.echo(f"    out  {port}: {kind}")
+        for p in cls.params:
+            choices = f" one of {', '.join(map(repr, p.choices))};" if p.choices else ""
+            click.echo(f"    param {p.name}: {p.type.__name__} = {p.default!r} —{choices} {p.help}")
+    return EXIT_OK
+
+
+@cli.group()
+def cache() -> None:
+    """Inspect and clean the cache."""
+
+
+@cache.command("ls")
+@cache_dir_option
+def cache_ls(cache_dir: Path | None) -> int:
+    """List complete entries (newest use last) and current locks."""
+    store = CacheStore(cache_dir or default_cache_dir())
+    total = 0
+    rows = sorted(store.iter_entries(), key=lambda e: e.path.stat().st_mtime)
+    for entry in rows:
+        size = sum(p.stat().st_size for p in entry.path.rglob("*") if p.is_file())
+        total += size
+        record = entry.record
+        what = "chunk {}-{}".format(*record["range"]) if "range" in record else ("stream info" if "info" in record else "whole")
+        age = time.time() - entry.path.stat().st_mtime
+        click.echo(f"{entry.key[:16]}  {record.get('stage', '?'):<14} {record.get('uses', '?'):<18} "
+                   f"{what:<14} {size / 1e6:9.2f} MB  used {age / 3600:7.1f} h ago")
+    for path, holder in store.locks():
+        state = "stale" if holder and holder_is_stale(holder) else "held"
+        click.echo(f"lock {path.name[:16]}  pid {holder.get('pid') if holder else '?'}  {state}")
+    click.echo(f"{len(rows)} entries, {total / 1e6:.2f} MB in {store.root}")
+    return EXIT_OK
+
+
+@cache.command("gc")
+@click.option("--older-than", type=click.FloatRange(min=0), metavar="DAYS",
+              help="Also remove entries not used for DAYS days.")
+@cache_dir_option
+def cache_gc(older_than: float | None, cache_dir: Path | None) -> int:
+    """Remove leftovers of dead runs (temporary folders, stale locks) and, with --older-than,
+    entries not used recently."""
+    store = CacheStore(cache_dir or default_cache_dir())
+    counts = store.gc(older_than_s=None if older_than is None else older_than * 86400)
+    click.echo(f"removed {counts['entries']} entries, {counts['tmp']} temporary folders, {counts['locks']} stale locks "
+               f"({counts['bytes'] / 1e6:.2f} MB)")
+    return EXIT_OK
+
+
+@cache.command("clear")
+@cache_dir_option
+def cache_clear(cache_dir: Path | None) -> int:
+    """Remove every cache entry."""
+    store = CacheStore(cache_dir or default_cache_dir())
+    counts = store.clear()
+    click.echo(f"removed {counts['entries']} entries ({counts['bytes'] / 1e6:.2f} MB) from {store.root}")
+    return EXIT_OK
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console-script entry point: maps errors to exit codes, one line each, no traceback."""
+    signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        code = cli.main(args=argv, prog_name="runner", standalone_mode=False)
+    except click.ClickException as exc:
+        exc.show()
+        code = exc.exit_code
+    except ConfigError as exc:
+        for issue in exc.issues:
+            click.echo(f"error: {issue}", err=True)
+        code = EXIT_USAGE
+    except RegistryError as exc:
+        click.echo(f"error: {exc}", err=True)
+        code = EXIT_USAGE
+    except StageFailed as exc:
+        click.echo(f"error: {exc}", err=True)
+        code = EXIT_STAGE
+    except (KeyboardInterrupt, click.Abort):
+        click.echo("interrupted", err=True)
+        code = EXIT_INTERRUPTED
+    sys.exit(code or 0)
+
+
+if __name__ == "__main__":
+    main()

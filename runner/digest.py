@@ -1,0 +1,94 @@
+"""Content digests (sha256) of arrays, bundles, files and folders, and cache keys.
+
+A cache key is the sha256 of a canonical JSON document (sorted keys, no spaces, UTF-8) holding
+everything that determines a result: stage name and version, parameters, input digests, chunk
+range, the device and the versions of the libraries that change results.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import importlib.metadata
+import json
+import platform
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+# Distributions whose version can change a stage's numbers. The OpenCV wheel goes by several
+# distribution names; whichever are installed are recorded.
+RESULT_LIBRARIES = (
+    "numpy",
+    "scipy",
+    "torch",
+    "kornia",
+    "opencv-python",
+    "opencv-python-headless",
+    "opencv-contrib-python",
+    "opencv-contrib-python-headless",
+    "av",
+    "OpenImageIO",
+)
+_BLOCK = 1 << 20
+
+
+def canonical_json(value: Any) -> str:
+    """JSON with sorted keys and no whitespace: equal values give equal text."""
+    return json.dumps(value, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
+
+
+def cache_key(material: Mapping[str, Any]) -> str:
+    """sha256 hex digest of :func:`canonical_json` of ``material``."""
+    return hashlib.sha256(canonical_json(material).encode("utf-8")).hexdigest()
+
+
+@functools.cache
+def library_versions() -> dict[str, str]:
+    """Installed versions of :data:`RESULT_LIBRARIES` (read from package metadata, without
+    importing them) and of Python; a library that is not installed is recorded as such."""
+    versions = {"python": platform.python_version()}
+    for dist in RESULT_LIBRARIES:
+        try:
+            versions[dist] = importlib.metadata.version(dist)
+        except importlib.metadata.PackageNotFoundError:
+            if not dist.startswith("opencv"):
+                versions[dist] = "not installed"
+    return versions
+
+
+def array_digest(array: np.ndarray) -> str:
+    """sha256 over dtype, shape and the C-order bytes of ``array`` (object arrays refused)."""
+    if array.dtype.hasobject:
+        raise TypeError("object arrays cannot be hashed or stored without pickle")
+    h = hashlib.sha256(canonical_json({"dtype": array.dtype.str, "shape": list(array.shape)}).encode())
+    h.update(memoryview(np.ascontiguousarray(array)).cast("B"))
+    return h.hexdigest()
+
+
+def bundle_digest(bundle: Mapping[str, np.ndarray]) -> str:
+    """sha256 over the sorted keys of a bundle and the :func:`array_digest` of each value."""
+    return cache_key({name: array_digest(np.asarray(bundle[name])) for name in sorted(bundle)})
+
+
+def file_digest(path: Path) -> str:
+    """sha256 of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(_BLOCK):
+            h.update(block)
+    return h.hexdigest()
+
+
+def tree_digest(folder: Path) -> str:
+    """sha256 over the relative paths (POSIX, sorted) and byte digests of every file under
+    ``folder``; empty folders and file times do not count."""
+    files = sorted(p for p in Path(folder).rglob("*") if p.is_file())
+    return cache_key([[p.relative_to(folder).as_posix(), file_digest(p)] for p in files])
+
+
+def combine(parts: list[str]) -> str:
+    """One digest for an ordered list of digests (a frame stream from its chunks)."""
+    return cache_key(parts)

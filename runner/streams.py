@@ -1,0 +1,91 @@
+"""Frame streams handed to stages: chunks read lazily from cache entries, or computed on demand.
+
+Both implement :class:`runner.stage.FrameStream`: ``read(start, stop)`` with indices clamped to
+the clip by edge replication, and ``chunks()`` over the whole clip in order. Only the chunks a
+read touches are loaded, so no stage holds a whole clip of images in memory.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+
+from runner.stage import StreamInfo
+
+
+def chunk_ranges(frames: int, chunk_frames: int) -> list[tuple[int, int]]:
+    """``[(start, stop), ...]`` covering ``[0, frames)`` in chunks of ``chunk_frames``."""
+    return [(s, min(s + chunk_frames, frames)) for s in range(0, frames, chunk_frames)]
+
+
+class ChunkedStream:
+    """A frame stream made of consecutive chunks; subclasses say how a chunk is obtained."""
+
+    def __init__(self, info: StreamInfo, ranges: list[tuple[int, int]]):
+        self.info = info
+        self.ranges = ranges
+        self._starts = np.array([s for s, _ in ranges], dtype=np.int64)
+
+    def chunk(self, index: int, *, mmap: bool = False) -> np.ndarray:
+        raise NotImplementedError
+
+    def read(self, start: int, stop: int) -> np.ndarray:
+        """Frames ``[start, stop)`` as ``(stop - start, H, W, C)``; indices outside the clip
+        repeat the first or last frame."""
+        wanted = np.clip(np.arange(start, stop), 0, self.info.frames - 1)
+        if wanted.size == 0:
+            raise ValueError(f"empty frame range [{start}, {stop})")
+        which = np.searchsorted(self._starts, wanted, side="right") - 1
+        parts = []
+        for index in np.unique(which):
+            frames = self.chunk(int(index), mmap=True)
+            parts.append(frames[wanted[which == index] - self.ranges[index][0]])
+        return np.ascontiguousarray(np.concatenate(parts)) if len(parts) > 1 else np.array(parts[0])
+
+    def chunks(self) -> Iterator[tuple[int, np.ndarray]]:
+        for index, (start, _) in enumerate(self.ranges):
+            yield start, self.chunk(index)
+
+
+class CachedStream(ChunkedStream):
+    """Chunks stored as ``.npy`` files in complete cache entries."""
+
+    def __init__(self, info: StreamInfo, ranges: list[tuple[int, int]], files: list[Path]):
+        super().__init__(info, ranges)
+        self.files = files
+
+    def chunk(self, index: int, *, mmap: bool = False) -> np.ndarray:
+        return np.load(self.files[index], mmap_mode="r" if mmap else None, allow_pickle=False)
+
+
+class ComputedStream(ChunkedStream):
+    """Chunks computed when first read by ``compute(index)``, strictly in order where possible
+    (a decoder then never seeks back), keeping the last few in memory for temporal windows and
+    parallel readers. Thread-safe."""
+
+    def __init__(self, info: StreamInfo, ranges: list[tuple[int, int]], compute: Callable[[int], np.ndarray],
+                 *, keep: int = 3):
+        super().__init__(info, ranges)
+        self._compute = compute
+        self._keep = keep
+        self._recent: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._next = 0
+        self._lock = threading.Lock()
+
+    def chunk(self, index: int, *, mmap: bool = False) -> np.ndarray:
+        with self._lock:
+            if index in self._recent:
+                self._recent.move_to_end(index)
+                return self._recent[index]
+            first = self._next if self._next <= index < self._next + self._keep else index
+            for i in range(first, index + 1):
+                self._recent[i] = self._compute(i)
+                self._recent.move_to_end(i)
+                while len(self._recent) > self._keep:
+                    self._recent.popitem(last=False)
+            self._next = index + 1
+            return self._recent[index]

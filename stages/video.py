@@ -1,0 +1,259 @@
+"""Video in and out (PyAV): the ``video.decode`` frame stage, a reusable :class:`VideoWriter`,
+the ``write.video`` stage, and ``image.gray``, a trivial frame stage that exercises the runner.
+
+Frames in memory are RGB ``uint8`` arrays ``(B, H, W, 3)`` (or ``(B, H, W, 1)`` grayscale).
+Bad input (missing file, not a video, no frames, truncated or corrupt stream, a pixel format
+that cannot be converted to RGB) raises :class:`runner.stage.StageError` naming the file.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping
+from fractions import Fraction
+from pathlib import Path
+from typing import Any
+
+import av
+import cv2
+import numpy as np
+
+from runner.stage import Context, FrameStage, Param, SequenceStage, StageError, StreamInfo
+from stages.color import to_uint8
+
+CODECS = {"h264": ("libx264", "yuv420p", ".mp4"), "ffv1": ("ffv1", "bgr0", ".mkv")}
+
+
+def _open(path: Path) -> tuple[av.container.InputContainer, av.video.stream.VideoStream]:
+    """Open ``path`` and its first video stream, or raise a one-line :class:`StageError`."""
+    if not path.is_file():
+        raise StageError(f"{path}: no such file")
+    try:
+        container = av.open(str(path))
+    except (av.FFmpegError, OSError) as exc:
+        raise StageError(f"{path}: not a readable video ({_reason(exc)})") from None
+    if not container.streams.video:
+        container.close()
+        raise StageError(f"{path}: contains no video frames (no video stream)")
+    return container, container.streams.video[0]
+
+
+def _reason(exc: BaseException) -> str:
+    return getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
+
+
+def _to_rgb(frame: av.VideoFrame, path: Path) -> np.ndarray:
+    try:
+        return frame.to_ndarray(format="rgb24")
+    except (av.FFmpegError, OSError, ValueError) as exc:
+        raise StageError(f"{path}: unsupported pixel format {frame.format.name} ({_reason(exc)})") from None
+
+
+def probe(path: Path) -> StreamInfo:
+    """Frame count (counted by demuxing, not from header metadata), rate and size of the first
+    video stream of ``path``; decodes the first frame to check the pixel format converts."""
+    container, stream = _open(path)
+    with container:
+        rate = stream.average_rate or stream.guessed_rate
+        try:
+            count = sum(1 for packet in container.demux(stream) if packet.size)
+            container.seek(0)
+            first = next(container.decode(stream), None)
+        except av.FFmpegError as exc:
+            raise StageError(f"{path}: corrupt or truncated stream ({_reason(exc)})") from None
+        if count == 0 or first is None:
+            raise StageError(f"{path}: contains no video frames")
+        if not rate:
+            raise StageError(f"{path}: the video stream has no frame rate")
+        _to_rgb(first, path)
+        return StreamInfo(frames=count, fps=float(rate), width=first.width, height=first.height)
+
+
+class _Reader:
+    """Sequential decoder of one file: :meth:`read` returns the next frames; a read that does not
+    continue where the last one stopped reopens the file and decodes up to its start."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.position = 0
+        self._container, stream = _open(path)
+        self._frames: Iterator[av.VideoFrame] = self._container.decode(stream)
+
+    def read(self, start: int, stop: int) -> np.ndarray:
+        if start < self.position:
+            self.close()
+            self.__init__(self.path)
+        out = []
+        try:
+            while self.position < stop:
+                frame = next(self._frames, None)
+                if frame is None:
+                    raise StageError(f"{self.path}: truncated stream: frame {self.position} missing "
+                                     f"(expected at least {stop} frames)")
+                if self.position >= start:
+                    out.append(_to_rgb(frame, self.path))
+                self.position += 1
+        except av.FFmpegError as exc:
+            raise StageError(f"{self.path}: corrupt or truncated stream at frame {self.position} "
+                             f"({_reason(exc)})") from None
+        return np.stack(out)
+
+    def close(self) -> None:
+        self._container.close()
+
+
+class VideoDecode(FrameStage):
+    """Decode a clip to RGB frames, chunk by chunk (not cached: decoding is cheaper than
+    reading raw frames back)."""
+
+    name = "video.decode"
+    version = "1"
+    doc = "Decode the first video stream of a file into RGB uint8 frames (PyAV)."
+    inputs = {"video": "video"}
+    outputs = {"frames": "frames"}
+    cached = False
+
+    def __init__(self) -> None:
+        self._reader: _Reader | None = None
+
+    def stream_info(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> StreamInfo:
+        return probe(Path(inputs["video"]))
+
+    def process(self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any],
+                ctx: Context) -> dict[str, Any]:
+        """Frames ``[start, stop)`` as ``(stop - start, H, W, 3)`` uint8 RGB."""
+        path = Path(inputs["video"])
+        if self._reader is None or self._reader.path != path:
+            self._reader = _Reader(path)
+        return {"frames": self._reader.read(start, stop)}
+
+
+class ImageGray(FrameStage):
+    """Luma of RGB frames (ITU-R BT.601 weights, OpenCV's ``COLOR_RGB2GRAY``)."""
+
+    name = "image.gray"
+    version = "1"
+    doc = "Convert RGB frames to one-channel grayscale (BT.601 luma)."
+    inputs = {"frames": "frames"}
+    outputs = {"frames": "frames"}
+
+    def process(self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any],
+                ctx: Context) -> dict[str, Any]:
+        """``(B, H, W, 3)`` uint8 RGB -> ``(B, H, W, 1)`` uint8, Y = 0.299 R + 0.587 G + 0.114 B."""
+        return {"frames": to_gray(inputs["frames"].read(start, stop))}
+
+
+def to_gray(frames: np.ndarray) -> np.ndarray:
+    """``(B, H, W, 3)`` uint8 RGB -> ``(B, H, W, 1)`` uint8 BT.601 luma."""
+    b, h, w, _ = frames.shape
+    gray = cv2.cvtColor(np.ascontiguousarray(frames).reshape(b * h, w, 3), cv2.COLOR_RGB2GRAY)
+    return gray.reshape(b, h, w, 1)
+
+
+class VideoWriter:
+    """Encode RGB (or grayscale) frames to a video file.
+
+    Parameters
+    ----------
+    path
+        Output file; ``.mp4`` for ``h264``, ``.mkv`` for ``ffv1`` is conventional.
+    fps
+        Frame rate (frames per second); stored as a fraction (29.97 -> 30000/1001).
+    width, height
+        Frame size in px. H.264 4:2:0 needs even sizes: odd ones are padded by one row/column
+        repeating the last, so the decoded video is ``(height + height % 2, width + width % 2)``.
+    codec
+        ``"h264"``: libx264, yuv420p, ``+faststart`` MP4 (plays in browsers).
+        ``"ffv1"``: FFV1 lossless 8-bit RGB (decodes to exactly the frames written).
+    crf
+        x264 constant rate factor, 0 (lossless luma) .. 51; ignored by FFV1.
+
+    Output is bit-exact across runs (``+bitexact`` muxing, frame i at pts i).
+    """
+
+    def __init__(self, path: Path, *, fps: float, width: int, height: int, codec: str = "h264", crf: int = 18):
+        if codec not in CODECS:
+            raise StageError(f"{path}: unknown codec {codec!r} (expected one of {', '.join(CODECS)})")
+        if not 0 <= crf <= 51:
+            raise StageError(f"{path}: crf must be within 0..51, got {crf}")
+        encoder, pix_fmt, _ = CODECS[codec]
+        self.path, self.width, self.height = Path(path), width, height
+        self._pad = (height % 2, width % 2) if codec == "h264" else (0, 0)
+        options = {"fflags": "+bitexact"}
+        if codec == "h264":
+            options["movflags"] = "+faststart"
+        self._container = av.open(str(path), "w", options=options)
+        rate = Fraction(fps).limit_denominator(1001)
+        self._time_base = 1 / rate
+        self._stream = self._container.add_stream(encoder, rate=rate)
+        self._stream.codec_context.time_base = self._time_base
+        self._stream.width = width + self._pad[1]
+        self._stream.height = height + self._pad[0]
+        self._stream.pix_fmt = pix_fmt
+        if codec == "h264":
+            # MB-tree rate control is not bit-exact from run to run on small frames; without it
+            # the encoder output is a function of the frames alone.
+            self._stream.options = {"crf": str(crf), "x264-params": "mbtree=0"}
+        self._count = 0
+
+    def write(self, frames: np.ndarray) -> None:
+        """Append frames ``(B, H, W, 3)`` uint8 RGB or ``(B, H, W, 1)`` uint8 gray."""
+        if frames.dtype != np.uint8 or frames.ndim != 4 or frames.shape[1:3] != (self.height, self.width) \
+                or frames.shape[3] not in (1, 3):
+            raise StageError(f"{self.path}: expected frames (B, {self.height}, {self.width}, 3 or 1) uint8, "
+                             f"got {frames.shape} {frames.dtype}")
+        if any(self._pad):
+            frames = np.pad(frames, ((0, 0), (0, self._pad[0]), (0, self._pad[1]), (0, 0)), mode="edge")
+        for image in frames:
+            if image.shape[2] == 1:
+                frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(image[:, :, 0]), format="gray")
+            else:
+                frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(image), format="rgb24")
+            # Convert here, not inside encode(): PyAV's implicit conversion is not bit-exact
+            # from one run to the next.
+            frame = frame.reformat(format=self._stream.pix_fmt)
+            frame.pts = self._count
+            frame.time_base = self._time_base
+            self._count += 1
+            self._container.mux(self._stream.encode(frame))
+
+    def close(self) -> None:
+        """Flush the encoder and finish the file."""
+        if self._container is not None:
+            self._container.mux(self._stream.encode(None))
+            self._container.close()
+            self._container = None
+
+    def __enter__(self) -> VideoWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class WriteVideo(SequenceStage):
+    """Encode a frame stream to one video file (H.264 MP4 or FFV1 MKV)."""
+
+    name = "write.video"
+    version = "1"
+    doc = "Encode frames (uint8, or float sRGB in [0, 1]) to a video file: H.264 MP4 or FFV1 MKV."
+    inputs = {"frames": "frames"}
+    outputs = {"video": "files"}
+    params = (
+        Param("codec", str, "h264", "h264 (yuv420p MP4, plays in browsers) or ffv1 (lossless RGB MKV)",
+              choices=tuple(CODECS)),
+        Param("crf", int, 18, "x264 constant rate factor 0..51 (lower = better); ignored by ffv1"),
+        Param("filename", str, "video", "file name without extension"),
+    )
+
+    def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
+        if not params["filename"] or "/" in params["filename"] or params["filename"].startswith("."):
+            raise StageError(f"write.video: filename {params['filename']!r} must be a plain file name")
+        stream = inputs["frames"]
+        info = stream.info
+        path = ctx.files_dir("video") / f"{params['filename']}{CODECS[params['codec']][2]}"
+        with VideoWriter(path, fps=info.fps, width=info.width, height=info.height,
+                         codec=params["codec"], crf=params["crf"]) as writer:
+            for _, frames in stream.chunks():
+                writer.write(to_uint8(frames))
+                ctx.progress(len(frames))
+        return {"video": None}

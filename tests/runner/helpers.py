@@ -1,0 +1,148 @@
+"""Test stages, a throw-away plugin distribution that registers them, and a CLI launcher.
+
+The stages are registered through the entry-point group exactly as a third-party package would
+(a ``*.dist-info`` folder with ``entry_points.txt`` on ``PYTHONPATH``), together with the
+built-in video stages.
+
+Environment knobs (read by the stages, never part of their cache keys) slow them down so that
+a test can kill a run at a chosen moment: ``RUNNER_TEST_SLEEP`` seconds per chunk of
+``test.add``, ``RUNNER_TEST_WRITE_SLEEP`` seconds per chunk written by ``test.slow_write``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from runner.stage import Context, FrameStage, Param, SequenceStage
+from stages.video import WriteVideo
+
+REPO = Path(__file__).resolve().parents[2]
+DATA = Path(__file__).resolve().parent / "data"
+TINY = REPO / "fixtures" / "clips" / "tiny.mp4"
+
+ENTRY_POINTS = {
+    "video.decode": "stages.video:VideoDecode",
+    "image.gray": "stages.video:ImageGray",
+    "write.video": "stages.video:WriteVideo",
+    "test.add": "tests.runner.helpers:AddFrames",
+    "test.mean": "tests.runner.helpers:MeanSeries",
+    "test.table": "tests.runner.helpers:SeriesTable",
+    "test.slow_write": "tests.runner.helpers:SlowWriteVideo",
+}
+
+
+class AddFrames(FrameStage):
+    """frames + value from frame ``start_at`` on (saturating); ``note`` changes the cache key but
+    not the output. Reads one frame of context each side (window 1) to exercise clamped reads."""
+
+    name = "test.add"
+    version = "1"
+    inputs = {"frames": "frames"}
+    outputs = {"frames": "frames"}
+    window = 1
+    params = (Param("value", int, 0, "added to every pixel"), Param("note", str, "", "ignored"),
+              Param("start_at", int, 0, "first frame the value is added to"))
+
+    def process(self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any],
+                ctx: Context) -> dict[str, Any]:
+        frames = inputs["frames"].read(start - self.window, stop + self.window)[self.window:-self.window]
+        time.sleep(float(os.environ.get("RUNNER_TEST_SLEEP", "0")))
+        added = np.arange(start, stop)[:, None, None, None] >= params["start_at"]
+        frames = frames.astype(np.int16) + params["value"] * added
+        return {"frames": np.clip(frames, 0, 255).astype(np.uint8)}
+
+
+class MeanSeries(SequenceStage):
+    """Mean intensity per frame: bundle ``{"mean": (T,) f8}``."""
+
+    name = "test.mean"
+    version = "1"
+    inputs = {"frames": "frames"}
+    outputs = {"series": "series"}
+
+    def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
+        means = [chunk.reshape(len(chunk), -1).mean(axis=1) for _, chunk in inputs["frames"].chunks()]
+        return {"series": {"mean": np.concatenate(means)}}
+
+
+class SeriesTable(SequenceStage):
+    """Writes a series bundle as ``series.json`` (a ``files`` output)."""
+
+    name = "test.table"
+    version = "1"
+    inputs = {"series": "series"}
+    outputs = {"table": "files"}
+    params = (Param("digits", int, 3, "decimals kept"),)
+
+    def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
+        values = [round(float(v), params["digits"]) for v in inputs["series"]["mean"]]
+        (ctx.files_dir("table") / "series.json").write_text(json.dumps(values))
+        return {"table": None}
+
+
+class SlowWriteVideo(WriteVideo):
+    """``write.video`` that pauses ``RUNNER_TEST_WRITE_SLEEP`` s after each chunk it encodes."""
+
+    name = "test.slow_write"
+
+    def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
+        pause = float(os.environ.get("RUNNER_TEST_WRITE_SLEEP", "0"))
+        return super().run(inputs, params, Context(ctx.device, ctx.files_dir,
+                                                   progress=lambda n: time.sleep(pause)))
+
+
+def make_plugin_site(folder: Path) -> Path:
+    """A folder holding ``runner_test_plugins-0.dist-info`` that registers :data:`ENTRY_POINTS`."""
+    info = folder / "runner_test_plugins-0.dist-info"
+    info.mkdir(parents=True, exist_ok=True)
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: runner-test-plugins\nVersion: 0\n")
+    lines = ["[expression_mapping.stages]"] + [f"{name} = {target}" for name, target in ENTRY_POINTS.items()]
+    (info / "entry_points.txt").write_text("\n".join(lines) + "\n")
+    return folder
+
+
+def cli_env(site: Path, cache: Path, **extra: str) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RUNNER_")}
+    env.update(PYTHONPATH=os.pathsep.join([str(site), str(REPO)]), RUNNER_CACHE_DIR=str(cache), **extra)
+    return env
+
+
+def runner_cmd(*args: str | Path) -> list[str]:
+    return [sys.executable, "-m", "runner.cli", *map(str, args)]
+
+
+def run_cli(*args: str | Path, env: dict[str, str], cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run(runner_cmd(*args), env=env, cwd=cwd, capture_output=True, text=True, timeout=120)
+
+
+def read_log(path: Path) -> list[dict[str, Any]]:
+    """Events of a ``--log-json`` file (a last line cut by a kill is dropped)."""
+    events = []
+    for line in path.read_text().splitlines():
+        try:
+            events.append(json.loads(line))
+        except ValueError:
+            pass
+    return events
+
+
+def chunk_status(events: list[dict[str, Any]], stage: str) -> dict[tuple[int, int], str]:
+    return {(e["start"], e["stop"]): e["status"] for e in events if e.get("event") == "chunk" and e["stage"] == stage}
+
+
+def stage_status(events: list[dict[str, Any]]) -> dict[str, str]:
+    return {e["stage"]: e["status"] for e in events if e.get("event") == "stage"}
+
+
+def tree_bytes(folder: Path) -> dict[str, bytes]:
+    """Relative path -> bytes of every file under ``folder``."""
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}

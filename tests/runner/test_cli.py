@@ -1,0 +1,148 @@
+"""End-to-end runs of the `runner` CLI in a subprocess on the tiny fixture clip."""
+
+from __future__ import annotations
+
+import importlib.metadata
+import json
+from pathlib import Path
+
+import av
+import numpy as np
+import pytest
+
+from runner.cache import CacheStore
+from stages.video import VideoDecode, to_gray
+from tests.runner.helpers import DATA, TINY, chunk_status, read_log, run_cli, stage_status, tree_bytes
+
+GRAPH = DATA / "graph.yaml"
+CHAIN = DATA / "chain.yaml"
+
+
+def _decoded(path: Path) -> np.ndarray:
+    with av.open(str(path)) as container:
+        return np.stack([f.to_ndarray(format="rgb24") for f in container.decode(video=0)])
+
+
+def test_chain_runs_end_to_end_and_reruns_from_cache(env, tmp_path):
+    out = tmp_path / "out"
+    first = run_cli("run", CHAIN, "--in", TINY, "--out", out, "--log-json", tmp_path / "1.jsonl", env=env, cwd=tmp_path)
+    assert first.returncode == 0, first.stderr
+    assert stage_status(read_log(tmp_path / "1.jsonl")) == {"decode": "on demand", "gray": "ran", "write": "ran"}
+    # The published video is the grayscale of the clip (H.264 at crf 18: close, not exact).
+    video = _decoded(out / "write" / "video.mp4")
+    truth = to_gray(VideoDecode().process(0, 48, {"video": TINY}, {}, None)["frames"])
+    assert video.shape == (48, 120, 160, 3)
+    assert np.abs(video[..., 1].astype(int) - truth[..., 0]).mean() < 2.0
+    manifest = json.loads((out / "write" / "manifest.json").read_text())
+    assert [f["path"] for f in manifest["files"]] == ["video.mp4"]
+    # One summary line per stage on stdout.
+    assert [line.split()[0] for line in first.stdout.splitlines()[:3]] == ["decode", "gray", "write"]
+
+    second = run_cli("run", CHAIN, "--in", TINY, "--out", out, "--log-json", tmp_path / "2.jsonl", env=env, cwd=tmp_path)
+    assert second.returncode == 0, second.stderr
+    assert stage_status(read_log(tmp_path / "2.jsonl")) == {"decode": "on demand", "gray": "cached", "write": "cached"}
+
+
+def test_param_change_reruns_only_stages_whose_inputs_changed(env, tmp_path):
+    def run(name: str, *sets: str) -> dict[str, str]:
+        args = [a for s in sets for a in ("--set", s)]
+        done = run_cli("run", GRAPH, "--out", tmp_path / "out", "--log-json", tmp_path / name, *args, env=env, cwd=tmp_path)
+        assert done.returncode == 0, done.stderr
+        return stage_status(read_log(tmp_path / name))
+
+    assert set(run("a")) == {"decode", "add", "gray", "write", "mean", "table"}
+    # `note` changes add's key but not its bytes: add re-runs, everything downstream is a hit.
+    assert run("b", "add.note=x") == {"decode": "on demand", "add": "ran", "gray": "cached", "write": "cached",
+                                      "mean": "cached", "table": "cached"}
+    # `value` changes add's output: add, gray and write re-run; the other branch does not.
+    assert run("c", "add.value=11") == {"decode": "on demand", "add": "ran", "gray": "ran", "write": "ran",
+                                        "mean": "cached", "table": "cached"}
+    assert run("d", "add.value=11", "table.digits=2") == {"decode": "on demand", "add": "cached", "gray": "cached",
+                                                          "write": "cached", "mean": "cached", "table": "ran"}
+    # A change confined to the first chunk of add's output re-runs only that chunk downstream.
+    assert run("e", "add.value=11", "table.digits=2", "add.start_at=2")["gray"] == "partial"
+    assert chunk_status(read_log(tmp_path / "e"), "gray") == {
+        (0, 8): "ran", (8, 16): "cached", (16, 24): "cached", (24, 32): "cached", (32, 40): "cached", (40, 48): "cached"}
+    assert json.loads((tmp_path / "out" / "table" / "series.json").read_text())[0] == pytest.approx(
+        VideoDecode().process(0, 1, {"video": TINY}, {}, None)["frames"].mean(), abs=0.01)
+
+
+def test_dry_run_reports_reasons_and_runs_nothing(env, tmp_path):
+    out, cache = tmp_path / "out", Path(env["RUNNER_CACHE_DIR"])
+    fresh = run_cli("run", GRAPH, "--out", out, "--dry-run", env=env, cwd=tmp_path)
+    assert fresh.returncode == 0, fresh.stderr
+    lines = {line.split()[0]: line for line in fresh.stdout.splitlines()[1:]}
+    assert "will run" in lines["add"] and "never run" in lines["add"] and "0/6 chunks cached" in lines["add"]
+    assert "may run" in lines["gray"] and "after add" in lines["gray"]
+    assert not out.exists()
+    assert not any(e.record.get("outputs") for e in CacheStore(cache).iter_entries())
+
+    assert run_cli("run", GRAPH, "--out", out, env=env, cwd=tmp_path).returncode == 0
+    before = sorted(e.key for e in CacheStore(cache).iter_entries())
+    changed = run_cli("run", GRAPH, "--out", out, "--dry-run", "--set", "add.value=3", "--force", "table",
+                      env=env, cwd=tmp_path)
+    lines = {line.split()[0]: line for line in changed.stdout.splitlines()[1:]}
+    assert "will run" in lines["add"] and "param value: 10 -> 3" in lines["add"]
+    assert "may run" in lines["write"]
+    assert "cached" in lines["mean"] and "forced" in lines["table"]
+    assert sorted(e.key for e in CacheStore(cache).iter_entries()) == before
+
+
+def test_until_and_force(env, tmp_path):
+    log = tmp_path / "until.jsonl"
+    done = run_cli("run", GRAPH, "--out", tmp_path / "out", "--until", "mean", "--log-json", log, env=env, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert stage_status(read_log(log)) == {"decode": "on demand", "mean": "ran"}
+    assert not (tmp_path / "out").exists()
+    run_cli("run", GRAPH, "--out", tmp_path / "out", env=env, cwd=tmp_path)
+    published = tree_bytes(tmp_path / "out" / "write")
+    log = tmp_path / "force.jsonl"
+    done = run_cli("run", GRAPH, "--out", tmp_path / "out", "--force", "add", "--log-json", log, env=env, cwd=tmp_path)
+    # Forcing add recomputes it; its bytes are the same, so downstream stays cached.
+    assert stage_status(read_log(log))["add"] == "ran" and stage_status(read_log(log))["gray"] == "cached"
+    assert tree_bytes(tmp_path / "out" / "write") == published
+
+
+@pytest.mark.parametrize("content, words", [
+    (None, "no such file"),
+    (b"this is not a video\n" * 20, "not a readable video"),
+])
+def test_bad_clip_is_one_line_error(env, tmp_path, content, words):
+    clip = tmp_path / "clip.mp4"
+    if content is not None:
+        clip.write_bytes(content)
+    done = run_cli("run", CHAIN, "--in", clip, "--out", tmp_path / "out", env=env, cwd=tmp_path)
+    expected_code = 2 if content is None else 1  # a missing input is caught before anything runs
+    assert done.returncode == expected_code
+    assert len(done.stderr.strip().splitlines()) == 1 and "Traceback" not in done.stderr
+    assert str(clip) in done.stderr and words in done.stderr
+
+
+def test_config_errors_exit_2_with_positions(env, tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("stages:\n  a:\n    uses: no.such\n  b:\n    uses: image.gray\n    inputs: {frames: a.frames}\n")
+    done = run_cli("run", bad, env=env, cwd=tmp_path)
+    assert done.returncode == 2
+    assert done.stderr.splitlines() == [f"error: {bad}:3:11: stages.a.uses: unknown stage 'no.such' (see `runner stages`)",
+                                        f"error: {bad}:6:22: stages.b.inputs.frames: missing input: no stage named 'a'"]
+    assert run_cli("run", CHAIN, "--set", "write.crf=high", env=env, cwd=tmp_path).returncode == 2
+    assert run_cli("run", CHAIN, "--until", "nope", env=env, cwd=tmp_path).returncode == 2
+    assert run_cli("run", CHAIN, "--jobs", "0", env=env, cwd=tmp_path).returncode == 2
+    if importlib.metadata.version("torch").endswith("+cpu"):
+        done = run_cli("run", CHAIN, "--device", "cuda", env=env, cwd=tmp_path)
+        assert done.returncode == 2 and "CUDA is not available" in done.stderr
+
+
+def test_stages_dag_and_cache_commands(env, tmp_path):
+    listed = run_cli("stages", env=env, cwd=tmp_path)
+    assert listed.returncode == 0
+    assert "video.decode" in listed.stdout and "param crf: int = 18" in listed.stdout
+    mermaid = run_cli("dag", GRAPH, "--mermaid", env=env, cwd=tmp_path).stdout
+    assert mermaid.startswith("flowchart LR") and 'st_add -->|"frames → frames"| st_gray' in mermaid
+    dot = run_cli("dag", GRAPH, "--dot", env=env, cwd=tmp_path).stdout
+    assert '"decode" -> "mean"' in dot
+    run_cli("run", CHAIN, "--jobs", "2", "--out", tmp_path / "out", env=env, cwd=tmp_path)
+    ls = run_cli("cache", "ls", env=env, cwd=tmp_path).stdout
+    assert "chunk 0-16" in ls and "5 entries" in ls  # 3 gray chunks, decode's stream info, write
+    assert "removed 5 entries" in run_cli("cache", "clear", env=env, cwd=tmp_path).stdout
+    assert "0 entries" in run_cli("cache", "ls", env=env, cwd=tmp_path).stdout

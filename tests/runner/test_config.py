@@ -1,0 +1,202 @@
+"""Pipeline validation: each error kind reported with file, line, column and key; --set typing;
+input binding."""
+
+from __future__ import annotations
+
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from runner.config import ConfigError, bind_inputs, load_pipeline
+from runner.registry import Registry
+from runner.stage import FrameStage, Param, SequenceStage, StreamInfo
+
+
+class Source(FrameStage):
+    name = "t.source"
+    version = "1"
+    inputs = {"video": "video"}
+    outputs = {"frames": "frames"}
+
+    def stream_info(self, inputs, params):
+        return StreamInfo(1, 25.0, 4, 4)
+
+
+class Track(SequenceStage):
+    name = "t.track"
+    version = "1"
+    inputs = {"frames": "frames", "pack": "dir"}
+    optional_inputs = frozenset({"pack"})
+    outputs = {"points": "points"}
+    params = (
+        Param("radius", int, 5, "search radius"),
+        Param("sigma", float, 1.0, "smoothing"),
+        Param("mode", str, "fast", "mode", choices=("fast", "exact")),
+        Param("flip", bool, False, "mirror"),
+        Param("ids", list, [], "point ids"),
+    )
+
+
+class Smooth(SequenceStage):
+    name = "t.smooth"
+    version = "1"
+    inputs = {"points": "points"}
+    outputs = {"points": "points"}
+
+
+REGISTRY = Registry(classes=[Source, Track, Smooth])
+
+
+def load(tmp_path: Path, text: str, **kwargs):
+    path = tmp_path / "p.yaml"
+    path.write_text(textwrap.dedent(text).lstrip("\n"))
+    return load_pipeline(path, REGISTRY, **kwargs)
+
+
+def issues(tmp_path: Path, text: str, **kwargs) -> list[str]:
+    with pytest.raises(ConfigError) as info:
+        load(tmp_path, text, **kwargs)
+    prefix = str(tmp_path / "p.yaml") + ":"
+    return [str(i).removeprefix(prefix) for i in info.value.issues]
+
+
+GOOD = """
+inputs:
+  clip: {type: video}
+  pack: {type: dir, default: packs/a}
+stages:
+  src: {uses: t.source, inputs: {video: clip}}
+  smooth:
+    uses: t.smooth
+    inputs: {points: track.points}
+  track:
+    uses: t.track
+    params: {radius: 7, sigma: 2, ids: [1, 2]}
+    inputs: {frames: src.frames, pack: pack}
+"""
+
+
+def test_valid_pipeline_resolves_order_defaults_and_paths(tmp_path):
+    p = load(tmp_path, GOOD)
+    assert list(p.stages) == ["src", "track", "smooth"]  # topological, file order among ties
+    assert p.stages["track"].params == {"radius": 7, "sigma": 2.0, "mode": "fast", "flip": False, "ids": [1, 2]}
+    assert isinstance(p.stages["track"].params["sigma"], float)
+    assert p.inputs["pack"].default == tmp_path / "packs" / "a"
+    assert p.chunk_frames == 16
+    assert sorted(p.edges) == [("src", "track"), ("track", "smooth")]
+    assert p.ancestors("smooth") == {"src", "track", "smooth"}
+
+
+def test_unknown_stage(tmp_path):
+    assert issues(tmp_path, "stages:\n  a: {uses: t.nope}\n") == [
+        "2:13: stages.a.uses: unknown stage 't.nope' (see `runner stages`)"]
+
+
+def test_unknown_parameter_and_wrong_types_all_reported(tmp_path):
+    found = issues(tmp_path, """
+        inputs: {clip: {type: video}}
+        stages:
+          src: {uses: t.source, inputs: {video: clip}}
+          track:
+            uses: t.track
+            params: {radius: "5", sigma: true, mode: slow, flip: 1, speed: 3}
+            inputs: {frames: src.frames}
+        """)
+    assert found == [
+        "6:22: stages.track.params.radius: wrong type: expected int, got str '5'",
+        "6:34: stages.track.params.sigma: wrong type: expected float, got bool True",
+        "6:46: stages.track.params.mode: wrong value: expected one of 'fast', 'exact', got 'slow'",
+        "6:58: stages.track.params.flip: wrong type: expected bool, got int 1",
+        "6:61: stages.track.params.speed: unknown parameter of t.track (known: radius, sigma, mode, flip, ids)",
+    ]
+
+
+def test_missing_inputs(tmp_path):
+    found = issues(tmp_path, """
+        stages:
+          src: {uses: t.source, inputs: {video: clip}}
+          track: {uses: t.track, inputs: {frames: source.frames}}
+          smooth: {uses: t.smooth}
+          more: {uses: t.smooth, inputs: {points: src.points}}
+        """)
+    assert found == [
+        "2:41: stages.src.inputs.video: missing input: no pipeline input or stage output named 'clip'",
+        "3:43: stages.track.inputs.frames: missing input: no stage named 'source'",
+        "4:11: stages.smooth.inputs.points: missing input: t.smooth needs port 'points' (points)",
+        "5:43: stages.more.inputs.points: missing input: src (t.source) has no output 'points' (outputs: frames)",
+    ]
+
+
+def test_port_type_mismatch(tmp_path):
+    found = issues(tmp_path, """
+        inputs: {clip: {type: video}, pack: {type: dir}}
+        stages:
+          src: {uses: t.source, inputs: {video: pack}}
+          smooth: {uses: t.smooth, inputs: {points: src.frames}}
+        """)
+    assert found == [
+        "3:41: stages.src.inputs.video: port type mismatch: 'video' takes video, pack gives dir",
+        "4:45: stages.smooth.inputs.points: port type mismatch: 'points' takes points, src.frames gives frames",
+    ]
+
+
+def test_cycle(tmp_path):
+    found = issues(tmp_path, """
+        stages:
+          a: {uses: t.smooth, inputs: {points: c.points}}
+          b: {uses: t.smooth, inputs: {points: a.points}}
+          c: {uses: t.smooth, inputs: {points: b.points}}
+        """)
+    assert len(found) == 1 and found[0].startswith("2:40: stages.a.inputs: cycle: a -> b -> c -> a")
+
+
+def test_duplicate_names(tmp_path):
+    found = issues(tmp_path, """
+        inputs: {clip: {type: video}}
+        stages:
+          src: {uses: t.source, inputs: {video: clip}}
+          src: {uses: t.source, inputs: {video: clip}}
+          clip: {uses: t.source, inputs: {video: clip}}
+        """)
+    assert found == ["4:3: stages.src: duplicate name",
+                     "5:3: stages.clip: duplicate name: 'clip' is also a pipeline input"]
+
+
+def test_unknown_keys_and_yaml_syntax(tmp_path):
+    assert issues(tmp_path, "stage: {}\n") == [
+        "1:1: stage: unknown key (expected one of: chunk_frames, inputs, stages)",
+        "1:1: stages: missing: a pipeline needs a `stages` mapping"]
+    assert issues(tmp_path, "stages: [\n")[0].startswith("2:1: yaml:")
+    assert issues(tmp_path, "chunk_frames: 0\nstages: {a: {uses: t.smooth, inputs: {points: a.points}}}\n")[0] == \
+        "1:15: chunk_frames: wrong type: expected a positive int, got 0"
+
+
+def test_set_overrides_are_typed_by_the_schema(tmp_path):
+    p = load(tmp_path, GOOD, overrides=["track.radius=9", "track.sigma=0.5", "track.flip=yes", "track.ids=[3]",
+                                        "track.mode=exact"])
+    assert p.stages["track"].params == {"radius": 9, "sigma": 0.5, "mode": "exact", "flip": True, "ids": [3]}
+    found = issues(tmp_path, GOOD, overrides=["track.radius=big", "track.mode=slow", "nope.x=1", "track.zzz=1", "radius"])
+    assert found == [
+        "--set: track.radius: wrong type: expected int, got 'big'",
+        "--set: track.mode: wrong value: expected one of 'fast', 'exact', got 'slow'",
+        "--set: nope.x: unknown stage 'nope' in this pipeline",
+        "--set: track.zzz: unknown parameter of t.track (known: radius, sigma, mode, flip, ids)",
+        "--set: radius: expected --set stage.param=value",
+    ]
+
+
+def test_bind_inputs(tmp_path):
+    p = load(tmp_path, GOOD)
+    clip = tmp_path / "clip.mp4"
+    clip.write_bytes(b"x")
+    with pytest.raises(ConfigError) as info:
+        bind_inputs(p, clip=None, named=[])
+    assert [str(i).split(": ", 1)[1] for i in info.value.issues] == [
+        "inputs.clip: missing input: no value given (use --in)",
+        f"inputs.pack: missing input: {tmp_path / 'packs' / 'a'}: no such folder"]
+    (tmp_path / "packs" / "a").mkdir(parents=True)
+    assert bind_inputs(p, clip=clip, named=[]) == {"clip": clip, "pack": tmp_path / "packs" / "a"}
+    assert bind_inputs(p, clip=None, named=[f"clip={clip}", f"pack={tmp_path}"]) == {"clip": clip, "pack": tmp_path}
+    with pytest.raises(ConfigError, match="unknown pipeline input"):
+        bind_inputs(p, clip=clip, named=["other=x"])

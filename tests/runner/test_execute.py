@@ -1,0 +1,116 @@
+"""The scheduler in-process: frame stages with windows and bundle outputs, concatenation across
+chunks, --jobs, and stage errors, against numpy ground truth."""
+
+from __future__ import annotations
+
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from runner.cache import CacheStore
+from runner.config import load_pipeline
+from runner.execute import Options, Runner, StageFailed
+from runner.registry import Registry
+from runner.stage import FrameStage, Param, SequenceStage, StageError, StreamInfo
+
+N, H, W = 23, 4, 5
+
+
+def clip() -> np.ndarray:
+    """Frame t is filled with t (so a frame's index can be read back from its pixels)."""
+    return np.broadcast_to(np.arange(N, dtype=np.uint8)[:, None, None, None], (N, H, W, 1)).copy()
+
+
+class Ramp(FrameStage):
+    """Frames of :func:`clip`, and per frame a bundle row ``index``."""
+
+    name, version = "t.ramp", "1"
+    outputs = {"frames": "frames", "rows": "rows"}
+    params = (Param("fail_at", int, -1, "raise StageError on the chunk holding this frame"),)
+
+    def stream_info(self, inputs, params):
+        return StreamInfo(N, 25.0, W, H)
+
+    def process(self, start, stop, inputs, params, ctx):
+        if start <= params["fail_at"] < stop:
+            raise StageError(f"frame {params['fail_at']}: cannot compute")
+        return {"frames": clip()[start:stop], "rows": {"index": np.arange(start, stop), "names": np.array(["f"] * (stop - start))}}
+
+
+class Blur(FrameStage):
+    """Temporal mean over ``window`` frames each side (edges replicated)."""
+
+    name, version, window = "t.blur", "1", 2
+    inputs = {"frames": "frames"}
+    outputs = {"frames": "frames"}
+
+    def process(self, start, stop, inputs, params, ctx):
+        got = inputs["frames"].read(start - 2, stop + 2).astype(np.float64)
+        out = np.stack([got[i:i + 5].mean(axis=0) for i in range(stop - start)])
+        return {"frames": np.round(out * 10).astype(np.uint16)}
+
+
+class Collect(SequenceStage):
+    """Whole-clip view of a frame stream and a bundle."""
+
+    name, version = "t.collect", "1"
+    inputs = {"frames": "frames", "rows": "rows"}
+    outputs = {"all": "all"}
+
+    def run(self, inputs, params, ctx):
+        frames = np.concatenate([chunk for _, chunk in inputs["frames"].chunks()])
+        return {"all": {"frames": frames, "index": inputs["rows"]["index"], "names": inputs["rows"]["names"]}}
+
+
+REGISTRY = Registry(classes=[Ramp, Blur, Collect])
+PIPELINE = """
+chunk_frames: 4
+stages:
+  ramp: {uses: t.ramp}
+  blur: {uses: t.blur, inputs: {frames: ramp.frames}}
+  collect: {uses: t.collect, inputs: {frames: blur.frames, rows: ramp.rows}}
+"""
+
+
+def run(tmp_path: Path, *, jobs: int = 1, overrides: tuple[str, ...] = ()) -> Runner:
+    path = tmp_path / "p.yaml"
+    path.write_text(textwrap.dedent(PIPELINE))
+    pipeline = load_pipeline(path, REGISTRY, overrides=list(overrides))
+    runner = Runner(pipeline, {}, Options(cache=CacheStore(tmp_path / "cache"), jobs=jobs))
+    runner.run()
+    return runner
+
+
+@pytest.mark.parametrize("jobs", [1, 3])
+def test_windows_and_bundles_across_chunks(tmp_path, jobs):
+    runner = run(tmp_path, jobs=jobs)
+    result = runner.values[("collect", "all")].get()
+    padded = np.concatenate([clip()[:1]] * 2 + [clip()] + [clip()[-1:]] * 2).astype(np.float64)
+    truth = np.stack([padded[t:t + 5].mean(axis=0) for t in range(N)])
+    np.testing.assert_array_equal(result["frames"], np.round(truth * 10).astype(np.uint16))
+    np.testing.assert_array_equal(result["index"], np.arange(N))
+    assert result["names"].dtype.kind == "U" and len(runner.entries["blur"]) == 6  # ceil(23 / 4)
+
+
+def test_stage_error_names_the_stage_and_keeps_finished_chunks(tmp_path):
+    with pytest.raises(StageFailed, match=r"stage 'ramp' \(t.ramp\): frame 9: cannot compute"):
+        run(tmp_path, overrides=("ramp.fail_at=9",))
+    store = CacheStore(tmp_path / "cache")
+    assert sorted(e.record["range"] for e in store.iter_entries() if "range" in e.record) == [[0, 4], [4, 8]]
+    assert not list((tmp_path / "cache" / "locks").glob("*.lock"))
+
+
+def test_bad_stage_output_is_reported(tmp_path):
+    class Wrong(Ramp):
+        name = "t.wrong"
+
+        def process(self, start, stop, inputs, params, ctx):
+            return {"frames": clip()[start:stop + 1], "rows": {"index": np.arange(start, stop)}}
+
+    path = tmp_path / "p.yaml"
+    path.write_text("stages:\n  w: {uses: t.wrong}\n")
+    pipeline = load_pipeline(path, Registry(classes=[Wrong]))
+    with pytest.raises(StageFailed, match=r"output 'frames': expected frames \(16, 4, 5, C\), got \(17, 4, 5, 1\)"):
+        Runner(pipeline, {}, Options(cache=CacheStore(tmp_path / "cache"))).run()

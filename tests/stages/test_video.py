@@ -1,0 +1,176 @@
+"""Video decode/encode against synthetic ground truth (FFV1 is lossless, so decoded frames must equal
+the written ones exactly), and one-line errors for bad input."""
+
+from __future__ import annotations
+
+from fractions import Fraction
+from pathlib import Path
+
+import av
+import numpy as np
+import pytest
+
+from runner.stage import Context, StageError, StreamInfo
+from runner.streams import CachedStream, chunk_ranges
+from scripts.make_test_clip import synthetic_frames, write_clip
+from stages.video import ImageGray, VideoDecode, VideoWriter, WriteVideo, probe, to_gray
+
+
+def _decode_all(path: Path) -> np.ndarray:
+    with av.open(str(path)) as container:
+        return np.stack([f.to_ndarray(format="rgb24") for f in container.decode(video=0)])
+
+
+def _psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
+    return 10 * np.log10(255.0**2 / mse)
+
+
+@pytest.fixture(scope="module")
+def lossless(tmp_path_factory) -> tuple[Path, np.ndarray]:
+    path = tmp_path_factory.mktemp("video") / "clip.mkv"
+    write_clip(path, frames=37, width=64, height=48, fps=30000 / 1001, codec="ffv1")
+    return path, synthetic_frames(0, 37, width=64, height=48)
+
+
+def test_decode_is_exact_on_lossless_clip_in_any_chunk_order(lossless):
+    path, truth = lossless
+    stage = VideoDecode()
+    info = stage.stream_info({"video": path}, {})
+    assert info == StreamInfo(frames=37, fps=pytest.approx(29.97003), width=64, height=48)
+    for start, stop in [(0, 16), (16, 32), (32, 37), (5, 9), (0, 3), (30, 37)]:
+        frames = stage.process(start, stop, {"video": path}, {}, None)["frames"]
+        assert frames.dtype == np.uint8 and frames.shape == (stop - start, 48, 64, 3)
+        np.testing.assert_array_equal(frames, truth[start:stop])
+    with pytest.raises(StageError, match="truncated stream: frame 37 missing"):
+        stage.process(30, 40, {"video": path}, {}, None)
+
+
+def test_h264_writer_is_browser_friendly_close_and_bit_exact(tmp_path):
+    truth = synthetic_frames(0, 20, width=63, height=47)  # odd sizes: padded to even
+    paths = [tmp_path / f"{name}.mp4" for name in "abcd"]
+    for path in paths:
+        with VideoWriter(path, fps=25, width=63, height=47, codec="h264", crf=12) as writer:
+            writer.write(truth[:7])
+            writer.write(truth[7:])
+    assert len({path.read_bytes() for path in paths}) == 1
+    data = paths[0].read_bytes()
+    assert data.index(b"moov") < data.index(b"mdat")  # +faststart: playable while downloading
+    with av.open(str(paths[0])) as container:
+        stream = container.streams.video[0]
+        assert (stream.codec_context.name, stream.codec_context.pix_fmt) == ("h264", "yuv420p")
+        assert stream.average_rate == Fraction(25)
+    decoded = _decode_all(paths[0])
+    assert decoded.shape == (20, 48, 64, 3)
+    # 4:2:0 halves chroma resolution (the pattern's hue wraps are sharp): judge luma.
+    assert _psnr(to_gray(decoded[:, :47, :63]), to_gray(truth)) > 38
+    # The padding row/column repeat the last ones (not black).
+    assert np.abs(decoded[:, 47].astype(int) - decoded[:, 46]).mean() < 4
+    assert np.abs(decoded[:, :, 63].astype(int) - decoded[:, :, 62]).mean() < 4
+
+
+def test_ffv1_writer_is_lossless_for_rgb_and_gray(tmp_path):
+    truth = synthetic_frames(0, 5, width=33, height=21)
+    with VideoWriter(tmp_path / "c.mkv", fps=10, width=33, height=21, codec="ffv1", crf=0) as writer:
+        writer.write(truth)
+    np.testing.assert_array_equal(_decode_all(tmp_path / "c.mkv"), truth)
+    gray = truth[..., :1]
+    with VideoWriter(tmp_path / "g.mkv", fps=10, width=33, height=21, codec="ffv1", crf=0) as writer:
+        writer.write(gray)
+    np.testing.assert_array_equal(_decode_all(tmp_path / "g.mkv"), np.repeat(gray, 3, axis=-1))
+
+
+def test_writer_rejects_bad_frames_and_options(tmp_path):
+    with pytest.raises(StageError, match="crf"):
+        VideoWriter(tmp_path / "x.mp4", fps=25, width=8, height=8, crf=60)
+    with pytest.raises(StageError, match="unknown codec"):
+        VideoWriter(tmp_path / "x.mp4", fps=25, width=8, height=8, codec="vp9")
+    with VideoWriter(tmp_path / "y.mp4", fps=25, width=8, height=8) as writer:
+        with pytest.raises(StageError, match=r"expected frames \(B, 8, 8, 3 or 1\) uint8"):
+            writer.write(np.zeros((1, 8, 8, 3), np.float32))
+
+
+def test_write_video_stage_encodes_a_stream(tmp_path, lossless):
+    path, truth = lossless
+    ranges = chunk_ranges(37, 16)
+    for s, e in ranges:
+        np.save(tmp_path / f"{s}.npy", truth[s:e])
+    stream = CachedStream(StreamInfo(37, 30000 / 1001, 64, 48), ranges, [tmp_path / f"{s}.npy" for s, _ in ranges])
+    out = tmp_path / "files"
+    done = []
+    ctx = Context("cpu", files_dir=lambda port: out, progress=done.append)
+    out.mkdir()
+    WriteVideo().run({"frames": stream}, {"codec": "ffv1", "crf": 18, "filename": "clip"}, ctx)
+    np.testing.assert_array_equal(_decode_all(out / "clip.mkv"), truth)
+    assert sum(done) == 37
+    with pytest.raises(StageError, match="plain file name"):
+        WriteVideo().run({"frames": stream}, {"codec": "h264", "crf": 18, "filename": "../x"}, ctx)
+
+
+def test_gray_matches_bt601_weights(lossless):
+    _, truth = lossless
+    stream = type("S", (), {"read": lambda self, s, e: truth[s:e]})()
+    gray = ImageGray().process(3, 9, {"frames": stream}, {}, None)["frames"]
+    expected = truth[3:9].astype(np.float64) @ np.array([0.299, 0.587, 0.114])
+    assert gray.shape == (6, 48, 64, 1) and gray.dtype == np.uint8
+    assert np.abs(gray[..., 0] - expected).max() <= 1.0
+
+
+def _zero_frame_clip(path: Path) -> None:
+    container = av.open(str(path), "w")
+    stream = container.add_stream("libx264", rate=25)
+    stream.width, stream.height, stream.pix_fmt = 16, 16, "yuv420p"
+    container.start_encoding()
+    container.close()
+
+
+def _bgr4_clip(path: Path) -> None:
+    """A rawvideo NUT file in bgr4 (4-bit packed), a pixel format swscale cannot convert."""
+    container = av.open(str(path), "w", format="nut")
+    stream = container.add_stream("rawvideo", rate=25)
+    stream.width, stream.height, stream.pix_fmt = 16, 16, "bgr4"
+    frame = av.VideoFrame(16, 16, "bgr4")
+    frame.pts = 0
+    container.mux(stream.encode(frame))
+    container.mux(stream.encode(None))
+    container.close()
+
+
+def _damaged(path: Path, tiny: Path, how: str) -> None:
+    data = bytearray(tiny.read_bytes())
+    if how == "truncated":
+        data = data[: len(data) * 2 // 3]
+    else:
+        mid = len(data) // 2
+        data[mid:mid + 3000] = np.random.default_rng(0).integers(0, 256, 3000, dtype=np.uint8).tobytes()
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("kind, words", [
+    ("missing", "no such file"),
+    ("text", "not a readable video"),
+    ("empty", "contains no video frames"),
+    ("truncated", "corrupt or truncated"),
+    ("corrupt", "corrupt or truncated"),
+    ("bgr4", "unsupported pixel format bgr4"),
+])
+def test_bad_input_is_one_line_stage_error_naming_the_file(tmp_path, kind, words):
+    tiny = tmp_path / "tiny.mp4"
+    write_clip(tiny, frames=24, width=64, height=48)
+    path = tmp_path / f"bad-{kind.replace(' ', '-')}.mp4"
+    if kind == "text":
+        path.write_text("not a video\n" * 50)
+    elif kind == "empty":
+        _zero_frame_clip(path)
+    elif kind in ("truncated", "corrupt"):
+        _damaged(path, tiny, kind)
+    elif kind == "bgr4":
+        path = path.with_suffix(".nut")
+        _bgr4_clip(path)
+    stage = VideoDecode()
+    with pytest.raises(StageError) as info:
+        probe(path)
+        # Damage the probe tolerates shows up while decoding.
+        stage.process(0, probe(path).frames, {"video": path}, {}, None)
+    message = str(info.value)
+    assert str(path) in message and words in message and "\n" not in message
