@@ -1,0 +1,117 @@
+"""Stage wrappers of motion propagation: ``propagate.train`` and ``propagate.hierarchical``."""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import numpy as np
+
+from runner.stage import Context, Param, SequenceStage, StageError
+from stages.actor_pack import load_pack
+from stages.propagation.hierarchical_pca import HierarchicalPCA, fit_hierarchical_pca
+from stages.propagation.propagate import motion_propagation
+
+
+class TrainHierarchicalPCA(SequenceStage):
+    """Offline: hierarchical PCA of an actor pack's captured geometries (Sec. 10, 14)."""
+
+    name = "propagate.train"
+    version = "1"
+    doc = "hierarchical PCA (1 + 4 + 16 feature point sets) of the pack's captured geometries"
+    inputs = {"pack": "dir"}
+    outputs = {"pca_model": "pca_model"}
+    params = (
+        Param("n_components", int, 8, "most principal components kept per feature point set (paper: 5-10)"),
+        Param("variance_kept", float, 1.0, "also stop at this fraction of explained variance (1.0: off)"),
+    )
+
+    def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
+        pack = load_pack(inputs["pack"])
+        model = fit_hierarchical_pca(
+            pack.neutral.points,
+            pack.captured_points,
+            pack.layout.feature_point_sets,
+            n_components=int(params["n_components"]),
+            variance_kept=float(params["variance_kept"]),
+            point_names=pack.layout.point_names,
+        )
+        ctx.log.info(
+            "hierarchical PCA: %d sets, components kept %s",
+            model.n_sets,
+            [c.shape[1] for c in model.components],
+        )
+        return {"pca_model": model.to_bundle()}
+
+
+class HierarchicalPropagation(SequenceStage):
+    """Runtime: displacements of all feature points from a tracked subset (Sec. 10.1).
+
+    Give exactly one of ``displacements`` (from the neutral, in the neutral's frame) or
+    ``points`` (positions in the neutral's frame, i.e. after motion compensation); their
+    ``valid`` mask is the input point set of each frame.
+    """
+
+    name = "propagate.hierarchical"
+    version = "1"
+    doc = "hierarchical-PCA motion propagation of a tracked subset to all feature points"
+    inputs = {"pca_model": "pca_model", "displacements": "displacements", "points": "points"}
+    optional_inputs = frozenset({"displacements", "points"})
+    outputs = {"displacements": "displacements"}
+    params = (
+        Param("stop_progress_px", float, 1e-3, "stop when the input points move less than this between iterations, px"),
+        Param("max_iterations", int, 200, "iteration cap per frame"),
+    )
+
+    def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
+        model = HierarchicalPCA.from_bundle(inputs["pca_model"])
+        given = [port for port in ("displacements", "points") if inputs.get(port) is not None]
+        if len(given) != 1:
+            raise StageError("propagate.hierarchical: connect exactly one of the inputs 'displacements' or 'points'")
+        port = given[0]
+        bundle = inputs[port]
+        field = "d" if port == "displacements" else "xy"
+        for key in (field, "valid"):
+            if key not in bundle:
+                raise StageError(f"propagate.hierarchical: input '{port}' has no field '{key}'")
+        values = np.asarray(bundle[field], dtype=np.float64)
+        if values.ndim != 3 or values.shape[1:] != (model.n_points, 2):
+            raise StageError(
+                f"propagate.hierarchical: input '{port}' field '{field}' is {values.shape}, "
+                f"the pca_model has {model.n_points} points"
+            )
+        _check_names(model, bundle, port)
+        displacements = values if port == "displacements" else values - model.neutral[None]
+        result = motion_propagation(
+            model,
+            displacements,
+            np.asarray(bundle["valid"], dtype=bool),
+            stop_progress_px=float(params["stop_progress_px"]),
+            max_iterations=int(params["max_iterations"]),
+        )
+        ctx.progress(values.shape[0])
+        has_input = result.iterations > 0
+        out = {
+            "d": result.displacements,
+            "valid": np.repeat(has_input[:, None], model.n_points, axis=1),
+            "names": np.array(model.point_names, dtype=str),
+            "iterations": result.iterations,
+            "input_error_px": result.input_error_px,
+        }
+        for scalar in ("fps", "size"):
+            if scalar in bundle:
+                out[scalar] = np.asarray(bundle[scalar])
+        return {"displacements": out}
+
+
+def _check_names(model: HierarchicalPCA, bundle: Mapping[str, np.ndarray], port: str) -> None:
+    """Raise StageError when the input's point names disagree with the model's."""
+    if "names" not in bundle or not any(model.point_names):
+        return
+    names = tuple(str(n) for n in np.asarray(bundle["names"]))
+    if names != model.point_names:
+        bad = next(
+            (i for i, (a, b) in enumerate(zip(names, model.point_names)) if a != b), min(len(names), model.n_points)
+        )
+        raise StageError(
+            f"propagate.hierarchical: input '{port}' field 'names' differs from the pca_model's layout at point {bad}"
+        )
