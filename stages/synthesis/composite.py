@@ -1,0 +1,183 @@
+"""Subregion compositing (eq. 6) and blending along subregion boundaries (eq. 7), in torch.
+
+With per-subregion weights ``w_s(p)`` (from the eq. 7 weight map: ``r`` for the pixel's own
+subregion ``i1``, ``1 - r`` for its neighbour ``i2``) and per-subregion convex-combination
+coefficients ``c_{s,i}`` (eq. 2-5), the blended image in the standard geometry is
+
+    I(p) = sum_s w_s(p) I^{R_s}(p) = sum_s w_s(p) sum_i c_{s,i} I_i(p).        (eq. 6 inside eq. 7)
+
+Two ways to evaluate it, one function:
+
+* sparse (default): for each subregion, only the pixels it touches (its own and its blending
+  band) and only the examples with a coefficient above ``min_coeff`` (renormalised to sum to
+  one), from per-subregion image stacks premultiplied by the weight map once when the model is
+  prepared (see :class:`Compositor`);
+* direct (the paper's implementation, the speed baseline): per pixel, the coefficient of every
+  example (``r c_{i1} + (1 - r) c_{i2}``), then a weighted sum of every example image over every
+  pixel.
+
+Labels: ``0 .. S-1`` are the layout's subregions (face subregions composite the examples, the
+teeth subregion the teeth examples, Sec. 8); label ``S`` is the outside of the face, always the
+standard image. Image stack order: ``M`` examples, ``Mt`` teeth examples, then the standard.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+__all__ = ["Compositor", "prepare_compositor", "composite"]
+
+
+@dataclass
+class _Segment:
+    """One label's pixels in one role: the flat buffer slice it fills and its premultiplied images."""
+
+    start: int
+    stop: int
+    stack: torch.Tensor  # (n_cand, 3, stop - start): candidate images at these pixels times the weight
+
+
+@dataclass
+class Compositor:
+    """A synthesis model prepared for compositing on one device (see :func:`prepare_compositor`).
+
+    Every pixel has one *primary* label (``i1``, weight ``r``) and, in a blending band, one
+    *secondary* label (``i2``, weight ``1 - r``). Per frame each face label fills its slices of a
+    primary and a secondary buffer (laid out label by label) with the weighted sum of its kept
+    candidate images; the image is then two gathers, ``primary[:, primary_index] +
+    secondary[:, secondary_index]`` (the secondary index of a pixel outside every band points at
+    a zero column). The outside label's slices are constant and filled once.
+
+    ``candidates[l]`` indexes the full image stack (``M`` examples, ``Mt`` teeth examples, the
+    standard image); ``alpha`` (H*W,) is the face alpha ``1 - w_S``; ``images`` (E, 3, H*W),
+    ``r``, ``i1``, ``i2`` (H*W,) serve the direct path.
+    """
+
+    size: tuple[int, int]
+    candidates: list[torch.Tensor]
+    primary: list[_Segment]
+    secondary: list[_Segment]
+    primary_index: torch.Tensor
+    secondary_index: torch.Tensor
+    primary_template: torch.Tensor  # (3, H*W) with the outside label's slice filled
+    secondary_template: torch.Tensor  # (3, n_band + 1)
+    alpha: torch.Tensor
+    images: torch.Tensor
+    r: torch.Tensor
+    i1: torch.Tensor
+    i2: torch.Tensor
+
+
+def prepare_compositor(model: dict[str, np.ndarray], *, device: str = "cpu") -> Compositor:
+    """Move a ``synthesis_model`` bundle's images and weight map to ``device`` in compositing form.
+
+    Images become float32 sRGB in [0, 1].
+    """
+    W, H = (int(v) for v in model["size"])
+    teeth_flags = np.asarray(model["subregion_teeth"], bool)
+    S = len(teeth_flags)
+    M, Mt = len(model["examples"]), len(model["teeth"])
+    stack = np.concatenate([model["examples"], model["teeth"], model["standard"][None]])
+    images = torch.from_numpy(stack).to(device).reshape(len(stack), H * W, 3).permute(0, 2, 1).float().div(255.0).contiguous()
+    r = torch.from_numpy(np.asarray(model["blend_r"], np.float32)).to(device).flatten()
+    i1 = torch.from_numpy(np.asarray(model["blend_i1"], np.int64)).to(device).flatten()
+    i2 = torch.from_numpy(np.asarray(model["blend_i2"], np.int64)).to(device).flatten()
+    banded = i2 != i1
+    primary_index = torch.empty(H * W, dtype=torch.long, device=device)
+    secondary_index = torch.full((H * W,), int(banded.sum()), dtype=torch.long, device=device)
+    candidates: list[torch.Tensor] = []
+    primary: list[_Segment] = []
+    secondary: list[_Segment] = []
+    p_off = s_off = 0
+    for label in range(S + 1):
+        if label == S:
+            cand = torch.tensor([M + Mt], device=device)
+        elif teeth_flags[label]:
+            cand = torch.arange(M, M + Mt, device=device)
+        else:
+            cand = torch.arange(M, device=device)
+        candidates.append(cand)
+        pix = torch.nonzero(i1 == label).flatten()
+        primary_index[pix] = torch.arange(p_off, p_off + len(pix), device=device)
+        primary.append(_Segment(p_off, p_off + len(pix), images[cand][:, :, pix] * r[pix]))
+        p_off += len(pix)
+        pix = torch.nonzero(banded & (i2 == label)).flatten()
+        secondary_index[pix] = torch.arange(s_off, s_off + len(pix), device=device)
+        secondary.append(_Segment(s_off, s_off + len(pix), images[cand][:, :, pix] * (1 - r[pix])))
+        s_off += len(pix)
+    primary_template = torch.zeros(3, p_off, device=device)
+    secondary_template = torch.zeros(3, s_off + 1, device=device)
+    primary_template[:, primary[S].start : primary[S].stop] = primary[S].stack[0]
+    secondary_template[:, secondary[S].start : secondary[S].stop] = secondary[S].stack[0]
+    alpha = 1 - torch.where(i1 == S, r, torch.zeros_like(r)) - torch.where(banded & (i2 == S), 1 - r, torch.zeros_like(r))
+    return Compositor(
+        (W, H), candidates, primary, secondary, primary_index, secondary_index,
+        primary_template, secondary_template, alpha.clamp(0, 1), images, r, i1, i2,
+    )
+
+
+def _kept(c: list[float], min_coeff: float) -> list[tuple[int, float]]:
+    """(index, weight) of the coefficients above ``min_coeff``, renormalised (the largest if none)."""
+    keep = [(k, v) for k, v in enumerate(c) if v > min_coeff] or [max(enumerate(c), key=lambda kv: kv[1])]
+    total = sum(v for _, v in keep)
+    return [(k, v / total) for k, v in keep]
+
+
+def _fill(buffer: torch.Tensor, segment: _Segment, terms: list[tuple[int, float]]) -> None:
+    """``buffer[:, segment] = sum_k c_k stack_k`` without gathering the stack."""
+    if segment.stop == segment.start:
+        return
+    view = buffer[:, segment.start : segment.stop]
+    (k0, c0), rest = terms[0], terms[1:]
+    torch.mul(segment.stack[k0], c0, out=view)
+    for k, c in rest:
+        view.add_(segment.stack[k], alpha=c)
+
+
+def composite(comp: Compositor, coeffs: torch.Tensor, *, min_coeff: float = 1e-3, direct: bool = False) -> torch.Tensor:
+    """Blend the aligned example images by per-subregion coefficients (eq. 6, 7).
+
+    Parameters
+    ----------
+    comp : Compositor
+    coeffs : (B, S, K) tensor
+        Per frame and subregion, the convex-combination coefficients: over the ``M`` examples for
+        face subregions, over the ``Mt`` teeth examples (first ``Mt`` entries) for the teeth
+        subregion; ``K >= max(M, Mt)``, extra entries ignored.
+    min_coeff : float
+        Sparse path only: coefficients at or below it are skipped and the rest renormalised.
+    direct : bool
+        Composite every example at every pixel (the paper's implementation) instead.
+
+    Returns
+    -------
+    (B, 4, H, W) float32: sRGB colour in [0, 1] in the standard geometry, and the face alpha.
+    """
+    W, H = comp.size
+    B, S = coeffs.shape[:2]
+    device = comp.images.device
+    out = torch.empty(B, 4, H * W, device=device)
+    out[:, 3] = comp.alpha
+    if direct:
+        full = torch.zeros(B, S + 1, comp.images.shape[0], device=device)
+        for label in range(S):
+            cand = comp.candidates[label]
+            full[:, label, cand] = coeffs[:, label, : len(cand)].to(device=device, dtype=torch.float32)
+        full[:, S, -1] = 1.0
+        for b in range(B):
+            per_pixel = comp.r[:, None] * full[b, comp.i1] + (1 - comp.r)[:, None] * full[b, comp.i2]  # (H*W, E)
+            out[b, :3] = torch.einsum("pe,ecp->cp", per_pixel, comp.images)
+    else:
+        table = coeffs.detach().to("cpu", torch.float64).tolist()
+        primary = comp.primary_template.clone()
+        secondary = comp.secondary_template.clone()
+        for b in range(B):
+            for label in range(S):
+                terms = _kept(table[b][label][: len(comp.candidates[label])], min_coeff)
+                _fill(primary, comp.primary[label], terms)
+                _fill(secondary, comp.secondary[label], terms)
+            torch.add(primary.index_select(1, comp.primary_index), secondary.index_select(1, comp.secondary_index), out=out[b, :3])
+    return out.view(B, 4, H, W)

@@ -1,0 +1,251 @@
+"""Runtime expression synthesis (Sec. 6-8, 11): target geometry per frame -> expression images.
+
+Per chunk of frames: the batched convex-hull QP (eq. 2-5) for every frame and subregion, the
+compositing and boundary blending of the aligned examples (eq. 6, 7; teeth from the teeth
+examples, Sec. 8) in the standard geometry, then the triangulation-based warp of the whole image
+from the standard geometry to the frame's geometry (Sec. 7, last paragraph).
+
+Modes
+-----
+``full``       the method of the paper (per-subregion convex combinations);
+``global``     one convex combination over the whole face (Pighin et al.; teeth still separate);
+``warp-only``  traditional expression mapping: the neutral image warped to the frame's geometry,
+               no expression details.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import numpy as np
+import torch
+
+from runner.stage import Context, FrameStage, Param, StageError, StreamInfo
+from stages.synthesis.composite import Compositor, composite, prepare_compositor
+from stages.synthesis.coefficients import SubregionQP, target_geometry
+from stages.synthesis.warp import warp_images
+
+__all__ = ["MODES", "Synthesizer", "head_motion_points", "head_motion_frame", "Synthesize"]
+
+MODES = ("full", "warp-only", "global")
+
+
+def head_motion_points(
+    points: np.ndarray, params: np.ndarray, *, source_center: np.ndarray, target_center: np.ndarray, scale: float
+) -> np.ndarray:
+    """Carry the performer's 2D head motion (eq. 8 similarity) onto target points.
+
+    The performer's similarity ``x -> A x + t`` (``A = [[a, -b], [b, a]]``, neutral -> frame)
+    is split into its rotation/scale ``A`` about the performer's face centre ``source_center``
+    and the displacement of that centre ``delta = A c_s + t - c_s``. On the target, ``A`` turns
+    and scales about ``target_center`` and the centre moves by ``scale * delta``
+    (``scale`` = target face size / performer face size).
+
+    Parameters
+    ----------
+    points : (B, P, 2) float, px
+    params : (B, 4) float, (a, b, tx, ty) per frame
+    source_center, target_center : (2,) float, px
+    scale : float
+
+    Returns
+    -------
+    (B, P, 2) float64, px.
+    """
+    a, b, tx, ty = (params[:, k] for k in range(4))
+    A = np.stack([np.stack([a, -b], -1), np.stack([b, a], -1)], -2)  # (B, 2, 2)
+    delta = np.einsum("bij,j->bi", A, source_center) + np.stack([tx, ty], -1) - source_center
+    rel = np.asarray(points, np.float64) - target_center
+    return np.einsum("bij,bpj->bpi", A, rel) + target_center + scale * delta[:, None, :]
+
+
+def head_motion_frame(
+    performer_neutral: np.ndarray, performer_names: np.ndarray, target_neutral: np.ndarray, target_names: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Face centres and size ratio for :func:`head_motion_points`, from the points both faces share.
+
+    Parameters
+    ----------
+    performer_neutral : (n, 2) float, px, the performer's neutral tracked points
+    performer_names : (n,) str
+    target_neutral : (N, 2) float, px, the target's neutral feature points
+    target_names : (N,) str
+
+    Returns
+    -------
+    source_center, target_center : (2,) float, px
+        Centroids of the shared points on each neutral.
+    scale : float
+        Target / performer face size: the ratio of the RMS distances of the shared points to
+        their centroid.
+    """
+    where = {str(n): k for k, n in enumerate(target_names)}
+    shared = [(k, where[str(n)]) for k, n in enumerate(performer_names) if str(n) in where]
+    if len(shared) < 2:
+        raise StageError("synthesis.synthesize: input 'performer': fewer than 2 of its points are in the target's layout")
+    src = np.asarray(performer_neutral, np.float64)[[k for k, _ in shared]]
+    dst = np.asarray(target_neutral, np.float64)[[j for _, j in shared]]
+    c_s, c_t = src.mean(0), dst.mean(0)
+    size_s = np.sqrt(((src - c_s) ** 2).sum(1).mean())
+    size_t = np.sqrt(((dst - c_t) ** 2).sum(1).mean())
+    if size_s <= 0:
+        raise StageError("synthesis.synthesize: input 'performer': the neutral points all coincide")
+    return c_s, c_t, float(size_t / size_s)
+
+
+class Synthesizer:
+    """A synthesis model prepared on a device; :meth:`render` maps geometry to images.
+
+    Parameters
+    ----------
+    model : dict of arrays
+        A ``synthesis_model`` bundle (see :mod:`stages.synthesis.build`).
+    device : str
+    """
+
+    def __init__(self, model: Mapping[str, np.ndarray], *, device: str = "cpu") -> None:
+        self.device = device
+        self.qp = SubregionQP(model, device=device)
+        self.compositor: Compositor = prepare_compositor(dict(model), device=device)
+        self.size = tuple(int(v) for v in model["size"])
+        self.anchors = np.asarray(model["anchors"], np.float64)
+        self.triangles = np.asarray(model["triangles"])
+        self.standard_points = torch.from_numpy(np.concatenate([model["standard_points"], self.anchors])).to(device)
+        self.neutral_points = torch.from_numpy(np.concatenate([model["neutral_points"], self.anchors])).to(device)
+        self.neutral = torch.from_numpy(np.asarray(model["neutral"])).to(device).permute(2, 0, 1)[None].float() / 255.0
+        self.center = np.asarray(model["neutral_points"], np.float64).mean(0)
+
+    def render(
+        self,
+        points: np.ndarray,
+        *,
+        mode: str = "full",
+        similarity: np.ndarray | None = None,
+        source_center: np.ndarray | None = None,
+        target_center: np.ndarray | None = None,
+        motion_scale: float = 1.0,
+        min_coeff: float = 1e-3,
+        direct: bool = False,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Synthesize the expression images of a chunk of frames.
+
+        Parameters
+        ----------
+        points : (B, N, 2) float, px
+            The target's feature points per frame (all N, from motion propagation).
+        mode : ``"full" | "warp-only" | "global"``
+        similarity : (B, 4) float, optional
+            The performer's head motion (a, b, tx, ty) per frame, carried onto the output
+            (:func:`head_motion_points`); ``source_center`` / ``target_center`` are the
+            performer's / target's face centres (both default to the centroid of the target's
+            neutral points), ``motion_scale`` target / performer face size.
+        min_coeff : float
+            Coefficients skipped in compositing (see :func:`composite`).
+        direct : bool
+            Composite every example at every pixel (the paper's implementation; speed baseline).
+
+        Returns
+        -------
+        rgb : (B, 3, H, W) float32 sRGB in [0, 1]
+        alpha : (B, 1, H, W) float32 face alpha in [0, 1]
+        coeffs : (B, S, K) float64 (zeros in ``warp-only`` mode)
+        """
+        if mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        points = np.asarray(points, np.float64)
+        B = len(points)
+        dst = np.concatenate([points, np.broadcast_to(self.anchors, (B,) + self.anchors.shape)], 1)
+        if similarity is not None:
+            c_t = self.center if target_center is None else np.asarray(target_center, np.float64)
+            c_s = c_t if source_center is None else np.asarray(source_center, np.float64)
+            dst = head_motion_points(dst, np.asarray(similarity, np.float64), source_center=c_s, target_center=c_t, scale=motion_scale)
+        dst_t = torch.from_numpy(dst).to(self.device)
+        if mode == "warp-only":
+            coeffs = torch.zeros(B, self.qp.n_subregions, self.qp.K, dtype=torch.float64, device=self.device)
+            rgb = warp_images(self.neutral, self.neutral_points[None].expand(B, -1, -1), dst_t, self.triangles)
+            W, H = self.size
+            alpha = self.compositor.alpha.view(1, 1, H, W)
+            alpha = warp_images(alpha, self.standard_points[None].expand(B, -1, -1), dst_t, self.triangles)
+        else:
+            coeffs, _ = self.qp.coefficients(points, mode=mode)
+            standard = composite(self.compositor, coeffs, min_coeff=min_coeff, direct=direct)
+            out = warp_images(standard, self.standard_points[None].expand(B, -1, -1), dst_t, self.triangles)
+            rgb, alpha = out[:, :3], out[:, 3:]
+        return rgb.clamp(0, 1), alpha.clamp(0, 1), coeffs
+
+
+class Synthesize(FrameStage):
+    """``synthesis.synthesize``: target geometry per frame -> expression images (Sec. 6-8, 11)."""
+
+    name = "synthesis.synthesize"
+    version = "2"
+    doc = "per-subregion QP + compositing + blending + warp: target points per frame -> sRGB frames, face mask, coefficients"
+    inputs = {
+        "model": "synthesis_model",
+        "points": "points",
+        "displacements": "displacements",
+        "similarity": "similarity",
+        "performer": "displacements",
+    }
+    optional_inputs = frozenset({"points", "displacements", "similarity", "performer"})
+    outputs = {"frames": "frames", "mask": "frames", "coeffs": "synthesis_coeffs"}
+    params = (
+        Param("mode", str, "full", "full: per-subregion synthesis; global: one combination (Pighin); warp-only: neutral warped", MODES),
+        Param("min_coeff", float, 1e-3, "coefficients at or below this are skipped in compositing (then renormalised)"),
+        Param("head_motion", bool, True, "carry the performer's 2D head motion (the similarity input) onto the output"),
+        Param("head_motion_scale", float, 1.0, "multiplies the carried head translation (on top of the face-size ratio from 'performer')"),
+        Param("fps", float, 30.0, "frame rate when the points bundle carries none"),
+    )
+
+    def __init__(self) -> None:
+        self._prepared: tuple[Mapping[str, np.ndarray], str, Synthesizer] | None = None
+
+    def stream_info(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> StreamInfo:
+        xy, bundle = target_geometry(inputs, stage=self.name)
+        fps = float(bundle["fps"]) if "fps" in bundle else float(params["fps"])
+        W, H = (int(v) for v in inputs["model"]["size"])
+        return StreamInfo(frames=len(xy), fps=fps, width=W, height=H)
+
+    def _synthesizer(self, model: Mapping[str, np.ndarray], device: str) -> Synthesizer:
+        """The model prepared on ``device``, kept between chunks of the same run."""
+        if self._prepared is None or self._prepared[0] is not model or self._prepared[1] != device:
+            self._prepared = (model, device, Synthesizer(model, device=device))
+        return self._prepared[2]
+
+    def process(self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
+        xy, _ = target_geometry(inputs, stage=self.name)
+        points = xy[start:stop]
+        if not np.isfinite(points).all():
+            raise StageError(f"synthesis.synthesize: the input geometry has non-finite points in frames {start}-{stop - 1}")
+        model = inputs["model"]
+        similarity = source_center = target_center = None
+        scale = float(params["head_motion_scale"])
+        sim = inputs.get("similarity")
+        if sim is not None and params["head_motion"]:
+            similarity = np.asarray(sim["params"], np.float64)[start:stop].copy()
+            valid = np.asarray(sim["valid"], bool)[start:stop] if "valid" in sim else np.ones(len(similarity), bool)
+            similarity[~valid] = (1.0, 0.0, 0.0, 0.0)
+            performer = inputs.get("performer")
+            if performer is not None:
+                if "neutral" not in performer or "names" not in performer:
+                    raise StageError(f"{self.name}: input 'performer' needs the fields 'neutral' and 'names' (compensate.similarity's displacements)")
+                source_center, target_center, ratio = head_motion_frame(
+                    performer["neutral"], performer["names"], model["neutral_points"], model["point_names"]
+                )
+                scale *= ratio
+        synth = self._synthesizer(model, ctx.device)
+        rgb, alpha, coeffs = synth.render(
+            points,
+            mode=params["mode"],
+            similarity=similarity,
+            source_center=source_center,
+            target_center=target_center,
+            motion_scale=scale,
+            min_coeff=params["min_coeff"],
+        )
+        ctx.progress(stop - start)
+        return {
+            "frames": rgb.permute(0, 2, 3, 1).contiguous().cpu().numpy(),
+            "mask": alpha.permute(0, 2, 3, 1).contiguous().cpu().numpy(),
+            "coeffs": {"coeffs": coeffs.cpu().numpy()},
+        }

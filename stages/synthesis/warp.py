@@ -1,0 +1,206 @@
+"""Triangulation-based image warping (Sec. 5.2 and the final warp of Sec. 7), batched in torch.
+
+A warp is given by corresponding points in a source and a destination image (the feature points
+plus anchor points on or outside the image border, so hair and background follow) and one
+triangulation over them. Each destination triangle maps affinely onto its source triangle; the
+dense backward map (destination pixel -> source position) is assembled per triangle and applied
+with :func:`torch.nn.functional.grid_sample` (bilinear).
+
+Coordinates are OpenCV's: x right, y down, pixel centres at integers.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+from scipy.spatial import Delaunay
+
+__all__ = ["border_anchors", "triangulate", "triangle_index_map", "backward_map", "warp_images"]
+
+_SHIFT = 8  # sub-pixel bits for cv2.fillConvexPoly
+
+
+def border_anchors(size: tuple[int, int], *, per_side: int = 4, margin: float = 0.0) -> np.ndarray:
+    """Anchor points on a rectangle around the image, evenly spaced, corners included.
+
+    Parameters
+    ----------
+    size : (W, H)
+        Image size in px.
+    per_side : int
+        Number of segments per side (``4 * per_side`` points in all).
+    margin : float
+        How far outside the image the rectangle lies, as a fraction of the larger image side
+        (0 = through the outer pixel edges). A margin keeps the whole output image covered by
+        the triangulation when the anchors move (head motion).
+
+    Returns
+    -------
+    (4 * per_side, 2) float64 array, px.
+    """
+    W, H = size
+    m = margin * max(W, H)
+    x0, y0, x1, y1 = -0.5 - m, -0.5 - m, W - 0.5 + m, H - 0.5 + m
+    t = np.arange(per_side) / per_side
+    top = np.stack([x0 + t * (x1 - x0), np.full_like(t, y0)], 1)
+    right = np.stack([np.full_like(t, x1), y0 + t * (y1 - y0)], 1)
+    bottom = np.stack([x1 - t * (x1 - x0), np.full_like(t, y1)], 1)
+    left = np.stack([np.full_like(t, x0), y1 - t * (y1 - y0)], 1)
+    return np.concatenate([top, right, bottom, left])
+
+
+def triangulate(points: np.ndarray) -> np.ndarray:
+    """Delaunay triangulation of the reference points (feature points plus anchors).
+
+    Parameters
+    ----------
+    points : (P, 2) array, px
+
+    Returns
+    -------
+    (K, 3) int32 array of point indices; duplicate points are left out of every triangle and
+    zero-area triangles are dropped.
+    """
+    tri = Delaunay(np.asarray(points, dtype=np.float64)).simplices.astype(np.int32)
+    p = points[tri]
+    area = (p[:, 1, 0] - p[:, 0, 0]) * (p[:, 2, 1] - p[:, 0, 1]) - (p[:, 2, 0] - p[:, 0, 0]) * (p[:, 1, 1] - p[:, 0, 1])
+    return tri[np.abs(area) > 1e-9]
+
+
+def triangle_index_map(points: np.ndarray, triangles: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Which triangle covers each pixel centre of an image.
+
+    Parameters
+    ----------
+    points : (P, 2) array
+        Vertex positions in this image, px.
+    triangles : (K, 3) int array
+    size : (W, H)
+
+    Returns
+    -------
+    (H, W) int32 array: triangle index, -1 where no triangle covers the pixel. Where triangles
+    overlap (fold-overs) the later one wins; zero-area triangles cover nothing.
+    """
+    W, H = size
+    index = np.full((H, W), -1, dtype=np.int32)
+    verts = np.round(np.asarray(points, dtype=np.float64)[triangles] * (1 << _SHIFT))
+    verts = np.clip(verts, -(1 << 30), 1 << 30).astype(np.int32)
+    e1, e2 = (verts[:, 1] - verts[:, 0]).astype(np.int64), (verts[:, 2] - verts[:, 0]).astype(np.int64)
+    area = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    for k in np.flatnonzero(area != 0):
+        cv2.fillConvexPoly(index, verts[k], int(k), lineType=cv2.LINE_8, shift=_SHIFT)
+    return index
+
+
+def _dst_to_src_affines(src: torch.Tensor, dst: torch.Tensor, triangles: torch.Tensor) -> torch.Tensor:
+    """(B, K, 2, 3) affine maps taking each destination triangle onto its source triangle."""
+    s = src[:, triangles]  # (B, K, 3, 2)
+    d = dst[:, triangles]
+    ones = torch.ones(d.shape[:-1] + (1,), dtype=d.dtype, device=d.device)
+    D = torch.cat([d, ones], -1).transpose(-1, -2)  # (B, K, 3, 3): columns are [x, y, 1]
+    det = torch.linalg.det(D)
+    D = torch.where(det.abs()[..., None, None] > 1e-12, D, torch.eye(3, dtype=D.dtype, device=D.device))
+    return s.transpose(-1, -2) @ torch.linalg.inv(D)
+
+
+def backward_map(
+    src_points: torch.Tensor,
+    dst_points: torch.Tensor,
+    triangles: np.ndarray,
+    size: tuple[int, int],
+    *,
+    dtype: torch.dtype = torch.float32,
+    source_size: tuple[int, int] | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Dense backward map of a piecewise-affine warp: for each destination pixel, its source position.
+
+    Parameters
+    ----------
+    src_points, dst_points : (B, P, 2) float tensors
+        Corresponding points (feature points and anchors) in the source and destination images, px.
+    triangles : (K, 3) int array
+        One triangulation shared by both point sets (see :func:`triangulate`).
+    size : (W, H)
+        Destination image size.
+    dtype : torch.dtype
+        Precision of the per-pixel map (the per-triangle affines are always solved in float64).
+    source_size : (W_src, H_src), optional
+        When given, the map is returned in ``grid_sample``'s normalised coordinates for a source
+        image of that size (``align_corners=True``: -1 and 1 are the centres of the outer
+        pixels) instead of pixels; the normalisation is folded into the per-triangle affines.
+
+    Returns
+    -------
+    map : (B, H, W, 2) tensor of ``dtype``
+        Source (x, y) per destination pixel (px, or normalised with ``source_size``).
+    covered : (B, H, W) bool tensor
+        False where no destination triangle covers the pixel (the map is the identity there).
+    """
+    W, H = size
+    device = src_points.device
+    B = src_points.shape[0]
+    tri = torch.as_tensor(np.asarray(triangles), dtype=torch.long, device=device)
+    affines = _dst_to_src_affines(src_points.to(torch.float64), dst_points.to(torch.float64), tri)  # (B, K, 2, 3)
+    K = affines.shape[1]
+    identity = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype=torch.float64, device=device)
+    affines = torch.cat([affines, identity.expand(B, 1, 2, 3)], 1)
+    if source_size is not None:
+        sw, sh = source_size
+        scale = torch.tensor([2.0 / max(sw - 1, 1), 2.0 / max(sh - 1, 1)], dtype=torch.float64, device=device)
+        affines = affines * scale[:, None]
+        affines[..., 2] -= 1.0
+    affines = affines.to(dtype).reshape(B * (K + 1), 6)
+    dst_np = dst_points.detach().to(torch.float64).cpu().numpy()
+    index = np.stack([triangle_index_map(d, triangles, size) for d in dst_np]).astype(np.int64)
+    covered = torch.from_numpy(index >= 0).to(device)
+    index[index < 0] = K  # the identity
+    index += (np.arange(B) * (K + 1))[:, None, None]
+    a = affines.index_select(0, torch.from_numpy(index).to(device).flatten()).view(B, H, W, 6)
+    xs = torch.arange(W, dtype=dtype, device=device).view(1, 1, W)
+    ys = torch.arange(H, dtype=dtype, device=device).view(1, H, 1)
+    grid = torch.empty(B, H, W, 2, dtype=dtype, device=device)
+    for axis in range(2):
+        out = grid[..., axis]
+        torch.addcmul(a[..., 3 * axis + 2], a[..., 3 * axis], xs, out=out)
+        out.addcmul_(a[..., 3 * axis + 1], ys)
+    return grid, covered
+
+
+def warp_images(
+    images: torch.Tensor,
+    src_points: torch.Tensor,
+    dst_points: torch.Tensor,
+    triangles: np.ndarray,
+    *,
+    size: tuple[int, int] | None = None,
+    padding_mode: str = "border",
+) -> torch.Tensor:
+    """Warp images so that ``src_points`` move to ``dst_points`` (piecewise affine, bilinear).
+
+    Parameters
+    ----------
+    images : (B, C, H, W) float tensor
+        Source images (``B = 1`` is broadcast over the point batch).
+    src_points, dst_points : (B, P, 2) tensors, px
+        Corresponding points, anchors included.
+    triangles : (K, 3) int array
+        Triangulation over the points.
+    size : (W, H), optional
+        Output size; the source size when omitted.
+    padding_mode : str
+        ``grid_sample`` padding for source positions outside the image.
+
+    Returns
+    -------
+    (B, C, H_out, W_out) tensor of the dtype of ``images``.
+    """
+    _, _, H, W = images.shape
+    size = size or (W, H)
+    dtype = torch.float64 if images.dtype == torch.float64 else torch.float32
+    grid, _ = backward_map(src_points, dst_points, triangles, size, dtype=dtype, source_size=(W, H))
+    if images.shape[0] == 1 and grid.shape[0] > 1:
+        images = images.expand(grid.shape[0], -1, -1, -1)
+    return F.grid_sample(images, grid, mode="bilinear", padding_mode=padding_mode, align_corners=True)

@@ -1,0 +1,68 @@
+"""Compositing (eq. 6) with boundary blending (eq. 7) against an independent numpy computation."""
+
+import numpy as np
+import pytest
+import torch
+
+from stages.synthesis.build import build_synthesis_model, subregion_weights
+from stages.synthesis.composite import composite, prepare_compositor
+from tests.stages.synthesis.synthetic import make_pack
+
+
+@pytest.fixture(scope="module")
+def model():
+    return build_synthesis_model(make_pack(), band_px=6.0)
+
+
+def numpy_eq7(model: dict, coeffs: np.ndarray) -> np.ndarray:
+    """sum_s w_s(p) sum_i c_si I_i(p) with the dense (S+1, H, W) weight tensor; outside = standard."""
+    S = len(model["subregion_teeth"])
+    w = subregion_weights(model["blend_r"], model["blend_i1"], model["blend_i2"], n_labels=S + 1)
+    ex = model["examples"].astype(np.float64) / 255
+    teeth = model["teeth"].astype(np.float64) / 255
+    out = w[S][..., None] * model["standard"].astype(np.float64) / 255
+    for s in range(S):
+        imgs = teeth if model["subregion_teeth"][s] else ex
+        sub = np.einsum("i,ihwc->hwc", coeffs[s, : len(imgs)], imgs)  # eq. 6
+        out += w[s][..., None] * sub  # eq. 7
+    return out
+
+
+def random_coeffs(rng: np.random.Generator, B: int, S: int, K: int) -> np.ndarray:
+    c = rng.dirichlet(np.ones(K) * 0.7, size=(B, S))
+    c[:, -1, 2:] = 0  # the teeth row: two teeth examples
+    return c / c.sum(-1, keepdims=True)
+
+
+def test_sparse_and_direct_match_numpy_eq7(model):
+    comp = prepare_compositor(model)
+    c = random_coeffs(np.random.default_rng(0), 2, 7, 4)
+    sparse = composite(comp, torch.from_numpy(c), min_coeff=0.0)
+    direct = composite(comp, torch.from_numpy(c), direct=True)
+    for b in range(2):
+        ref = numpy_eq7(model, c[b])
+        np.testing.assert_allclose(sparse[b, :3].permute(1, 2, 0).numpy(), ref, atol=2e-6)
+        np.testing.assert_allclose(direct[b, :3].permute(1, 2, 0).numpy(), ref, atol=2e-6)
+    S = 7
+    w = subregion_weights(model["blend_r"], model["blend_i1"], model["blend_i2"], n_labels=S + 1)
+    np.testing.assert_allclose(sparse[0, 3].numpy(), 1 - w[S], atol=1e-6)  # face alpha
+
+
+def test_negligible_coefficients_are_skipped_and_the_rest_renormalised(model):
+    comp = prepare_compositor(model)
+    c = random_coeffs(np.random.default_rng(1), 1, 7, 4)
+    c[0, :6] = [0.6, 0.3995, 0.0005, 0.0]
+    out = composite(comp, torch.from_numpy(c), min_coeff=1e-3)
+    expected = c.copy()
+    expected[0, :6] = [0.6 / 0.9995, 0.3995 / 0.9995, 0, 0]
+    np.testing.assert_allclose(out[0, :3].permute(1, 2, 0).numpy(), numpy_eq7(model, expected[0]), atol=2e-6)
+
+
+def test_one_hot_coefficients_reproduce_the_aligned_example_inside_the_face(model):
+    comp = prepare_compositor(model)
+    c = np.zeros((1, 7, 4))
+    c[0, :6, 1] = 1.0
+    c[0, 6, 0] = 1.0
+    out = composite(comp, torch.from_numpy(c))[0, :3].permute(1, 2, 0).numpy()
+    face = (model["region"] < 6) & (model["blend_i2"] < 6)  # face subregions, no band towards teeth/outside
+    np.testing.assert_allclose(out[face], model["examples"][1][face] / 255.0, atol=1e-6)

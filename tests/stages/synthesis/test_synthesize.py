@@ -1,0 +1,125 @@
+"""Runtime synthesis (Sec. 6-8, 11) on the synthetic pack: known coefficients and images."""
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from runner.stage import Context, StageError
+from stages.synthesis.build import build_synthesis_model
+from stages.synthesis.synthesize import Synthesize, Synthesizer, head_motion_frame, head_motion_points
+from tests.stages.synthesis.synthetic import make_pack
+
+
+@pytest.fixture(scope="module")
+def pack():
+    return make_pack()
+
+
+@pytest.fixture(scope="module")
+def model(pack):
+    return build_synthesis_model(pack, band_px=6.0)
+
+
+@pytest.fixture(scope="module")
+def synth(model):
+    return Synthesizer(model)
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    return float(10 * np.log10(1.0 / np.mean((a - b) ** 2)))
+
+
+def face_without_teeth(points: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    teeth = np.zeros(alpha.shape, np.uint8)
+    cv2.fillConvexPoly(teeth, np.round(points[12:16]).astype(np.int32), 1)
+    teeth = cv2.dilate(teeth, np.ones((7, 7), np.uint8)).astype(bool)
+    return (alpha > 0.999) & ~teeth
+
+
+def test_own_example_geometry_gives_its_coefficients_and_image(pack, synth):
+    points = np.stack([e.points for e in pack.examples])
+    rgb, alpha, coeffs = synth.render(points)
+    assert rgb.shape == (4, 3, 80, 96) and alpha.shape == (4, 1, 80, 96) and coeffs.shape == (4, 7, 4)
+    # each face subregion's hull contains the example's own geometry at a vertex: c = e_k
+    np.testing.assert_allclose(coeffs[:, :6].numpy(), np.broadcast_to(np.eye(4)[:, None], (4, 6, 4)), atol=1e-5)
+    for k, ex in enumerate(pack.examples):
+        mask = face_without_teeth(ex.points, alpha[k, 0].numpy())
+        got = rgb[k].permute(1, 2, 0).numpy()[mask]
+        # two bilinear resamplings (align, then warp back) of a texture of <= 0.35 rad/px
+        assert psnr(got, ex.image[mask] / 255.0) > 40.0  # measured 44-51 dB
+
+
+def test_warp_only_at_the_neutral_geometry_is_the_neutral(pack, synth):
+    rgb, alpha, coeffs = synth.render(pack.neutral.points[None], mode="warp-only")
+    np.testing.assert_allclose(rgb[0].permute(1, 2, 0).numpy(), pack.neutral.image / 255.0, atol=1e-5)
+    assert float(coeffs.abs().max()) == 0.0
+    assert float(alpha.max()) == pytest.approx(1.0)
+
+
+def test_global_mode_uses_one_combination_over_all_face_points(pack, synth):
+    rng = np.random.default_rng(5)
+    points = pack.standard.points[None] + rng.normal(0, 1.0, (3, 16, 2))
+    c_global, _ = synth.qp.coefficients(points, mode="global")
+    c_full, _ = synth.qp.coefficients(points, mode="full")
+    assert torch.allclose(c_global[:, :6], c_global[:, :1].expand(-1, 6, -1))
+    assert not torch.allclose(c_full[:, :6], c_full[:, :1].expand(-1, 6, -1), atol=1e-3)
+    torch.testing.assert_close(c_global[:, 6], c_full[:, 6])  # teeth unchanged
+
+
+def test_head_motion_translation_and_rotation_about_the_centre():
+    pts = np.array([[[10.0, 0.0], [0.0, 0.0], [0.0, 10.0]]])
+    shift = head_motion_points(pts, np.array([[1.0, 0.0, 4.0, -2.0]]), source_center=np.zeros(2), target_center=np.zeros(2), scale=0.5)
+    np.testing.assert_allclose(shift, pts + [2.0, -1.0])
+    rot = head_motion_points(pts, np.array([[0.0, 1.0, 0.0, 0.0]]), source_center=np.zeros(2), target_center=np.zeros(2), scale=1.0)
+    np.testing.assert_allclose(rot[0], [[0.0, 10.0], [0.0, 0.0], [-10.0, 0.0]], atol=1e-12)  # 90 degrees about (0, 0)
+
+
+def test_head_motion_moves_the_whole_image(pack, synth):
+    sim = np.array([[1.0, 0.0, 5.0, 3.0]])
+    still, _, _ = synth.render(pack.standard.points[None])
+    moved, _, _ = synth.render(pack.standard.points[None], similarity=sim)
+    np.testing.assert_allclose(moved[0, :, 20:70, 20:80].numpy(), still[0, :, 17:67, 15:75].numpy(), atol=1e-4)
+
+
+def test_stage_process_outputs_and_errors(pack, model):
+    stage = Synthesize()
+    points = np.stack([e.points for e in pack.examples[:3]])
+    inputs = {"model": model, "points": {"xy": points, "valid": np.ones((3, 16), bool)}}
+    params = {p.name: p.default for p in Synthesize.params}
+    info = stage.stream_info(inputs, params)
+    assert (info.frames, info.width, info.height, info.fps) == (3, 96, 80, 30.0)
+    out = stage.process(1, 3, inputs, params, Context(device="cpu", files_dir=lambda port: None))
+    assert out["frames"].shape == (2, 80, 96, 3) and out["frames"].dtype == np.float32
+    assert out["mask"].shape == (2, 80, 96, 1) and out["coeffs"]["coeffs"].shape == (2, 7, 4)
+    assert 0.0 <= out["frames"].min() and out["frames"].max() <= 1.0
+    by_displacement = {"model": model, "displacements": {"d": points - pack.neutral.points, "valid": np.ones((3, 16), bool)}}
+    out2 = stage.process(1, 3, by_displacement, params, Context(device="cpu", files_dir=lambda port: None))
+    np.testing.assert_allclose(out2["frames"], out["frames"], atol=1e-6)
+    with pytest.raises(StageError, match=r"\(T, 16, 2\)"):
+        stage.stream_info({"model": model, "points": {"xy": points[:, :10]}}, params)
+    with pytest.raises(StageError, match="'points' or a 'displacements'"):
+        stage.stream_info({"model": model}, params)
+
+
+def test_head_motion_frame_from_the_performer_neutral(pack, model):
+    names = np.array(pack.layout.point_names[:12])
+    performer = 0.5 * pack.neutral.points[:12] + [100.0, 50.0]  # half the size, elsewhere
+    c_s, c_t, scale = head_motion_frame(performer, names, pack.neutral.points, np.array(pack.layout.point_names))
+    assert scale == pytest.approx(2.0)
+    np.testing.assert_allclose(c_s, 0.5 * pack.neutral.points[:12].mean(0) + [100.0, 50.0])
+    np.testing.assert_allclose(c_t, pack.neutral.points[:12].mean(0))
+    # through the stage: a performer translation of (2, 1.5) px moves the target by (4, 3) px
+    stage = Synthesize()
+    params = {p.name: p.default for p in Synthesize.params}
+    xy = np.repeat(pack.standard.points[None], 2, 0)
+    inputs = {
+        "model": model,
+        "points": {"xy": xy},
+        "similarity": {"params": np.array([[1.0, 0.0, 0.0, 0.0], [1.0, 0.0, 2.0, 1.5]]), "valid": np.ones(2, bool)},
+        "performer": {"neutral": performer, "names": names},
+    }
+    out = stage.process(0, 2, inputs, params, Context(device="cpu", files_dir=lambda port: None))["frames"]
+    np.testing.assert_allclose(out[1, 23:73, 24:84], out[0, 20:70, 20:80], atol=1e-4)
+    with pytest.raises(StageError, match="'neutral' and 'names'"):
+        stage.process(0, 2, {**inputs, "performer": {"d": xy}}, params, Context(device="cpu", files_dir=lambda port: None))
