@@ -38,7 +38,7 @@ from runner.registry import Registry, RegistryError, value_has_type
 from runner.stage import FrameStage, Param, Stage
 
 DEFAULT_CHUNK_FRAMES = 16
-INPUT_TYPES = ("video", "dir")
+INPUT_TYPES = ("video", "file", "dir")
 NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_-]*$")
 TOP_KEYS = ("chunk_frames", "inputs", "stages")
 STAGE_KEYS = ("uses", "params", "inputs")
@@ -441,7 +441,7 @@ def bind_inputs(pipeline: Pipeline, *, clip: Path | None, named: list[str]) -> d
         flag = "--in" if decl.type == "video" else f"--input {decl.name}=PATH"
         if path is None:
             issues.append(Issue(decl.where, f"inputs.{decl.name}", f"missing input: no value given (use {flag})"))
-        elif decl.type == "video" and not path.is_file():
+        elif decl.type in ("video", "file") and not path.is_file():
             issues.append(Issue(decl.where, f"inputs.{decl.name}", f"missing input: {path}: no such file"))
         elif decl.type == "dir" and not path.is_dir():
             issues.append(Issue(decl.where, f"inputs.{decl.name}", f"missing input: {path}: no such folder"))

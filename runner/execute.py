@@ -138,7 +138,7 @@ class Runner:
         self.values: dict[tuple[str | None, str], Value] = {}
         for name, path in bound.items():
             kind = pipeline.inputs[name].type
-            digest = file_digest(path) if kind == "video" else tree_digest(path)
+            digest = file_digest(path) if kind in ("video", "file") else tree_digest(path)
             self.values[(None, name)] = Value(kind, digest, load=lambda p=path: Path(p))
         self.entries: dict[str, list[Entry]] = {}
         self.memo_dir = self.store.root / "runs"

@@ -100,7 +100,7 @@ def check_stage_class(stage_cls: type[Stage]) -> None:
         if not (isinstance(port, str) and isinstance(kind, str) and kind):
             raise RegistryError(f"{where}: port {port!r} must map a name to a type string")
     for kind in stage_cls.outputs.values():
-        if kind in ("video", "dir"):
+        if kind in ("video", "file", "dir"):
             raise RegistryError(f"{where}: {kind!r} is a pipeline-input type, not an output type")
         if kind == "frames" and not issubclass(stage_cls, FrameStage):
             raise RegistryError(f"{where}: only frame stages produce 'frames' outputs")

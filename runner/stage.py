@@ -10,6 +10,8 @@ Port types
 A port type is a string. Four have a fixed meaning to the runner:
 
 ``video``   a ``pathlib.Path`` to a media file (a pipeline input); digest = file bytes.
+``file``    a ``pathlib.Path`` to any other file (a pipeline input, e.g. first-frame points);
+            digest = file bytes.
 ``dir``     a ``pathlib.Path`` to a folder (a pipeline input, e.g. an actor pack); digest = the
             relative paths and bytes of every file under it.
 ``frames``  a :class:`FrameStream`: images ``(H, W, C)`` produced chunk by chunk by a frame stage.
@@ -31,7 +33,7 @@ from typing import Any, Callable, ClassVar, Iterator, Mapping, Protocol
 
 import numpy as np
 
-RUNNER_TYPES = ("video", "dir", "frames", "files")
+RUNNER_TYPES = ("video", "file", "dir", "frames", "files")
 
 
 @dataclass(frozen=True)

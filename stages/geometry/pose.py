@@ -1,0 +1,230 @@
+"""3D head pose per frame from the rigid feature points (paper Sec. 12.1, eq. 10).
+
+Eq. 10, ``lambda_i m~_i = A P Omega p~_i``, relates the generic 3D face model's points ``p_i``
+(head frame, mm) to their images ``m_i`` (px) through the intrinsics ``A`` and the head pose
+``Omega = [R t; 0 1]``. Only the rigid points (hairline and inner eye corners) are used. The pose
+is found with ``cv2.solvePnP``: SQPnP for the first solvable frame, then Levenberg-Marquardt
+(``SOLVEPNP_ITERATIVE``) started from the previous frame's pose, which keeps the sequence
+temporally consistent. Optionally the generic model is first fitted to the performer's neutral
+(first) frame, taken as frontal, which removes most of the bias of a generic shape. A frame with fewer valid rigid points than ``min_points`` (or where PnP
+fails) is flagged invalid and its pose interpolated (slerp for rotation, linear for translation)
+from the nearest solved frames; the run continues. Optional Gaussian smoothing over time acts on
+sign-aligned quaternions and translations.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from runner.stage import Context, Param, SequenceStage, StageError
+from stages.actor_pack import load_pack
+from stages.geometry.smooth import gaussian_smooth
+from stages.geometry.subset import named_columns, rigid_columns
+
+
+def default_intrinsics(size: tuple[int, int]) -> np.ndarray:
+    """Camera matrix ``A (3, 3)`` for an image of ``size = (W, H)`` px when none is known: focal
+    length ``f = max(W, H)`` px (about a 53 degree field of view across the long side), square
+    pixels, no skew, principal point at the image centre ``((W - 1) / 2, (H - 1) / 2)``."""
+    width, height = size
+    f = float(max(width, height))
+    return np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
+
+
+def reprojection_error(rvec: np.ndarray, tvec: np.ndarray, model: np.ndarray, image: np.ndarray,
+                       camera: np.ndarray) -> float:
+    """RMS distance in px between ``image (n, 2)`` and ``model (n, 3)`` projected with the pose."""
+    projected, _ = cv2.projectPoints(model, rvec, tvec, camera, None)
+    return float(np.sqrt(np.mean(np.sum((projected.reshape(-1, 2) - image) ** 2, axis=1))))
+
+
+def adapt_model(model: np.ndarray, image: np.ndarray, camera: np.ndarray) -> np.ndarray:
+    """Fit the generic model to the performer's neutral frame, assumed frontal (``R = I``).
+
+    The translation ``t`` minimizing the algebraic error of eq. 10 with ``R = I`` is solved
+    linearly (``(u - u0)(z + tz) = alpha (x + tx)``, the same in y); then each model point is
+    moved parallel to the image plane, keeping its depth, so that it projects exactly onto its
+    observation. Poses found with the adapted model are relative to that neutral frame.
+
+    Parameters
+    ----------
+    model : (n, 3) float
+        Generic model points, head frame (mm).
+    image : (n, 2) float
+        Their observations in the neutral frame, px.
+    camera : (3, 3) float
+        Intrinsic matrix ``A``.
+
+    Returns
+    -------
+    (n, 3) float64
+        The adapted model (same depths ``z``).
+    """
+    fx, fy, u0, v0 = camera[0, 0], camera[1, 1], camera[0, 2], camera[1, 2]
+    du, dv = image[:, 0] - u0, image[:, 1] - v0
+    n = len(model)
+    system = np.zeros((2 * n, 3))
+    system[:n, 0], system[:n, 2] = fx, -du
+    system[n:, 1], system[n:, 2] = fy, -dv
+    rhs = np.concatenate([du * model[:, 2] - fx * model[:, 0], dv * model[:, 2] - fy * model[:, 1]])
+    tx, ty, tz = np.linalg.lstsq(system, rhs, rcond=None)[0]
+    depth = model[:, 2] + tz
+    return np.stack([du * depth / fx - tx, dv * depth / fy - ty, model[:, 2]], axis=1)
+
+
+def interpolate_poses(rvec: np.ndarray, tvec: np.ndarray, known: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Fill the frames where ``known (T,)`` is False: rotations ``rvec (T, 3)`` by slerp and
+    translations ``tvec (T, 3)`` linearly between the nearest known frames, held at the ends."""
+    frames = np.arange(len(known))
+    times = frames[known]
+    rvec, tvec = rvec.copy(), tvec.copy()
+    if len(times) == 1:
+        rvec[:], tvec[:] = rvec[times[0]], tvec[times[0]]
+        return rvec, tvec
+    slerp = Slerp(times, Rotation.from_rotvec(rvec[known]))
+    rvec[~known] = slerp(np.clip(frames[~known], times[0], times[-1])).as_rotvec()
+    for k in range(3):
+        tvec[:, k] = np.interp(frames, times, tvec[known, k])
+    return rvec, tvec
+
+
+def smooth_poses(rvec: np.ndarray, tvec: np.ndarray, known: np.ndarray, *, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Gaussian smoothing over time (:func:`gaussian_smooth`) of the known poses: quaternions made
+    sign-continuous, smoothed and renormalized; translations smoothed. Shapes ``(T, 3)``."""
+    quat = Rotation.from_rotvec(rvec).as_quat()
+    for t in range(1, len(quat)):
+        if np.dot(quat[t], quat[t - 1]) < 0:
+            quat[t] = -quat[t]
+    quat, _ = gaussian_smooth(quat, known, sigma=sigma)
+    tvec, _ = gaussian_smooth(tvec, known, sigma=sigma)
+    return Rotation.from_quat(quat / np.linalg.norm(quat, axis=1, keepdims=True)).as_rotvec(), tvec
+
+
+def estimate_poses(image: np.ndarray, valid: np.ndarray, model: np.ndarray, camera: np.ndarray, *,
+                   min_points: int = 4, smooth_sigma: float = 0.0, adapt: bool = False) -> dict[str, np.ndarray]:
+    """Head pose per frame by PnP (eq. 10) from the rigid points.
+
+    Parameters
+    ----------
+    image : (T, R, 2) float
+        Rigid points in each frame, px.
+    valid : (T, R) bool
+        Their validity.
+    model : (R, 3) float
+        The same points on the generic 3D face model, head frame (mm).
+    camera : (3, 3) float
+        Intrinsic matrix ``A``.
+    min_points : int
+        Fewest valid rigid points to solve a frame (at least 4).
+    smooth_sigma : float
+        Temporal Gaussian smoothing of the solved poses, frames (0 = off).
+    adapt : bool
+        Fit the model to the first frame where all rigid points are valid, taken as the frontal
+        neutral (:func:`adapt_model`), before solving.
+
+    Returns
+    -------
+    dict
+        ``rvec (T, 3)``, ``tvec (T, 3)`` (OpenCV convention, model -> camera, ``tvec`` in the
+        model's units), ``R (T, 3, 3)``, ``reproj_err_px (T,)`` (RMS over the frame's valid rigid
+        points, NaN where none), ``valid (T,)`` (False where the pose was interpolated).
+    """
+    model = np.ascontiguousarray(model, dtype=np.float64)
+    camera = np.asarray(camera, dtype=np.float64)
+    n_frames = len(image)
+    rvec = np.zeros((n_frames, 3))
+    tvec = np.zeros((n_frames, 3))
+    solved = np.zeros(n_frames, bool)
+    guess: tuple[np.ndarray, np.ndarray] | None = None
+    complete = np.flatnonzero(valid.all(axis=1))
+    if adapt and len(complete):
+        model = adapt_model(model, image[complete[0]], camera)
+    for t in range(n_frames):
+        use = valid[t]
+        if use.sum() < max(min_points, 4):
+            continue
+        obj, img = model[use], np.ascontiguousarray(image[t, use], dtype=np.float64)
+        try:
+            if guess is None:
+                ok, r, tr = cv2.solvePnP(obj, img, camera, None, flags=cv2.SOLVEPNP_SQPNP)
+                guess = (r, tr)
+            ok, r, tr = cv2.solvePnP(obj, img, camera, None, rvec=guess[0].copy(), tvec=guess[1].copy(),
+                                     useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
+        except cv2.error:
+            continue
+        if not ok or not np.isfinite(r).all() or not np.isfinite(tr).all() or tr[2, 0] <= 0:
+            continue
+        rvec[t], tvec[t], solved[t] = r.ravel(), tr.ravel(), True
+        guess = (r, tr)
+    if not solved.any():
+        raise StageError(f"pose: no frame has {max(min_points, 4)} valid rigid points for PnP")
+    if smooth_sigma > 0:
+        rvec[solved], tvec[solved] = (x[solved] for x in smooth_poses(rvec, tvec, solved, sigma=smooth_sigma))
+    rvec, tvec = interpolate_poses(rvec, tvec, solved)
+    error = np.array([
+        reprojection_error(rvec[t], tvec[t], model[valid[t]], image[t, valid[t]], camera) if valid[t].any() else np.nan
+        for t in range(n_frames)
+    ])
+    return {"rvec": rvec, "tvec": tvec, "R": Rotation.from_rotvec(rvec).as_matrix(),
+            "reproj_err_px": error, "valid": solved}
+
+
+class PnPPose(SequenceStage):
+    """``pose.pnp``: the performer's head pose per frame (Sec. 12.1)."""
+
+    name = "pose.pnp"
+    version = "1"
+    doc = "3D head pose per frame by PnP from the rigid points and the pack's generic 3D model (eq. 10)"
+    inputs = {"points": "points", "pack": "dir"}
+    outputs = {"pose": "pose"}
+    params = (
+        Param("intrinsics", str, "pack", "camera matrix: the pack's, or the default from the image size "
+              "(f = max(W, H), principal point at the centre)", choices=("pack", "image")),
+        Param("focal_px", float, 0.0, "if > 0, focal length in px with the principal point at the image centre"),
+        Param("points", list, [], "names of the points used for PnP; empty: the layout's rigid points "
+              "(hairline and inner eye corners, Sec. 12.1)"),
+        Param("min_points", int, 4, "fewest valid rigid points to solve a frame (else flagged and interpolated)"),
+        Param("smooth_sigma", float, 0.0, "temporal Gaussian smoothing of the poses, frames (0 = off)"),
+        Param("adapt_model", bool, True, "fit the generic model to the first complete frame, taken as the frontal "
+              "neutral; poses are then relative to it"),
+    )
+
+    def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
+        params = {p.name: p.default for p in self.params} | dict(params)
+        points = inputs["points"]
+        pack = load_pack(inputs["pack"])
+        min_points = max(int(params["min_points"]), 4)
+        if params["points"]:
+            columns = self.named(np.asarray(points["names"]), params["points"], pack.layout)
+        else:
+            columns = rigid_columns(np.asarray(points["names"]), pack.layout, at_least=min_points, stage=self.name)
+        names = [str(points["names"][c]) for c in columns]
+        model = pack.model3d[[pack.layout.index(n) for n in names]]
+        camera = self.camera(points, pack, params)
+        pose = estimate_poses(points["xy"][:, columns], points["valid"][:, columns], model, camera,
+                              min_points=min_points, smooth_sigma=float(params["smooth_sigma"]),
+                              adapt=bool(params["adapt_model"]))
+        return {"pose": pose}
+
+    def named(self, names: np.ndarray, wanted: list[str], layout: Any) -> np.ndarray:
+        """Columns of the ``points`` parameter's names; an error naming any that are missing."""
+        missing = [n for n in wanted if n not in set(map(str, names)) or n not in layout.point_names]
+        if missing:
+            raise StageError(f"{self.name}: parameter points names {missing} that are not tracked points of the layout")
+        return named_columns(names, tuple(wanted))
+
+    def camera(self, points: Mapping[str, np.ndarray], pack: Any, params: Mapping[str, Any]) -> np.ndarray:
+        """The intrinsic matrix chosen by the ``intrinsics`` and ``focal_px`` parameters."""
+        focal = float(params["focal_px"])
+        if params["intrinsics"] == "pack" and focal <= 0:
+            return np.asarray(pack.intrinsics, dtype=np.float64)
+        if "size" not in points:
+            raise StageError(f"{self.name}: the points carry no image size; use intrinsics=pack")
+        camera = default_intrinsics(tuple(int(v) for v in points["size"]))
+        if focal > 0:
+            camera[0, 0] = camera[1, 1] = focal
+        return camera

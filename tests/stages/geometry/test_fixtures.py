@@ -1,0 +1,143 @@
+"""The geometry stages on the fixture clips (scripts/make_fixtures.py) against their ground truth.
+
+Tolerances sit a little above what the current code measures (scripts/bench_geometry.py prints
+the figures), so that a regression breaks them; see docs/fixtures.md for the clips.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import av
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from stages.actor_pack import load_pack
+from stages.geometry.compensate import SimilarityCompensate
+from stages.geometry.pose import PnPPose
+from stages.geometry.smooth import GaussianSmooth
+from stages.geometry.track import CorrelationTrack
+from stages.layout import load_layout
+from tests.stages.geometry.synthetic import MemoryStream, context
+
+ROOT = Path(os.environ.get("EXPRESSION_FIXTURES", Path(__file__).resolve().parents[3] / "fixtures"))
+pytestmark = pytest.mark.skipif(not (ROOT / "clips" / "live_truth.npz").is_file(),
+                                reason=f"fixture clips not generated under {ROOT} (make fixtures)")
+
+
+def decode(path: Path) -> np.ndarray:
+    with av.open(str(path)) as container:
+        return np.stack([frame.to_ndarray(format="rgb24") for frame in container.decode(video=0)])
+
+
+@pytest.fixture(scope="module", params=["calm", "live"])
+def clip(request):
+    """Tracked points of one clip through the stage chain track -> smooth -> compensate -> pose."""
+    kind = request.param
+    ctx = context(Path("/nonexistent"))
+    frames = MemoryStream(decode(ROOT / "clips" / f"{kind}.mp4"), chunk=16)
+    truth = dict(np.load(ROOT / "clips" / f"{kind}_truth.npz", allow_pickle=False))
+    tracked = CorrelationTrack().run({"frames": frames, "init": ROOT / "clips"},
+                                     {"init_file": f"{kind}_track0.csv"}, ctx)["points"]
+    smoothed = GaussianSmooth().run({"points": tracked}, {}, ctx)["points"]
+    compensated = SimilarityCompensate().run({"points": smoothed}, {}, ctx)
+    pack = ROOT / "packs" / "performer"
+    pose = {
+        "rigid": PnPPose().run({"points": smoothed, "pack": pack}, {}, ctx)["pose"],
+        "eyes_nose": PnPPose().run({"points": smoothed, "pack": pack}, {"points": EYES_NOSE}, ctx)["pose"],
+    }
+    return kind, truth, tracked, smoothed, compensated, pose
+
+
+def truth_of(truth: dict, names: np.ndarray, key: str = "points") -> np.ndarray:
+    index = {n: i for i, n in enumerate(truth["point_names"])}
+    return truth[key][:, [index[str(n)] for n in names]]
+
+
+EYES_NOSE = ["eye_l_0", "eye_r_0", "eye_l_6", "eye_r_6", "nose_tip", "nose_ala_l", "nose_ala_r", "nose_base"]
+TRACK_MEAN_PX = {"calm": 0.8, "live": 5.5}
+JITTER_RATIO = {"calm": 0.8, "live": 0.95}
+# mean rotation error, deg; on the live clip the hairline points drift by several px (their
+# appearance does not move with them in the renderer), so the paper's rigid set gives poor poses
+POSE_DEG = {("calm", "rigid"): 3.0, ("calm", "eyes_nose"): 1.5, ("live", "rigid"): 25.0, ("live", "eyes_nose"): 9.5}
+
+
+def test_tracking_error(clip):
+    kind, truth, tracked, *_ = clip
+    error = np.linalg.norm(tracked["xy"] - truth_of(truth, tracked["names"]), axis=2)
+    visible = truth_of(truth, tracked["names"], "visible")
+    assert error[0].max() < 1e-6
+    assert error[1:][visible[1:]].mean() < TRACK_MEAN_PX[kind]
+    assert tracked["valid"][1:][visible[1:]].mean() > 0.9
+
+
+def test_smoothing_reduces_jitter(clip):
+    kind, truth, tracked, smoothed, *_ = clip
+    gt = truth_of(truth, tracked["names"])
+
+    def jitter(xy):
+        return np.linalg.norm(np.diff(xy - gt, axis=0), axis=2).mean()
+
+    assert jitter(smoothed["xy"]) < JITTER_RATIO[kind] * jitter(tracked["xy"])
+
+
+@pytest.mark.parametrize("points", ["rigid", "eyes_nose"])
+def test_pose_error(clip, points):
+    kind, truth, _, _, _, poses = clip
+    pose = poses[points]
+    angle = np.degrees((Rotation.from_matrix(pose["R"]).inv() * Rotation.from_matrix(truth["R"])).magnitude())
+    assert angle.mean() < POSE_DEG[kind, points]
+    assert pose["valid"].all() and angle[0] < 1e-6
+
+
+def test_compensation_on_the_true_points_matches_the_generator():
+    """Eq. 9 on the true rigid points reproduces the generator's own similarity."""
+    layout = load_layout("zhang134")
+    truth = dict(np.load(ROOT / "clips" / "live_truth.npz", allow_pickle=False))
+    names = np.array(layout.point_names)
+    points = {"xy": truth["points"], "valid": np.ones(truth["points"].shape[:2], bool), "names": names}
+    neutral = {"xy": truth["neutral_points"][None], "valid": np.ones((1, len(names)), bool), "names": names}
+    out = SimilarityCompensate().run({"points": points, "neutral": neutral}, {}, context(Path("/nonexistent")))
+    np.testing.assert_allclose(out["similarity"]["params"], truth["similarity"], atol=1e-9)
+
+
+def test_pose_with_the_performers_own_model_is_exact():
+    layout = load_layout("zhang134")
+    truth = dict(np.load(ROOT / "clips" / "live_truth.npz", allow_pickle=False))
+    pack = load_pack(ROOT / "packs" / "performer")
+    from stages.geometry.pose import estimate_poses
+
+    rigid = list(layout.rigid)
+    pose = estimate_poses(truth["points"][:, rigid], np.ones((len(truth["R"]), len(rigid)), bool),
+                          truth["points3d"][0][rigid], pack.intrinsics)
+    angle = np.degrees((Rotation.from_matrix(pose["R"]).inv() * Rotation.from_matrix(truth["R"])).magnitude())
+    assert angle.max() < 1e-3
+
+
+def test_mapping_onto_the_target_pack():
+    """compensate -> map on the calm clip, from the true and from the tracked points, against the
+    generator's ideal mapping (the target's own face with the same expression controls)."""
+    from stages.geometry.mapping import ExpressionMap
+
+    ctx = context(Path("/nonexistent"))
+    truth = dict(np.load(ROOT / "clips" / "calm_truth.npz", allow_pickle=False))
+    frames = MemoryStream(decode(ROOT / "clips" / "calm.mp4"), chunk=16)
+    tracked = CorrelationTrack().run({"frames": frames, "init": ROOT / "clips"},
+                                     {"init_file": "calm_track0.csv"}, ctx)["points"]
+    smoothed = GaussianSmooth().run({"points": tracked}, {}, ctx)["points"]
+    exact = dict(smoothed, xy=truth_of(truth, smoothed["names"]), valid=np.ones_like(smoothed["valid"]))
+    columns = list(truth["tracked"])
+    errors = {}
+    for label, points in (("tracked", smoothed), ("exact", exact)):
+        displacements = SimilarityCompensate().run({"points": points}, {}, ctx)["displacements"]
+        mapped = ExpressionMap().run({"displacements": displacements, "pack": ROOT / "packs" / "target"}, {},
+                                     ctx)["points"]
+        errors[label] = np.linalg.norm(mapped["xy"][:, columns] - truth["target_points"][:, columns], axis=2).mean()
+        assert mapped["valid"][:, columns].mean() > 0.95
+    neutral_only = np.linalg.norm(mapped["xy"][:1, columns] - truth["target_points"][:, columns], axis=2).mean()
+    # mapping the true motion gets closer to the ideal than leaving the target neutral; tracking
+    # errors, magnified by the target's larger face, then cost about half a pixel more
+    assert errors["exact"] < 0.8 * neutral_only
+    assert errors["tracked"] < 1.8
