@@ -48,15 +48,16 @@ class HierarchicalPropagation(SequenceStage):
 
     Give exactly one of ``displacements`` (from the neutral, in the neutral's frame) or
     ``points`` (positions in the neutral's frame, i.e. after motion compensation); their
-    ``valid`` mask is the input point set of each frame.
+    ``valid`` mask is the input point set of each frame. Outputs the displacements of all points
+    and the same as a geometry, ``points.xy = neutral + d`` (the target geometry per frame).
     """
 
     name = "propagate.hierarchical"
-    version = "1"
+    version = "2"
     doc = "hierarchical-PCA motion propagation of a tracked subset to all feature points"
     inputs = {"pca_model": "pca_model", "displacements": "displacements", "points": "points"}
     optional_inputs = frozenset({"displacements", "points"})
-    outputs = {"displacements": "displacements"}
+    outputs = {"displacements": "displacements", "points": "points"}
     params = (
         Param("stop_progress_px", float, 1e-3, "stop when the input points move less than this between iterations, px"),
         Param("max_iterations", int, 200, "iteration cap per frame"),
@@ -100,7 +101,9 @@ class HierarchicalPropagation(SequenceStage):
         for scalar in ("fps", "size"):
             if scalar in bundle:
                 out[scalar] = np.asarray(bundle[scalar])
-        return {"displacements": out}
+        geometry = {key: value for key, value in out.items() if key != "d"}
+        geometry["xy"] = model.neutral[None] + result.displacements
+        return {"displacements": out, "points": geometry}
 
 
 def _check_names(model: HierarchicalPCA, bundle: Mapping[str, np.ndarray], port: str) -> None:

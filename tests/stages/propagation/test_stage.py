@@ -51,11 +51,14 @@ def test_points_and_displacements_inputs_agree(model, tmp_path):
     valid[2] = False
     stage = HierarchicalPropagation()
     pca = model.to_bundle()
-    by_d = stage.run(
+    outputs = stage.run(
         {"pca_model": pca, "displacements": {"d": truth, "valid": valid, "names": np.array(NAMES), "fps": FPS}},
         PARAMS,
         context(tmp_path),
-    )["displacements"]
+    )
+    by_d = outputs["displacements"]
+    np.testing.assert_allclose(outputs["points"]["xy"], toy_neutral() + by_d["d"], atol=1e-12)
+    np.testing.assert_array_equal(outputs["points"]["valid"], by_d["valid"])
     by_xy = stage.run(
         {"pca_model": pca, "points": {"xy": toy_neutral() + truth, "valid": valid, "names": np.array(NAMES)}},
         PARAMS,
