@@ -2,12 +2,14 @@
 
 The default tracker (``method="ncc"``) follows each point of the tracked subset with normalized
 cross-correlation (NCC) of a small template inside a search window centred on a constant-velocity
-prediction, refines the correlation peak to sub-pixel precision with a parabola fitted through the
-peak and its neighbours, scores every point in every frame (peak NCC value and peak-to-sidelobe
-ratio), and controls drift by matching the first-frame template (the anchor) in the same window:
-where the anchor matches well, its position wins and the running template is re-anchored there.
-A point that is lost or leaves the frame is flagged invalid, carried along by the similarity motion
-of the valid points, and keeps being searched for; it is never dropped.
+prediction and controls drift by matching the first-frame template (the anchor), warped by the
+point's local affine motion estimated from its neighbours, in the same window: where the anchor
+matches well its peak wins, else the running template's. The peak is refined to sub-pixel
+precision by a parabola, then by inverse-compositional Lucas-Kanade; a point whose template pins
+one direction only (an edge, e.g. the hairline) takes the other from its neighbours. Every point
+in every frame gets a confidence (the final NCC). A point that is lost or leaves the frame is
+flagged invalid, carried along by the similarity motion of the valid points, and keeps being
+searched for; it is never dropped.
 
 ``method`` also selects OpenCV's correlation-filter trackers (``csrt``, ``kcf``, ``mosse``, one
 tracker per point on a box around it) and pyramidal Lucas-Kanade with a forward-backward check
@@ -19,6 +21,7 @@ Frames are consumed one at a time from an iterable; a clip is never held in memo
 from __future__ import annotations
 
 import csv
+import functools
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,8 +50,9 @@ class Tracks:
     valid : (T, N) bool
         True where the tracker is confident the point was found inside the frame.
     confidence : (T, N) float32
-        In [0, 1]: peak NCC score (``ncc``), forward-backward agreement ``exp(-e / fb_px)``
-        (``lk``), 1 or 0 as reported by the OpenCV tracker (``csrt``, ``kcf``, ``mosse``).
+        In [0, 1]: NCC of the patch found with its template (``ncc``), forward-backward
+        agreement ``exp(-e / fb_px)`` (``lk``), 1 or 0 as reported by the OpenCV tracker
+        (``csrt``, ``kcf``, ``mosse``).
     """
 
     xy: np.ndarray
@@ -138,84 +142,212 @@ def carry_along(last: np.ndarray, found: np.ndarray, valid: np.ndarray) -> np.nd
     return np.where(valid[:, None], found, moved)
 
 
+def local_affines(src: np.ndarray, dst: np.ndarray, weight: np.ndarray, *, sigma_px: float,
+                  ridge: float = 0.05, exclude_self: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Local affine motions of N points: linear parts ``M_i (N, 2, 2)`` and positions ``b_i (N, 2)``.
+
+    For each point ``i``, the affine ``y = M_i (x - src_i) + b_i`` minimizing
+    ``sum_j w_ij |M_i (src_j - src_i) + b_i - dst_j|^2 + lambda_i |M_i - M_g|_F^2`` with
+    ``w_ij = weight_j exp(-|src_j - src_i|^2 / (2 sigma_px^2))`` (the point's neighbourhood on the
+    face), ``lambda_i = ridge * sigma_px^2 * sum_j w_ij`` and ``M_g`` the linear part of the
+    unweighted affine fit of all points with ``weight > 0`` (the identity with fewer than 3; pulled
+    faintly towards it, so that collinear points give a finite answer), so a
+    point with few or collinear neighbours falls back on the face's global motion. With
+    ``exclude_self`` the sum leaves ``j = i`` out: ``b_i`` is then where the neighbours alone put
+    point ``i``.
+
+    Parameters
+    ----------
+    src, dst : (N, 2) float
+        Positions in the first and in the current frame, px.
+    weight : (N,) float
+        Trust in each correspondence (0 = unused).
+    """
+    x = np.column_stack([src, np.ones(len(src))])
+    use = weight > 0
+    m_global = np.eye(2)
+    if use.sum() >= 3:  # least squares, a faint pull to the identity where the points are collinear
+        pull = 1e-6 * use.sum() * (src[use].var(axis=0).sum() + 1.0)
+        gram = x[use].T @ x[use] + pull * np.diag([1.0, 1.0, 0.0])
+        m_global = np.linalg.solve(gram, x[use].T @ dst[use] + pull * np.eye(3, 2))[:2].T
+    rel = src[None, :, :] - src[:, None, :]                              # (N, N, 2): src_j - src_i
+    w = weight[None, :] * np.exp(-(rel ** 2).sum(axis=2) / (2.0 * sigma_px ** 2))
+    if exclude_self:
+        np.fill_diagonal(w, 0.0)
+    design = np.concatenate([rel, np.ones(rel.shape[:2] + (1,))], axis=2)  # (N, N, 3)
+    weighted = np.transpose(design * w[:, :, None], (0, 2, 1))            # (N, 3, N)
+    gram = weighted @ design
+    rhs = weighted @ dst
+    lam = ridge * sigma_px ** 2 * w.sum(axis=1)
+    gram[:, 0, 0] += lam
+    gram[:, 1, 1] += lam
+    rhs[:, :2, :] += lam[:, None, None] * m_global.T[None]
+    gram[:, 2, 2] += 1e-9
+    solution = np.linalg.solve(gram, rhs)
+    return np.transpose(solution[:, :2, :], (0, 2, 1)), solution[:, 2, :]
+
+
+@functools.lru_cache(maxsize=8)
+def patch_grid(side: int) -> np.ndarray:
+    """Offsets ``(2, side * side)`` px (x row, y row) of the cells of a square patch from its centre,
+    row by row."""
+    grid = np.arange(side, dtype=np.float32) - (side - 1) / 2.0
+    return np.stack([np.tile(grid, side), np.repeat(grid, side)])
+
+
+def sample_patches(image: np.ndarray, centres: np.ndarray, side: int, linear: np.ndarray | None = None
+                   ) -> np.ndarray:
+    """Square patches ``(N, side, side)`` float32 of ``image`` (bicubic, replicated border): patch
+    cell ``(r, c)`` of point ``n`` is the image at ``centres[n] + linear[n] @ (c - h, r - h)``,
+    ``h = (side - 1) / 2`` (``linear (N, 2, 2)``: identity if omitted)."""
+    ux, uy = patch_grid(side)
+    cx, cy = centres.astype(np.float32).T
+    if linear is None:
+        map_x, map_y = cx[:, None] + ux, cy[:, None] + uy
+    else:
+        m = linear.astype(np.float32)
+        map_x = cx[:, None] + m[:, 0, :1] * ux + m[:, 0, 1:] * uy
+        map_y = cy[:, None] + m[:, 1, :1] * ux + m[:, 1, 1:] * uy
+    patches = cv2.remap(image, map_x.reshape(-1, side), map_y.reshape(-1, side), cv2.INTER_CUBIC,
+                        borderMode=cv2.BORDER_REPLICATE)
+    return patches.reshape(-1, side, side)
+
+
 class NCCTracker:
-    """Normalized cross-correlation tracker with a constant-velocity prediction and an anchor.
+    """Normalized cross-correlation with a first-frame template warped by the local motion.
 
-    Per point and frame: a ``template_px`` square template is correlated
-    (``cv2.TM_CCOEFF_NORMED``, on luma, or on RGB with ``color``) with a window of side
-    ``template_px + 2 * search_px`` centred on the predicted position (rounded to a pixel), once
-    with the running template (the last valid appearance) and once with the first-frame template
-    (the anchor). The anchor's peak is used when its score reaches ``anchor_score``, which
-    re-anchors a drifting running template; else the running template's peak.
+    Per frame, for each point: (1) the first-frame template (``template_px`` square, the anchor)
+    is warped by the point's local affine motion (:func:`local_affines` of the first-frame
+    positions onto the constant-velocity predictions, neighbourhood ``warp_frac`` times the RMS
+    spread of the points), which undoes the face's rotation, scale, foreshortening and
+    deformation around the point; (2) the warped anchor and the running template (the point's
+    patch in the last frame where it was valid) are matched by NCC (``cv2.TM_CCOEFF_NORMED``, luma)
+    in a window of side ``template_px + 2 * search_px`` centred on the prediction, and the anchor's
+    peak (parabola-refined) is used where its score reaches ``anchor_score`` (no drift), else the
+    running template's (appearance the anchor does not have: an open mouth, a silhouette); (3)
+    the position is refined against the chosen template by inverse-compositional Lucas-Kanade
+    (translation; gain and bias normalized; cells weighted by a Gaussian of ``lk_sigma_px``
+    about the centre, where a warped template is least distorted; ``lk_iterations`` steps of at
+    most 1 px each); (4) where the template pins the position in one direction only (an edge:
+    the hairline), the other direction is taken from the point's neighbours
+    (:meth:`with_neighbours`, weight ``prior``, neighbourhood ``prior_frac`` times the spread).
 
-    A point is valid when the chosen score reaches ``min_score``, its peak-to-sidelobe ratio
-    reaches ``min_psr``, the patch found has a standard deviation of at least ``min_contrast``
-    (an occluder or a flat region is not a match) and its template lies wholly in the frame (a
-    point closer than half a template to the border is flagged). The running template is
-    refreshed at valid points only. An invalid point is carried along with the valid points
-    (:func:`carry_along`), which is also its predicted velocity, so it is found again when it
-    reappears.
+    A point is valid when the NCC of the final patch with its template reaches ``min_score``, the
+    correlation peak-to-sidelobe ratio reaches ``min_psr``, the patch has a standard deviation of
+    at least ``min_contrast`` (an occluder or a flat region is not a match) and the template lies
+    wholly in the frame. The running template is refreshed at valid points only. An invalid point
+    is carried along with the valid points (:func:`carry_along`), which is also its predicted
+    velocity, so it is found again when it reappears.
     """
 
-    def __init__(
-        self,
-        *,
-        template_px: int = 15,
-        search_px: int = 8,
-        min_score: float = 0.7,
-        min_psr: float = 0.0,
-        anchor_score: float = 0.9,
-        min_contrast: float = 2.0,
-        color: bool = False,
-    ) -> None:
-        self.color = color
-        self.min_contrast = min_contrast
-        self.size = (template_px, template_px)
+    def __init__(self, *, template_px: int = 15, search_px: int = 8, min_score: float = 0.7,
+                 min_psr: float = 0.0, min_contrast: float = 2.0, warp_frac: float = 0.3,
+                 lk_iterations: int = 2, anchor_score: float = 0.9, prior: float = 0.03,
+                 prior_frac: float = 1.5, lk_sigma_px: float = 2.0) -> None:
+        self.anchor_score = anchor_score
+        self.prior = prior
+        self.side = template_px
         self.window = (template_px + 2 * search_px, template_px + 2 * search_px)
         self.min_score = min_score
         self.min_psr = min_psr
-        self.anchor_score = anchor_score
+        self.min_contrast = min_contrast
+        self.warp_frac = warp_frac
+        self.prior_frac = prior_frac
+        self.lk_iterations = lk_iterations
+        grid = np.arange(template_px) - (template_px - 1) / 2.0
+        self.lk_weight = np.exp(-(grid[:, None] ** 2 + grid[None, :] ** 2) / (2.0 * lk_sigma_px ** 2))
 
     def start(self, frame: np.ndarray, xy: np.ndarray) -> None:
-        image = self.image(frame)
-        self.height, self.width = image.shape[:2]
-        self.anchor = [cv2.getRectSubPix(image, self.size, (float(x), float(y))) for x, y in xy]
-        self.template = list(self.anchor)
-        self.last = xy.astype(np.float64).copy()
+        self.first = to_gray(frame)
+        self.height, self.width = self.first.shape
+        self.origin = xy.astype(np.float64).copy()
+        spread = np.sqrt(((self.origin - self.origin.mean(axis=0)) ** 2).sum(axis=1).mean())
+        self.warp_sigma_px = max(self.warp_frac * spread, 1.0)
+        self.prior_sigma_px = max(self.prior_frac * spread, 1.0)
+        self.last = self.origin.copy()
         self.velocity = np.zeros_like(self.last)
+        self.trust = np.ones(len(xy))
+        self.running = sample_patches(self.first, self.origin, self.side)
 
-    def image(self, frame: np.ndarray) -> np.ndarray:
-        """The frame as matched: ``(H, W)`` gray or ``(H, W, 3)`` colour, float32."""
-        return np.ascontiguousarray(frame, dtype=np.float32) if self.color and frame.ndim == 3 else to_gray(frame)
+    def templates(self, dst: np.ndarray, weight: np.ndarray) -> np.ndarray:
+        """First-frame templates ``(N, S, S)`` warped by the local affines onto ``dst``."""
+        linear, _ = local_affines(self.origin, dst, weight, sigma_px=self.warp_sigma_px)
+        return sample_patches(self.first, self.origin, self.side, np.linalg.inv(linear))
+
+    def refine(self, image: np.ndarray, xy: np.ndarray, template: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Inverse-compositional Lucas-Kanade (translation) of ``template (N, S, S)`` from ``xy``;
+        returns the refined positions ``(N, 2)``, the final patches and the templates' Hessians
+        ``sum w grad T grad T^T / sum w T^2`` ``(N, 2, 2)`` (1/px^2, T zero-mean): how sharply each
+        template pins its position in each direction."""
+        n = len(xy)
+        tz = template - template.mean(axis=(1, 2), keepdims=True)
+        gradient = np.stack(np.gradient(tz, axis=(2, 1)), axis=1).reshape(n, 2, -1)   # (N, 2, S*S): d/dx, d/dy
+        steepest = gradient * self.lk_weight.reshape(1, 1, -1)
+        hessian = steepest @ np.transpose(gradient, (0, 2, 1))                          # (N, 2, 2)
+        det = hessian[:, 0, 0] * hessian[:, 1, 1] - hessian[:, 0, 1] * hessian[:, 1, 0]
+        adjugate = np.stack([np.stack([hessian[:, 1, 1], -hessian[:, 0, 1]], -1),
+                             np.stack([-hessian[:, 1, 0], hessian[:, 0, 0]], -1)], -2)
+        inverse = adjugate / np.where(np.abs(det) > 1e-12, det, np.inf)[:, None, None]  # flat template: no step
+        t_std = tz.std(axis=(1, 2))
+        tz = tz.reshape(n, -1)
+        xy = xy.copy()
+        patch = sample_patches(image, xy, self.side)
+        for _ in range(self.lk_iterations):
+            pz = patch.reshape(n, -1) - patch.mean(axis=(1, 2))[:, None]
+            error = pz * (t_std / np.maximum(pz.std(axis=1), 1e-6))[:, None] - tz
+            xy -= np.clip((inverse @ (steepest @ error[:, :, None]))[:, :, 0], -1.0, 1.0)
+            patch = sample_patches(image, xy, self.side)
+        energy = (self.lk_weight.reshape(1, -1) * tz * tz).sum(axis=1)
+        return xy, patch, hessian / np.maximum(energy, 1e-9)[:, None, None]
+
+    def with_neighbours(self, found: np.ndarray, information: np.ndarray, ok: np.ndarray) -> np.ndarray:
+        """Positions ``(N, 2)`` combining each match with where its neighbours' local affine motion
+        puts the point: ``(H_i + prior I)^-1 (H_i m_i + prior a_i)``, ``H_i (N, 2, 2)`` the
+        template's information (:meth:`refine`), ``m_i`` the match, ``a_i`` the position given by
+        :func:`local_affines` of the other points (each weighted by ``ok`` and by how well its own
+        template pins it, ``e / (e + prior)`` with ``e`` the smaller eigenvalue of its ``H``). A
+        template that pins one direction only, an edge, takes the other from its neighbours."""
+        eigen = np.linalg.eigvalsh(information)[:, 0]
+        weight = ok * eigen / (eigen + self.prior)
+        _, around = local_affines(self.origin, found, weight, sigma_px=self.prior_sigma_px, exclude_self=True)
+        system = information + self.prior * np.eye(2)
+        rhs = (information @ found[:, :, None])[:, :, 0] + self.prior * around
+        return np.linalg.solve(system, rhs[:, :, None])[:, :, 0]
 
     def step(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        image = self.image(frame)
-        centre = np.rint(self.last + self.velocity)
-        n = len(centre)
-        s = self.window[0] - self.size[0] + 1
-        running = np.empty((n, s, s), np.float32)
-        anchored = np.empty((n, s, s), np.float32)
-        for i, (cx, cy) in enumerate(centre):
-            window = cv2.getRectSubPix(image, self.window, (float(cx), float(cy)))
-            running[i] = cv2.matchTemplate(window, self.template[i], cv2.TM_CCOEFF_NORMED)
-            anchored[i] = cv2.matchTemplate(window, self.anchor[i], cv2.TM_CCOEFF_NORMED)
-        off_run, score_run, psr_run = correlation_peaks(running)
-        off_anc, score_anc, psr_anc = correlation_peaks(anchored)
-        use_anchor = score_anc >= self.anchor_score
-        found = centre + np.where(use_anchor[:, None], off_anc, off_run)
-        score = np.where(use_anchor, score_anc, score_run)
-        psr = np.where(use_anchor, psr_anc, psr_run)
-        half = self.size[0] // 2
-        in_frame = inside(found - half, self.width - 2 * half, self.height - 2 * half)
-        patches = [cv2.getRectSubPix(image, self.size, (float(x), float(y))) for x, y in found]
-        contrast = np.array([patch.std() for patch in patches])
-        valid = (score >= self.min_score) & (psr >= self.min_psr) & (contrast >= self.min_contrast) & in_frame
-        for i in np.flatnonzero(valid):
-            self.template[i] = patches[i]
+        image = to_gray(frame)
+        predicted = self.last + self.velocity
+        centre = np.rint(predicted)
+        anchor = self.templates(predicted, self.trust)
+        s = self.window[0] - self.side + 1
+        response = np.empty((len(centre), s, s), np.float32)
+        windows = [cv2.getRectSubPix(image, self.window, (float(cx), float(cy))) for cx, cy in centre]
+        for i, window in enumerate(windows):
+            response[i] = cv2.matchTemplate(window, anchor[i], cv2.TM_CCOEFF_NORMED)
+        score_a = response.reshape(len(centre), -1).max(axis=1)
+        use_anchor = score_a >= self.anchor_score
+        for i in np.flatnonzero(~use_anchor):
+            response[i] = cv2.matchTemplate(windows[i], self.running[i], cv2.TM_CCOEFF_NORMED)
+        offset, _, psr = correlation_peaks(response)
+        found = centre + offset
+        template = np.where(use_anchor[:, None, None], anchor, self.running)
+        found, patch, information = self.refine(image, found, template)
+        pz = patch - patch.mean(axis=(1, 2), keepdims=True)
+        tz = template - template.mean(axis=(1, 2), keepdims=True)
+        norms = np.linalg.norm(pz, axis=(1, 2)) * np.linalg.norm(tz, axis=(1, 2))
+        score = (pz * tz).sum((1, 2)) / np.maximum(norms, 1e-9)
+        half = self.side // 2
+        valid = (score >= self.min_score) & (psr >= self.min_psr) & (patch.std(axis=(1, 2)) >= self.min_contrast)
+        if self.prior > 0:  # score and running template stay those of the match itself
+            found = self.with_neighbours(found, information, valid)
+        valid &= inside(found - half, self.width - 2 * half, self.height - 2 * half)
+        self.running[valid] = patch[valid]
         carried = carry_along(self.last, found, valid)
         self.velocity = carried - self.last
         self.last = carried
-        return self.last.copy(), valid, np.clip(score, 0.0, 1.0)
+        self.trust = valid.astype(np.float64)
+        return self.last.copy(), valid, np.clip(score, 0.0, 1.0).astype(np.float32)
 
 
 class LKTracker:
@@ -302,14 +434,16 @@ class OpenCVTracker:
 
 
 def make_tracker(method: str, *, template_px: int = 15, search_px: int = 8, min_score: float = 0.7,
-                 min_psr: float = 0.0, anchor_score: float = 0.9, min_contrast: float = 2.0, color: bool = False,
-                 fb_px: float = 1.0):
+                 min_psr: float = 0.0, min_contrast: float = 2.0, warp_frac: float = 0.3,
+                 lk_iterations: int = 2, anchor_score: float = 0.9, prior: float = 0.03,
+                 prior_frac: float = 1.5, lk_sigma_px: float = 2.0, fb_px: float = 1.0):
     """The tracker object for ``method`` (one of :data:`METHODS`), configured from the options
     that apply to it (``template_px`` sets the LK window and, with ``search_px``, the box of the
     OpenCV trackers)."""
     if method == "ncc":
-        return NCCTracker(template_px=template_px, search_px=search_px, min_score=min_score,
-                          min_psr=min_psr, anchor_score=anchor_score, min_contrast=min_contrast, color=color)
+        return NCCTracker(template_px=template_px, search_px=search_px, min_score=min_score, min_psr=min_psr,
+                          min_contrast=min_contrast, warp_frac=warp_frac, lk_iterations=lk_iterations,
+                          anchor_score=anchor_score, prior=prior, prior_frac=prior_frac, lk_sigma_px=lk_sigma_px)
     if method == "lk":
         return LKTracker(template_px=template_px, fb_px=fb_px)
     if method in OpenCVTracker.FACTORIES:
@@ -407,20 +541,6 @@ def order_by_layout(path: Path, names: list[str], xy: np.ndarray, expected: tupl
     return ordered
 
 
-def first_frame_file(init: Path, name: str) -> Path:
-    """The first-frame points file: ``init`` itself if it is a file, else ``init / name``, else
-    (``name`` empty) the only ``*_track0.csv`` in the folder ``init``."""
-    if not init.is_dir():
-        return init
-    if name:
-        return init / name
-    candidates = sorted(init.glob("*_track0.csv"))
-    if len(candidates) != 1:
-        raise StageError(f"{init}: found {len(candidates)} first-frame points files *_track0.csv "
-                         f"({', '.join(c.name for c in candidates[:4])}); set the parameter init_file")
-    return candidates[0]
-
-
 def iter_frames(stream: Any) -> Iterator[np.ndarray]:
     """Frames of a :class:`runner.stage.FrameStream`, one at a time, read chunk by chunk."""
     for _, chunk in stream.chunks():
@@ -430,21 +550,18 @@ def iter_frames(stream: Any) -> Iterator[np.ndarray]:
 class CorrelationTrack(SequenceStage):
     """``track.correlation``: the tracked subset of the layout through the performer clip.
 
-    ``init`` is the folder holding the first-frame positions of the tracked points
-    (``init_file`` in it; a path to the file itself is accepted too), read by
-    :func:`read_first_frame_points` and checked against the layout's tracked subset and the
-    frame size.
+    ``init`` is the first-frame points file of the tracked points (a ``file`` pipeline input:
+    ``name,x,y`` CSV or JSON), read by :func:`read_first_frame_points` and checked against the
+    layout's tracked subset and the frame size.
     """
 
     name = "track.correlation"
-    version = "1"
+    version = "2"
     doc = "track the layout's tracked subset through a clip (NCC, or CSRT/KCF/MOSSE/LK)"
-    inputs = {"frames": "frames", "init": "dir"}
+    inputs = {"frames": "frames", "init": "file"}
     outputs = {"points": "points"}
     params = (
         Param("layout", str, "zhang134", "layout name or YAML path; its `tracked` subset is followed"),
-        Param("init_file", str, "", "first-frame points file (name,x,y CSV or JSON) in the init folder; "
-              "empty: the folder's only *_track0.csv"),
         Param("method", str, "ncc", "tracker", choices=METHODS),
         Param("template_px", int, 15, "template side in px (LK window; OpenCV trackers' box is template+2*search)"),
         Param("search_px", int, 8, "search radius in px around the constant-velocity prediction"),
@@ -452,8 +569,17 @@ class CorrelationTrack(SequenceStage):
         Param("min_psr", float, 0.0, "ncc: lowest peak-to-sidelobe ratio of a valid point (0 = off: NCC peaks "
               "on smooth skin are broad, so their PSR is low even when right)"),
         Param("min_contrast", float, 2.0, "ncc: lowest standard deviation (intensity levels) of a valid point's patch"),
-        Param("anchor_score", float, 0.9, "ncc: first-frame template score above which it re-anchors the point"),
-        Param("color", bool, False, "ncc: correlate RGB instead of luma (about 3x slower)"),
+        Param("anchor_score", float, 0.9, "ncc: score of the warped first-frame template above which it is used "
+              "instead of the running template"),
+        Param("warp_frac", float, 0.3, "ncc: neighbourhood (Gaussian sigma) of the local affine motion that warps "
+              "a point's first-frame template, as a fraction of the RMS spread of the points"),
+        Param("lk_iterations", int, 2, "ncc: inverse-compositional Lucas-Kanade steps of the sub-pixel refinement"),
+        Param("lk_sigma_px", float, 2.0, "ncc: Gaussian weight (sigma, px) of the template cells in the Lucas-Kanade "
+              "refinement: the centre of a warped template is the least distorted"),
+        Param("prior", float, 0.03, "ncc: weight (1/px^2) of the neighbours' position against the template's own "
+              "information (0 = off)"),
+        Param("prior_frac", float, 1.5, "ncc: neighbourhood (Gaussian sigma) of the neighbours' position, as a "
+              "fraction of the RMS spread of the points"),
         Param("fb_px", float, 1.0, "lk: largest forward-backward error of a valid point, px"),
     )
 
@@ -463,11 +589,11 @@ class CorrelationTrack(SequenceStage):
         info = stream.info
         layout = load_layout(params["layout"])
         expected = tuple(layout.point_names[i] for i in layout.tracked)
-        path = first_frame_file(Path(inputs["init"]), params["init_file"])
+        path = Path(inputs["init"])
         names, xy = read_first_frame_points(path)
         init = order_by_layout(path, names, xy, expected, (info.width, info.height))
         options = {p.name: params[p.name] for p in self.params
-                   if p.name not in ("layout", "init_file", "method")}
+                   if p.name not in ("layout", "method")}
         tracks = track_points(iter_frames(stream), init, method=params["method"],
                               progress=ctx.progress, **options)
         return {

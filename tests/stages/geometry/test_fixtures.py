@@ -39,8 +39,8 @@ def clip(request):
     ctx = context(Path("/nonexistent"))
     frames = MemoryStream(decode(ROOT / "clips" / f"{kind}.mp4"), chunk=16)
     truth = dict(np.load(ROOT / "clips" / f"{kind}_truth.npz", allow_pickle=False))
-    tracked = CorrelationTrack().run({"frames": frames, "init": ROOT / "clips"},
-                                     {"init_file": f"{kind}_track0.csv"}, ctx)["points"]
+    tracked = CorrelationTrack().run({"frames": frames, "init": ROOT / "clips" / f"{kind}_track0.csv"}, {},
+                                     ctx)["points"]
     smoothed = GaussianSmooth().run({"points": tracked}, {}, ctx)["points"]
     compensated = SimilarityCompensate().run({"points": smoothed}, {}, ctx)
     pack = ROOT / "packs" / "performer"
@@ -57,11 +57,15 @@ def truth_of(truth: dict, names: np.ndarray, key: str = "points") -> np.ndarray:
 
 
 EYES_NOSE = ["eye_l_0", "eye_r_0", "eye_l_6", "eye_r_6", "nose_tip", "nose_ala_l", "nose_ala_r", "nose_base"]
-TRACK_MEAN_PX = {"calm": 0.8, "live": 5.5}
-JITTER_RATIO = {"calm": 0.8, "live": 0.95}
-# mean rotation error, deg; on the live clip the hairline points drift by several px (their
-# appearance does not move with them in the renderer), so the paper's rigid set gives poor poses
-POSE_DEG = {("calm", "rigid"): 3.0, ("calm", "eyes_nose"): 1.5, ("live", "rigid"): 25.0, ("live", "eyes_nose"): 9.5}
+TRACK_MEAN_PX = {"calm": 0.45, "live": 1.75}  # measured 0.420 and 1.597
+# smoothed / raw frame-to-frame change of the tracking error, measured 0.830 and 1.153: the
+# tracker's errors are mostly slow drifts, not jitter; on the live clip's fast head motion the
+# smoother's lag adds more than it removes (a bound, not a gain)
+JITTER_RATIO = {"calm": 0.88, "live": 1.22}
+# mean rotation error, deg; measured 2.30, 0.68, 8.33, 6.78. On the live clip the hairline points
+# are still 2.2 px off on average (at 320x240 the head's silhouette passes 5-10 px above them and
+# their template is an edge) and the nose points 1.7 px (a 2D warp does not model the nose)
+POSE_DEG = {("calm", "rigid"): 2.5, ("calm", "eyes_nose"): 0.8, ("live", "rigid"): 9.2, ("live", "eyes_nose"): 7.5}
 
 
 def test_tracking_error(clip):
@@ -124,8 +128,8 @@ def test_mapping_onto_the_target_pack():
     ctx = context(Path("/nonexistent"))
     truth = dict(np.load(ROOT / "clips" / "calm_truth.npz", allow_pickle=False))
     frames = MemoryStream(decode(ROOT / "clips" / "calm.mp4"), chunk=16)
-    tracked = CorrelationTrack().run({"frames": frames, "init": ROOT / "clips"},
-                                     {"init_file": "calm_track0.csv"}, ctx)["points"]
+    tracked = CorrelationTrack().run({"frames": frames, "init": ROOT / "clips" / "calm_track0.csv"}, {},
+                                     ctx)["points"]
     smoothed = GaussianSmooth().run({"points": tracked}, {}, ctx)["points"]
     exact = dict(smoothed, xy=truth_of(truth, smoothed["names"]), valid=np.ones_like(smoothed["valid"]))
     columns = list(truth["tracked"])
@@ -138,6 +142,6 @@ def test_mapping_onto_the_target_pack():
         assert mapped["valid"][:, columns].mean() > 0.95
     neutral_only = np.linalg.norm(mapped["xy"][:1, columns] - truth["target_points"][:, columns], axis=2).mean()
     # mapping the true motion gets closer to the ideal than leaving the target neutral; tracking
-    # errors, magnified by the target's larger face, then cost about half a pixel more
+    # errors, magnified by the target's larger face, then cost a little more (measured 1.10 px)
     assert errors["exact"] < 0.8 * neutral_only
-    assert errors["tracked"] < 1.8
+    assert errors["tracked"] < 1.2
