@@ -1,0 +1,92 @@
+"""End-to-end benchmark: the default pipeline on the 300-frame 640x480 demo clip.
+
+    python scripts/bench.py e2e [--json] [--work DIR] [--clip calm|live]
+
+The demo fixture set (600x800 target pack, 640x480 performer clips) is generated under
+``--work`` on first use. Each run starts from an empty cache and writes every output of
+``pipeline.yaml`` (EXR frames, result and preview mp4, per-frame data).
+
+Metrics
+-------
+- ``e2e_fps``, ``e2e_frames``: frames per second of the whole pipeline (wall time of the CLI,
+  start-up included) and the clip's frame count.
+- ``e2e_fps_warponly`` and ``e2e_speed_ratio``: the same pipeline with
+  ``synthesize.mode=warp-only`` (traditional expression mapping, no details) measured in the same
+  run, and the ratio ``e2e_fps / e2e_fps_warponly`` (the cost of expression details).
+- ``e2e_rerun_s``: wall time of a second, fully cached run.
+- ``e2e_target_err_px``: mean distance of the pipeline's target geometry (all points, per frame)
+  to the ideal mapping ``target_points`` of the clip's ground truth; ``e2e_target_err_neutral_px``
+  the same for the target's neutral left unchanged (a do-nothing baseline).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def row(metric: str, value: float, unit: str) -> dict[str, Any]:
+    return {"bench": "e2e", "metric": metric, "value": value, "unit": unit}
+
+
+def run_pipeline(root: Path, clip: str, out: Path, cache: Path, *extra: str) -> float:
+    """Run ``pipeline.yaml`` on ``root``'s fixture set; return the wall time in s."""
+    command = [
+        sys.executable, "-c", "from runner.cli import main; main()", "run", str(REPO / "pipeline.yaml"),
+        "--in", str(root / "clips" / f"{clip}.mp4"),
+        "--input", f"init={root / 'clips' / f'{clip}_track0.csv'}",
+        "--input", f"performer={root / 'packs' / 'performer'}",
+        "--input", f"target={root / 'packs' / 'target'}",
+        "--out", str(out), "--cache-dir", str(cache), *extra,
+    ]
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    start = time.perf_counter()
+    result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True)
+    elapsed = time.perf_counter() - start
+    if result.returncode != 0:
+        raise SystemExit(f"pipeline failed ({result.returncode}): {result.stderr.strip()}")
+    return elapsed
+
+
+def run(args: argparse.Namespace) -> list[dict[str, Any]]:
+    parser = argparse.ArgumentParser(prog="bench.py e2e")
+    parser.add_argument("--clip", default="live", choices=("calm", "live"), help="demo clip to map")
+    options = parser.parse_args(args.extra)
+    from scripts.bench_geometry import fixture_set
+    from stages.actor_pack import load_pack
+
+    work = Path(args.work) / "e2e"
+    root = fixture_set(None, Path(args.work), demo=True)
+    truth = np.load(root / "clips" / f"{options.clip}_truth.npz")
+    frames = len(truth["points"])
+
+    timings = {}
+    for mode in ("full", "warp-only"):
+        shutil.rmtree(work / mode, ignore_errors=True)
+        timings[mode] = run_pipeline(root, options.clip, work / mode / "out", work / mode / "cache",
+                                     "--set", f"synthesize.mode={mode}")
+    rerun = run_pipeline(root, options.clip, work / "full" / "again", work / "full" / "cache", "--set", "synthesize.mode=full")
+
+    data = np.load(work / "full" / "out" / "data" / "data.npz")
+    ideal = truth["target_points"]
+    neutral = load_pack(root / "packs" / "target").neutral.points
+    fps, fps_warp = frames / timings["full"], frames / timings["warp-only"]
+    return [
+        row("e2e_frames", frames, "frames"),
+        row("e2e_fps", fps, "frames/s"),
+        row("e2e_fps_warponly", fps_warp, "frames/s"),
+        row("e2e_speed_ratio", fps / fps_warp, "ratio"),
+        row("e2e_rerun_s", rerun, "s"),
+        row("e2e_target_err_px", float(np.linalg.norm(data["target_xy"] - ideal, axis=-1).mean()), "px"),
+        row("e2e_target_err_neutral_px", float(np.linalg.norm(neutral[None] - ideal, axis=-1).mean()), "px"),
+    ]

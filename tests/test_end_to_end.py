@@ -1,0 +1,124 @@
+"""The default pipeline run through the CLI on the CI fixture clip, as a user runs it.
+
+Checks what the issue asks of the outputs (EXR frames readable with their metadata, an mp4 that
+decodes with the input's frame count and rate, the per-frame data) and scores the mapped target
+geometry against the fixture's ground truth (the ideal mapping, `target_points`).
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import av
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+
+from stages.actor_pack import load_pack
+
+REPO = Path(__file__).resolve().parent.parent
+RUNNER = [sys.executable, "-c", "from runner.cli import main; main()"]
+TRUTH = REPO / "fixtures" / "clips" / "calm_truth.npz"
+
+
+def run_cli(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    return subprocess.run([*RUNNER, *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def default_run(tmp_path_factory) -> Path:
+    """One run of `runner run pipeline.yaml` with the defaults (the calm fixture clip)."""
+    work = tmp_path_factory.mktemp("e2e")
+    result = run_cli("run", "pipeline.yaml", "--out", str(work / "out"), "--cache-dir", str(work / "cache"))
+    assert result.returncode == 0, result.stderr
+    return work / "out"
+
+
+def test_exr_frames_read_back_with_metadata(default_run):
+    truth = np.load(TRUTH)
+    frames = sorted((default_run / "exr").glob("frame.*.exr"))
+    assert len(frames) == len(truth["points"])
+    data = np.load(default_run / "data" / "data.npz")
+    for index in (0, len(frames) - 1):
+        image = oiio.ImageInput.open(str(frames[index]))
+        spec = image.spec()
+        pixels = image.read_image(oiio.FLOAT)
+        image.close()
+        assert spec.format == oiio.TypeDesc("half") and tuple(spec.channelnames) == ("R", "G", "B", "A")
+        assert (spec.width, spec.height) == load_pack(REPO / "fixtures" / "packs" / "target").image_size
+        assert spec.getattribute("exmap:frame") == index
+        assert spec.getattribute("exmap:time_s") == pytest.approx(index / float(truth["fps"]), abs=1e-4)
+        np.testing.assert_allclose(spec.getattribute("exmap:similarity"), data["similarity_params"][index], rtol=1e-5, atol=1e-4)
+        alpha = pixels[..., 3]
+        assert 0.05 < (alpha > 0.5).mean() < 0.95, "the face mask covers part of the frame"
+        assert np.isfinite(pixels).all() and pixels[..., :3].max() <= 1.0 + 1e-3
+
+
+def test_mp4_decodes_with_input_frame_count_and_rate(default_run):
+    truth = np.load(TRUTH)
+    for name in ("video/result.mp4", "preview/preview.mp4"):
+        with av.open(str(default_run / name)) as container:
+            stream = container.streams.video[0]
+            count = sum(1 for _ in container.decode(stream))
+            assert stream.codec_context.name == "h264" and stream.pix_fmt == "yuv420p"
+            assert count == len(truth["points"])
+            assert float(stream.average_rate) == pytest.approx(float(truth["fps"]))
+
+
+def test_data_files_agree_and_mapping_beats_neutral(default_run):
+    truth = np.load(TRUTH)
+    data = np.load(default_run / "data" / "data.npz")
+    with open(default_run / "data" / "data.csv", newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert len(rows) == len(truth["points"])
+    name = str(data["target_names"][0])
+    np.testing.assert_allclose([float(r[f"target_{name}_x"]) for r in rows], data["target_xy"][:, 0, 0], atol=1e-6)
+    # The mapped target geometry against the ideal mapping (the target rendered with the
+    # performer's controls). Measured 0.52 px when this test was written; leaving the target at
+    # its neutral scores 0.79 px on this clip.
+    error = np.linalg.norm(data["target_xy"] - truth["target_points"], axis=-1).mean()
+    neutral = load_pack(REPO / "fixtures" / "packs" / "target").neutral.points
+    assert error < 0.6 < np.linalg.norm(neutral[None] - truth["target_points"], axis=-1).mean()
+
+
+def test_rerun_is_all_cached_and_byte_identical(default_run):
+    cache = default_run.parent / "cache"
+    again = default_run.parent / "again"
+    result = run_cli("run", "pipeline.yaml", "--out", str(again), "--cache-dir", str(cache))
+    assert result.returncode == 0, result.stderr
+    summary = [line.split() for line in result.stdout.splitlines() if line and not line.startswith("done")]
+    assert summary and all(words[2] in ("cached", "on") for words in summary), result.stdout
+    for folder in ("exr", "video", "preview", "data"):
+        manifest = (default_run / folder / "manifest.json").read_bytes()
+        assert manifest == (again / folder / "manifest.json").read_bytes()
+
+
+@pytest.mark.parametrize(
+    "args, code, message",
+    [
+        (["--in", "missing.mp4"], 2, "missing.mp4"),
+        (["--input", "target=fixtures/clips"], 1, "pack.yaml"),
+        (["--set", "synthesize.mode=bogus"], 2, "synthesize.mode"),
+    ],
+)
+def test_bad_input_is_one_clear_line(args, code, message, tmp_path):
+    result = run_cli("run", "pipeline.yaml", "--out", str(tmp_path / "out"), "--cache-dir", str(tmp_path / "cache"), *args)
+    assert result.returncode == code, result.stderr
+    assert message in result.stderr and "Traceback" not in result.stderr
+    assert not any(tmp_path.glob("out/*/manifest.json"))
+
+
+def test_corrupt_pack_points_name_the_file(tmp_path):
+    pack = tmp_path / "target"
+    shutil.copytree(REPO / "fixtures" / "packs" / "target", pack)
+    points = pack / "captured.npz"
+    points.write_bytes(b"not an npz")
+    result = run_cli("run", "pipeline.yaml", "--input", f"target={pack}", "--out", str(tmp_path / "out"),
+                     "--cache-dir", str(tmp_path / "cache"), "--until", "build")
+    assert result.returncode == 1 and points.name in result.stderr and "Traceback" not in result.stderr
