@@ -100,5 +100,7 @@ def to_uint8(image: Array) -> Array:
     xp = _namespace(image)
     if image.dtype == xp.uint8:
         return image
+    if xp is np:
+        image = image.astype(np.float32, copy=False)  # float16 has too few bits for x 255
     scaled = xp.round(xp.clip(image, 0.0, 1.0) * 255.0)
     return scaled.to(xp.uint8) if xp is not np else scaled.astype(np.uint8)

@@ -178,8 +178,8 @@ class Synthesize(FrameStage):
     """``synthesis.synthesize``: target geometry per frame -> expression images (Sec. 6-8, 11)."""
 
     name = "synthesis.synthesize"
-    version = "2"
-    doc = "per-subregion QP + compositing + blending + warp: target points per frame -> sRGB frames, face mask, coefficients"
+    version = "3"
+    doc = "per-subregion QP + compositing + blending + warp: target points per frame -> half-float sRGB frames, face mask, coefficients"
     inputs = {
         "model": "synthesis_model",
         "points": "points",
@@ -245,7 +245,7 @@ class Synthesize(FrameStage):
         )
         ctx.progress(stop - start)
         return {
-            "frames": rgb.permute(0, 2, 3, 1).contiguous().cpu().numpy(),
-            "mask": alpha.permute(0, 2, 3, 1).contiguous().cpu().numpy(),
+            "frames": rgb.permute(0, 2, 3, 1).to(torch.float16).contiguous().cpu().numpy(),
+            "mask": alpha.permute(0, 2, 3, 1).to(torch.float16).contiguous().cpu().numpy(),
             "coeffs": {"coeffs": coeffs.cpu().numpy()},
         }
