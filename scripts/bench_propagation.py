@@ -14,7 +14,7 @@ points of the outer lip line and the middle of the upper and lower inner lip lin
 
 Writes ``<work>/propagation/fig12.csv`` and ``fig12.png`` (mean error on the 17 input points
 against iteration, and the all-points error of a run stopped at that iteration, with the two
-baselines) and, for a fixture pack, copies the PNG to ``docs/img/fig12.png``.
+baselines). The README's ``docs/img/fig12.png`` is a copy of that PNG from the fixture pack.
 
 Speed: a clip of ``--frames`` distinct expressions (blends of the held-out ones) with the 17-point
 mask propagates in one call (``prop_fps``); the baseline is one call per frame on part of the same
@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import shutil
 import sys
 import time
 from dataclasses import dataclass
@@ -280,9 +279,6 @@ def run(args: argparse.Namespace) -> list[dict]:
     in_sample = evaluate(data, known, opts.components, folds=1)
     caption = f"{data.source}: 17 input points, {len(data.test)} held-out expressions, {opts.folds}-fold cross-val."
     curve = write_fig12(held_out, Path(args.work) / "propagation", caption=caption)
-    if has_pack:  # the README's figure is the fixture experiment
-        (REPO / "docs" / "img").mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(Path(args.work) / "propagation" / "fig12.png", REPO / "docs" / "img" / "fig12.png")
     fps = speed(data, known, opts.components, opts.frames)
 
     def row(metric: str, value: float, unit: str) -> dict:

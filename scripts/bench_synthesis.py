@@ -12,7 +12,8 @@ unless ``--pack`` names another pack with a ``truth.npz``:
 
 for the method (``full``), ``_warponly`` (traditional expression mapping: the neutral warped) and
 ``_global`` (one convex combination over the whole face, Pighin et al.). A contact sheet
-(truth | ours | warp-only | global) goes to ``docs/img/synthesis_sheet.png``.
+(truth | ours | warp-only | global) goes to ``<work>/synthesis/synthesis_sheet.png`` (the
+README's ``docs/img/synthesis_sheet.png`` is a copy of it).
 
 Speed — ``synth_fps``: frames/s of the whole runtime synthesis (QP, compositing with small
 coefficients skipped, warp) at 600x800 with 15 examples on 2 threads; ``synth_fps_direct``: the
@@ -221,8 +222,9 @@ def run(args: argparse.Namespace) -> list[dict]:
     parser.add_argument("--chunk", type=int, default=8, help="frames per render call")
     parser.add_argument("--only", choices=("all", "quality", "speed"), default="all", help="run one half of the benchmark")
     parser.add_argument("--threads", type=int, default=2, help="torch threads (the target: 2 CPU cores)")
-    parser.add_argument("--sheet", type=Path, default=ROOT / "docs" / "img" / "synthesis_sheet.png")
+    parser.add_argument("--sheet", type=Path, default=None, help="contact sheet PNG (default: <work>/synthesis/synthesis_sheet.png)")
     opts = parser.parse_args(getattr(args, "extra", []))
+    opts.sheet = opts.sheet or Path(args.work) / "synthesis" / "synthesis_sheet.png"
     torch.set_num_threads(opts.threads)
     cv2.setNumThreads(opts.threads)
     pack_dir = opts.pack or demo_pack(Path(args.work))
