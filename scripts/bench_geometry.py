@@ -53,6 +53,7 @@ from stages.geometry.smooth import gaussian_smooth
 from stages.geometry.subset import named_columns
 from stages.geometry.track import track_points
 from stages.layout import load_layout
+from scripts.bench_frontalize import bench_rows
 
 AREA = "geometry"
 ALTERNATIVES = ("csrt", "kcf", "mosse", "lk")
@@ -198,6 +199,7 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     ci = fixture_set(options.fixtures, work, demo=False)
     rows = evaluate_clip(ci, "calm", "_calm", alternatives=(), alt_frames=None)
     rows += evaluate_clip(ci, "live", "_live", alternatives=ALTERNATIVES, alt_frames=None)
+    rows += bench_rows(ci)  # 2D similarity vs pose-based (3D) compensation, scripts/bench_frontalize.py
     if options.demo:
         demo = fixture_set(None, work, demo=True)
         rows += evaluate_clip(demo, "live", "_demo", alternatives=ALTERNATIVES, alt_frames=options.alt_frames)
