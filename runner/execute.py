@@ -1,18 +1,36 @@
 """Scheduling: run (or, for ``--dry-run``, plan) a validated pipeline against the cache.
 
-Stages run one after the other in topological order. A sequence stage is one cache entry; a
-frame stage is one entry per chunk of ``chunk_frames`` frames, computed by ``--jobs`` threads,
-so an interrupted run recomputes only the chunks it had not finished. A frame stage declaring
-``cached = False`` (decoding) is not stored: its chunks are computed while a downstream stage
-reads them, and keyed by their cache key instead of their bytes.
+Stages are visited one after the other in topological order. A sequence stage is one cache
+entry. A frame stage is one entry per chunk of ``chunk_frames`` frames, and a
+:class:`FrameChunks` *resolves* each chunk once: its key (which resolves the upstream chunks its
+window reads), then the stored entry, or compute, store and commit it under the entry's lock. So
+an interrupted run recomputes only the chunks it had not finished.
+
+When a chunk is resolved depends on who reads the stage:
+
+- a cached frame stage that other stages read (with ``--jobs 1`` and no ``--force``) is
+  resolved *lazily*: each chunk is computed and stored when a downstream stage first needs it,
+  then read back (from the page cache), so decode -> gray -> write.video streams chunk by
+  chunk and the encoder's threads overlap the Python work; a second reader reads the stored
+  chunks;
+- any other cached frame stage (no reader, ``--force``, ``--jobs N``) resolves all its chunks
+  at its turn, with ``--jobs`` threads;
+- a frame stage declaring ``cached = False`` (decoding) is never stored: its chunks are computed
+  whenever they are read, and identified by their cache key instead of their bytes.
 
 Every key (see :mod:`runner.digest`) includes the digests of the inputs actually used: a frame
 stage's chunk depends on the upstream chunks its window overlaps, a sequence stage on the whole
 upstream output. So a stage whose upstream re-ran but produced identical bytes is a cache hit.
+A sequence stage reading a stream still being computed cannot know its key before the stream
+is whole: it then either runs while the stream is computed (its key is taken at the end and
+its entry committed, the first commit winning), or, when the first chunk computed now equals
+what it read in its last completed run (the upstream's bytes are probably unchanged), waits for
+the whole stream and looks its entry up first. See :meth:`Runner._read_while_computed`.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib.metadata
 import json
@@ -21,8 +39,9 @@ import os
 import shutil
 import socket
 import sys
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -35,7 +54,7 @@ from runner.cache import CacheStore, Entry, holder_is_stale
 from runner.config import Pipeline, StageNode
 from runner.digest import array_digest, bundle_digest, cache_key, combine, file_digest, library_versions, tree_digest
 from runner.stage import Context, FrameStage, StageError, StreamInfo
-from runner.streams import CachedStream, ComputedStream, chunk_ranges
+from runner.streams import CachedStream, ChunkedStream, ComputedStream, chunk_ranges
 
 BUNDLE_FILE = "{port}.npz"
 FRAMES_FILE = "{port}.npy"
@@ -68,18 +87,30 @@ class Options:
 class Value:
     """What one output (or pipeline input) gives downstream stages.
 
-    ``digest`` is None in a dry run when the producer has not run yet. Outputs of frame stages
-    also carry one digest per chunk (``chunk_digests``) and the stream shape (``info``).
+    Outputs of frame stages name their producer's :class:`FrameChunks` (``chunks``, ``port``),
+    which gives digests per chunk as they are resolved, and the stream shape (``info``); other
+    values carry their ``digest``, None in a dry run when the producer has not run yet.
     """
 
     type: str
-    digest: str | None
+    digest: str | None = None
     load: Callable[[], Any] | None = None
-    chunk_digests: list[str] | None = None
+    chunks: FrameChunks | None = None
+    port: str = ""
     info: StreamInfo | None = None
     _loaded: Any = field(default=None, repr=False)
 
+    def resolved_digest(self, *, compute: bool = True) -> str | None:
+        """The value's digest; for a frame stage's output, the digest of all its chunks, which
+        resolves them (computing the missing ones), or None if ``compute`` is False and some
+        chunk is not stored yet."""
+        if self.chunks is None:
+            return self.digest
+        return self.chunks.digest(self.port, compute=compute)
+
     def get(self) -> Any:
+        if self.chunks is not None and self.type == "frames":
+            return self.chunks.stream(self.port)
         if self._loaded is None:
             self._loaded = self.load()
         return self._loaded
@@ -128,6 +159,25 @@ def resolve_device(requested: str) -> str:
     return "cuda" if torch.cuda.is_available() else "cpu"
 
 
+_clock = threading.local()
+
+
+@contextlib.contextmanager
+def _own_time(add: Callable[[float], None]) -> Iterator[None]:
+    """Time the block and pass ``add`` its wall seconds minus those of timed blocks nested in
+    it on this thread (chunks of an upstream stage computed while this one reads them), so
+    that each stage's summary counts its own time only."""
+    outer = getattr(_clock, "nested", 0.0)
+    _clock.nested = 0.0
+    started = time.perf_counter()
+    try:
+        yield
+    finally:
+        elapsed = time.perf_counter() - started
+        add(elapsed - _clock.nested)
+        _clock.nested = outer + elapsed
+
+
 class Runner:
     """Runs one pipeline with bound inputs; :meth:`run` returns one :class:`Report` per stage."""
 
@@ -142,27 +192,47 @@ class Runner:
             self.values[(None, name)] = Value(kind, digest, load=lambda p=path: Path(p))
         self.entries: dict[str, list[Entry]] = {}
         self.memo_dir = self.store.root / "runs"
+        self.current: str | None = None  # the stage whose turn it is
+        self._lazy: list[FrameChunks] = []  # lazy frame stages not reported yet
 
     def selected(self) -> list[StageNode]:
         names = self.pipeline.ancestors(self.opts.until) if self.opts.until else set(self.pipeline.stages)
         return [node for name, node in self.pipeline.stages.items() if name in names]
 
     def run(self) -> list[Report]:
-        reports = []
-        for node in self.selected():
-            started = time.perf_counter()
-            self.opts.log({"event": "stage_start", "stage": node.name, "uses": node.uses})
-            try:
-                if issubclass(node.cls, FrameStage):
-                    report = self._frame_stage(node)
-                else:
-                    report = self._sequence_stage(node)
-            except StageError as exc:
-                raise StageFailed(node, exc) from exc
-            report.seconds = time.perf_counter() - started
+        reports: list[Report] = []
+
+        def emit(report: Report) -> None:
             self.opts.log({"event": "stage", **asdict(report)})
             self.opts.echo(report.line())
             reports.append(report)
+
+        try:
+            for node in self.selected():
+                self.current = node.name
+                self.opts.log({"event": "stage_start", "stage": node.name, "uses": node.uses})
+                spent: list[float] = []
+                try:
+                    with _own_time(spent.append):
+                        if issubclass(node.cls, FrameStage):
+                            report = self._frame_stage(node)
+                        else:
+                            report = self._sequence_stage(node)
+                except StageError as exc:
+                    raise StageFailed(node, exc) from exc
+                for finished in self._finished_lazy():
+                    emit(finished)
+                if report is not None:  # None: a lazy frame stage, reported once resolved
+                    report.seconds += spent[0]
+                    emit(report)
+            self.current = None
+            for chunks in self._lazy:  # chunks no reader needed (normally none)
+                chunks.resolve_all()
+            for finished in self._finished_lazy():
+                emit(finished)
+        finally:
+            for chunks in self._lazy:
+                chunks.close()
         if not self.opts.dry_run and self.opts.out is not None:
             for node in self.selected():
                 try:
@@ -171,24 +241,51 @@ class Runner:
                     raise StageFailed(node, exc) from exc
         return reports
 
+    def _finished_lazy(self) -> list[Report]:
+        """Reports of the lazy frame stages whose chunks are now all resolved."""
+        done = [chunks for chunks in self._lazy if chunks.complete()]
+        self._lazy = [chunks for chunks in self._lazy if chunks not in done]
+        return [chunks.finish() for chunks in done]
+
     # -- keys ------------------------------------------------------------------------------
 
     def _inputs(self, node: StageNode) -> dict[str, Value]:
         return {port: self.values[(ref.stage, ref.port)] for port, ref in node.inputs.items()}
 
-    def _material(self, node: StageNode, inputs: dict[str, Value]) -> dict[str, Any]:
-        return {
+    @staticmethod
+    def _digests(inputs: dict[str, Value], *, compute: bool = True) -> dict[str, str] | None:
+        """Digest per input port (resolving frame streams); None if ``compute`` is False and
+        one is not known without computing."""
+        digests = {port: v.resolved_digest(compute=compute) for port, v in inputs.items()}
+        return None if None in digests.values() else digests
+
+    def _material(self, node: StageNode, digests: dict[str, str]) -> dict[str, Any]:
+        material = {
             "stage": node.uses,
             "version": node.cls.version,
             "params": node.params,
-            "inputs": {port: v.digest for port, v in inputs.items()},
+            "inputs": digests,
             "device": self.opts.device,
             "libs": library_versions(),
         }
+        if issubclass(node.cls, FrameStage):
+            material["chunk_frames"] = self.pipeline.chunk_frames
+        return material
+
+    def _unknown(self, node: StageNode) -> list[str | None]:
+        """Dry run: the upstream stages whose outputs are not known (they will run)."""
+        return [ref.stage for ref in node.inputs.values()
+                if self.values[(ref.stage, ref.port)].resolved_digest(compute=False) is None]
 
     def _memo_path(self, node: StageNode) -> Path:
         ident = f"{self.pipeline.path.resolve()}\n{node.name}"
         return self.memo_dir / f"{hashlib.sha256(ident.encode()).hexdigest()[:32]}.json"
+
+    def _memo(self, node: StageNode) -> dict[str, Any] | None:
+        try:
+            return json.loads(self._memo_path(node).read_text())
+        except (OSError, ValueError):
+            return None
 
     def _remember(self, node: StageNode, material: dict[str, Any]) -> None:
         """Keep the key material of this stage's last completed run, to explain dry runs."""
@@ -199,9 +296,8 @@ class Runner:
         os.replace(tmp, path)
 
     def _why(self, node: StageNode, material: dict[str, Any]) -> str:
-        try:
-            old = json.loads(self._memo_path(node).read_text())
-        except (OSError, ValueError):
+        old = self._memo(node)
+        if old is None:
             return "never run with this configuration"
         changes = []
         if (old.get("stage"), old.get("version")) != (material["stage"], material["version"]):
@@ -227,113 +323,127 @@ class Runner:
     def _sequence_stage(self, node: StageNode) -> Report:
         inputs = self._inputs(node)
         forced = node.name in self.opts.force
-        report = Report(node.name, node.uses, "cached")
-        unknown = [ref.stage for ref in node.inputs.values() if self.values[(ref.stage, ref.port)].digest is None]
-        if unknown:
-            self._set_unknown(node)
-            return Report(node.name, node.uses, "may run", _after(unknown))
-        material = self._material(node, inputs)
-        key = cache_key(material)
-        entry = None if forced else self.store.lookup(key)
         if self.opts.dry_run:
+            unknown = self._unknown(node)
+            if unknown:
+                self._set_unknown(node)
+                return Report(node.name, node.uses, "may run", _after(unknown))
+            material = self._material(node, self._digests(inputs))
+            entry = None if forced else self.store.lookup(cache_key(material))
             if entry is None:
                 self._set_unknown(node)
                 return Report(node.name, node.uses, "will run", "forced (--force)" if forced else self._why(node, material))
-            self._set_outputs(node, [entry], None)
+            self._set_outputs(node, entry)
             return Report(node.name, node.uses, "cached", "cache hit")
+        report = Report(node.name, node.uses, "cached")
+        pending = {port: v for port, v in inputs.items() if v.resolved_digest(compute=False) is None}
+        streaming = bool(pending) and (forced or self._read_while_computed(node, pending))
+        key = None if streaming else cache_key(self._material(node, self._digests(inputs)))
+        entry = None if forced or key is None else self.store.lookup(key)
         if entry is None:
-            frames = next((v.info.frames for v in inputs.values() if v.info is not None), None)
-            with self._bar(node, frames) as bar, self.store.locked(key, on_wait=self._waiting(node)):
-                entry = None if forced else self.store.lookup(key)
-                if entry is None:
-                    with self.store.writing(key) as tmp:
-                        ctx = self._context(tmp, bar.update)
-                        values = {port: v.get() for port, v in inputs.items()}
-                        result = node.cls().run(values, dict(node.params), ctx)
-                        record = _save_outputs(node, result, tmp, frames=None)
-                        entry = self.store.commit(key, tmp, {"stage": node.name, "uses": node.uses, **record},
-                                                  replace=forced)
-                    report.status = "ran"
+            entry, ran = self._run_sequence(node, inputs, key, forced)
+            report.status = "ran" if ran else "cached"
+        if streaming:
+            names = ", ".join(dict.fromkeys(node.inputs[port].stage for port in pending))
+            report.reason = f"read {names} while it was computed"
         self.store.touch(entry)
-        self._remember(node, material)
-        self._set_outputs(node, [entry], None)
+        streams = {port: v.chunks.digests(v.port, 0, len(v.chunks.ranges) - 1)
+                   for port, v in inputs.items() if v.chunks is not None and v.type == "frames"}
+        self._remember(node, {**self._material(node, self._digests(inputs)), "input_chunks": streams})
+        self._set_outputs(node, entry)
         return report
+
+    def _read_while_computed(self, node: StageNode, pending: dict[str, Value]) -> bool:
+        """Whether sequence stage ``node`` runs while its ``pending`` inputs (streams not all
+        stored yet) are computed, instead of after them.
+
+        Its key needs their whole digests, so running first means running even when its entry
+        exists (an upstream stage re-ran and produced identical bytes). Hence: compute the
+        first missing chunk of each pending stream now and compare it with the same chunk in
+        the stage's last completed run; run while computed if one differs (the key changes),
+        else resolve everything first and look the entry up.
+        """
+        read = (self._memo(node) or {}).get("input_chunks", {})
+        for port, v in pending.items():
+            if v.type != "frames":
+                continue
+            count = len(v.chunks.ranges)
+            first = next((i for i in range(count) if v.chunks.digests(v.port, i, i, compute=False) is None), None)
+            if first is not None and read.get(port, [])[first:first + 1] != v.chunks.digests(v.port, first, first):
+                return True
+        return False
+
+    def _run_sequence(self, node: StageNode, inputs: dict[str, Value], key: str | None,
+                      forced: bool) -> tuple[Entry, bool]:
+        """Run a sequence stage under its entry's lock and commit its entry; with ``key`` None
+        (inputs computed while read) the key is taken after the run, and the first commit of
+        that key wins. Returns the entry and whether this run computed it."""
+        frames = next((v.info.frames for v in inputs.values() if v.info is not None), None)
+        lock = contextlib.nullcontext() if key is None else self.store.locked(key, on_wait=self._waiting(node))
+        with self._bar(node, frames) as bar, lock:
+            entry = None if forced or key is None else self.store.lookup(key)
+            if entry is not None:
+                return entry, False
+            with self.store.writing(key or f"pending-{node.name}") as tmp:
+                values = {port: v.get() for port, v in inputs.items()}
+                result = node.cls().run(values, dict(node.params), self._context(tmp, bar.update))
+                record = _save_outputs(node, result, tmp, frames=None)
+                if key is None:
+                    key = cache_key(self._material(node, self._digests(inputs)))
+                return self.store.commit(key, tmp, {"stage": node.name, "uses": node.uses, **record},
+                                         replace=forced), True
 
     # -- frame stages ----------------------------------------------------------------------
 
-    def _frame_stage(self, node: StageNode) -> Report:
+    def _frame_stage(self, node: StageNode) -> Report | None:
         inputs = self._inputs(node)
         forced = node.name in self.opts.force
-        unknown = [ref.stage for ref in node.inputs.values() if self.values[(ref.stage, ref.port)].digest is None]
+        unknown = self._unknown(node) if self.opts.dry_run else []
         if unknown:
             self._set_unknown(node)
             return Report(node.name, node.uses, "may run", _after(unknown))
         stage = node.cls()
-        material = {**self._material(node, inputs), "chunk_frames": self.pipeline.chunk_frames}
-        info = self._stream_info(node, stage, inputs, material)
-        ranges = chunk_ranges(info.frames, self.pipeline.chunk_frames)
-        # A chunk's key names its frames inputs by the chunks it reads, not by whole streams.
-        per_chunk = {**material, "inputs": {p: v.digest for p, v in inputs.items() if v.type != "frames"}}
-        keys = [cache_key({**per_chunk, "chunk": [s, e], "info": asdict(info),
-                           "chunk_inputs": self._chunk_inputs(node, inputs, s, e)}) for s, e in ranges]
-        values = {port: v.get() for port, v in inputs.items()}
+        info = self._stream_info(node, stage, inputs)
+        lazy = (node.cls.cached and not self.opts.dry_run and not forced and self.opts.jobs == 1
+                and self._is_read(node))
+        chunks = FrameChunks(self, node, stage, inputs, info, forced=forced, lazy=lazy)
+        for port, kind in node.cls.outputs.items():
+            load = None if kind == "frames" else (lambda p=port: chunks.load(p))
+            self.values[(node.name, port)] = Value(kind, load=load, chunks=chunks, port=port, info=info)
         if not node.cls.cached:
-            self._set_computed(node, stage, values, info, ranges, keys)
-            reason = "computed while downstream stages read it"
-            return Report(node.name, node.uses, "on demand", reason, frames=info.frames)
-
-        entries = [None if forced else self.store.lookup(k) for k in keys]
-        cached = sum(e is not None for e in entries)
-        report = Report(node.name, node.uses, "cached", chunks=len(keys), chunks_cached=cached, frames=info.frames)
+            return Report(node.name, node.uses, "on demand", "computed while downstream stages read it",
+                          frames=info.frames)
         if self.opts.dry_run:
-            if cached == len(keys):
-                self._set_outputs(node, entries, info)
+            report = chunks.report
+            count = len(chunks.ranges)
+            if sum(chunks.entry(i, compute=False) is not None for i in range(count)) == count:
                 report.reason = "cache hit"
+                return report
+            self._set_unknown(node)
+            report.status = "will run"
+            if forced:
+                report.reason = "forced (--force)"
+            elif report.chunks_cached:
+                report.reason = f"{count - report.chunks_cached} of {count} chunks missing (earlier run incomplete)"
             else:
-                self._set_unknown(node)
-                report.status = "will run"
-                if forced:
-                    report.reason = "forced (--force)"
-                elif cached:
-                    report.reason = f"{len(keys) - cached} of {len(keys)} chunks missing (earlier run incomplete)"
-                else:
-                    report.reason = self._why(node, material)
+                report.reason = self._why(node, self._material(node, self._digests(inputs)))
             return report
+        if lazy:
+            self._lazy.append(chunks)
+            return None
+        chunks.resolve_all()
+        return chunks.finish()
 
-        for (s, e), key, entry in zip(ranges, keys, entries):
-            if entry is not None:
-                self.opts.log({"event": "chunk", "stage": node.name, "start": s, "stop": e, "status": "cached"})
-        missing = [i for i, e in enumerate(entries) if e is None]
-        if missing:
-            with self._bar(node, info.frames) as bar:
-                bar.update(sum(ranges[i][1] - ranges[i][0] for i, e in enumerate(entries) if e is not None))
+    def _is_read(self, node: StageNode) -> bool:
+        """True if a selected stage reads one of ``node``'s outputs."""
+        return any(ref.stage == node.name for other in self.selected() for ref in other.inputs.values())
 
-                def one(i: int) -> tuple[Entry, bool]:
-                    entry, ran = self._chunk(node, stage, values, info, ranges[i], keys[i], forced)
-                    s, e = ranges[i]
-                    self.opts.log({"event": "chunk", "stage": node.name, "start": s, "stop": e,
-                                   "status": "ran" if ran else "cached"})
-                    bar.update(e - s)
-                    return entry, ran
-
-                for i, (entry, ran) in _map_ordered(one, missing, jobs=self.opts.jobs):
-                    entries[i] = entry
-                    if not ran:  # another run computed it meanwhile
-                        report.chunks_cached += 1
-            report.status = "ran" if report.chunks_cached == 0 else "partial"
-        for entry in entries:
-            self.store.touch(entry)
-        self._remember(node, material)
-        self._set_outputs(node, entries, info)
-        return report
-
-    def _stream_info(self, node: StageNode, stage: FrameStage, inputs: dict[str, Value],
-                     material: dict[str, Any]) -> StreamInfo:
+    def _stream_info(self, node: StageNode, stage: FrameStage, inputs: dict[str, Value]) -> StreamInfo:
         """The stage's output stream shape; cached when the stage computes it itself (probing
         a video), taken from the frames input otherwise."""
         if not _defines_stream_info(node.cls):
             return next(v.info for port, v in inputs.items() if node.cls.inputs[port] == "frames")
-        key = cache_key({**material, "stream_info": True})
+        key = cache_key({**self._material(node, self._digests(inputs)), "stream_info": True})
         entry = self.store.lookup(key)
         if entry is None:
             info = stage.stream_info({port: v.get() for port, v in inputs.items()}, dict(node.params))
@@ -343,35 +453,31 @@ class Runner:
                 entry = self.store.commit(key, tmp, {"stage": node.name, "uses": node.uses, "info": asdict(info)})
         return StreamInfo(**entry.record["info"])
 
-    def _chunk_inputs(self, node: StageNode, inputs: dict[str, Value], start: int, stop: int) -> dict[str, Any]:
+    def _chunk_inputs(self, node: StageNode, inputs: dict[str, Value], start: int, stop: int, *,
+                      compute: bool) -> dict[str, Any] | None:
         """Digests of the upstream frame chunks that frames ``[start - window, stop + window)``
-        touch (clamped to the clip). A stage that defines its own stream shape may map output
-        frames to any input frames, so each of its chunks depends on whole input streams."""
+        touch (clamped to the clip), resolving them; None if ``compute`` is False and one is
+        not stored yet. A stage that defines its own stream shape may map output frames to any
+        input frames, so each of its chunks depends on whole input streams."""
         own_shape = _defines_stream_info(node.cls)
         used = {}
         for port, v in inputs.items():
             if v.type != "frames":
                 continue
             if own_shape:
-                used[port] = {"info": asdict(v.info), "stream": v.digest}
+                digest = v.resolved_digest(compute=compute)
+                if digest is None:
+                    return None
+                used[port] = {"info": asdict(v.info), "stream": digest}
                 continue
             size, window = self.pipeline.chunk_frames, node.cls.window
             lo = max(0, start - window) // size
             hi = (min(v.info.frames, stop + window) - 1) // size
-            used[port] = {"info": asdict(v.info), "chunks": v.chunk_digests[lo:hi + 1]}
+            digests = v.chunks.digests(v.port, lo, hi, compute=compute)
+            if digests is None:
+                return None
+            used[port] = {"info": asdict(v.info), "chunks": digests}
         return used
-
-    def _chunk(self, node: StageNode, stage: FrameStage, values: dict[str, Any], info: StreamInfo,
-               span: tuple[int, int], key: str, forced: bool) -> tuple[Entry, bool]:
-        with self.store.locked(key, on_wait=self._waiting(node)):
-            entry = None if forced else self.store.lookup(key)
-            if entry is not None:
-                return entry, False
-            with self.store.writing(key) as tmp:
-                result = stage.process(span[0], span[1], values, dict(node.params), self._context(tmp, lambda n: None))
-                record = _save_outputs(node, result, tmp, frames=(span[1] - span[0], info))
-                record = {"stage": node.name, "uses": node.uses, "range": list(span), **record}
-                return self.store.commit(key, tmp, record, replace=forced), True
 
     # -- outputs ---------------------------------------------------------------------------
 
@@ -379,45 +485,13 @@ class Runner:
         for port, kind in node.cls.outputs.items():
             self.values[(node.name, port)] = Value(kind, None)
 
-    def _set_outputs(self, node: StageNode, entries: list[Entry], info: StreamInfo | None) -> None:
-        """Publish a stage's cached outputs to downstream stages (loaded only when read)."""
-        self.entries[node.name] = entries
+    def _set_outputs(self, node: StageNode, entry: Entry) -> None:
+        """Publish a sequence stage's cached outputs to downstream stages (loaded when read)."""
+        self.entries[node.name] = [entry]
         for port, kind in node.cls.outputs.items():
-            digests = [e.record["outputs"][port]["digest"] for e in entries]
-            if info is None:
-                digest, chunk_digests = digests[0], None
-            else:
-                digest, chunk_digests = combine([*digests, json.dumps(asdict(info))]), digests
-            paths = [e.path / e.record["outputs"][port]["file"] for e in entries]
-            if kind == "frames":
-                load = lambda p=paths, r=[tuple(e.record["range"]) for e in entries]: CachedStream(info, r, p)
-            elif kind == "files":
-                load = lambda p=paths: p[0]
-            else:
-                load = lambda p=paths: _load_bundle(p)
-            self.values[(node.name, port)] = Value(kind, digest, load, chunk_digests, info)
-
-    def _set_computed(self, node: StageNode, stage: FrameStage, values: dict[str, Any], info: StreamInfo,
-                      ranges: list[tuple[int, int]], keys: list[str]) -> None:
-        """Outputs of an uncached frame stage: streams computing chunks as they are read."""
-        params = dict(node.params)
-        ctx = Context(device=self.opts.device, files_dir=_no_files(node),
-                      log=logging.getLogger(f"runner.stage.{node.name}"))
-
-        for port in node.cls.outputs:
-            def compute(i: int, port: str = port) -> np.ndarray:
-                start, stop = ranges[i]
-                try:
-                    frames = np.asarray(stage.process(start, stop, values, params, ctx)[port])
-                except StageError as exc:
-                    raise StageFailed(node, exc) from exc
-                _check_frames(node, port, frames, stop - start, info)
-                return frames
-
-            digests = [cache_key({"computed": k, "port": port}) for k in keys]
-            stream = ComputedStream(info, ranges, compute, keep=self.opts.jobs + 2)
-            digest = combine([*digests, json.dumps(asdict(info))])
-            self.values[(node.name, port)] = Value("frames", digest, lambda s=stream: s, digests, info)
+            path = entry.path / entry.record["outputs"][port]["file"]
+            load = (lambda p=path: p) if kind == "files" else (lambda p=path: _load_bundle([p]))
+            self.values[(node.name, port)] = Value(kind, entry.record["outputs"][port]["digest"], load)
 
     def _publish(self, node: StageNode) -> None:
         """Copy a stage's ``files`` outputs to ``--out/<stage>/`` (one port) or
@@ -487,6 +561,201 @@ class Runner:
             self.opts.log({"event": "wait", "stage": node.name, "holder_pid": holder.get("pid")})
 
         return on_wait
+
+
+class FrameChunks:
+    """The chunks of one frame stage in one run, each resolved at most once.
+
+    Resolving chunk ``i`` (:meth:`entry`) computes its key, which resolves the upstream chunks
+    its window reads, then takes the stored entry or computes, stores and commits it under the
+    entry's lock (a cached stage), logging a ``chunk`` event either way. An uncached stage
+    stores nothing: its chunks are computed whenever read (:meth:`stream`) and their digests
+    derive from their keys. A *lazy* stage is resolved by its readers. Thread-safe: one lock
+    per chunk.
+    """
+
+    def __init__(self, runner: Runner, node: StageNode, stage: FrameStage, inputs: dict[str, Value],
+                 info: StreamInfo, *, forced: bool, lazy: bool):
+        self.runner, self.node, self.stage, self.inputs, self.info = runner, node, stage, inputs, info
+        self.forced, self.lazy = forced, lazy
+        self.ranges = chunk_ranges(info.frames, runner.pipeline.chunk_frames)
+        self.keys: list[str | None] = [None] * len(self.ranges)
+        self.entries: list[Entry | None] = [None] * len(self.ranges)
+        self.report = Report(node.name, node.uses, "cached", chunks=len(self.ranges), frames=info.frames)
+        self._locks = [threading.Lock() for _ in self.ranges]
+        self._book = threading.Lock()  # guards the report, the bar and the dicts below
+        self._upstream: dict[str, Any] | None = None
+        self._streams: dict[str, ComputedStream] = {}
+        self._readers: list[str] = []
+        self._bar: tqdm | None = None
+
+    # -- keys and digests ------------------------------------------------------------------
+
+    def key(self, i: int, *, compute: bool = True) -> str | None:
+        """Cache key of chunk ``i``; None if ``compute`` is False and an input chunk it reads
+        is not stored yet."""
+        if self.keys[i] is None:
+            runner = self.runner
+            plain = {p: v for p, v in self.inputs.items() if v.type != "frames"}
+            digests = runner._digests(plain, compute=compute)
+            start, stop = self.ranges[i]
+            used = None if digests is None else runner._chunk_inputs(self.node, self.inputs, start, stop,
+                                                                      compute=compute)
+            if used is None:
+                return None
+            self.keys[i] = cache_key({**runner._material(self.node, digests), "chunk": [start, stop],
+                                      "info": asdict(self.info), "chunk_inputs": used})
+        return self.keys[i]
+
+    def digests(self, port: str, lo: int, hi: int, *, compute: bool = True) -> list[str] | None:
+        """Digests of output ``port`` in chunks ``lo..hi`` (inclusive), resolving them; None if
+        ``compute`` is False and one is not stored yet."""
+        out = []
+        for i in range(lo, hi + 1):
+            if not self.node.cls.cached:
+                key = self.key(i, compute=compute)
+                if key is None:
+                    return None
+                out.append(cache_key({"computed": key, "port": port}))
+                continue
+            entry = self.entry(i, compute=compute)
+            if entry is None:
+                return None
+            out.append(entry.record["outputs"][port]["digest"])
+        return out
+
+    def digest(self, port: str, *, compute: bool = True) -> str | None:
+        """Digest of the whole output ``port``: of its chunk digests and the stream shape."""
+        digests = self.digests(port, 0, len(self.ranges) - 1, compute=compute)
+        return None if digests is None else combine([*digests, json.dumps(asdict(self.info))])
+
+    # -- resolving -------------------------------------------------------------------------
+
+    def entry(self, i: int, *, compute: bool = True) -> Entry | None:
+        """The stored entry of chunk ``i`` (cached stages), computed and committed if missing;
+        None if ``compute`` is False (or in a dry run) and it is not stored."""
+        if self.entries[i] is not None:
+            return self.entries[i]
+        compute = compute and not self.runner.opts.dry_run
+        with self._locks[i]:
+            if self.entries[i] is None:
+                key = self.key(i, compute=compute)
+                found = None if key is None or self.forced else self.runner.store.lookup(key)
+                if found is None and not compute:
+                    return None
+                ran = found is None
+                if ran:
+                    found, ran = self._compute(i, key)
+                self._resolved(i, found, ran)
+            return self.entries[i]
+
+    def resolve_all(self) -> None:
+        """Resolve every chunk now, ``--jobs`` at once."""
+        for _ in _map_ordered(self.entry, list(range(len(self.ranges))), jobs=self.runner.opts.jobs):
+            pass
+
+    def complete(self) -> bool:
+        return all(entry is not None for entry in self.entries)
+
+    def _compute(self, i: int, key: str) -> tuple[Entry, bool]:
+        """Compute chunk ``i`` under its entry's lock, unless another run stored it meanwhile."""
+        store, node = self.runner.store, self.node
+        start, stop = self.ranges[i]
+        with store.locked(key, on_wait=self.runner._waiting(node)):
+            entry = None if self.forced else store.lookup(key)
+            if entry is not None:
+                return entry, False
+            timing = _own_time(self._spent) if self.lazy else contextlib.nullcontext()
+            with timing, store.writing(key) as tmp:
+                try:
+                    result = self.stage.process(start, stop, self._inputs(), dict(node.params),
+                                                self.runner._context(tmp, lambda n: None))
+                    record = _save_outputs(node, result, tmp, frames=(stop - start, self.info))
+                except StageError as exc:
+                    raise StageFailed(node, exc) from exc
+                entry = store.commit(key, tmp, {"stage": node.name, "uses": node.uses, "range": [start, stop],
+                                                **record}, replace=self.forced)
+        return entry, True
+
+    def _resolved(self, i: int, entry: Entry, ran: bool) -> None:
+        runner = self.runner
+        with self._book:
+            self.entries[i] = entry
+            self.report.chunks_cached += not ran
+            if runner.opts.dry_run:
+                return
+            start, stop = self.ranges[i]
+            runner.opts.log({"event": "chunk", "stage": self.node.name, "start": start, "stop": stop,
+                             "status": "ran" if ran else "cached"})
+            if self._bar is None:
+                self._bar = runner._bar(self.node, self.info.frames)
+            self._bar.update(stop - start)
+            if ran and self.lazy and runner.current not in (None, self.node.name, *self._readers):
+                self._readers.append(runner.current)
+        runner.store.touch(entry)
+
+    def _spent(self, seconds: float) -> None:
+        with self._book:
+            self.report.seconds += seconds
+
+    def _inputs(self) -> dict[str, Any]:
+        """What ``process`` is handed: frame streams, loaded bundles, paths (loaded once)."""
+        if self._upstream is None:
+            self._upstream = {port: v.get() for port, v in self.inputs.items()}
+        return self._upstream
+
+    def finish(self) -> Report:
+        """The stage's report once every chunk is resolved; remembers its key material and
+        hands its entries to publishing."""
+        report, count = self.report, len(self.ranges)
+        report.status = "cached" if report.chunks_cached == count else "ran" if report.chunks_cached == 0 else "partial"
+        if self._readers:
+            report.reason = f"computed while {', '.join(self._readers)} read it"
+        self.close()
+        self.runner._remember(self.node, self.runner._material(self.node, self.runner._digests(self.inputs)))
+        self.runner.entries[self.node.name] = list(self.entries)
+        return report
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+
+    # -- outputs ---------------------------------------------------------------------------
+
+    def stream(self, port: str) -> ChunkedStream:
+        """Frames of output ``port``: of a cached stage, its stored chunks, each resolved (so
+        computed and stored, if missing) when first read and read back from its entry (from
+        the page cache: about one copy); of an uncached stage, chunks computed as read."""
+        if self.node.cls.cached:
+            return CachedStream(self.info, self.ranges, lambda i: self._file(self.entry(i), port))
+        with self._book:
+            if port not in self._streams:
+                self._streams[port] = ComputedStream(self.info, self.ranges, lambda i, p=port: self._computed(p, i),
+                                                     keep=self.runner.opts.jobs + 2)
+            return self._streams[port]
+
+    def load(self, port: str) -> Any:
+        """A bundle output (chunks concatenated) or a ``files`` output's folder (of the first
+        chunk), once every chunk is resolved."""
+        self.resolve_all()
+        paths = [self._file(entry, port) for entry in self.entries]
+        return paths[0] if self.node.cls.outputs[port] == "files" else _load_bundle(paths)
+
+    @staticmethod
+    def _file(entry: Entry, port: str) -> Path:
+        return entry.path / entry.record["outputs"][port]["file"]
+
+    def _computed(self, port: str, i: int) -> np.ndarray:
+        """Frames ``(B, H, W, C)`` of output ``port`` in chunk ``i`` of an uncached stage."""
+        start, stop = self.ranges[i]
+        ctx = Context(device=self.runner.opts.device, files_dir=_no_files(self.node),
+                      log=logging.getLogger(f"runner.stage.{self.node.name}"))
+        try:
+            frames = np.asarray(self.stage.process(start, stop, self._inputs(), dict(self.node.params), ctx)[port])
+        except StageError as exc:
+            raise StageFailed(self.node, exc) from exc
+        _check_frames(self.node, port, frames, stop - start, self.info)
+        return frames
 
 
 def _defines_stream_info(cls: type[FrameStage]) -> bool:

@@ -43,8 +43,10 @@ class ChunkedStream:
         parts = []
         for index in np.unique(which):
             frames = self.chunk(int(index), mmap=True)
-            parts.append(frames[wanted[which == index] - self.ranges[index][0]])
-        return np.ascontiguousarray(np.concatenate(parts)) if len(parts) > 1 else np.array(parts[0])
+            rows = wanted[which == index] - self.ranges[index][0]
+            # A slice (a view) where no frame repeats, so that the result is copied only once.
+            parts.append(frames[rows[0]:rows[-1] + 1] if rows[-1] - rows[0] + 1 == rows.size else frames[rows])
+        return np.concatenate(parts) if len(parts) > 1 else np.array(parts[0])
 
     def chunks(self) -> Iterator[tuple[int, np.ndarray]]:
         for index, (start, _) in enumerate(self.ranges):
@@ -52,14 +54,17 @@ class ChunkedStream:
 
 
 class CachedStream(ChunkedStream):
-    """Chunks stored as ``.npy`` files in complete cache entries."""
+    """Chunks stored as ``.npy`` files in complete cache entries: ``files`` lists them, or gives
+    chunk ``index``'s file when first read (a stage computed while it is read stores the chunk
+    then)."""
 
-    def __init__(self, info: StreamInfo, ranges: list[tuple[int, int]], files: list[Path]):
+    def __init__(self, info: StreamInfo, ranges: list[tuple[int, int]],
+                 files: list[Path] | Callable[[int], Path]):
         super().__init__(info, ranges)
-        self.files = files
+        self._file = files.__getitem__ if isinstance(files, list) else files
 
     def chunk(self, index: int, *, mmap: bool = False) -> np.ndarray:
-        return np.load(self.files[index], mmap_mode="r" if mmap else None, allow_pickle=False)
+        return np.load(self._file(index), mmap_mode="r" if mmap else None, allow_pickle=False)
 
 
 class ComputedStream(ChunkedStream):

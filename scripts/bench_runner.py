@@ -6,7 +6,9 @@ Metrics (one clip, generated under ``args.work``: 300 frames, 640x480, H.264):
   its time over a bare PyAV decode loop (``to_ndarray("rgb24")``) measured in the same run.
 - ``runner_overhead_ratio``: ``runner run`` of decode -> image.gray -> write.video on an empty
   cache (in this process, so interpreter start-up is not counted) over the same stage code
-  called directly in a loop (decode chunk, to_gray, VideoWriter.write); target < 1.10.
+  called directly in a loop (decode chunk, to_gray, VideoWriter.write); target < 1.10. The
+  runner streams gray's chunks into the encoder as it computes and stores them (see
+  docs/runner.md, *Scheduling*), so x264's threads overlap the Python work as in the loop.
 - ``runner_noop_rerun_s``: wall time of a fully cached re-run of the same pipeline, as a user
   sees it: a new ``runner`` process, start-up included; target < 1 s.
 

@@ -35,8 +35,11 @@ def test_chain_runs_end_to_end_and_reruns_from_cache(env, tmp_path):
     assert np.abs(video[..., 1].astype(int) - truth[..., 0]).mean() < 2.0
     manifest = json.loads((out / "write" / "manifest.json").read_text())
     assert [f["path"] for f in manifest["files"]] == ["video.mp4"]
-    # One summary line per stage on stdout.
-    assert [line.split()[0] for line in first.stdout.splitlines()[:3]] == ["decode", "gray", "write"]
+    # One summary line per stage on stdout; gray was computed while write encoded it.
+    lines = first.stdout.splitlines()
+    assert [line.split()[0] for line in lines[:3]] == ["decode", "gray", "write"]
+    assert "0/3 chunks cached  48 frames" in lines[1] and "(computed while write read it)" in lines[1]
+    assert "(read gray while it was computed)" in lines[2]
 
     second = run_cli("run", CHAIN, "--in", TINY, "--out", out, "--log-json", tmp_path / "2.jsonl", env=env, cwd=tmp_path)
     assert second.returncode == 0, second.stderr
