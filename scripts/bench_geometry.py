@@ -35,7 +35,6 @@ ground truth (``<clip>_truth.npz``) at the points visible in each frame:
 from __future__ import annotations
 
 import argparse
-import csv
 import time
 from pathlib import Path
 from typing import Any
@@ -51,7 +50,7 @@ from stages.geometry.mapping import displacement_transforms, map_expression
 from stages.geometry.pose import estimate_poses
 from stages.geometry.smooth import gaussian_smooth
 from stages.geometry.subset import named_columns
-from stages.geometry.track import track_points
+from stages.geometry.track import read_first_frame_points, track_points
 from stages.layout import load_layout
 from scripts.bench_frontalize import bench_rows
 
@@ -71,12 +70,6 @@ def decode(path: Path) -> list[np.ndarray]:
     """All frames of a clip as RGB uint8 ``(H, W, 3)`` arrays."""
     with av.open(str(path)) as container:
         return [frame.to_ndarray(format="rgb24") for frame in container.decode(video=0)]
-
-
-def first_frame_points(path: Path) -> tuple[list[str], np.ndarray]:
-    with path.open(newline="") as handle:
-        rows = list(csv.DictReader(handle))
-    return [r["name"] for r in rows], np.array([[float(r["x"]), float(r["y"])] for r in rows])
 
 
 def fixture_set(root: Path | None, work: Path, *, demo: bool) -> Path:
@@ -127,7 +120,7 @@ def evaluate_clip(root: Path, kind: str, suffix: str, *, alternatives: tuple[str
 
     layout = load_layout("zhang134")
     truth = np.load(root / "clips" / f"{kind}_truth.npz", allow_pickle=False)
-    names, init = first_frame_points(root / "clips" / f"{kind}_track0.csv")
+    names, init, _ = read_first_frame_points(root / "clips" / f"{kind}_track0.csv")
     tracked = [layout.index(n) for n in names]
     gt = truth["points"][:, tracked]
     visible = truth["visible"][:, tracked]

@@ -264,7 +264,8 @@ def write_clip(folder: Path, kind: str, performer: FaceModel, target: FaceModel,
         "target_size": np.array(target_camera.size, dtype=np.int64),
     })
     tracked = list(layout.tracked)
-    write_points_csv(folder / f"{kind}_track0.csv", [layout.point_names[i] for i in tracked], pts[0, tracked])
+    write_points_csv(folder / f"{kind}_track0.csv", [layout.point_names[i] for i in tracked], pts[0, tracked],
+                     frame_size=camera.size)
     write_png(folder.parent / f"{kind}_strip.png", np.hstack(strip))
 
 

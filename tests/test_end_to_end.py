@@ -103,6 +103,7 @@ def test_rerun_is_all_cached_and_byte_identical(default_run):
     "args, code, message",
     [
         (["--in", "missing.mp4"], 2, "missing.mp4"),
+        (["--in", "fixtures/clips/tiny.mp4"], 1, "marked on a 320x240 frame, the clip's frames are 160x120"),
         (["--input", "target=fixtures/clips"], 1, "pack.yaml"),
         (["--set", "synthesize.mode=bogus"], 2, "synthesize.mode"),
     ],

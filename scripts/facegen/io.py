@@ -39,10 +39,13 @@ def write_png(path: Path, image: np.ndarray) -> None:
     path.write_bytes(data.tobytes())
 
 
-def write_points_csv(path: Path, names: tuple[str, ...] | list[str], points: np.ndarray) -> None:
-    """Write ``name,x,y`` rows (px, 6 decimals) for ``points`` ``(N, 2)``."""
+def write_points_csv(path: Path, names: tuple[str, ...] | list[str], points: np.ndarray, *,
+                     frame_size: tuple[int, int] | None = None) -> None:
+    """Write ``name,x,y`` rows (px, 6 decimals) for ``points`` ``(N, 2)``; with ``frame_size``
+    ``(W, H)``, first a comment line ``# frame_size: W H`` (the frame the points belong to)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    lines = ["name,x,y"] + [f"{n},{x:.6f},{y:.6f}" for n, (x, y) in zip(names, np.asarray(points, dtype=np.float64))]
+    header = [f"# frame_size: {frame_size[0]} {frame_size[1]}"] if frame_size is not None else []
+    lines = header + ["name,x,y"] + [f"{n},{x:.6f},{y:.6f}" for n, (x, y) in zip(names, np.asarray(points, dtype=np.float64))]
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
 
 

@@ -491,21 +491,30 @@ def track_points(frames: Iterable[np.ndarray], init_xy: np.ndarray, *, method: s
     return Tracks(np.stack(xy), np.stack(valid), np.stack(confidence).astype(np.float32))
 
 
-def read_first_frame_points(path: Path) -> tuple[list[str], np.ndarray]:
+def read_first_frame_points(path: Path) -> tuple[list[str], np.ndarray, tuple[int, int] | None]:
     """Read named first-frame positions from a ``.csv`` (header ``name,x,y``) or ``.json`` file
     (``{"names": [...], "xy": [[x, y], ...]}`` or ``{name: [x, y], ...}``, optionally under a
-    ``"points"`` key). Returns the names and an ``(N, 2)`` float64 array in px."""
+    ``"points"`` key). Returns the names, an ``(N, 2)`` float64 array in px and the size
+    ``(W, H)`` of the frame the points were marked on, when the file states it (a CSV comment line
+    ``# frame_size: W H`` before the header, or a JSON key ``"frame_size": [W, H]``), else None."""
     path = Path(path)
     if not path.is_file():
         raise StageError(f"first-frame points file not found: {path}")
+    frame_size = None
     try:
         if path.suffix.lower() == ".csv":
-            with path.open(newline="") as handle:
-                rows = list(csv.DictReader(handle))
+            lines = path.read_text().splitlines()
+            for line in lines:
+                key, _, value = line.lstrip("# ").partition(":")
+                if line.startswith("#") and key.strip() == "frame_size":
+                    frame_size = tuple(int(v) for v in value.split())
+            rows = list(csv.DictReader(line for line in lines if not line.startswith("#")))
             names = [row["name"] for row in rows]
             xy = np.array([[float(row["x"]), float(row["y"])] for row in rows], dtype=np.float64)
         elif path.suffix.lower() == ".json":
             data = json.loads(path.read_text())
+            if isinstance(data, dict) and "frame_size" in data:
+                frame_size = tuple(int(v) for v in data["frame_size"])
             data = data.get("points", data) if isinstance(data, dict) else data
             if isinstance(data, dict) and "names" in data:
                 names, xy = list(data["names"]), np.asarray(data["xy"], dtype=np.float64)
@@ -517,13 +526,19 @@ def read_first_frame_points(path: Path) -> tuple[list[str], np.ndarray]:
         raise StageError(f"{path}: cannot read first-frame points (expected name,x,y): {exc}") from None
     if xy.ndim != 2 or xy.shape != (len(names), 2) or not np.isfinite(xy).all():
         raise StageError(f"{path}: expected one finite (x, y) pair per named point, got shape {xy.shape}")
-    return [str(n) for n in names], xy
+    if frame_size is not None and len(frame_size) != 2:
+        raise StageError(f"{path}: frame_size must be two integers W H, got {frame_size}")
+    return [str(n) for n in names], xy, frame_size
 
 
 def order_by_layout(path: Path, names: list[str], xy: np.ndarray, expected: tuple[str, ...],
-                    size: tuple[int, int]) -> np.ndarray:
-    """Check first-frame points against the layout's tracked subset and the frame size; return
-    them ``(N, 2)`` in the layout's order. ``size`` is ``(W, H)``."""
+                    size: tuple[int, int], frame_size: tuple[int, int] | None = None) -> np.ndarray:
+    """Check first-frame points against the layout's tracked subset and the clip's frame size
+    ``size = (W, H)`` (and ``frame_size``, the size the file says they were marked on); return
+    them ``(N, 2)`` in the layout's order."""
+    if frame_size is not None and tuple(frame_size) != tuple(size):
+        raise StageError(f"{path}: the points were marked on a {frame_size[0]}x{frame_size[1]} frame, "
+                         f"the clip's frames are {size[0]}x{size[1]}")
     if len(set(names)) != len(names):
         raise StageError(f"{path}: duplicate point names")
     missing = [n for n in expected if n not in names]
@@ -590,8 +605,8 @@ class CorrelationTrack(SequenceStage):
         layout = load_layout(params["layout"])
         expected = tuple(layout.point_names[i] for i in layout.tracked)
         path = Path(inputs["init"])
-        names, xy = read_first_frame_points(path)
-        init = order_by_layout(path, names, xy, expected, (info.width, info.height))
+        names, xy, frame_size = read_first_frame_points(path)
+        init = order_by_layout(path, names, xy, expected, (info.width, info.height), frame_size)
         options = {p.name: params[p.name] for p in self.params
                    if p.name not in ("layout", "method")}
         tracks = track_points(iter_frames(stream), init, method=params["method"],

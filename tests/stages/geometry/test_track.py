@@ -246,9 +246,22 @@ def test_bad_first_frame_points(tmp_path, problem, message):
 def test_read_first_frame_points_json_mapping(tmp_path):
     path = tmp_path / "p.json"
     path.write_text(json.dumps({"points": {"a": [1.5, 2.0], "b": [3.0, 4.25]}}))
-    names, xy = read_first_frame_points(path)
-    assert names == ["a", "b"]
+    names, xy, frame_size = read_first_frame_points(path)
+    assert names == ["a", "b"] and frame_size is None
     np.testing.assert_array_equal(xy, [[1.5, 2.0], [3.0, 4.25]])
+
+
+def test_points_marked_on_another_frame_size_are_refused(tmp_path):
+    frames, _, names, init = tracked_setup(tmp_path, n_frames=2)
+    height, width = frames[0].shape[:2]
+    path = tmp_path / "first.csv"
+    rows = "\n".join(f"{n},{x},{y}" for n, (x, y) in zip(names, init))
+    path.write_text(f"# frame_size: {width} {height}\nname,x,y\n{rows}\n")
+    out = CorrelationTrack().run({"frames": MemoryStream(frames), "init": path}, {}, context(tmp_path))
+    assert out["points"]["xy"].shape == (2, len(names), 2)
+    path.write_text(f"# frame_size: {2 * width} {2 * height}\nname,x,y\n{rows}\n")
+    with pytest.raises(StageError, match=f"marked on a {2 * width}x{2 * height} frame.*{width}x{height}"):
+        CorrelationTrack().run({"frames": MemoryStream(frames), "init": path}, {}, context(tmp_path))
 
 
 def test_a_folder_is_not_a_points_file(tmp_path):
