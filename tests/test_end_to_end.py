@@ -41,10 +41,10 @@ def default_run(tmp_path_factory) -> Path:
 
 
 def test_exr_frames_read_back_with_metadata(default_run):
-    truth = np.load(TRUTH)
+    truth = np.load(TRUTH, allow_pickle=False)
     frames = sorted((default_run / "exr").glob("frame.*.exr"))
     assert len(frames) == len(truth["points"])
-    data = np.load(default_run / "data" / "data.npz")
+    data = np.load(default_run / "data" / "data.npz", allow_pickle=False)
     for index in (0, len(frames) - 1):
         image = oiio.ImageInput.open(str(frames[index]))
         spec = image.spec()
@@ -61,7 +61,7 @@ def test_exr_frames_read_back_with_metadata(default_run):
 
 
 def test_mp4_decodes_with_input_frame_count_and_rate(default_run):
-    truth = np.load(TRUTH)
+    truth = np.load(TRUTH, allow_pickle=False)
     for name in ("video/result.mp4", "preview/preview.mp4"):
         with av.open(str(default_run / name)) as container:
             stream = container.streams.video[0]
@@ -72,8 +72,8 @@ def test_mp4_decodes_with_input_frame_count_and_rate(default_run):
 
 
 def test_data_files_agree_and_mapping_beats_neutral(default_run):
-    truth = np.load(TRUTH)
-    data = np.load(default_run / "data" / "data.npz")
+    truth = np.load(TRUTH, allow_pickle=False)
+    data = np.load(default_run / "data" / "data.npz", allow_pickle=False)
     with open(default_run / "data" / "data.csv", newline="") as handle:
         rows = list(csv.DictReader(handle))
     assert len(rows) == len(truth["points"])
@@ -123,3 +123,18 @@ def test_corrupt_pack_points_name_the_file(tmp_path):
     result = run_cli("run", "pipeline.yaml", "--input", f"target={pack}", "--out", str(tmp_path / "out"),
                      "--cache-dir", str(tmp_path / "cache"), "--until", "build")
     assert result.returncode == 1 and points.name in result.stderr and "Traceback" not in result.stderr
+
+
+def test_data_coefficients_are_those_of_the_synthesized_frames(tmp_path):
+    """In `global` mode (one convex combination for the whole face) every face subregion of the
+    data file carries the same coefficients: the ones the frames were composited with."""
+    result = run_cli("run", "pipeline.yaml", "--set", "synthesize.mode=global", "--out", str(tmp_path / "out"),
+                     "--cache-dir", str(tmp_path / "cache"), "--until", "data")
+    assert result.returncode == 0, result.stderr
+    data = np.load(tmp_path / "out" / "data" / "data.npz", allow_pickle=False)
+    layout = load_pack(REPO / "fixtures" / "packs" / "target").layout
+    face = [k for k, s in enumerate(layout.subregions) if not s.teeth]
+    n_examples = len(load_pack(REPO / "fixtures" / "packs" / "target").examples)
+    coeff = data["coefficients_coeff"][:, face, :n_examples]
+    np.testing.assert_array_equal(coeff, np.broadcast_to(coeff[:, :1], coeff.shape))
+    np.testing.assert_allclose(coeff.sum(-1), 1.0, atol=1e-9)

@@ -4,8 +4,8 @@
 from the example geometries (face subregions) or the teeth example geometries (the teeth
 subregion, Sec. 8) once, and solves the QPs of a batch of frames in one call of
 :func:`stages.synthesis.qp.project_onto_convex_hull` per family. The ``synthesis.coefficients``
-stage runs it over a whole clip and publishes the coefficients with their subregion and example
-names (port type ``coefficients``, the format ``write.data`` reads).
+stage publishes the coefficients ``synthesize`` used with their subregion and example names (port
+type ``coefficients``, the format ``write.data`` reads).
 """
 
 from __future__ import annotations
@@ -16,10 +16,10 @@ from typing import Any, Mapping
 import numpy as np
 import torch
 
-from runner.stage import Context, Param, SequenceStage, StageError
+from runner.stage import Context, SequenceStage, StageError
 from stages.synthesis.qp import project_onto_convex_hull
 
-__all__ = ["SubregionQP", "target_geometry", "candidate_table", "SolveCoefficients"]
+__all__ = ["SubregionQP", "target_geometry", "candidate_table", "NameCoefficients"]
 
 QP_MODES = ("full", "global")
 
@@ -162,20 +162,25 @@ def candidate_table(coeffs: np.ndarray, model: Mapping[str, np.ndarray]) -> dict
     return {"coeff": table, "subregions": np.asarray(model["subregion_names"], str), "examples": names}
 
 
-class SolveCoefficients(SequenceStage):
-    """``synthesis.coefficients``: the QP coefficients of a whole clip, with names (for ``write.data``)."""
+class NameCoefficients(SequenceStage):
+    """``synthesis.coefficients``: the coefficients ``synthesize`` used, laid out by name.
+
+    A frame stage's bundle outputs are joined chunk by chunk along their first axis, so
+    ``synthesize`` cannot publish the subregion and example names itself; this stage adds them
+    (:func:`candidate_table`) to exactly the coefficients the frames were composited with (zero in
+    ``warp-only`` mode), for ``write.data``.
+    """
 
     name = "synthesis.coefficients"
-    version = "1"
-    doc = "per-frame, per-subregion convex-combination coefficients (eq. 2-5) with subregion/example names"
-    inputs = {"model": "synthesis_model", "points": "points", "displacements": "displacements"}
-    optional_inputs = frozenset({"points", "displacements"})
+    version = "2"
+    doc = "the coefficients synthesize composited with (eq. 2-5), laid out with subregion/example names"
+    inputs = {"model": "synthesis_model", "coeffs": "synthesis_coeffs"}
     outputs = {"coefficients": "coefficients"}
-    params = (Param("mode", str, "full", "full: per subregion; global: one combination for the whole face", QP_MODES),)
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
-        xy, _ = target_geometry(inputs, stage=self.name)
-        if not np.isfinite(xy).all():
-            raise StageError(f"{self.name}: the input geometry has non-finite points")
-        coeffs, _ = SubregionQP(inputs["model"], device=ctx.device).coefficients(xy, mode=params["mode"])
-        return {"coefficients": candidate_table(coeffs.cpu().numpy(), inputs["model"])}
+        model = inputs["model"]
+        coeffs = np.asarray(inputs["coeffs"]["coeffs"], np.float64)
+        expected = (len(model["subregion_names"]), max(len(model["example_points"]), len(model["teeth_points"]), 1))
+        if coeffs.ndim != 3 or coeffs.shape[1:] != expected:
+            raise StageError(f"{self.name}: input 'coeffs' has shape {coeffs.shape}, the model needs (T, {expected[0]}, {expected[1]})")
+        return {"coefficients": candidate_table(coeffs, model)}

@@ -14,7 +14,7 @@ from runner.registry import Registry
 from runner.stage import Context, SequenceStage
 from stages.actor_pack import load_pack
 from stages.synthesis.build import BuildSynthesis
-from stages.synthesis.coefficients import SolveCoefficients
+from stages.synthesis.coefficients import NameCoefficients
 from stages.synthesis.synthesize import Synthesize, Synthesizer
 from tests.stages.synthesis.test_fixture_pack import PACK
 
@@ -53,7 +53,7 @@ stages:
   build: {uses: synthesis.build, inputs: {pack: target}}
   geometry: {uses: t.pack_points, inputs: {pack: target}}
   synth: {uses: synthesis.synthesize, inputs: {model: build.model, points: geometry.points}}
-  coeffs: {uses: synthesis.coefficients, inputs: {model: build.model, points: geometry.points}}
+  coeffs: {uses: synthesis.coefficients, inputs: {model: build.model, coeffs: synth.coeffs}}
   gather: {uses: t.gather, inputs: {frames: synth.frames, mask: synth.mask}}
 """
 
@@ -62,7 +62,7 @@ stages:
 def test_runner_pipeline_matches_direct_synthesis(tmp_path: Path):
     path = tmp_path / "p.yaml"
     path.write_text(textwrap.dedent(PIPELINE).replace("PACK", str(PACK)))
-    registry = Registry(classes=[BuildSynthesis, SolveCoefficients, Synthesize, PackGeometry, Gather])
+    registry = Registry(classes=[BuildSynthesis, NameCoefficients, Synthesize, PackGeometry, Gather])
     pipeline = load_pipeline(path, registry)
     runner = Runner(pipeline, bind_inputs(pipeline, clip=None, named=[]), Options(cache=CacheStore(tmp_path / "cache")))
     runner.run()
@@ -78,4 +78,5 @@ def test_runner_pipeline_matches_direct_synthesis(tmp_path: Path):
     np.testing.assert_allclose(chunked, coeffs.numpy(), atol=1e-12)
     table = runner.values[("coeffs", "coefficients")].get()
     assert table["coeff"].shape == (5, len(pack.layout.subregions), len(pack.examples) + len(pack.teeth_examples))
+    np.testing.assert_array_equal(np.nan_to_num(table["coeff"])[:, :, : len(pack.examples)].sum(-1)[:, 0], chunked[:, 0].sum(-1))
     assert len(runner.entries["synth"]) == 3  # ceil(5 / 2) chunks
