@@ -205,6 +205,10 @@ def main(argv: list[str] | None = None) -> None:
     except (KeyboardInterrupt, click.Abort):
         click.echo("interrupted", err=True)
         code = EXIT_INTERRUPTED
+    except OSError as exc:  # an unusable --cache-dir, --out or --log-json path
+        where = f"{exc.filename}: " if exc.filename else ""
+        click.echo(f"error: {where}{exc.strerror or exc}", err=True)
+        code = EXIT_USAGE
     sys.exit(code or 0)
 
 

@@ -26,6 +26,7 @@ values are built with the safe constructor only.
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -338,6 +339,8 @@ def _param_problem(param: Param, value: Any) -> str | None:
         return f"wrong type: expected {param.type.__name__}, got {type(value).__name__} {value!r}"
     if param.choices is not None and value not in param.choices:
         return f"wrong value: expected one of {', '.join(map(repr, param.choices))}, got {value!r}"
+    if isinstance(value, float) and not math.isfinite(value):
+        return f"wrong value: expected a finite number, got {value!r}"
     return None
 
 

@@ -157,7 +157,7 @@ class VideoWriter:
     path
         Output file; ``.mp4`` for ``h264``, ``.mkv`` for ``ffv1`` is conventional.
     fps
-        Frame rate (frames per second); stored as a fraction (29.97 -> 30000/1001).
+        Frame rate (frames per second); stored as the nearest fraction with a denominator up to 1001 (an NTSC rate 30000/1001 from a decoded clip stays exact).
     width, height
         Frame size in px. H.264 4:2:0 needs even sizes: odd ones are padded by one row/column
         repeating the last, so the decoded video is ``(height + height % 2, width + width % 2)``.

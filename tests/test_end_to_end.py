@@ -106,6 +106,8 @@ def test_rerun_is_all_cached_and_byte_identical(default_run):
         (["--in", "fixtures/clips/tiny.mp4"], 1, "marked on a 320x240 frame, the clip's frames are 160x120"),
         (["--input", "target=fixtures/clips"], 1, "pack.yaml"),
         (["--set", "synthesize.mode=bogus"], 2, "synthesize.mode"),
+        (["--set", "smooth.sigma=nan"], 2, "expected a finite number"),
+        (["--log-json", "/nonexistent/folder/log.jsonl"], 2, "/nonexistent/folder/log.jsonl"),
     ],
 )
 def test_bad_input_is_one_clear_line(args, code, message, tmp_path):

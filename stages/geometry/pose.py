@@ -221,6 +221,11 @@ class PnPPose(SequenceStage):
         """The intrinsic matrix chosen by the ``intrinsics`` and ``focal_px`` parameters."""
         focal = float(params["focal_px"])
         if params["intrinsics"] == "pack" and focal <= 0:
+            size = tuple(int(v) for v in points["size"]) if "size" in points else None
+            if size is not None and size != tuple(pack.image_size):
+                raise StageError(
+                    f"{pack.path}: intrinsics are for {pack.image_size[0]}x{pack.image_size[1]} images, the clip's "
+                    f"frames are {size[0]}x{size[1]}; use a pack from this camera or intrinsics=image (and focal_px)")
             return np.asarray(pack.intrinsics, dtype=np.float64)
         if "size" not in points:
             raise StageError(f"{self.name}: the points carry no image size; use intrinsics=pack")

@@ -68,7 +68,8 @@ def gaussian_smooth(
         raise ValueError(f"valid shape {mask.shape} does not lead values shape {values.shape}")
     kernel = gaussian_kernel(sigma, truncate=truncate)
     weight = mask.reshape(mask.shape + (1,) * (values.ndim - mask.ndim)).astype(np.float64)
-    numerator = convolve1d(values * weight, kernel, axis=0, mode="constant", cval=0.0)
+    # where(): an invalid sample may hold NaN, and NaN * 0 would spread it to its neighbours
+    numerator = convolve1d(np.where(weight > 0, values, 0.0), kernel, axis=0, mode="constant", cval=0.0)
     support = convolve1d(weight, kernel, axis=0, mode="constant", cval=0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         smoothed = np.where(support > 1e-12, numerator / np.maximum(support, 1e-300), values)

@@ -151,7 +151,9 @@ def test_stale_lock_of_killed_run_is_broken(env, tmp_path, reference):
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         wait(proc, log)
-        time.sleep(0.1)
+        deadline = time.monotonic() + 10  # the next chunk's lock is taken just after the event
+        while not list((cache / "locks").glob("*.lock")) and time.monotonic() < deadline:
+            time.sleep(0.01)
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait()

@@ -121,7 +121,7 @@ def fake_pack(monkeypatch, shape: np.ndarray, names: np.ndarray) -> None:
     layout = load_layout("zhang134")
     model3d = np.zeros((layout.n_points, 3))
     model3d[[layout.index(str(n)) for n in names]] = shape
-    pack = SimpleNamespace(layout=layout, model3d=model3d, intrinsics=CAMERA)
+    pack = SimpleNamespace(path=Path("fake_pack"), layout=layout, model3d=model3d, intrinsics=CAMERA, image_size=(640, 480))
     monkeypatch.setattr(stages.geometry.frontalize, "load_pack", lambda path: pack)
     monkeypatch.setattr(stages.geometry.pose, "load_pack", lambda path: pack)
 

@@ -98,7 +98,7 @@ def test_stage_uses_the_pack_model_and_intrinsics(tmp_path, monkeypatch):
     layout = load_layout("zhang134")
     model3d = np.zeros((layout.n_points, 3))
     model3d[list(layout.rigid)] = MODEL
-    pack = SimpleNamespace(layout=layout, model3d=model3d, intrinsics=CAMERA)
+    pack = SimpleNamespace(path=tmp_path, layout=layout, model3d=model3d, intrinsics=CAMERA, image_size=(640, 480))
     monkeypatch.setattr(stages.geometry.pose, "load_pack", lambda path: pack)
     rvec, tvec, image = sequence(8, noise_px=0.0)
     names = np.array([layout.point_names[i] for i in layout.tracked])
@@ -117,6 +117,9 @@ def test_stage_uses_the_pack_model_and_intrinsics(tmp_path, monkeypatch):
     assert np.abs(wider["tvec"][:, 2] - tvec[:, 2]).min() > 50
     relative = PnPPose().run({"points": points, "pack": tmp_path}, {}, context(tmp_path))["pose"]  # adapted
     np.testing.assert_allclose(relative["R"][0], np.eye(3), atol=1e-6)
+    # the pack's camera belongs to 640x480 images: a clip of another size is refused
+    with pytest.raises(StageError, match="intrinsics are for 640x480 images, the clip's frames are 320x240"):
+        PnPPose().run({"points": points | {"size": np.array([320, 240])}, "pack": tmp_path}, exact, context(tmp_path))
 
 
 def test_adapting_a_generic_model_to_the_frontal_first_frame():
@@ -134,7 +137,8 @@ def test_adapting_a_generic_model_to_the_frontal_first_frame():
 
 def test_stage_points_parameter_names_unknown_points(tmp_path, monkeypatch):
     layout = load_layout("zhang134")
-    pack = SimpleNamespace(layout=layout, model3d=np.zeros((layout.n_points, 3)), intrinsics=CAMERA)
+    pack = SimpleNamespace(path=tmp_path, layout=layout, model3d=np.zeros((layout.n_points, 3)), intrinsics=CAMERA,
+                           image_size=(640, 480))
     monkeypatch.setattr(stages.geometry.pose, "load_pack", lambda path: pack)
     names = np.array([layout.point_names[i] for i in layout.tracked])
     points = {"xy": np.zeros((2, len(names), 2)), "valid": np.ones((2, len(names)), bool), "names": names}

@@ -82,3 +82,15 @@ def test_stage_keeps_bundle_keys(tmp_path):
     np.testing.assert_allclose(out["xy"], direct(bundle["xy"], bundle["valid"], 1.0, 3), atol=1e-9)
     with pytest.raises(StageError, match="sigma"):
         GaussianSmooth().run({"points": bundle}, {"sigma": -1.0}, context(tmp_path))
+
+
+def test_nan_in_an_invalid_sample_does_not_spread():
+    rng = np.random.default_rng(3)
+    values = rng.normal(size=(30, 2))
+    valid = np.ones(30, bool)
+    valid[12] = False
+    clean, _ = gaussian_smooth(values, valid, sigma=2.0)
+    values[12] = np.nan
+    with_nan, valid_out = gaussian_smooth(values, valid, sigma=2.0)
+    np.testing.assert_array_equal(with_nan, clean)
+    assert np.isfinite(with_nan).all() and valid_out.all()
