@@ -64,11 +64,12 @@ def truth_points(truth: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
 def tracker_points(clip: Path, init: Path, ctx: Context) -> dict[str, np.ndarray]:
     """The tracker's points of a clip: ``track_points`` (NCC, as ``track.correlation``) from the
     first-frame CSV, then the ``smooth.gaussian`` stage with its defaults; a ``points`` bundle."""
-    from scripts.bench_geometry import decode, first_frame_points
+    from scripts.bench_geometry import decode
+    from stages.geometry.track import read_first_frame_points
     from stages.geometry.smooth import GaussianSmooth
     from stages.geometry.track import track_points
 
-    names, start = first_frame_points(init)
+    names, start, _ = read_first_frame_points(init)
     frames = decode(clip)
     tracks = track_points(iter(frames), start, method="ncc")
     height, width = frames[0].shape[:2]
@@ -91,7 +92,7 @@ def compensations(points: Mapping[str, np.ndarray], performer: Path, ctx: Contex
            "compensate3d": pose_compensate(points, pose, performer, ctx)}
     if truth is not None:
         true_pose = {"R": truth["R"], "tvec": truth["tvec"], "rvec": truth["rvec"],
-                     "valid": np.ones(len(truth["R"]), bool)}
+                     "valid": np.ones(len(truth["R"]), bool), "camera": truth["intrinsics"]}
         out["compensate3d_truepose"] = pose_compensate(points, true_pose, performer, ctx)
     return out
 

@@ -49,9 +49,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from runner.stage import Context, Param, SequenceStage, StageError
+from runner.stage import Context, SequenceStage, StageError
 from stages.actor_pack import load_pack
-from stages.geometry.pose import PnPPose
 
 
 def lift_to_head(xy: np.ndarray, model: np.ndarray, R: np.ndarray, t: np.ndarray,
@@ -167,24 +166,17 @@ class PoseCompensate(SequenceStage):
     ``compensate.similarity``'s (``d``, ``valid``, ``names``, ``neutral`` = frame 0, and ``fps``,
     ``size`` when the points carry them), so ``map.expression`` takes either. A point is valid
     where it is valid in the frame and in frame 0, the frame's pose was solved and the lift is in
-    front of the camera; elsewhere ``d`` is 0 and propagation infers the point. The intrinsics must
-    be those ``pose.pnp`` used: give both stages the same ``intrinsics`` and ``focal_px``.
+    front of the camera; elsewhere ``d`` is 0 and propagation infers the point. The intrinsics are
+    the camera matrix ``pose.pnp`` solved with (the pose bundle's ``camera``).
     """
 
     name = "compensate.pose3d"
-    version = "1"
+    version = "2"
     doc = "3D motion compensation: points lifted with the generic model and the pose, re-projected at frame 0's pose"
     inputs = {"points": "points", "pose": "pose", "pack": "dir"}
     outputs = {"displacements": "displacements"}
-    params = (
-        Param("intrinsics", str, "pack", "camera matrix, as given to pose.pnp: the pack's, or the default from "
-              "the image size", choices=("pack", "image")),
-        Param("focal_px", float, 0.0, "as given to pose.pnp: if > 0, focal length in px with the principal "
-              "point at the image centre"),
-    )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
-        params = {p.name: p.default for p in self.params} | dict(params)
         points, pose = inputs["points"], inputs["pose"]
         pack = load_pack(inputs["pack"])
         names = np.asarray(points["names"])
@@ -201,7 +193,9 @@ class PoseCompensate(SequenceStage):
             raise StageError(f"{self.name}: the pose of frame 0 (the neutral reference) was not solved; "
                              "track the rigid points in the first frame")
         R, t = np.asarray(pose["R"], dtype=np.float64), np.asarray(pose["tvec"], dtype=np.float64)
-        camera = PnPPose().camera(points, pack, params)
+        if "camera" not in pose:
+            raise StageError(f"{self.name}: the pose bundle carries no 'camera' (connect pose.pnp's output)")
+        camera = np.asarray(pose["camera"], dtype=np.float64)
         generic = pack.model3d[[pack.layout.index(str(n)) for n in names]]
         model = adapt_to_reference(generic, xy[0], R[0], t[0], camera)
         frontal, ok = frontalize(xy, model, R, t, camera, reference=0)

@@ -177,7 +177,7 @@ class PnPPose(SequenceStage):
     """``pose.pnp``: the performer's head pose per frame (Sec. 12.1)."""
 
     name = "pose.pnp"
-    version = "1"
+    version = "2"
     doc = "3D head pose per frame by PnP from the rigid points and the pack's generic 3D model (eq. 10)"
     inputs = {"points": "points", "pack": "dir"}
     outputs = {"pose": "pose"}
@@ -208,7 +208,7 @@ class PnPPose(SequenceStage):
         pose = estimate_poses(points["xy"][:, columns], points["valid"][:, columns], model, camera,
                               min_points=min_points, smooth_sigma=float(params["smooth_sigma"]),
                               adapt=bool(params["adapt_model"]))
-        return {"pose": pose}
+        return {"pose": {**pose, "camera": camera}}
 
     def named(self, names: np.ndarray, wanted: list[str], layout: Any) -> np.ndarray:
         """Columns of the ``points`` parameter's names; an error naming any that are missing."""

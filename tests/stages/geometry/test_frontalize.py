@@ -136,7 +136,7 @@ def test_stage_bundle_matches_compensate_similarity_and_flags_unsolved_frames(tm
     valid[0, 5] = False  # no neutral position: invalid throughout
     points = {"xy": image, "valid": valid, "names": names, "fps": np.array(30.0), "size": np.array([640, 480])}
     pose = {"R": R, "tvec": t, "rvec": Rotation.from_matrix(R).as_rotvec(), "valid": np.ones(len(R), bool),
-            "reproj_err_px": np.zeros(len(R))}
+            "reproj_err_px": np.zeros(len(R)), "camera": CAMERA}
     pose["valid"][6] = False
     ctx = context(tmp_path)
     check_stage_class(PoseCompensate)
@@ -193,7 +193,8 @@ def test_fixture_true_points_and_pose_approach_the_ideal_compensation(tmp_path, 
     points without head motion). Measured: calm 0.10 px (2D similarity 0.50), live 1.00 px (2D 4.28);
     what is left is the generic model's depth error (mean face shape, not the performer's)."""
     truth, points = truth_bundle(clip)
-    pose = {"R": truth["R"], "tvec": truth["tvec"], "rvec": truth["rvec"], "valid": np.ones(len(truth["R"]), bool)}
+    pose = {"R": truth["R"], "tvec": truth["tvec"], "rvec": truth["rvec"], "valid": np.ones(len(truth["R"]), bool),
+            "camera": truth["intrinsics"]}
     ctx = context(tmp_path)
     pack = FIXTURES / "packs" / "performer"
     ideal = truth["expression_points"][:, truth["tracked"]]

@@ -109,7 +109,8 @@ def test_stage_uses_the_pack_model_and_intrinsics(tmp_path, monkeypatch):
     exact = {"adapt_model": False}
     out = PnPPose().run({"points": points, "pack": tmp_path}, exact, context(tmp_path))["pose"]
     assert angle_deg(out["rvec"], rvec).max() < 1e-5
-    assert set(out) == {"rvec", "tvec", "R", "reproj_err_px", "valid"}
+    assert set(out) == {"rvec", "tvec", "R", "reproj_err_px", "valid", "camera"}
+    np.testing.assert_array_equal(out["camera"], CAMERA)
     # the image-size default has the same camera here: same answer
     same = PnPPose().run({"points": points, "pack": tmp_path}, exact | {"intrinsics": "image"}, context(tmp_path))["pose"]
     np.testing.assert_allclose(same["rvec"], out["rvec"], atol=1e-9)
