@@ -504,10 +504,13 @@ class Runner:
         out = Path(self.opts.out)
         final = out / node.name
         keys = [e.key for e in entries]
-        try:
-            if json.loads((final / MANIFEST).read_text()).get("keys") == keys:
+        try:  # already published by the same entries, and every file still there with its size
+            published = json.loads((final / MANIFEST).read_text())
+            if published.get("keys") == keys and all(
+                    (final / f["path"]).is_file() and (final / f["path"]).stat().st_size == f["size"]
+                    for f in published["files"]):
                 return
-        except (OSError, ValueError):
+        except (OSError, ValueError, KeyError, TypeError):
             pass
         out.mkdir(parents=True, exist_ok=True)
         for leftover in out.glob(f".{node.name}.*"):  # from runs killed while publishing

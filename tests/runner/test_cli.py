@@ -45,6 +45,13 @@ def test_chain_runs_end_to_end_and_reruns_from_cache(env, tmp_path):
     assert second.returncode == 0, second.stderr
     assert stage_status(read_log(tmp_path / "2.jsonl")) == {"decode": "on demand", "gray": "cached", "write": "cached"}
 
+    # A published file damaged by hand is restored from the cache by the next run.
+    published = (out / "write" / "video.mp4").read_bytes()
+    (out / "write" / "video.mp4").write_bytes(b"truncated")
+    third = run_cli("run", CHAIN, "--in", TINY, "--out", out, env=env, cwd=tmp_path)
+    assert third.returncode == 0, third.stderr
+    assert (out / "write" / "video.mp4").read_bytes() == published
+
 
 def test_param_change_reruns_only_stages_whose_inputs_changed(env, tmp_path):
     def run(name: str, *sets: str) -> dict[str, str]:
