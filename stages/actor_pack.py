@@ -25,10 +25,9 @@ from typing import Any
 
 import cv2
 import numpy as np
-import yaml
 
 from runner.stage import StageError
-from stages.layout import Layout, load_layout
+from stages.layout import Layout, load_layout, read_yaml
 
 MANIFEST = "pack.yaml"
 FORMAT = "actor-pack/1"
@@ -81,12 +80,7 @@ def load_pack(path: str | Path) -> ActorPack:
     path = Path(path)
     manifest = path if path.is_file() else path / MANIFEST
     root = manifest.parent
-    try:
-        data = yaml.safe_load(manifest.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise PackError(f"actor pack {manifest}: cannot read manifest ({exc.strerror or exc})") from None
-    except yaml.YAMLError as exc:
-        raise PackError(f"actor pack {manifest}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    data = read_yaml(manifest, what="actor pack", noun="manifest", error=PackError)
     reader = _PackReader(root, manifest, data)
     return reader.read()
 

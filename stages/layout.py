@@ -111,13 +111,18 @@ def load_layout(path_or_name: str | Path) -> Layout:
     path = Path(path_or_name)
     if not path.suffix and not path.exists():
         path = LAYOUT_DIR / f"{path_or_name}.yaml"
+    return parse_layout(read_yaml(path, what="layout"), source=str(path))
+
+
+def read_yaml(path: Path, *, what: str, noun: str = "file", error: type[StageError] = StageError) -> Any:
+    """``yaml.safe_load`` of a file; an unreadable file or invalid YAML raises ``error`` with one
+    line naming ``what`` (e.g. ``"layout"``) and the path."""
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        return yaml.safe_load(Path(path).read_text(encoding="utf-8"))
     except OSError as exc:
-        raise StageError(f"layout {path}: cannot read file ({exc.strerror or exc})") from None
+        raise error(f"{what} {path}: cannot read {noun} ({exc.strerror or exc})") from None
     except yaml.YAMLError as exc:
-        raise StageError(f"layout {path}: not valid YAML ({str(exc).splitlines()[0]})") from None
-    return parse_layout(data, source=str(path))
+        raise error(f"{what} {path}: not valid YAML ({str(exc).splitlines()[0]})") from None
 
 
 def parse_layout(data: Any, *, source: str = "<layout>") -> Layout:

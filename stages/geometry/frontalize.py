@@ -137,8 +137,8 @@ def adapt_to_reference(model: np.ndarray, xy: np.ndarray, R: np.ndarray, t: np.n
 
     Each point keeps its depth under ``(R, t)`` and moves parallel to the image plane onto its
     observation: :func:`lift_to_head` of the neutral observations with the generic model's
-    depths. With ``R = I`` and the translation ``pose.pnp`` solved, this is
-    :func:`stages.geometry.pose.adapt_model` (which solves ``t`` itself for the rigid points).
+    depths. :func:`stages.geometry.pose.adapt_model` is this with ``R = I`` and a translation it
+    solves itself for the rigid points.
 
     Parameters
     ----------

@@ -22,6 +22,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from runner.stage import Context, Param, SequenceStage, StageError
 from stages.actor_pack import load_pack
+from stages.geometry.frontalize import adapt_to_reference
 from stages.geometry.smooth import gaussian_smooth
 from stages.geometry.subset import named_columns, rigid_columns
 
@@ -71,9 +72,8 @@ def adapt_model(model: np.ndarray, image: np.ndarray, camera: np.ndarray) -> np.
     system[:n, 0], system[:n, 2] = fx, -du
     system[n:, 1], system[n:, 2] = fy, -dv
     rhs = np.concatenate([du * model[:, 2] - fx * model[:, 0], dv * model[:, 2] - fy * model[:, 1]])
-    tx, ty, tz = np.linalg.lstsq(system, rhs, rcond=None)[0]
-    depth = model[:, 2] + tz
-    return np.stack([du * depth / fx - tx, dv * depth / fy - ty, model[:, 2]], axis=1)
+    t = np.linalg.lstsq(system, rhs, rcond=None)[0]
+    return adapt_to_reference(model, image, np.eye(3), t, camera)
 
 
 def interpolate_poses(rvec: np.ndarray, tvec: np.ndarray, known: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
