@@ -159,6 +159,20 @@ def adapt_to_reference(model: np.ndarray, xy: np.ndarray, R: np.ndarray, t: np.n
     return lift_to_head(xy, model, R, t, camera)[0]
 
 
+def frontal_translation(model: np.ndarray, image: np.ndarray, camera: np.ndarray) -> np.ndarray:
+    """The head translation ``t (3,)`` (model units) of a frame taken as frontal (``R = I``): the
+    ``t`` minimizing the algebraic error of eq. 10, ``(u - u0)(z + tz) = alpha (x + tx)`` and the
+    same in y, over the points ``model (n, 3)`` observed at ``image (n, 2)`` px with ``camera``."""
+    fx, fy, u0, v0 = camera[0, 0], camera[1, 1], camera[0, 2], camera[1, 2]
+    du, dv = image[:, 0] - u0, image[:, 1] - v0
+    n = len(model)
+    system = np.zeros((2 * n, 3))
+    system[:n, 0], system[:n, 2] = fx, -du
+    system[n:, 1], system[n:, 2] = fy, -dv
+    rhs = np.concatenate([du * model[:, 2] - fx * model[:, 0], dv * model[:, 2] - fy * model[:, 1]])
+    return np.linalg.lstsq(system, rhs, rcond=None)[0]
+
+
 class PoseCompensate(SequenceStage):
     """``compensate.pose3d``: head motion removed from tracked points with the 3D pose.
 

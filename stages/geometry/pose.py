@@ -10,6 +10,11 @@ temporally consistent. Optionally the generic model is first fitted to the perfo
 fails) is flagged invalid and its pose interpolated (slerp for rotation, linear for translation)
 from the nearest solved frames; the run continues. Optional Gaussian smoothing over time acts on
 sign-aligned quaternions and translations.
+
+With ``model=face`` (an extension beyond the paper) the pose comes instead from *all* tracked
+points: eq. 10's generic model is extended by the performer's expression components
+(:mod:`stages.geometry.face_model`) and pose and expression are fitted jointly per frame, so the
+non-rigid points (brows, lids, mouth) constrain the pose too.
 """
 
 from __future__ import annotations
@@ -22,7 +27,8 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from runner.stage import Context, Param, SequenceStage, StageError
 from stages.actor_pack import load_pack
-from stages.geometry.frontalize import adapt_to_reference
+from stages.geometry.face_model import FaceFit, FaceModel, build_face_model, fit_face_model
+from stages.geometry.frontalize import adapt_to_reference, frontal_translation
 from stages.geometry.smooth import gaussian_smooth
 from stages.geometry.subset import named_columns, rigid_columns
 
@@ -46,10 +52,9 @@ def reprojection_error(rvec: np.ndarray, tvec: np.ndarray, model: np.ndarray, im
 def adapt_model(model: np.ndarray, image: np.ndarray, camera: np.ndarray) -> np.ndarray:
     """Fit the generic model to the performer's neutral frame, assumed frontal (``R = I``).
 
-    The translation ``t`` minimizing the algebraic error of eq. 10 with ``R = I`` is solved
-    linearly (``(u - u0)(z + tz) = alpha (x + tx)``, the same in y); then each model point is
-    moved parallel to the image plane, keeping its depth, so that it projects exactly onto its
-    observation. Poses found with the adapted model are relative to that neutral frame.
+    The translation is :func:`frontal_translation`; then each model point is moved parallel to
+    the image plane, keeping its depth, so that it projects exactly onto its observation. Poses
+    found with the adapted model are relative to that neutral frame.
 
     Parameters
     ----------
@@ -65,15 +70,7 @@ def adapt_model(model: np.ndarray, image: np.ndarray, camera: np.ndarray) -> np.
     (n, 3) float64
         The adapted model (same depths ``z``).
     """
-    fx, fy, u0, v0 = camera[0, 0], camera[1, 1], camera[0, 2], camera[1, 2]
-    du, dv = image[:, 0] - u0, image[:, 1] - v0
-    n = len(model)
-    system = np.zeros((2 * n, 3))
-    system[:n, 0], system[:n, 2] = fx, -du
-    system[n:, 1], system[n:, 2] = fy, -dv
-    rhs = np.concatenate([du * model[:, 2] - fx * model[:, 0], dv * model[:, 2] - fy * model[:, 1]])
-    t = np.linalg.lstsq(system, rhs, rcond=None)[0]
-    return adapt_to_reference(model, image, np.eye(3), t, camera)
+    return adapt_to_reference(model, image, np.eye(3), frontal_translation(model, image, camera), camera)
 
 
 def interpolate_poses(rvec: np.ndarray, tvec: np.ndarray, known: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -173,11 +170,58 @@ def estimate_poses(image: np.ndarray, valid: np.ndarray, model: np.ndarray, came
             "reproj_err_px": error, "valid": solved}
 
 
+def estimate_face_poses(image: np.ndarray, valid: np.ndarray, model: FaceModel, *, smooth_sigma: float = 0.0,
+                        iterations: int = 10) -> dict[str, np.ndarray]:
+    """Head pose per frame from all tracked points by fitting the face model: eq. 10 with the
+    generic model extended by the performer's expression components
+    (:func:`stages.geometry.face_model.fit_face_model` on each frame's valid points, unit
+    information, started from the previous frame's fit).
+
+    Parameters
+    ----------
+    image : (T, N, 2) float
+        Tracked points, px.
+    valid : (T, N) bool
+        Their validity; a frame with fewer than 4 valid points is flagged invalid and its pose
+        interpolated (:func:`interpolate_poses`).
+    model : FaceModel
+        The tracked points' model (:func:`stages.geometry.face_model.build_face_model`); poses
+        are relative to its frontal first frame.
+    smooth_sigma : float
+        Temporal Gaussian smoothing of the solved poses, frames (0 = off).
+
+    Returns
+    -------
+    dict
+        As :func:`estimate_poses`; ``reproj_err_px`` is the RMS distance of the valid points to
+        the fitted model.
+    """
+    m = model.basis.shape[2]
+    fit = FaceFit(np.eye(3), model.t0.copy(), np.zeros(m), model.project(np.eye(3), model.t0, np.zeros(m)))
+    n_frames = len(image)
+    rvec, tvec = np.zeros((n_frames, 3)), np.zeros((n_frames, 3))
+    error = np.full(n_frames, np.nan)
+    solved = np.asarray(valid, bool).sum(axis=1) >= 4
+    if not solved.any():
+        raise StageError("pose: no frame has 4 valid points to fit the face model to")
+    for t in np.flatnonzero(solved):
+        ok = valid[t]
+        xy = np.where(ok[:, None], image[t], 0.0)
+        fit = fit_face_model(model, xy, np.eye(2)[None] * ok[:, None, None], fit, iterations=iterations)
+        rvec[t], tvec[t] = cv2.Rodrigues(fit.R)[0].ravel(), fit.t
+        error[t] = np.sqrt(np.mean(np.sum((fit.xy - xy)[ok] ** 2, axis=1)))
+    if smooth_sigma > 0:
+        rvec[solved], tvec[solved] = (x[solved] for x in smooth_poses(rvec, tvec, solved, sigma=smooth_sigma))
+    rvec, tvec = interpolate_poses(rvec, tvec, solved)
+    return {"rvec": rvec, "tvec": tvec, "R": Rotation.from_rotvec(rvec).as_matrix(), "reproj_err_px": error,
+            "valid": solved}
+
+
 class PnPPose(SequenceStage):
     """``pose.pnp``: the performer's head pose per frame (Sec. 12.1)."""
 
     name = "pose.pnp"
-    version = "2"
+    version = "3"
     doc = "3D head pose per frame by PnP from the rigid points and the pack's generic 3D model (eq. 10)"
     inputs = {"points": "points", "pack": "dir"}
     outputs = {"pose": "pose"}
@@ -185,7 +229,11 @@ class PnPPose(SequenceStage):
         Param("intrinsics", str, "pack", "camera matrix: the pack's, or the default from the image size "
               "(f = max(W, H), principal point at the centre)", choices=("pack", "image")),
         Param("focal_px", float, 0.0, "if > 0, focal length in px with the principal point at the image centre"),
-        Param("points", list, [], "names of the points used for PnP; empty: the layout's rigid points "
+        Param("model", str, "rigid", "rigid: PnP on the rigid points with the generic model (Sec. 12.1); face: fit "
+              "the face model (generic shape plus the pack's captured expressions) to all tracked points",
+              choices=("rigid", "face")),
+        Param("components", int, 8, "face model: expression components (PCA of the pack's captured geometries)"),
+        Param("points", list, [], "rigid model: names of the points used for PnP; empty: the layout's rigid points "
               "(hairline and inner eye corners, Sec. 12.1)"),
         Param("min_points", int, 4, "fewest valid rigid points to solve a frame (else flagged and interpolated)"),
         Param("smooth_sigma", float, 0.0, "temporal Gaussian smoothing of the poses, frames (0 = off)"),
@@ -202,9 +250,18 @@ class PnPPose(SequenceStage):
             columns = self.named(np.asarray(points["names"]), params["points"], pack.layout)
         else:
             columns = rigid_columns(np.asarray(points["names"]), pack.layout, at_least=min_points, stage=self.name)
+        camera = self.camera(points, pack, params)
+        if params["model"] == "face":
+            if not np.asarray(points["valid"][0]).all():
+                raise StageError(f"{self.name}: model=face needs every tracked point valid in the first frame")
+            rows = [pack.layout.index(str(n)) for n in points["names"]]
+            model = build_face_model(pack.model3d[rows], points["xy"][0], columns, camera, pack.neutral.points[rows],
+                                     pack.captured_points[:, rows], components=int(params["components"]))
+            pose = estimate_face_poses(points["xy"], points["valid"], model,
+                                       smooth_sigma=float(params["smooth_sigma"]))
+            return {"pose": {**pose, "camera": camera}}
         names = [str(points["names"][c]) for c in columns]
         model = pack.model3d[[pack.layout.index(n) for n in names]]
-        camera = self.camera(points, pack, params)
         pose = estimate_poses(points["xy"][:, columns], points["valid"][:, columns], model, camera,
                               min_points=min_points, smooth_sigma=float(params["smooth_sigma"]),
                               adapt=bool(params["adapt_model"]))

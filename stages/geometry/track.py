@@ -6,7 +6,9 @@ prediction and controls drift by matching the first-frame template (the anchor),
 point's local affine motion estimated from its neighbours, in the same window: where the anchor
 matches well its peak wins, else the running template's. The peak is refined to sub-pixel
 precision by a parabola, then by inverse-compositional Lucas-Kanade; a point whose template pins
-one direction only (an edge, e.g. the hairline) takes the other from its neighbours. Every point
+one direction only (an edge, e.g. the hairline) takes the other from its neighbours -- or, given
+the performer pack, every point is pulled towards a 3D face model (generic shape plus the
+performer's captured expressions) fitted to all matches each frame. Every point
 in every frame gets a confidence (the final NCC). A point that is lost or leaves the frame is
 flagged invalid, carried along by the similarity motion of the valid points, and keeps being
 searched for; it is never dropped.
@@ -32,6 +34,9 @@ import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
 from stages.geometry.compensate import apply_similarity, fit_similarity
+from stages.actor_pack import load_pack
+from stages.geometry.face_model import FaceFit, FaceModel, build_face_model, fit_face_model
+from stages.geometry.subset import rigid_columns
 from stages.layout import load_layout
 
 METHODS = ("ncc", "csrt", "kcf", "mosse", "lk")
@@ -231,19 +236,30 @@ class NCCTracker:
     most 1 px each); (4) where the template pins the position in one direction only (an edge:
     the hairline), the other direction is taken from the point's neighbours
     (:meth:`with_neighbours`, weight ``prior``, neighbourhood ``prior_frac`` times the spread).
+    With a ``face_model`` (:mod:`stages.geometry.face_model`), step (4) is instead a model fit:
+    the head pose and expression coefficients that best explain all matches, each weighted by
+    its template information, and every point is pulled towards the fitted model's projection
+    with weight ``model_prior`` (:meth:`with_model`). A textureless point (the nose tip), an
+    edge point (the hairline) and a point whose appearance changes under out-of-plane rotation
+    then follow the 3D face instead of drifting; an invalid point is placed by the model. The fit
+    of each frame is kept in ``fit``.
 
     A point is valid when the NCC of the final patch with its template reaches ``min_score``, the
     correlation peak-to-sidelobe ratio reaches ``min_psr``, the patch has a standard deviation of
     at least ``min_contrast`` (an occluder or a flat region is not a match) and the template lies
     wholly in the frame. The running template is refreshed at valid points only. An invalid point
-    is carried along with the valid points (:func:`carry_along`), which is also its predicted
-    velocity, so it is found again when it reappears.
+    is carried along with the valid points (:func:`carry_along`; with a face model, placed by the
+    model), which is also its predicted velocity, so it is found again when it reappears.
     """
 
     def __init__(self, *, template_px: int = 15, search_px: int = 8, min_score: float = 0.7,
                  min_psr: float = 0.0, min_contrast: float = 2.0, warp_frac: float = 0.3,
                  lk_iterations: int = 2, anchor_score: float = 0.9, prior: float = 0.03,
-                 prior_frac: float = 1.5, lk_sigma_px: float = 2.0) -> None:
+                 prior_frac: float = 1.5, lk_sigma_px: float = 2.0, face_model: FaceModel | None = None,
+                 model_prior: float = 1.0, model_ridge: float = 1.0) -> None:
+        self.face_model = face_model
+        self.model_prior = model_prior
+        self.model_ridge = model_ridge
         self.anchor_score = anchor_score
         self.prior = prior
         self.side = template_px
@@ -268,6 +284,9 @@ class NCCTracker:
         self.velocity = np.zeros_like(self.last)
         self.trust = np.ones(len(xy))
         self.running = sample_patches(self.first, self.origin, self.side)
+        if self.face_model is not None:
+            m = self.face_model
+            self.fit = FaceFit(np.eye(3), m.t0.copy(), np.zeros(m.basis.shape[2]), self.origin.copy())
 
     def templates(self, dst: np.ndarray, weight: np.ndarray) -> np.ndarray:
         """First-frame templates ``(N, S, S)`` warped by the local affines onto ``dst``."""
@@ -315,6 +334,17 @@ class NCCTracker:
         rhs = (information @ found[:, :, None])[:, :, 0] + self.prior * around
         return np.linalg.solve(system, rhs[:, :, None])[:, :, 0]
 
+    def with_model(self, found: np.ndarray, information: np.ndarray, ok: np.ndarray) -> np.ndarray:
+        """Positions ``(N, 2)`` combining each match with the face model fitted to all matches
+        (:func:`fit_face_model` from the last frame's fit, each match weighted by its template
+        information ``H_i`` where ``ok``): ``(H_i + model_prior I)^-1 (H_i m_i + model_prior p_i)``,
+        ``p_i`` the fitted model's projection; a point not ``ok`` takes ``p_i``."""
+        weight = information * ok[:, None, None]
+        self.fit = fit_face_model(self.face_model, found, weight, self.fit, ridge=self.model_ridge)
+        system = weight + self.model_prior * np.eye(2)
+        rhs = (weight @ found[:, :, None])[:, :, 0] + self.model_prior * self.fit.xy
+        return np.linalg.solve(system, rhs[:, :, None])[:, :, 0]
+
     def step(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         image = to_gray(frame)
         predicted = self.last + self.velocity
@@ -339,11 +369,13 @@ class NCCTracker:
         score = (pz * tz).sum((1, 2)) / np.maximum(norms, 1e-9)
         half = self.side // 2
         valid = (score >= self.min_score) & (psr >= self.min_psr) & (patch.std(axis=(1, 2)) >= self.min_contrast)
-        if self.prior > 0:  # score and running template stay those of the match itself
+        if self.face_model is not None:
+            found = self.with_model(found, information, valid)
+        elif self.prior > 0:  # score and running template stay those of the match itself
             found = self.with_neighbours(found, information, valid)
         valid &= inside(found - half, self.width - 2 * half, self.height - 2 * half)
         self.running[valid] = patch[valid]
-        carried = carry_along(self.last, found, valid)
+        carried = found if self.face_model is not None else carry_along(self.last, found, valid)
         self.velocity = carried - self.last
         self.last = carried
         self.trust = valid.astype(np.float64)
@@ -436,14 +468,16 @@ class OpenCVTracker:
 def make_tracker(method: str, *, template_px: int = 15, search_px: int = 8, min_score: float = 0.7,
                  min_psr: float = 0.0, min_contrast: float = 2.0, warp_frac: float = 0.3,
                  lk_iterations: int = 2, anchor_score: float = 0.9, prior: float = 0.03,
-                 prior_frac: float = 1.5, lk_sigma_px: float = 2.0, fb_px: float = 1.0):
+                 prior_frac: float = 1.5, lk_sigma_px: float = 2.0, fb_px: float = 1.0,
+                 face_model: FaceModel | None = None, model_prior: float = 1.0, model_ridge: float = 1.0):
     """The tracker object for ``method`` (one of :data:`METHODS`), configured from the options
     that apply to it (``template_px`` sets the LK window and, with ``search_px``, the box of the
     OpenCV trackers)."""
     if method == "ncc":
         return NCCTracker(template_px=template_px, search_px=search_px, min_score=min_score, min_psr=min_psr,
                           min_contrast=min_contrast, warp_frac=warp_frac, lk_iterations=lk_iterations,
-                          anchor_score=anchor_score, prior=prior, prior_frac=prior_frac, lk_sigma_px=lk_sigma_px)
+                          anchor_score=anchor_score, prior=prior, prior_frac=prior_frac, lk_sigma_px=lk_sigma_px,
+                          face_model=face_model, model_prior=model_prior, model_ridge=model_ridge)
     if method == "lk":
         return LKTracker(template_px=template_px, fb_px=fb_px)
     if method in OpenCVTracker.FACTORIES:
@@ -567,13 +601,16 @@ class CorrelationTrack(SequenceStage):
 
     ``init`` is the first-frame points file of the tracked points (a ``file`` pipeline input:
     ``name,x,y`` CSV or JSON), read by :func:`read_first_frame_points` and checked against the
-    layout's tracked subset and the frame size.
+    layout's tracked subset and the frame size. ``pack`` (optional, the performer's actor pack)
+    gives the ``ncc`` tracker its face model (:func:`build_face_model`: the pack's generic 3D
+    model, captured expressions and intrinsics, which must be for the clip's frame size).
     """
 
     name = "track.correlation"
-    version = "2"
+    version = "3"
     doc = "track the layout's tracked subset through a clip (NCC, or CSRT/KCF/MOSSE/LK)"
-    inputs = {"frames": "frames", "init": "file"}
+    inputs = {"frames": "frames", "init": "file", "pack": "dir"}
+    optional_inputs = frozenset({"pack"})
     outputs = {"points": "points"}
     params = (
         Param("layout", str, "zhang134", "layout name or YAML path; its `tracked` subset is followed"),
@@ -591,11 +628,17 @@ class CorrelationTrack(SequenceStage):
         Param("lk_iterations", int, 2, "ncc: inverse-compositional Lucas-Kanade steps of the sub-pixel refinement"),
         Param("lk_sigma_px", float, 2.0, "ncc: Gaussian weight (sigma, px) of the template cells in the Lucas-Kanade "
               "refinement: the centre of a warped template is the least distorted"),
-        Param("prior", float, 0.03, "ncc: weight (1/px^2) of the neighbours' position against the template's own "
+        Param("prior", float, 0.03, "ncc without a pack: weight (1/px^2) of the neighbours' position against the template's own "
               "information (0 = off)"),
         Param("prior_frac", float, 1.5, "ncc: neighbourhood (Gaussian sigma) of the neighbours' position, as a "
               "fraction of the RMS spread of the points"),
         Param("fb_px", float, 1.0, "lk: largest forward-backward error of a valid point, px"),
+        Param("model_prior", float, 1.0, "ncc with a pack: weight (1/px^2) of the fitted face model's position "
+              "against the template's own information"),
+        Param("model_components", int, 8, "ncc with a pack: expression components of the face model (PCA of "
+              "the pack's captured geometries)"),
+        Param("model_ridge", float, 1.0, "ncc with a pack: weight of the prior keeping the expression "
+              "coefficients within the captured set's spread"),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
@@ -608,7 +651,10 @@ class CorrelationTrack(SequenceStage):
         names, xy, frame_size = read_first_frame_points(path)
         init = order_by_layout(path, names, xy, expected, (info.width, info.height), frame_size)
         options = {p.name: params[p.name] for p in self.params
-                   if p.name not in ("layout", "method")}
+                   if p.name not in ("layout", "method", "model_components")}
+        if "pack" in inputs and params["method"] == "ncc":
+            options["face_model"] = self.face_model(inputs["pack"], expected, init, (info.width, info.height),
+                                                    params["model_components"])
         tracks = track_points(iter_frames(stream), init, method=params["method"],
                               progress=ctx.progress, **options)
         return {
@@ -621,3 +667,20 @@ class CorrelationTrack(SequenceStage):
                 "size": np.array([info.width, info.height], dtype=np.int64),
             }
         }
+
+    def face_model(self, pack_dir: Any, names: tuple[str, ...], init: np.ndarray, size: tuple[int, int],
+                   components: int) -> FaceModel:
+        """The tracked points' face model from the performer pack (:func:`build_face_model`)."""
+        pack = load_pack(pack_dir)
+        if tuple(pack.image_size) != tuple(size):
+            raise StageError(f"{pack.path}: intrinsics are for {pack.image_size[0]}x{pack.image_size[1]} images, "
+                             f"the clip's frames are {size[0]}x{size[1]}; use a pack from this camera")
+        if components < 1:
+            raise StageError(f"{self.name}: model_components must be at least 1, got {components}")
+        missing = [n for n in names if n not in pack.layout.point_names]
+        if missing:
+            raise StageError(f"{pack.path}: the pack's layout has no points {missing[:5]} of the tracked subset")
+        rows = [pack.layout.index(n) for n in names]
+        rigid = rigid_columns(np.array(names), pack.layout, at_least=4, stage=self.name)
+        return build_face_model(pack.model3d[rows], init, rigid, pack.intrinsics, pack.neutral.points[rows],
+                                pack.captured_points[:, rows], components=components)
