@@ -51,7 +51,7 @@ from stages.actor_pack import load_pack
 from stages.geometry.compensate import compensate
 from stages.geometry.mapping import MODES as MAP_MODES
 from stages.geometry.mapping import displacement_transforms, map_expression
-from stages.geometry.face_model import build_face_model
+from stages.geometry.face_model import pack_face_model
 from stages.geometry.pose import estimate_face_poses, estimate_poses
 from stages.geometry.smooth import gaussian_smooth
 from stages.geometry.subset import named_columns
@@ -132,8 +132,7 @@ def evaluate_clip(root: Path, kind: str, suffix: str, *, alternatives: tuple[str
 
     pack = load_pack(root / "packs" / "performer")
     rigid = np.array([names.index(layout.point_names[i]) for i in layout.rigid])
-    face_model = build_face_model(pack.model3d[tracked], init, rigid, pack.intrinsics, pack.neutral.points[tracked],
-                                  pack.captured_points[:, tracked])
+    face_model = pack_face_model(pack, names, init, rigid, pack.intrinsics)
     tracks, fps = timed_tracking(frames, init, "ncc", repeats=REPEATS, face_model=face_model)
     error = track_errors(tracks.xy, gt, visible)
     rows += [row(f"track_err_px{suffix}", error.mean(), "px"),

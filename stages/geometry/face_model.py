@@ -23,6 +23,7 @@ its pose is the head pose that ``pose.pnp`` then recovers from the rigid points.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -61,6 +62,11 @@ class FaceModel:
         camera_xyz = (self.neutral + self.basis @ c) @ R.T + t
         return _perspective(camera_xyz, self.camera)
 
+    def first_frame_fit(self) -> "FaceFit":
+        """The fit of the first frame: frontal (``R = I``), ``t0``, neutral expression (``c = 0``)."""
+        c = np.zeros(self.basis.shape[2])
+        return FaceFit(np.eye(3), self.t0.copy(), c, self.project(np.eye(3), self.t0, c))
+
 
 def build_face_model(generic: np.ndarray, first_xy: np.ndarray, rigid: np.ndarray, camera: np.ndarray,
                      pack_neutral: np.ndarray, captured: np.ndarray, *, components: int = 8) -> FaceModel:
@@ -96,6 +102,15 @@ def build_face_model(generic: np.ndarray, first_xy: np.ndarray, rigid: np.ndarra
     m = int(min(components, len(rows)))
     basis = rows[:m].T.reshape(len(generic), 3, m)
     return FaceModel(neutral, basis, singular[:m] / np.sqrt(len(delta)), t0, np.asarray(camera, dtype=np.float64))
+
+
+def pack_face_model(pack: Any, names: list[str], first_xy: np.ndarray, rigid: np.ndarray, camera: np.ndarray, *,
+                    components: int = 8) -> FaceModel:
+    """:func:`build_face_model` of the points ``names`` from an actor pack (its generic model,
+    neutral and captured geometries at those points)."""
+    rows = [pack.layout.index(str(n)) for n in names]
+    return build_face_model(pack.model3d[rows], first_xy, rigid, camera, pack.neutral.points[rows],
+                            pack.captured_points[:, rows], components=components)
 
 
 @dataclass

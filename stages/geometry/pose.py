@@ -27,7 +27,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from runner.stage import Context, Param, SequenceStage, StageError
 from stages.actor_pack import load_pack
-from stages.geometry.face_model import FaceFit, FaceModel, build_face_model, fit_face_model
+from stages.geometry.face_model import FaceModel, fit_face_model, pack_face_model
 from stages.geometry.frontalize import adapt_to_reference, frontal_translation
 from stages.geometry.smooth import gaussian_smooth
 from stages.geometry.subset import named_columns, rigid_columns
@@ -196,8 +196,7 @@ def estimate_face_poses(image: np.ndarray, valid: np.ndarray, model: FaceModel, 
         As :func:`estimate_poses`; ``reproj_err_px`` is the RMS distance of the valid points to
         the fitted model.
     """
-    m = model.basis.shape[2]
-    fit = FaceFit(np.eye(3), model.t0.copy(), np.zeros(m), model.project(np.eye(3), model.t0, np.zeros(m)))
+    fit = model.first_frame_fit()
     n_frames = len(image)
     rvec, tvec = np.zeros((n_frames, 3)), np.zeros((n_frames, 3))
     error = np.full(n_frames, np.nan)
@@ -254,9 +253,8 @@ class PnPPose(SequenceStage):
         if params["model"] == "face":
             if not np.asarray(points["valid"][0]).all():
                 raise StageError(f"{self.name}: model=face needs every tracked point valid in the first frame")
-            rows = [pack.layout.index(str(n)) for n in points["names"]]
-            model = build_face_model(pack.model3d[rows], points["xy"][0], columns, camera, pack.neutral.points[rows],
-                                     pack.captured_points[:, rows], components=int(params["components"]))
+            model = pack_face_model(pack, list(points["names"]), points["xy"][0], columns, camera,
+                                    components=int(params["components"]))
             pose = estimate_face_poses(points["xy"], points["valid"], model,
                                        smooth_sigma=float(params["smooth_sigma"]))
             return {"pose": {**pose, "camera": camera}}

@@ -35,7 +35,7 @@ import numpy as np
 from runner.stage import Context, Param, SequenceStage, StageError
 from stages.geometry.compensate import apply_similarity, fit_similarity
 from stages.actor_pack import load_pack
-from stages.geometry.face_model import FaceFit, FaceModel, build_face_model, fit_face_model
+from stages.geometry.face_model import FaceModel, fit_face_model, pack_face_model
 from stages.geometry.subset import rigid_columns
 from stages.layout import load_layout
 
@@ -285,8 +285,7 @@ class NCCTracker:
         self.trust = np.ones(len(xy))
         self.running = sample_patches(self.first, self.origin, self.side)
         if self.face_model is not None:
-            m = self.face_model
-            self.fit = FaceFit(np.eye(3), m.t0.copy(), np.zeros(m.basis.shape[2]), self.origin.copy())
+            self.fit = self.face_model.first_frame_fit()
 
     def templates(self, dst: np.ndarray, weight: np.ndarray) -> np.ndarray:
         """First-frame templates ``(N, S, S)`` warped by the local affines onto ``dst``."""
@@ -602,7 +601,7 @@ class CorrelationTrack(SequenceStage):
     ``init`` is the first-frame points file of the tracked points (a ``file`` pipeline input:
     ``name,x,y`` CSV or JSON), read by :func:`read_first_frame_points` and checked against the
     layout's tracked subset and the frame size. ``pack`` (optional, the performer's actor pack)
-    gives the ``ncc`` tracker its face model (:func:`build_face_model`: the pack's generic 3D
+    gives the ``ncc`` tracker its face model (:func:`stages.geometry.face_model.pack_face_model`: the pack's generic 3D
     model, captured expressions and intrinsics, which must be for the clip's frame size).
     """
 
@@ -670,7 +669,7 @@ class CorrelationTrack(SequenceStage):
 
     def face_model(self, pack_dir: Any, names: tuple[str, ...], init: np.ndarray, size: tuple[int, int],
                    components: int) -> FaceModel:
-        """The tracked points' face model from the performer pack (:func:`build_face_model`)."""
+        """The tracked points' face model from the performer pack (:func:`pack_face_model`)."""
         pack = load_pack(pack_dir)
         if tuple(pack.image_size) != tuple(size):
             raise StageError(f"{pack.path}: intrinsics are for {pack.image_size[0]}x{pack.image_size[1]} images, "
@@ -680,7 +679,5 @@ class CorrelationTrack(SequenceStage):
         missing = [n for n in names if n not in pack.layout.point_names]
         if missing:
             raise StageError(f"{pack.path}: the pack's layout has no points {missing[:5]} of the tracked subset")
-        rows = [pack.layout.index(n) for n in names]
         rigid = rigid_columns(np.array(names), pack.layout, at_least=4, stage=self.name)
-        return build_face_model(pack.model3d[rows], init, rigid, pack.intrinsics, pack.neutral.points[rows],
-                                pack.captured_points[:, rows], components=components)
+        return pack_face_model(pack, list(names), init, rigid, pack.intrinsics, components=components)
