@@ -260,14 +260,19 @@ class Runner:
         return None if None in digests.values() else digests
 
     def _material(self, node: StageNode, digests: dict[str, str]) -> dict[str, Any]:
+        schema = {p.name: p for p in node.cls.params}
         material = {
             "stage": node.uses,
             "version": node.cls.version,
-            "params": node.params,
+            "params": {k: v for k, v in node.params.items() if k not in schema or schema[k].in_key},
             "inputs": digests,
             "device": self.opts.device,
             "libs": library_versions(),
         }
+        files = {k: file_digest(Path(v)) for k, v in node.params.items()
+                 if k in schema and schema[k].file and isinstance(v, str) and Path(v).is_file()}
+        if files:
+            material["param_files"] = files
         if issubclass(node.cls, FrameStage):
             material["chunk_frames"] = self.pipeline.chunk_frames
         return material
@@ -306,6 +311,10 @@ class Runner:
         for name in sorted(set(old_params) | set(new_params)):
             if old_params.get(name) != new_params.get(name):
                 changes.append(f"param {name}: {old_params.get(name)!r} -> {new_params.get(name)!r}")
+        old_files, new_files = old.get("param_files", {}), material.get("param_files", {})
+        for name in sorted(set(old_files) | set(new_files)):
+            if old_files.get(name) != new_files.get(name) and name in new_params and old_params.get(name) == new_params[name]:
+                changes.append(f"file of param {name} changed: {new_params[name]}")
         for port in sorted(set(old.get("inputs", {})) | set(material["inputs"])):
             if old.get("inputs", {}).get(port) != material["inputs"].get(port):
                 changes.append(f"input {port} changed")

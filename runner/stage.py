@@ -38,13 +38,21 @@ RUNNER_TYPES = ("video", "file", "dir", "frames", "files")
 
 @dataclass(frozen=True)
 class Param:
-    """One declared parameter: name, Python type (int, float, str, bool, list), default, help."""
+    """One declared parameter: name, Python type (int, float, str, bool, list), default, help.
+
+    Cache key (docs/runner.md, "Cache"): the value enters the stage's key unless ``in_key`` is
+    False (a setting that cannot change the outputs, such as a thread count). With ``file`` True,
+    a value that names an existing file (relative to the working directory, as the stage reads
+    it) also adds that file's content digest, so editing the file invalidates the entry.
+    """
 
     name: str
     type: type
     default: Any
     help: str
     choices: tuple[Any, ...] | None = None
+    file: bool = False
+    in_key: bool = True
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,8 @@ the tracked subset (``_truth.npz``):
   ideal mapping ``target_points``; ``chain_neutral_err_px_<clip>``: the target's neutral left
   as it is (the do-nothing baseline).
 - with the tracker (default): ``<c>_tracked_chain_err_px_<clip>_none``: the same chain from
-  ``track.correlation`` -> ``smooth.gaussian`` points decoded from the clip;
+  the pipeline's tracked points (``track.correlation`` with the performer pack ->
+  ``smooth.gaussian``) and its pose (``pose.pnp`` with ``model: face``);
   ``compensate3d_tracked_chain_err_px_<clip>_none_eyes_nose``: with pose.pnp given the four eye
   corners and four nose points instead of the rigid set (the hairline tracks worst under yaw).
 - ``compensate3d_fps_live``: frames per second of the computation of ``compensate.pose3d``
@@ -47,6 +48,7 @@ from stages.propagation.stage import HierarchicalPropagation, TrainHierarchicalP
 
 AREA = "geometry"
 CLIPS = ("calm", "live")
+PIPELINE_POSE = {"model": "face"}  # pose.pnp's parameters in pipeline.yaml
 EYES_NOSE = ["eye_l_0", "eye_r_0", "eye_l_6", "eye_r_6", "nose_tip", "nose_ala_l", "nose_ala_r", "nose_base"]
 
 
@@ -61,17 +63,21 @@ def truth_points(truth: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
             "names": truth["point_names"][tracked], "fps": truth["fps"], "size": truth["size"]}
 
 
-def tracker_points(clip: Path, init: Path, ctx: Context) -> dict[str, np.ndarray]:
-    """The tracker's points of a clip: ``track_points`` (NCC, as ``track.correlation``) from the
-    first-frame CSV, then the ``smooth.gaussian`` stage with its defaults; a ``points`` bundle."""
+def tracker_points(clip: Path, init: Path, performer: Path, ctx: Context) -> dict[str, np.ndarray]:
+    """The tracker's points of a clip as the pipeline makes them: NCC tracking with the performer
+    pack's face model (as ``track.correlation`` given the pack) from the first-frame CSV, then the
+    ``smooth.gaussian`` stage with its defaults; a ``points`` bundle."""
     from scripts.bench_geometry import decode
-    from stages.geometry.track import read_first_frame_points
+    from stages.geometry.face_model import pack_face_model
     from stages.geometry.smooth import GaussianSmooth
-    from stages.geometry.track import track_points
+    from stages.geometry.track import read_first_frame_points, track_points
 
     names, start, _ = read_first_frame_points(init)
+    pack = load_pack(performer)
+    rigid = named_columns(np.array(names), tuple(pack.layout.point_names[i] for i in pack.layout.rigid))
     frames = decode(clip)
-    tracks = track_points(iter(frames), start, method="ncc")
+    tracks = track_points(iter(frames), start, method="ncc",
+                          face_model=pack_face_model(pack, names, start, rigid, pack.intrinsics))
     height, width = frames[0].shape[:2]
     points = {"xy": tracks.xy, "valid": tracks.valid, "names": np.array(names), "size": np.array([width, height])}
     return GaussianSmooth().run({"points": points}, {}, ctx)["points"]
@@ -84,10 +90,11 @@ def pose_compensate(points: Mapping[str, np.ndarray], pose: Mapping[str, np.ndar
 
 
 def compensations(points: Mapping[str, np.ndarray], performer: Path, ctx: Context,
-                  truth: Mapping[str, np.ndarray] | None = None) -> dict[str, dict[str, np.ndarray]]:
-    """Displacement bundles of ``compensate2d``, ``compensate3d`` (PnP pose) and, given the truth,
-    ``compensate3d_truepose``."""
-    pose = PnPPose().run({"points": points, "pack": performer}, {}, ctx)["pose"]
+                  truth: Mapping[str, np.ndarray] | None = None, pose_params: Mapping[str, Any] | None = None
+                  ) -> dict[str, dict[str, np.ndarray]]:
+    """Displacement bundles of ``compensate2d``, ``compensate3d`` (the ``pose.pnp`` stage with
+    ``pose_params``) and, given the truth, ``compensate3d_truepose``."""
+    pose = PnPPose().run({"points": points, "pack": performer}, dict(pose_params or {}), ctx)["pose"]
     out = {"compensate2d": SimilarityCompensate().run({"points": points}, {}, ctx)["displacements"],
            "compensate3d": pose_compensate(points, pose, performer, ctx)}
     if truth is not None:
@@ -154,8 +161,8 @@ def bench_rows(fixtures: Path = Path("fixtures"), *, tracker: bool = True) -> li
                         np.linalg.norm(target_neutral[None] - truth["target_points"], axis=-1).mean(), "px"))
         if tracker:
             clips = fixtures / "clips"
-            tracked = tracker_points(clips / f"{clip}.mp4", clips / f"{clip}_track0.csv", ctx)
-            for name, bundle in compensations(tracked, performer, ctx).items():
+            tracked = tracker_points(clips / f"{clip}.mp4", clips / f"{clip}_track0.csv", performer, ctx)
+            for name, bundle in compensations(tracked, performer, ctx, pose_params=PIPELINE_POSE).items():
                 rows.append(row(f"{name}_tracked_chain_err_px_{clip}_none",
                                 chain_error(bundle, target, pca_model, truth["target_points"], "none", ctx), "px"))
             pose = PnPPose().run({"points": tracked, "pack": performer}, {"points": EYES_NOSE}, ctx)["pose"]

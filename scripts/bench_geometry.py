@@ -25,8 +25,8 @@ ground truth (``<clip>_truth.npz``) at the points visible in each frame:
   ``compensate_disp_err_px_<clip>``: mean distance of the displacements T^-1(x') - x to the same
   computed from the true points.
 - ``pose_err_deg_<clip>`` / ``pose_trans_err_<clip>``: mean rotation angle (deg) and translation
-  distance (mm) to the true head pose, face model (pose and expression) fitted to all tracked
-  points (unsmoothed), as ``pose.pnp`` with ``model: face`` does in the pipeline;
+  distance (mm) to the true head pose, face model (pose and expression) fitted to all smoothed
+  tracked points, as ``pose.pnp`` with ``model: face`` does in the pipeline;
   ``..._rigid_pnp``: PnP on the paper's rigid points (hairline and inner eye corners) with the
   pack's generic model adapted to the first frame (``model: rigid``); ``..._eyes_nose``: the same
   from the four eye corners and four nose points.
@@ -177,7 +177,7 @@ def evaluate_clip(root: Path, kind: str, suffix: str, *, alternatives: tuple[str
         rows.append(row(f"map_err_px{suffix}_{mode}",
                         np.linalg.norm(mapped - truth["target_points"][:, tracked], axis=2)[:, columns].mean(), "px"))
 
-    face = estimate_face_poses(tracks.xy, tracks.valid, face_model)  # the raw tracks: see pipeline.yaml
+    face = estimate_face_poses(smoothed, valid, face_model)
     rows += [row(f"pose_err_deg{suffix}", angle_deg(face["R"], truth["R"]).mean(), "deg"),
              row(f"pose_trans_err{suffix}", np.linalg.norm(face["tvec"] - truth["tvec"], axis=1).mean(), "mm")]
     for label, point_names in (("_rigid_pnp", [layout.point_names[i] for i in layout.rigid]), ("_eyes_nose", EYES_NOSE)):

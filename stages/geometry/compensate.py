@@ -136,7 +136,7 @@ class SimilarityCompensate(SequenceStage):
     optional_inputs = frozenset({"neutral"})
     outputs = {"similarity": "similarity", "displacements": "displacements"}
     params = (
-        Param("layout", str, "zhang134", "layout name or YAML path (its rigid points)"),
+        Param("layout", str, "zhang134", "layout name or YAML path (its rigid points)", file=True),
         Param("robust", bool, False, "Huber-reweighted least squares instead of plain least squares"),
         Param("huber_px", float, 1.0, "Huber threshold in px for the robust fit"),
         Param("min_points", int, 3, "fewest valid rigid points for a frame's own fit (else interpolated)"),

@@ -612,7 +612,7 @@ class CorrelationTrack(SequenceStage):
     optional_inputs = frozenset({"pack"})
     outputs = {"points": "points"}
     params = (
-        Param("layout", str, "zhang134", "layout name or YAML path; its `tracked` subset is followed"),
+        Param("layout", str, "zhang134", "layout name or YAML path; its `tracked` subset is followed", file=True),
         Param("method", str, "ncc", "tracker", choices=METHODS),
         Param("template_px", int, 15, "template side in px (LK window; OpenCV trackers' box is template+2*search)"),
         Param("search_px", int, 8, "search radius in px around the constant-velocity prediction"),

@@ -157,7 +157,7 @@ class WriteExr(FrameStage):
     outputs = {"exr": "files"}
     params = (
         Param("compression", str, "zip", "lossless EXR compression", choices=COMPRESSIONS),
-        Param("threads", int, 0, "frames written in parallel; 0 = one per CPU core"),
+        Param("threads", int, 0, "frames written in parallel; 0 = one per CPU core", in_key=False),
     )
 
     def process(

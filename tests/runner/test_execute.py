@@ -7,6 +7,7 @@ import textwrap
 from pathlib import Path
 
 import numpy as np
+import yaml
 import pytest
 
 from runner.cache import CacheStore
@@ -116,3 +117,38 @@ def test_bad_stage_output_is_reported(tmp_path):
     pipeline = load_pipeline(path, Registry(classes=[Wrong]))
     with pytest.raises(StageFailed, match=r"output 'frames': expected frames \(16, 4, 5, C\), got \(17, 4, 5, 1\)"):
         Runner(pipeline, {}, Options(cache=CacheStore(tmp_path / "cache"))).run()
+
+
+class Lookup(SequenceStage):
+    """Maps frame indices through a YAML table (a ``file`` parameter); ``threads`` is out of the key."""
+
+    name, version = "t.lookup", "1"
+    inputs = {"rows": "rows"}
+    outputs = {"mapped": "mapped"}
+    params = (Param("table", str, "", "YAML list of values", file=True),
+              Param("threads", int, 1, "does not change the output", in_key=False))
+
+    def run(self, inputs, params, ctx):
+        table = np.asarray(yaml.safe_load(Path(params["table"]).read_text()))
+        return {"mapped": {"value": table[inputs["rows"]["index"] % len(table)]}}
+
+
+def test_file_params_key_on_content_and_out_of_key_params_reuse_the_entry(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # a relative path is read from the working directory
+    Path("table.yaml").write_text("[1, 2, 3]\n")
+    path = tmp_path / "p.yaml"
+    path.write_text("chunk_frames: 4\nstages:\n  ramp: {uses: t.ramp}\n"
+                    "  lookup: {uses: t.lookup, params: {table: table.yaml}, inputs: {rows: ramp.rows}}\n")
+    registry = Registry(classes=[Ramp, Lookup])
+
+    def statuses(*overrides: str, dry_run: bool = False) -> dict[str, tuple[str, str]]:
+        pipeline = load_pipeline(path, registry, overrides=list(overrides))
+        options = Options(cache=CacheStore(tmp_path / "cache"), dry_run=dry_run)
+        return {r.stage: (r.status, r.reason) for r in Runner(pipeline, {}, options).run()}
+
+    assert statuses()["lookup"][0] == "ran"
+    assert statuses("lookup.threads=4")["lookup"][0] == "cached"
+    Path("table.yaml").write_text("[1, 2, 4]\n")
+    status, reason = statuses(dry_run=True)["lookup"]
+    assert status == "will run" and "file of param table changed" in reason
+    assert statuses()["lookup"][0] == "ran"

@@ -11,15 +11,27 @@ from stages.geometry.smooth import GaussianSmooth, gaussian_smooth
 from tests.stages.geometry.synthetic import context
 
 
+def sample(values: np.ndarray, valid: np.ndarray, j: int, i: int) -> tuple[np.ndarray, bool]:
+    """Point i at frame j, continued past the ends by odd reflection about the end sample."""
+    last = len(values) - 1
+    if 0 <= j <= last:
+        return values[j, i], bool(valid[j, i])
+    end, mirror = (0, -j) if j < 0 else (last, 2 * last - j)
+    return 2 * values[end, i] - values[mirror, i], bool(valid[end, i] and valid[mirror, i])
+
+
 def direct(values: np.ndarray, valid: np.ndarray, sigma: float, radius: int) -> np.ndarray:
     """The normalized, truncated, masked Gaussian sum evaluated term by term, (T, N, 2)."""
     out = np.empty_like(values)
-    n_frames = len(values)
-    for t in range(n_frames):
+    for t in range(len(values)):
         for i in range(values.shape[1]):
-            k = np.arange(max(0, t - radius), min(n_frames, t + radius + 1))
-            w = np.exp(-0.5 * ((k - t) / sigma) ** 2) * valid[k, i]
-            out[t, i] = (w[:, None] * values[k, i]).sum(axis=0) / w.sum() if w.sum() > 0 else values[t, i]
+            total, weight = np.zeros(values.shape[2:]), 0.0
+            for j in range(t - radius, t + radius + 1):
+                x, ok = sample(values, valid, j, i)
+                if ok:
+                    w = np.exp(-0.5 * ((j - t) / sigma) ** 2)
+                    total, weight = total + w * x, weight + w
+            out[t, i] = total / weight if weight > 0 else values[t, i]
     return out
 
 
@@ -32,7 +44,7 @@ def test_interior_matches_scipy_gaussian_filter():
     assert valid.shape == (60,) and valid.all()
 
 
-def test_ends_and_masked_frames_use_the_renormalized_kernel():
+def test_ends_and_masked_frames_match_the_direct_sum():
     rng = np.random.default_rng(1)
     values = rng.normal(size=(30, 4, 2))
     valid = rng.random((30, 4)) > 0.3
@@ -53,6 +65,26 @@ def test_constant_and_linear_trajectories():
     np.testing.assert_allclose(smoothed[symmetric, 0, 1], values[symmetric, 0, 1], atol=1e-9)
     assert out_valid[17, 0] and out_valid[18, 0]  # short gap filled
     assert out_valid[0, 0] and out_valid[39, 0]
+
+
+def test_odd_reflection_keeps_the_end_samples_and_linear_motion():
+    rng = np.random.default_rng(5)
+    t = np.arange(30, dtype=np.float64)
+    linear = np.stack([1.5 * t - 4.0, -0.7 * t + 30.0], axis=1)[:, None, :]
+    smoothed, _ = gaussian_smooth(linear, np.ones((30, 1), bool), sigma=2.0)
+    np.testing.assert_allclose(smoothed, linear, atol=1e-9)  # ends included
+    noisy = linear + rng.normal(0, 0.5, linear.shape)
+    valid = rng.random((30, 1)) > 0.2
+    valid[[0, -1]] = True
+    smoothed, _ = gaussian_smooth(noisy, valid, sigma=2.0)
+    np.testing.assert_allclose(smoothed[[0, -1]], noisy[[0, -1]], atol=1e-9)  # the neutral frame stays put
+    # a fast start: renormalizing the truncated kernel would pull the first frames towards later ones
+    accelerating = (0.05 * t**2)[:, None, None] * np.ones((1, 1, 2))
+    smoothed, _ = gaussian_smooth(accelerating, sigma=1.5)
+    renormalized = np.sum([np.exp(-0.5 * (k / 1.5) ** 2) * accelerating[1 + k] for k in range(-1, 6)], axis=0)
+    renormalized /= np.sum([np.exp(-0.5 * (k / 1.5) ** 2) for k in range(-1, 6)])
+    assert smoothed[0] == pytest.approx(accelerating[0], abs=1e-12)
+    assert np.abs(smoothed[1] - accelerating[1]).max() < np.abs(renormalized - accelerating[1]).max()
 
 
 def test_long_gap_stays_invalid_and_noise_is_reduced():
