@@ -1,6 +1,7 @@
 """Geometry benchmark: tracking, smoothing, compensation and pose on the fixture clips.
 
     python scripts/bench.py geometry [--json] [--work DIR] [--fixtures DIR] [--demo] [--alt-frames N]
+                                     [--heldout SEED,SEED]
 
 For each clip (``calm`` and ``live`` of the CI fixture set, and with ``--demo`` the 640x480
 ``live`` clip of the demo set, generated under ``--work`` on first use) the tracked subset is
@@ -30,6 +31,10 @@ ground truth (``<clip>_truth.npz``) at the points visible in each frame:
   ``..._rigid_pnp``: PnP on the paper's rigid points (hairline and inner eye corners) with the
   pack's generic model adapted to the first frame (``model: rigid``); ``..._eyes_nose``: the same
   from the four eye corners and four nose points.
+- with ``--heldout``: every row above but the alternative trackers for the ``calm`` and ``live``
+  clips of CI-sized fixture sets of other performers (identity ``SEED``, target ``SEED + 1``,
+  generated under ``--work`` on first use), suffixed ``_<clip>_seed<SEED>``: performers that no
+  parameter was chosen on, to tell a real gain from one fitted to the bundled fixtures.
 - ``map_err_px_<clip>_<mode>``: mean distance of the mapped target geometry of the tracked
   subset (``map.expression`` on the compensated displacements, each normalization mode) to the
   generator's ideal mapping ``target_points``.
@@ -77,16 +82,16 @@ def decode(path: Path) -> list[np.ndarray]:
         return [frame.to_ndarray(format="rgb24") for frame in container.decode(video=0)]
 
 
-def fixture_set(root: Path | None, work: Path, *, demo: bool) -> Path:
+def fixture_set(root: Path | None, work: Path, *, demo: bool, seed: int = 1) -> Path:
     """The folder holding ``clips/`` and ``packs/``: ``root`` if given and complete, else a set
-    generated under ``work`` (once) by ``scripts/make_fixtures.py``."""
+    for performer ``seed`` generated under ``work`` (once) by ``scripts/make_fixtures.py``."""
     if root is not None and (root / "clips" / "live_truth.npz").is_file():
         return root
-    target = work / ("fixtures_demo" if demo else "fixtures_ci")
+    target = work / (("fixtures_demo" if demo else "fixtures_ci") + ("" if seed == 1 else f"_seed{seed}"))
     if not (target / "clips" / "live_truth.npz").is_file():
         from scripts.make_fixtures import make_set
 
-        make_set(target, demo=demo)
+        make_set(target, seed=seed, demo=demo)
     return target
 
 
@@ -195,6 +200,7 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     parser.add_argument("--fixtures", type=Path, default=Path("fixtures"), help="CI fixture set (clips/, packs/)")
     parser.add_argument("--demo", action="store_true", help="also the 640x480 demo live clip (generated once)")
     parser.add_argument("--alt-frames", type=int, default=60, help="frames for csrt/kcf on the demo clip")
+    parser.add_argument("--heldout", default="", help="comma-separated performer seeds of held-out CI-sized sets")
     options = parser.parse_args(getattr(args, "extra", []))
     cv2.setNumThreads(2)
     work = Path(args.work)
@@ -202,6 +208,10 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     rows = evaluate_clip(ci, "calm", "_calm", alternatives=(), alt_frames=None)
     rows += evaluate_clip(ci, "live", "_live", alternatives=ALTERNATIVES, alt_frames=None)
     rows += bench_rows(ci)  # 2D similarity vs pose-based (3D) compensation, scripts/bench_frontalize.py
+    for seed in [int(v) for v in options.heldout.split(",") if v.strip()]:
+        held = fixture_set(None, work, demo=False, seed=seed)
+        for kind in ("calm", "live"):
+            rows += evaluate_clip(held, kind, f"_{kind}_seed{seed}", alternatives=(), alt_frames=None)
     if options.demo:
         demo = fixture_set(None, work, demo=True)
         rows += evaluate_clip(demo, "live", "_demo", alternatives=ALTERNATIVES, alt_frames=options.alt_frames)

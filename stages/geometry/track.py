@@ -238,8 +238,9 @@ class NCCTracker:
     (:meth:`with_neighbours`, weight ``prior``, neighbourhood ``prior_frac`` times the spread).
     With a ``face_model`` (:mod:`stages.geometry.face_model`), step (4) is instead a model fit:
     the head pose and expression coefficients that best explain all matches, each weighted by
-    its template information, and every point is pulled towards the fitted model's projection
-    with weight ``model_prior`` (:meth:`with_model`). A textureless point (the nose tip), an
+    its template information times its reliability (:meth:`reliability`: matches that have kept
+    close to the fitted model count more), and every point is pulled towards the fitted model's
+    projection with weight ``model_prior`` (:meth:`with_model`). A textureless point (the nose tip), an
     edge point (the hairline) and a point whose appearance changes under out-of-plane rotation
     then follow the 3D face instead of drifting; an invalid point is placed by the model. The fit
     of each frame is kept in ``fit``.
@@ -256,10 +257,13 @@ class NCCTracker:
                  min_psr: float = 0.0, min_contrast: float = 2.0, warp_frac: float = 0.3,
                  lk_iterations: int = 2, anchor_score: float = 0.9, prior: float = 0.03,
                  prior_frac: float = 1.5, lk_sigma_px: float = 2.0, face_model: FaceModel | None = None,
-                 model_prior: float = 1.0, model_ridge: float = 1.0) -> None:
+                 model_prior: float = 1.0, model_ridge: float = 1.0, model_noise_px: float = 3.0,
+                 model_noise_rate: float = 0.2) -> None:
         self.face_model = face_model
         self.model_prior = model_prior
         self.model_ridge = model_ridge
+        self.model_noise_px = model_noise_px
+        self.model_noise_rate = model_noise_rate
         self.anchor_score = anchor_score
         self.prior = prior
         self.side = template_px
@@ -286,6 +290,7 @@ class NCCTracker:
         self.running = sample_patches(self.first, self.origin, self.side)
         if self.face_model is not None:
             self.fit = self.face_model.first_frame_fit()
+            self.noise = np.full(len(xy), self.model_noise_px ** 2)
 
     def templates(self, dst: np.ndarray, weight: np.ndarray) -> np.ndarray:
         """First-frame templates ``(N, S, S)`` warped by the local affines onto ``dst``."""
@@ -335,14 +340,30 @@ class NCCTracker:
 
     def with_model(self, found: np.ndarray, information: np.ndarray, ok: np.ndarray) -> np.ndarray:
         """Positions ``(N, 2)`` combining each match with the face model fitted to all matches
-        (:func:`fit_face_model` from the last frame's fit, each match weighted by its template
-        information ``H_i`` where ``ok``): ``(H_i + model_prior I)^-1 (H_i m_i + model_prior p_i)``,
-        ``p_i`` the fitted model's projection; a point not ``ok`` takes ``p_i``."""
+        (:func:`fit_face_model` from the last frame's fit): ``(W_i + model_prior I)^-1 (W_i m_i +
+        model_prior p_i)``, ``p_i`` the fitted model's projection, ``W_i = q_i H_i`` the template
+        information ``H_i`` scaled by the point's reliability ``q_i`` (:meth:`reliability`; 0
+        where not ``ok``, so such a point takes ``p_i``). The fit uses the same weights."""
         weight = information * ok[:, None, None]
         self.fit = fit_face_model(self.face_model, found, weight, self.fit, ridge=self.model_ridge)
+        weight = weight * self.reliability()[:, None, None]
+        residual = ((found - self.fit.xy) ** 2).sum(axis=1)
+        rate = self.model_noise_rate * ok
+        self.noise = (1.0 - rate) * self.noise + rate * residual
         system = weight + self.model_prior * np.eye(2)
         rhs = (weight @ found[:, :, None])[:, :, 0] + self.model_prior * self.fit.xy
         return np.linalg.solve(system, rhs[:, :, None])[:, :, 0]
+
+    def reliability(self) -> np.ndarray:
+        """``q_i = min(model_noise_px^2 / n_i, 4)`` ``(N,)``: how far each point's matches can be
+        trusted, from ``n_i`` (px^2), the exponential moving average (rate ``model_noise_rate``,
+        over frames where the point was matched) of its squared distance to the fitted model,
+        started at ``model_noise_px^2`` (``q = 1``). A point whose template keeps agreeing with the
+        face (an eye corner) comes to outweigh the model, up to 4 times; one whose matches wander
+        (the hairline along its edge, lips whose look changes as the mouth opens) leans on the
+        model instead: an adaptive estimate of each match's noise, as in an adaptive Kalman
+        filter's measurement covariance."""
+        return np.minimum(self.model_noise_px ** 2 / np.maximum(self.noise, 1e-12), 4.0)
 
     def step(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         image = to_gray(frame)
@@ -468,7 +489,8 @@ def make_tracker(method: str, *, template_px: int = 15, search_px: int = 8, min_
                  min_psr: float = 0.0, min_contrast: float = 2.0, warp_frac: float = 0.3,
                  lk_iterations: int = 2, anchor_score: float = 0.9, prior: float = 0.03,
                  prior_frac: float = 1.5, lk_sigma_px: float = 2.0, fb_px: float = 1.0,
-                 face_model: FaceModel | None = None, model_prior: float = 1.0, model_ridge: float = 1.0):
+                 face_model: FaceModel | None = None, model_prior: float = 1.0, model_ridge: float = 1.0,
+                 model_noise_px: float = 3.0, model_noise_rate: float = 0.2):
     """The tracker object for ``method`` (one of :data:`METHODS`), configured from the options
     that apply to it (``template_px`` sets the LK window and, with ``search_px``, the box of the
     OpenCV trackers)."""
@@ -476,7 +498,8 @@ def make_tracker(method: str, *, template_px: int = 15, search_px: int = 8, min_
         return NCCTracker(template_px=template_px, search_px=search_px, min_score=min_score, min_psr=min_psr,
                           min_contrast=min_contrast, warp_frac=warp_frac, lk_iterations=lk_iterations,
                           anchor_score=anchor_score, prior=prior, prior_frac=prior_frac, lk_sigma_px=lk_sigma_px,
-                          face_model=face_model, model_prior=model_prior, model_ridge=model_ridge)
+                          face_model=face_model, model_prior=model_prior, model_ridge=model_ridge,
+                          model_noise_px=model_noise_px, model_noise_rate=model_noise_rate)
     if method == "lk":
         return LKTracker(template_px=template_px, fb_px=fb_px)
     if method in OpenCVTracker.FACTORIES:
@@ -606,7 +629,7 @@ class CorrelationTrack(SequenceStage):
     """
 
     name = "track.correlation"
-    version = "3"
+    version = "4"
     doc = "track the layout's tracked subset through a clip (NCC, or CSRT/KCF/MOSSE/LK)"
     inputs = {"frames": "frames", "init": "file", "pack": "dir"}
     optional_inputs = frozenset({"pack"})
@@ -638,6 +661,11 @@ class CorrelationTrack(SequenceStage):
               "the pack's captured geometries)"),
         Param("model_ridge", float, 1.0, "ncc with a pack: weight of the prior keeping the expression "
               "coefficients within the captured set's spread"),
+        Param("model_noise_px", float, 3.0, "ncc with a pack: reference match noise, px; a point whose running "
+              "RMS distance to the fitted model is below it gains weight against the model (up to 4x), "
+              "one above it loses weight"),
+        Param("model_noise_rate", float, 0.2, "ncc with a pack: rate of the running mean of each point's squared "
+              "distance to the fitted model (0 = fixed weights)"),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:

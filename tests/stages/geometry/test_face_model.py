@@ -118,3 +118,37 @@ def test_estimate_face_poses_interpolates_frames_with_too_few_points():
     assert set(pose) == {"rvec", "tvec", "R", "reproj_err_px", "valid"}
     with pytest.raises(Exception, match="no frame has 4 valid points"):
         estimate_face_poses(image, np.zeros_like(valid), model)
+
+
+def test_tracker_weighs_each_match_by_its_running_distance_to_the_model():
+    """NCCTracker.with_model: a point whose matches keep off the fitted model loses weight against
+    it, one whose matches keep on it gains (up to 4x); the fused position is the closed form
+    (q H m + mu p) / (q H + mu) with q from the running mean of squared distances."""
+    from stages.geometry.track import NCCTracker
+
+    model = model_with(2)
+    tracker = NCCTracker(face_model=model, model_prior=1.0, model_noise_px=3.0, model_noise_rate=0.2)
+    true_xy = model.project(np.eye(3), model.t0, np.zeros(2))
+    tracker.start(np.zeros((480, 640), np.float32), true_xy)
+    information = np.broadcast_to(0.5 * np.eye(2), (len(SHAPE), 2, 2)).copy()
+    ok = np.ones(len(SHAPE), bool)
+    rng = np.random.default_rng(5)
+    noise = np.full(len(SHAPE), 9.0)  # model_noise_px^2
+    for _ in range(30):
+        found = true_xy + rng.normal(0, 0.1, true_xy.shape)
+        found[0] += rng.normal(0, 6.0, 2)      # a wandering match
+        q = tracker.reliability()
+        fused = tracker.with_model(found, information, ok)
+        p = tracker.fit.xy
+        np.testing.assert_allclose(fused, (0.5 * q[:, None] * found + p) / (0.5 * q[:, None] + 1.0), atol=1e-9)
+        noise = 0.8 * noise + 0.2 * ((found - p) ** 2).sum(axis=1)
+    np.testing.assert_allclose(tracker.noise, noise, rtol=1e-9)
+    q = tracker.reliability()
+    assert q[0] < 0.5 and np.all(q[1:] == 4.0)
+    np.testing.assert_allclose(q, np.minimum(9.0 / noise, 4.0))
+    # a point not matched this frame keeps its running mean and takes the model's position
+    ok[1] = False
+    before = tracker.noise[1]
+    fused = tracker.with_model(true_xy + 5.0, information, ok)
+    assert tracker.noise[1] == before
+    np.testing.assert_allclose(fused[1], tracker.fit.xy[1], atol=1e-9)
