@@ -1,6 +1,6 @@
 """End-to-end benchmark: the default pipeline on the 300-frame 640x480 demo clip.
 
-    python scripts/bench.py e2e [--json] [--work DIR] [--clip calm|live]
+    python scripts/bench.py e2e [--json] [--work DIR] [--clip calm|live] [--ci]
 
 The demo fixture set (600x800 target pack, 640x480 performer clips) is generated under
 ``--work`` on first use. Each run starts from an empty cache and writes every output of
@@ -17,6 +17,8 @@ Metrics
 - ``e2e_target_err_px``: mean distance of the pipeline's target geometry (all points, per frame)
   to the ideal mapping ``target_points`` of the clip's ground truth; ``e2e_target_err_neutral_px``
   the same for the target's neutral left unchanged (a do-nothing baseline).
+- with ``--ci``: ``e2e_target_err_px_ci_<clip>`` and ``e2e_target_err_neutral_px_ci_<clip>``, the
+  same two figures for the bundled CI fixture clips ``calm`` and ``live`` (``fixtures/``).
 """
 
 from __future__ import annotations
@@ -61,9 +63,9 @@ def run_pipeline(root: Path, clip: str, out: Path, cache: Path, *extra: str) -> 
 def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     parser = argparse.ArgumentParser(prog="bench.py e2e")
     parser.add_argument("--clip", default="live", choices=("calm", "live"), help="demo clip to map")
+    parser.add_argument("--ci", action="store_true", help="also the target geometry error on the CI clips")
     options = parser.parse_args(args.extra)
     from scripts.bench_geometry import fixture_set
-    from stages.actor_pack import load_pack
 
     work = Path(args.work) / "e2e"
     root = fixture_set(None, Path(args.work), demo=True)
@@ -77,16 +79,29 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
                                      "--set", f"synthesize.mode={mode}")
     rerun = run_pipeline(root, options.clip, work / "full" / "again", work / "full" / "cache", "--set", "synthesize.mode=full")
 
-    data = np.load(work / "full" / "out" / "data" / "data.npz")
-    ideal = truth["target_points"]
-    neutral = load_pack(root / "packs" / "target").neutral.points
     fps, fps_warp = frames / timings["full"], frames / timings["warp-only"]
-    return [
+    rows = [
         row("e2e_frames", frames, "frames"),
         row("e2e_fps", fps, "frames/s"),
         row("e2e_fps_warponly", fps_warp, "frames/s"),
         row("e2e_speed_ratio", fps / fps_warp, "ratio"),
         row("e2e_rerun_s", rerun, "s"),
-        row("e2e_target_err_px", float(np.linalg.norm(data["target_xy"] - ideal, axis=-1).mean()), "px"),
-        row("e2e_target_err_neutral_px", float(np.linalg.norm(neutral[None] - ideal, axis=-1).mean()), "px"),
+        *target_errors(root, options.clip, work / "full" / "out", ""),
     ]
+    for clip in ("calm", "live") if options.ci else ():
+        shutil.rmtree(work / f"ci_{clip}", ignore_errors=True)
+        run_pipeline(REPO / "fixtures", clip, work / f"ci_{clip}" / "out", work / f"ci_{clip}" / "cache")
+        rows += target_errors(REPO / "fixtures", clip, work / f"ci_{clip}" / "out", f"_ci_{clip}")
+    return rows
+
+
+def target_errors(root: Path, clip: str, out: Path, suffix: str) -> list[dict[str, Any]]:
+    """Mean px distance of the pipeline's target geometry (``out/data/data.npz``) and of the
+    target's neutral to the ideal mapping of ``root``'s clip."""
+    from stages.actor_pack import load_pack
+
+    ideal = np.load(root / "clips" / f"{clip}_truth.npz")["target_points"]
+    data = np.load(out / "data" / "data.npz")
+    neutral = load_pack(root / "packs" / "target").neutral.points
+    return [row(f"e2e_target_err_px{suffix}", float(np.linalg.norm(data["target_xy"] - ideal, axis=-1).mean()), "px"),
+            row(f"e2e_target_err_neutral_px{suffix}", float(np.linalg.norm(neutral[None] - ideal, axis=-1).mean()), "px")]

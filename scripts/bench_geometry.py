@@ -68,7 +68,7 @@ AREA = "geometry"
 ALTERNATIVES = ("csrt", "kcf", "mosse", "lk")
 SLOW = ("csrt", "kcf")
 SMOOTH_SIGMA = 1.5
-REPEATS = 3  # timed runs of the NCC tracker and of its LK baseline; the best counts
+REPEATS = 7  # timed runs of the NCC tracker and of its LK baseline; the best counts
 EYES_NOSE = ["eye_l_0", "eye_r_0", "eye_l_6", "eye_r_6", "nose_tip", "nose_ala_l", "nose_ala_r", "nose_base"]
 
 

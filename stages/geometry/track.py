@@ -238,9 +238,10 @@ class NCCTracker:
     (:meth:`with_neighbours`, weight ``prior``, neighbourhood ``prior_frac`` times the spread).
     With a ``face_model`` (:mod:`stages.geometry.face_model`), step (4) is instead a model fit:
     the head pose and expression coefficients that best explain all matches, each weighted by
-    its template information times its reliability (:meth:`reliability`: matches that have kept
-    close to the fitted model count more), and every point is pulled towards the fitted model's
-    projection with weight ``model_prior`` (:meth:`with_model`). A textureless point (the nose tip), an
+    its template information, and every point is pulled towards the fitted model's projection
+    with weight ``model_prior`` against its match's information times its reliability
+    (:meth:`reliability`: a point whose matches have kept close to the model trusts them more)
+    (:meth:`with_model`). A textureless point (the nose tip), an
     edge point (the hairline) and a point whose appearance changes under out-of-plane rotation
     then follow the 3D face instead of drifting; an invalid point is placed by the model. The fit
     of each frame is kept in ``fit``.
@@ -343,7 +344,10 @@ class NCCTracker:
         (:func:`fit_face_model` from the last frame's fit): ``(W_i + model_prior I)^-1 (W_i m_i +
         model_prior p_i)``, ``p_i`` the fitted model's projection, ``W_i = q_i H_i`` the template
         information ``H_i`` scaled by the point's reliability ``q_i`` (:meth:`reliability`; 0
-        where not ``ok``, so such a point takes ``p_i``). The fit uses the same weights."""
+        where not ``ok``, so such a point takes ``p_i``). The fit weighs each match by ``H_i``
+        alone: the reliability decides only how far a point trusts its own match. (In the fit it
+        let a few steady points steer the pose: on held-out performer 11's live clip the pose
+        error rose from 1.82 to 2.32 deg.)"""
         weight = information * ok[:, None, None]
         self.fit = fit_face_model(self.face_model, found, weight, self.fit, ridge=self.model_ridge)
         weight = weight * self.reliability()[:, None, None]
