@@ -46,7 +46,7 @@ def gaussian_smooth(
 
     ``out[t] = sum_k g_k m_{t+k} x_{t+k} / sum_k g_k m_{t+k}``, with ``g`` the Gaussian of
     :func:`gaussian_kernel`, ``m`` the validity mask, and ``x``, ``m`` continued past the clip's
-    ends by :func:`odd_reflection` / :func:`even_reflection_mask`.
+    ends by :func:`odd_reflection` / :func:`reflection_mask`.
 
     Parameters
     ----------
@@ -76,7 +76,7 @@ def gaussian_smooth(
         raise ValueError(f"valid shape {mask.shape} does not lead values shape {values.shape}")
     kernel = gaussian_kernel(sigma, truncate=truncate)
     pad = min(len(kernel) // 2, len(values) - 1)
-    values_ext, mask_ext = odd_reflection(values, pad), even_reflection_mask(mask, pad)
+    values_ext, mask_ext = odd_reflection(values, pad), reflection_mask(mask, pad)
     weight = mask_ext.reshape(mask_ext.shape + (1,) * (values.ndim - mask.ndim)).astype(np.float64)
     # where(): an invalid sample may hold NaN, and NaN * 0 would spread it to its neighbours
     numerator = convolve1d(np.where(weight > 0, values_ext, 0.0), kernel, axis=0, mode="constant", cval=0.0)
@@ -101,7 +101,7 @@ def odd_reflection(values: np.ndarray, pad: int) -> np.ndarray:
     return np.concatenate([head, values, tail])
 
 
-def even_reflection_mask(mask: np.ndarray, pad: int) -> np.ndarray:
+def reflection_mask(mask: np.ndarray, pad: int) -> np.ndarray:
     """The validity of :func:`odd_reflection`'s samples: a reflected sample is valid where both the
     end sample and the sample it mirrors are."""
     mirrored = np.arange(pad, 0, -1)
