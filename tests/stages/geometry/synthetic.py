@@ -1,36 +1,13 @@
 """Synthetic ground truth for the geometry tests: a smooth random texture moved by known
-sub-pixel similarity transforms, an in-memory frame stream, and a rigid 3D point model."""
+sub-pixel similarity transforms and a rigid 3D point model; ``MemoryStream`` and ``context`` come
+from :mod:`tests.memory_stream`."""
 
 from __future__ import annotations
-
-from typing import Iterator
 
 import cv2
 import numpy as np
 
-from runner.stage import Context, StreamInfo
-
-
-class MemoryStream:
-    """A :class:`runner.stage.FrameStream` over an in-memory ``(T, H, W, C)`` array, in chunks."""
-
-    def __init__(self, frames: np.ndarray, *, fps: float = 25.0, chunk: int = 8) -> None:
-        self.frames = frames
-        self.chunk = chunk
-        self.info = StreamInfo(frames=len(frames), fps=fps, width=frames.shape[2], height=frames.shape[1])
-        self.reads = 0
-
-    def read(self, start: int, stop: int) -> np.ndarray:
-        return self.frames[np.clip(np.arange(start, stop), 0, len(self.frames) - 1)]
-
-    def chunks(self) -> Iterator[tuple[int, np.ndarray]]:
-        for start in range(0, len(self.frames), self.chunk):
-            self.reads += 1
-            yield start, self.frames[start : start + self.chunk]
-
-
-def context(tmp_path) -> Context:
-    return Context(device="cpu", files_dir=lambda port: tmp_path / port)
+from tests.memory_stream import MemoryStream, files_context as context  # noqa: F401 (re-exported)
 
 
 def similarity_matrix(a: float, b: float, tx: float, ty: float) -> np.ndarray:

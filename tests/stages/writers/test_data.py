@@ -8,7 +8,7 @@ import pytest
 
 from runner.stage import StageError
 from stages.writers.data import WriteData
-from tests.stages.writers.memory_stream import MemoryStream, files_context
+from tests.memory_stream import MemoryStream, files_context
 
 T, FPS = 5, 24.0
 

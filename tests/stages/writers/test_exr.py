@@ -15,7 +15,7 @@ from runner.stage import StageError
 from stages.color import srgb_to_linear
 from stages.writers.atomic import atomic_write, temp_name
 from stages.writers.exr import WriteExr, exr_name, to_linear_rgba, write_exr
-from tests.stages.writers.memory_stream import MemoryStream, files_context
+from tests.memory_stream import MemoryStream, files_context
 
 REPO = Path(__file__).resolve().parents[3]
 HALF_RTOL = 2.0**-11  # half float: 11 significant bits

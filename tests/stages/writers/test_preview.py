@@ -7,7 +7,7 @@ import pytest
 
 from runner.stage import StageError
 from stages.writers.preview import SideBySide, side_by_side, side_by_side_size
-from tests.stages.writers.memory_stream import MemoryStream, files_context
+from tests.memory_stream import MemoryStream, files_context
 
 
 def test_layout_sizes() -> None:

@@ -11,18 +11,21 @@ from runner.stage import Context, StreamInfo
 
 
 class MemoryStream:
-    """Frames ``(T, H, W, C)`` held in memory, read with edge replication like the runner's streams."""
+    """Frames ``(T, H, W, C)`` held in memory, read with edge replication like the runner's streams;
+    ``reads`` counts the chunks handed out."""
 
     def __init__(self, frames: np.ndarray, *, fps: float = 25.0, chunk: int = 4) -> None:
         self.frames = frames
         self.chunk = chunk
         self.info = StreamInfo(frames=len(frames), fps=fps, width=frames.shape[2], height=frames.shape[1])
+        self.reads = 0
 
     def read(self, start: int, stop: int) -> np.ndarray:
         return self.frames[np.clip(np.arange(start, stop), 0, len(self.frames) - 1)]
 
     def chunks(self) -> Iterator[tuple[int, np.ndarray]]:
         for start in range(0, len(self.frames), self.chunk):
+            self.reads += 1
             yield start, self.read(start, min(start + self.chunk, len(self.frames)))
 
 
