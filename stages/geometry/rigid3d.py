@@ -1,0 +1,244 @@
+"""Head-motion compensation from the landmarker's 3D points, relative to a chosen reference frame.
+
+The paper removes the performer's head motion with a 2D similarity of the rigid points (Sec. 12,
+eq. 8-9), which cannot undo out-of-plane rotation, or with PnP on a generic 3D model (Sec. 12.1).
+A face landmarker gives every point a depth as well (MediaPipe: ``z`` in the same pixel scale as
+``x``, increasing away from the camera), so each frame's rigid points can be aligned in 3D to the
+reference frame's directly, under weak perspective, with no generic model and no intrinsics:
+
+    X_i(t) ~ s(t) R(t) X_i(r) + t(t)                    (i over the rigid points)
+
+solved in closed form per frame (Umeyama's least-squares similarity, with Huber reweighting).
+Every point of frame ``t`` is then taken back into the reference frame,
+``X'_i = R(t)^T (X_i(t) - t(t)) / s(t)``, and its compensated displacement is the image-plane part
+of ``X'_i - X_i(r)`` — the 3D counterpart of the paper's ``T^-1(x') - x``.
+
+The reference frame is chosen, not assumed (:func:`choose_reference`): the most frontal, least
+expressive frame near the start of the clip, from the landmarker's blendshapes and head matrix.
+
+Coordinates: x right, y down (px, origin at the centre of the top-left pixel), z away from the
+camera (px): a right-handed camera frame as OpenCV's. Angles: ``R = Ry(yaw) Rx(pitch) Rz(roll)``,
+degrees; yaw about the image's vertical axis, pitch about its horizontal axis, roll in the image
+plane.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import numpy as np
+
+from runner.stage import Context, Param, SequenceStage, StageError
+from stages.geometry.compensate import compensate as similarity_2d
+from stages.geometry.subset import named_columns
+
+#: Points of the zhang134 layout that move with the skull: eye corners, nose bridge, forehead,
+#: temples and the contour beside the eyes (the jaw's contour points move with the mouth).
+RIGID_POINTS = (
+    "eye_l_0", "eye_l_6", "eye_r_0", "eye_r_6", "nose_bridge_0", "nose_bridge_1", "nose_bridge_2",
+    "forehead_l", "forehead_c", "forehead_r", "temple_l", "temple_r", "contour_0", "contour_16",
+)
+
+#: Blendshapes that are not facial expression (gaze direction) and the rest score, MediaPipe names.
+_NOT_EXPRESSION = ("_neutral", "eyeLook")
+
+
+def similarity_3d(src: np.ndarray, dst: np.ndarray, weights: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Weighted least-squares similarity ``dst ~ s R src + t`` in 3D (Umeyama 1991).
+
+    Parameters
+    ----------
+    src, dst : (n, 3) float
+        Corresponding points, ``n >= 3`` not collinear.
+    weights : (n,) float
+        Non-negative weights of the squared residuals.
+
+    Returns
+    -------
+    s : float
+        Scale.
+    R : (3, 3) float64
+        Rotation (det +1).
+    t : (3,) float64
+        Translation.
+    """
+    w = np.asarray(weights, np.float64) / np.sum(weights)
+    mu_s, mu_d = w @ src, w @ dst
+    a, b = src - mu_s, dst - mu_d
+    cov = (b * w[:, None]).T @ a
+    u, sv, vt = np.linalg.svd(cov)
+    flip = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt)) or 1.0])
+    R = u @ flip @ vt
+    s = float(np.trace(np.diag(sv) @ flip) / (w @ np.sum(a * a, axis=1)))
+    return s, R, mu_d - s * R @ mu_s
+
+
+def compensate_rigid3d(xyz: np.ndarray, valid: np.ndarray, reference: int, rigid: np.ndarray, *,
+                       huber_px: float = 2.0, iterations: int = 5) -> dict[str, np.ndarray]:
+    """Per-frame 3D similarity of the rigid points to the reference frame, and the compensated
+    displacements of every point.
+
+    Parameters
+    ----------
+    xyz : (T, N, 3) float
+        Points per frame: x, y in px and the landmarker's depth z in px (module docstring).
+    valid : (T, N) bool
+        Point validity.
+    reference : int
+        The reference (neutral) frame; its rigid points must be valid.
+    rigid : (R,) int
+        Columns of the rigid points, ``R >= 3``.
+    huber_px : float
+        Huber threshold of the iteratively reweighted fit, px (rigid points that move, e.g. a
+        forehead point lifted by the brows, lose weight).
+    iterations : int
+        Reweighting passes.
+
+    Returns
+    -------
+    dict
+        ``d (T, N, 2)`` px, compensated displacements from the reference geometry;
+        ``R (T, 3, 3)``, ``s (T,)``, ``t (T, 3)`` px: reference -> frame; ``residual_px (T,)`` RMS
+        over the rigid points; ``frame_valid (T,)``: at least 3 valid rigid points (others are
+        held from the nearest solved frame, d invalid).
+    """
+    xyz = np.asarray(xyz, np.float64)
+    n_frames = len(xyz)
+    ref = xyz[reference]
+    R = np.repeat(np.eye(3)[None], n_frames, axis=0)
+    s, t = np.ones(n_frames), np.zeros((n_frames, 3))
+    residual = np.full(n_frames, np.nan)
+    solved = np.zeros(n_frames, bool)
+    for f in range(n_frames):
+        use = rigid[valid[f, rigid] & valid[reference, rigid]]
+        if len(use) < 3:
+            continue
+        weights = np.ones(len(use))
+        for _ in range(iterations + 1):
+            s[f], R[f], t[f] = similarity_3d(ref[use], xyz[f, use], weights)
+            r = np.linalg.norm(s[f] * ref[use] @ R[f].T + t[f] - xyz[f, use], axis=1)
+            weights = np.minimum(1.0, huber_px / np.maximum(r, 1e-9))
+        residual[f] = float(np.sqrt(np.mean(r**2)))
+        solved[f] = True
+    if not solved.any():
+        raise ValueError("no frame has 3 valid rigid points shared with the reference frame")
+    index = np.arange(n_frames)
+    nearest = np.flatnonzero(solved)[np.abs(index[:, None] - np.flatnonzero(solved)[None]).argmin(axis=1)]
+    R, s, t = R[nearest], s[nearest], t[nearest]
+    back = np.einsum("tnk,tkj->tnj", xyz - t[:, None], R) / s[:, None, None]
+    d = back[..., :2] - ref[None, :, :2]
+    return {"d": d, "R": R, "s": s, "t": t, "residual_px": residual, "frame_valid": solved}
+
+
+def euler_yaw_pitch_roll(R: np.ndarray) -> np.ndarray:
+    """``(T, 3, 3)`` rotations -> ``(T, 3)`` degrees (yaw, pitch, roll), ``R = Ry Rx Rz``."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(R).as_euler("YXZ", degrees=True)
+
+
+def expressiveness(blendshapes: np.ndarray, names: np.ndarray) -> np.ndarray:
+    """``(T, 52)`` blendshape scores -> ``(T,)``: the sum of the scores of the expression
+    blendshapes (all but ``_neutral`` and the gaze directions ``eyeLook*``)."""
+    keep = np.array([not str(n).startswith(_NOT_EXPRESSION) for n in names])
+    return np.asarray(blendshapes, np.float64)[:, keep].sum(axis=1)
+
+
+def choose_reference(blendshapes: np.ndarray, names: np.ndarray, matrix: np.ndarray, valid: np.ndarray, *,
+                     search_frames: int, degrees_weight: float = 0.05) -> int:
+    """The reference (neutral) frame: among the first ``search_frames`` valid frames, the one
+    minimizing ``expressiveness + degrees_weight * head angle``, the head angle being the
+    rotation angle (degrees) of the landmarker's facial transformation matrix ``(T, 4, 4)``
+    (so 20 degrees of turn weigh as much as one fully active blendshape).
+
+    Raises
+    ------
+    ValueError
+        No valid frame.
+    """
+    candidates = np.flatnonzero(valid)[:max(1, search_frames)]
+    if candidates.size == 0:
+        raise ValueError("no frame with a face to take as the reference")
+    angle = head_angle_deg(np.asarray(matrix, np.float64)[candidates, :3, :3])
+    cost = expressiveness(np.asarray(blendshapes)[candidates], names) + degrees_weight * angle
+    return int(candidates[np.argmin(cost)])
+
+
+def head_angle_deg(R: np.ndarray) -> np.ndarray:
+    """``(T, 3, 3)`` rotations (scaled rotations allowed) -> ``(T,)`` rotation angles, degrees."""
+    R = R / np.cbrt(np.linalg.det(R))[:, None, None]
+    cos = np.clip((np.trace(R, axis1=1, axis2=2) - 1) / 2, -1, 1)
+    return np.degrees(np.arccos(cos))
+
+
+class CompensateRigid3D(SequenceStage):
+    """``compensate.rigid3d``: head motion removed by 3D alignment of the landmarker's points to a
+    chosen reference frame (an extension of Sec. 12 for real footage)."""
+
+    name = "compensate.rigid3d"
+    version = "1"
+    doc = "reference (neutral) frame chosen from blendshapes and pose; 3D similarity of the rigid points; displacements, pose, 2D similarity"
+    inputs = {"points": "points", "landmarks": "landmarks"}
+    outputs = {"displacements": "displacements", "similarity": "similarity", "pose": "pose"}
+    params = (
+        Param("neutral_frame", int, -1, "the reference (neutral) frame; -1: chosen as the most frontal, least "
+              "expressive frame among the first search_frames"),
+        Param("search_frames", int, 125, "frames searched for the reference (from the first frame with a face)"),
+        Param("rigid_points", list, list(RIGID_POINTS), "layout points aligned in 3D (they move with the skull)"),
+        Param("huber_px", float, 2.0, "Huber threshold of the robust 3D fit, px"),
+        Param("warn_angle_deg", float, 12.0, "warn when the reference frame's head is turned more than this"),
+        Param("warn_expression", float, 1.0, "warn when the reference frame's expressiveness (sum of blendshapes) "
+              "exceeds this"),
+    )
+
+    def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
+        points, marks = inputs["points"], inputs["landmarks"]
+        if "z" not in points:
+            raise StageError(f"{self.name}: input 'points' carries no depth 'z' (use landmark points)")
+        xy = np.asarray(points["xy"], np.float64)
+        valid = np.asarray(points["valid"], bool)
+        names = np.asarray(points["names"])
+        n_frames = len(xy)
+        if len(marks["valid"]) != n_frames:
+            raise StageError(f"{self.name}: {n_frames} frames of points but {len(marks['valid'])} of landmarks")
+        frame_ok = np.asarray(marks["valid"], bool) & valid.any(axis=1)
+        reference = int(params["neutral_frame"])
+        if reference >= n_frames or (reference >= 0 and not frame_ok[reference]):
+            raise StageError(f"{self.name}: neutral_frame={reference}: the clip has {n_frames} frames and that "
+                             "frame must show the face")
+        try:
+            if reference < 0:
+                reference = choose_reference(marks["blendshapes"], marks["blendshape_names"], marks["matrix"],
+                                             frame_ok, search_frames=int(params["search_frames"]))
+            rigid = named_columns(names, tuple(params["rigid_points"]))
+            xyz = np.concatenate([xy, np.asarray(points["z"], np.float64)[..., None]], axis=-1)
+            fit = compensate_rigid3d(xyz, valid, reference, rigid, huber_px=float(params["huber_px"]))
+        except (KeyError, ValueError) as exc:
+            raise StageError(f"{self.name}: {exc}") from None
+        self._warn_reference(ctx, reference, marks, params)
+        frame_valid = fit["frame_valid"] & frame_ok
+        d_valid = valid & valid[reference][None] & frame_valid[:, None]
+        extra = {k: np.asarray(points[k]) for k in ("fps", "size") if k in points}
+        displacements = {"d": fit["d"], "valid": d_valid, "names": names, "neutral": xy[reference].copy(),
+                         "neutral_frame": np.array(reference), **extra}
+        planar = similarity_2d(xy, valid, xy[reference], rigid)
+        similarity = {"params": planar["params"], "residual_px": planar["residual_px"],
+                      "valid": planar["frame_valid"] & frame_ok}
+        from scipy.spatial.transform import Rotation
+
+        pose = {"R": fit["R"], "rvec": Rotation.from_matrix(fit["R"]).as_rotvec(), "tvec": fit["t"],
+                "scale": fit["s"], "reproj_err_px": fit["residual_px"], "valid": frame_valid,
+                "ypr_deg": euler_yaw_pitch_roll(fit["R"]), "neutral_frame": np.array(reference)}
+        return {"displacements": displacements, "similarity": similarity, "pose": pose}
+
+    def _warn_reference(self, ctx: Context, reference: int, marks: Mapping[str, np.ndarray],
+                        params: Mapping[str, Any]) -> None:
+        """One warning line when the reference frame is turned or expressive."""
+        angle = float(head_angle_deg(np.asarray(marks["matrix"], np.float64)[[reference], :3, :3])[0])
+        score = float(expressiveness(np.asarray(marks["blendshapes"])[[reference]], marks["blendshape_names"])[0])
+        ctx.log.info("%s: reference (neutral) frame %d: head turned %.1f deg, expressiveness %.2f",
+                     self.name, reference, angle, score)
+        if angle > float(params["warn_angle_deg"]) or score > float(params["warn_expression"]):
+            ctx.log.warning("%s: the reference (neutral) frame %d is not a frontal neutral face (head turned "
+                            "%.1f deg, expressiveness %.2f); set neutral_frame=N to choose one", self.name,
+                            reference, angle, score)
