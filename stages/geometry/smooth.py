@@ -1,8 +1,13 @@
-"""Temporal smoothing of feature point trajectories with a Gaussian kernel (paper Sec. 14.1: "the
-tracking result is very noisy, so we first smooth each feature point trajectory by using a
-Gaussian kernel").
+"""Temporal smoothing of feature point trajectories, two stages:
 
-The smoothing is a normalized convolution: each sample is weighted by the kernel times its
+- ``smooth.gaussian``: a Gaussian kernel (paper Sec. 14.1: "the tracking result is very noisy, so
+  we first smooth each feature point trajectory by using a Gaussian kernel");
+- ``smooth.one_euro``: the One Euro filter (Casiez, Roussel, Vogel, CHI 2012), a low-pass whose
+  cutoff rises with speed, run forward and backward. Short mouth openings (3-5 frames) lose
+  18-36% of their amplitude under the Gaussian of sigma 1.5 and under 5% here
+  (``scripts/bench_smoothing.py``).
+
+The Gaussian smoothing is a normalized convolution: each sample is weighted by the kernel times its
 validity, and the weighted sum is divided by the sum of the weights that were used, so an
 invalid sample contributes nothing and a gap is filled from its valid neighbours where they
 carry enough of the kernel's mass.
@@ -134,5 +139,172 @@ class GaussianSmooth(SequenceStage):
             bundle["xy"], bundle["valid"], sigma=sigma, truncate=float(params["truncate"]),
             min_support=float(params["min_support"]),
         )
+        bundle.update(xy=xy, valid=valid)
+        return {"points": bundle}
+
+
+def smoothing_factor(cutoff: np.ndarray | float, elapsed: np.ndarray | float) -> np.ndarray:
+    """The exponential smoothing factor of a first-order low-pass (One Euro filter, Casiez et al.
+    2012): ``alpha = 1 / (1 + tau / Te)`` with ``tau = 1 / (2 pi fc)``; cutoff ``fc`` in Hz,
+    sampling period ``Te`` in s, broadcast together."""
+    return 1.0 / (1.0 + 1.0 / (2.0 * np.pi * np.asarray(cutoff) * np.asarray(elapsed)))
+
+
+def one_euro_pass(values: np.ndarray, valid: np.ndarray, *, fps: float, min_cutoff: float, beta: float,
+                  d_cutoff: float) -> np.ndarray:
+    """One causal pass of the One Euro filter over time (axis 0), each column on its own.
+
+    For a valid sample ``x_i`` after the previous valid one (``Te`` seconds earlier), with the
+    previous estimate ``x^_{i-1}`` and derivative estimate ``dx^_{i-1}``:
+    ``dx_i = (x_i - x^_{i-1}) / Te``, ``dx^_i = dx^_{i-1} + alpha(d_cutoff) (dx_i - dx^_{i-1})``,
+    ``fc = min_cutoff + beta |dx^_i|``, ``x^_i = x^_{i-1} + alpha(fc) (x_i - x^_{i-1})``
+    (:func:`smoothing_factor`). The first valid sample of a column starts it (``x^ = x``,
+    ``dx^ = 0``). An invalid sample leaves the state as it was (it is neither read nor pulls the
+    estimate); its time adds to ``Te`` of the next valid sample.
+
+    Parameters
+    ----------
+    values : (T, M) float
+        Columns of samples, e.g. px.
+    valid : (T, M) bool
+        Which samples to use.
+    fps : float
+        Samples per second.
+    min_cutoff, beta, d_cutoff : float
+        Cutoff at rest (Hz), cutoff slope (Hz per unit/s), derivative cutoff (Hz).
+
+    Returns
+    -------
+    (T, M) float64
+        The estimate after each sample: held over invalid samples, NaN before a column's first
+        valid sample.
+    """
+    estimate = np.full(values.shape[1], np.nan)
+    slope = np.zeros(values.shape[1])
+    last = np.full(values.shape[1], np.nan)  # index of each column's last valid sample
+    out = np.empty(values.shape, dtype=np.float64)
+    for t in range(len(values)):
+        started = ~np.isnan(last)
+        step = valid[t] & started
+        elapsed = (t - last[step]) / fps
+        x = values[t, step]
+        slope[step] += smoothing_factor(d_cutoff, elapsed) * ((x - estimate[step]) / elapsed - slope[step])
+        cutoff = min_cutoff + beta * np.abs(slope[step])
+        estimate[step] += smoothing_factor(cutoff, elapsed) * (x - estimate[step])
+        first = valid[t] & ~started
+        estimate[first] = values[t, first]
+        last[valid[t]] = t
+        out[t] = estimate
+    return out
+
+
+def one_euro_smooth(
+    values: np.ndarray, valid: np.ndarray | None = None, *, fps: float, min_cutoff: float = 1.0,
+    beta: float = 1.0, d_cutoff: float = 3.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Smooth trajectories over time (axis 0) by a forward-backward One Euro filter.
+
+    The One Euro filter (Casiez, Roussel, Vogel, CHI 2012; :func:`one_euro_pass`) is a low-pass
+    whose cutoff rises with the filtered speed, ``fc = min_cutoff + beta |dx/dt|``: a resting
+    point is smoothed hard, a fast one (a mouth opening) passes with little loss. It runs once
+    forward over each coordinate of each point and once backward over that output, which cancels
+    most of the lag of one causal pass (zero-phase in the limit of a fixed cutoff). Measured on
+    the synthetic openings of ``scripts/bench_smoothing.py`` (0.3 / 1 px noise): one forward pass
+    with the same parameters lags, RMS error against the truth 0.32 / 0.87 px against 0.28 /
+    0.79; the mean of a forward and a backward pass, tuned to keep as much of a 10 px 3-frame
+    opening (beta 0.5), leaves 10-12% more jitter. The clip is continued past
+    both ends by odd reflection (:func:`odd_reflection`) over five time constants
+    ``1 / (2 pi min_cutoff)``, so a constant or linear motion near an end is not pulled and the
+    end samples stay close to where they were.
+
+    Parameters
+    ----------
+    values : (T, ...) float
+        Trajectories, e.g. points ``(T, N, 2)`` px.
+    valid : (T, ...) bool, optional
+        Mask with the leading axes of ``values`` (``(T, N)`` for points); if omitted, all valid.
+        An invalid sample does not enter the filter; it gets the value interpolated linearly in
+        time between the smoothed valid samples around it (held past the first or last).
+    fps : float
+        Frames per second of the clip (the filter's time base).
+    min_cutoff : float
+        Cutoff frequency at rest, Hz.
+    beta : float
+        Rise of the cutoff with speed, Hz per (px/s) for px values.
+    d_cutoff : float
+        Cutoff frequency of the speed estimate, Hz.
+
+    Returns
+    -------
+    smoothed : (T, ...) float64
+        Smoothed values; a trajectory without any valid sample keeps its input values.
+    valid_out : (T, ...) bool
+        The input mask (interpolated samples stay flagged invalid).
+
+    Raises
+    ------
+    ValueError
+        ``fps``, ``min_cutoff`` or ``d_cutoff`` not > 0, ``beta`` < 0, or a mask that does not
+        lead ``values``.
+    """
+    values = np.asarray(values, dtype=np.float64)
+    mask = np.ones(values.shape[:1], bool) if valid is None else np.asarray(valid, bool)
+    if values.shape[: mask.ndim] != mask.shape:
+        raise ValueError(f"valid shape {mask.shape} does not lead values shape {values.shape}")
+    for name, value in (("fps", fps), ("min_cutoff", min_cutoff), ("d_cutoff", d_cutoff)):
+        if not value > 0:
+            raise ValueError(f"{name} must be > 0, got {value}")
+    if not beta >= 0:
+        raise ValueError(f"beta must be >= 0, got {beta}")
+    if len(values) == 0:
+        return values.copy(), mask.copy()
+    pad = min(int(np.ceil(5.0 * fps / (2.0 * np.pi * min_cutoff))), len(values) - 1)
+    columns = values.reshape(len(values), -1)
+    column_mask = np.broadcast_to(mask.reshape(mask.shape + (1,) * (values.ndim - mask.ndim)),
+                                  values.shape).reshape(columns.shape)
+    ext, ext_mask = odd_reflection(columns, pad), reflection_mask(column_mask, pad)
+    options = dict(fps=fps, min_cutoff=min_cutoff, beta=beta, d_cutoff=d_cutoff)
+    forward = one_euro_pass(ext, ext_mask, **options)
+    smoothed = one_euro_pass(forward[::-1], ext_mask[::-1], **options)[::-1][pad: pad + len(values)]
+    frames = np.arange(len(values))
+    for m in np.flatnonzero(~column_mask.all(axis=0)):
+        keep = column_mask[:, m]
+        smoothed[:, m] = np.interp(frames, frames[keep], smoothed[keep, m]) if keep.any() else columns[:, m]
+    return smoothed.reshape(values.shape), mask.copy()
+
+
+class OneEuroSmooth(SequenceStage):
+    """``smooth.one_euro``: each trajectory of a ``points`` bundle smoothed by the forward-backward
+    One Euro filter (:func:`one_euro_smooth`); keeps short mouth openings that a Gaussian flattens.
+
+    The time base is the bundle's ``fps`` when it carries one, else the ``fps`` parameter.
+    Defaults (``scripts/bench_smoothing.py``, synthetic 3-5-frame raised-cosine openings of
+    10-40 px with 0.3-1 px white noise, 30 fps): at least 95% of a 10 px 3-frame opening kept,
+    and the frame-to-frame jitter roughly halved or better.
+    """
+
+    name = "smooth.one_euro"
+    version = "1"
+    doc = "One Euro smoothing of point trajectories (forward-backward, speed-adaptive cutoff, mask-aware)"
+    inputs = {"points": "points"}
+    outputs = {"points": "points"}
+    params = (
+        Param("min_cutoff", float, 1.0, "cutoff frequency of a resting point, Hz"),
+        Param("beta", float, 1.0, "rise of the cutoff with the point's speed, Hz per px/s"),
+        Param("d_cutoff", float, 3.0, "cutoff frequency of the speed estimate, Hz"),
+        Param("fps", float, 30.0, "frames per second when the points carry no 'fps'"),
+    )
+
+    def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
+        params = {p.name: p.default for p in self.params} | dict(params)
+        bundle = dict(inputs["points"])
+        fps = float(bundle["fps"]) if "fps" in bundle else float(params["fps"])
+        try:
+            xy, valid = one_euro_smooth(
+                bundle["xy"], bundle["valid"], fps=fps, min_cutoff=float(params["min_cutoff"]),
+                beta=float(params["beta"]), d_cutoff=float(params["d_cutoff"]),
+            )
+        except ValueError as exc:
+            raise StageError(f"{self.name}: {exc}") from None
         bundle.update(xy=xy, valid=valid)
         return {"points": bundle}
