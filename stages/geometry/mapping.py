@@ -8,14 +8,35 @@ linear part ``S`` of a normalization: the target geometry is ``y_i + S_i d_i``.
 
 ``mode``:
 
-- ``similarity`` (default): ``S = [[a, -b], [b, a]]`` of the least-squares similarity (eq. 8-9)
-  mapping the performer's neutral rigid points onto the target's: the face-size ratio and the
-  in-plane rotation between the two neutrals.
+- ``eyes_nose`` (default): ``S = [[a, -b], [b, a]]`` of the least-squares similarity (eq. 8-9)
+  mapping the performer's neutral :data:`NORMALIZATION_POINTS` onto the target's: the inner and
+  outer eye corners and the nose tip and base (endocanthion, exocanthion, pronasale, subnasale).
+  These are anatomical landmarks that a landmark mesh on a real face and the annotation of an
+  actor pack place alike; the nose points add the vertical extent (eye line to nose base) that the
+  eye corners alone lack. The face-size ratio and the in-plane rotation between the two neutrals.
+- ``similarity``: the same similarity fitted on the layout's rigid points (the paper's hairline
+  points and inner eye corners, Sec. 12.1). On a real face the hairline is a stand-in (a landmark
+  mesh has none; it is extrapolated and may sit lower than the target's), which inflated the
+  mapped motion x1.25-1.42 on real clips (a team-mate's measurement).
 - ``region``: the rotation of ``similarity`` with a scale per feature point set of the layout's
   hierarchy level 1 (Sec. 10): the RMS radius about their centroid of the set's points on the
   target's neutral over the same on the performer's. A point in several sets takes the mean of
   their scales; a point in none, or a set with fewer than 3 tracked points, the global scale.
 - ``none``: ``S = I``, displacements in px as they are.
+
+Two guards then keep the target's face plausible (:class:`ExpressionMap`):
+
+- ``range_limit: soft`` (default): each component of each mapped displacement ``S_i d_i`` is
+  passed through :func:`soft_limit` against the range the target pack's captured geometries
+  span about its neutral at that point (Sec. 10, 14: the 30-40 geometries that also train motion
+  propagation), saturating smoothly ``margin`` beyond it (a performer opening the mouth to 46% of
+  the eye distance where the pack spans -1 to 13% gets a widely open mouth, not a torn face);
+  ``none`` leaves the displacements alone.
+- the inner lips never cross (:func:`separate_lips`): where a mapped upper inner-lip point comes
+  below the lower one facing it (:data:`INNER_LIP_PAIRS`), both move apart by half the overlap
+  each, to touching (or to the target neutral's own slight overlap of closed lips). A
+  performer whose neutral frame has the mouth slightly open otherwise pushes the target's lips
+  through each other whenever they close more than in that frame.
 """
 
 from __future__ import annotations
@@ -29,7 +50,18 @@ from stages.actor_pack import load_pack
 from stages.geometry.compensate import fit_similarity
 from stages.geometry.subset import named_columns, rigid_columns
 
-MODES = ("similarity", "region", "none")
+MODES = ("eyes_nose", "similarity", "region", "none")
+RANGE_LIMITS = ("soft", "none")
+NORMALIZATION_POINTS = ("eye_l_0", "eye_l_6", "eye_r_0", "eye_r_6", "nose_tip", "nose_base")
+EYE_CORNERS = (("eye_l_0", "eye_l_6"), ("eye_r_0", "eye_r_6"))  # (inner, outer) of each eye
+# (upper, lower) inner-lip points facing each other: the layout's inner lip line runs 1-4 left to
+# right on the upper lip and 6-9 right to left on the lower one; 2 and 7 are the middles of the
+# two lips that the tracked subset carries.
+INNER_LIP_PAIRS = (
+    ("mouth_inner_1", "mouth_inner_9"), ("mouth_inner_2", "mouth_inner_8"),
+    ("mouth_inner_3", "mouth_inner_7"), ("mouth_inner_4", "mouth_inner_6"),
+    ("mouth_inner_2", "mouth_inner_7"),
+)
 
 
 def rms_radius(xy: np.ndarray) -> float:
@@ -37,18 +69,33 @@ def rms_radius(xy: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((xy - xy.mean(axis=0)) ** 2, axis=1))))
 
 
-def displacement_transforms(performer: np.ndarray, target: np.ndarray, rigid: np.ndarray, *,
-                            mode: str = "similarity", regions: Sequence[np.ndarray] = ()) -> np.ndarray:
+def reference_columns(names: np.ndarray, layout: Any, mode: str, *, stage: str) -> np.ndarray:
+    """Columns ``(R,)`` among the bundle's point ``names`` that the global similarity of ``mode``
+    is fitted on: the :data:`NORMALIZATION_POINTS` for ``eyes_nose``, the layout's rigid points
+    otherwise; a :class:`StageError` naming ``stage`` when fewer than 2 are there."""
+    if mode != "eyes_nose":
+        return rigid_columns(names, layout, at_least=2, stage=stage)
+    columns = named_columns(names, NORMALIZATION_POINTS)
+    if len(columns) < 2:
+        raise StageError(f"{stage}: mode eyes_nose needs at least 2 of the points {list(NORMALIZATION_POINTS)}; "
+                         f"the displacements carry {len(columns)}")
+    return columns
+
+
+def displacement_transforms(performer: np.ndarray, target: np.ndarray, reference: np.ndarray, *,
+                            mode: str = "eyes_nose", regions: Sequence[np.ndarray] = ()) -> np.ndarray:
     """The linear maps ``S_i (N, 2, 2)`` applied to each point's displacement.
 
     Parameters
     ----------
     performer, target : (N, 2) float
         The performer's and the target's neutral geometry of the same N points, px.
-    rigid : (R,) int
-        Columns of the rigid points (the global fit).
+    reference : (R,) int
+        Columns of the points the global similarity is fitted on (:func:`reference_columns`:
+        the normalization points for ``eyes_nose``, the rigid points for ``similarity`` and
+        ``region``).
     mode : str
-        ``similarity``, ``region`` or ``none`` (module docstring).
+        ``eyes_nose``, ``similarity``, ``region`` or ``none`` (module docstring).
     regions : sequence of (K,) int arrays
         Columns of each region (``region`` mode).
     """
@@ -57,7 +104,7 @@ def displacement_transforms(performer: np.ndarray, target: np.ndarray, rigid: np
         return np.broadcast_to(np.eye(2), (n, 2, 2)).copy()
     if mode not in MODES:
         raise ValueError(f"unknown mapping mode {mode!r}; expected one of {MODES}")
-    a, b, _, _ = fit_similarity(performer[rigid], target[rigid])
+    a, b, _, _ = fit_similarity(performer[reference], target[reference])
     scale = np.hypot(a, b)
     rotation = np.array([[a, -b], [b, a]]) / scale
     scales = np.full(n, scale)
@@ -77,27 +124,116 @@ def map_expression(d: np.ndarray, target: np.ndarray, transforms: np.ndarray) ->
     return target[None] + np.einsum("nij,tnj->tni", transforms, d)
 
 
+def eye_distance(xy: np.ndarray, names: Sequence[str]) -> float:
+    """Distance ``(N, 2) -> float`` px between the two eye centres, each the midpoint of the eye's
+    inner and outer corner (:data:`EYE_CORNERS`), found by point name."""
+    columns = named_columns(np.asarray(names), tuple(n for eye in EYE_CORNERS for n in eye))
+    if len(columns) != 4:
+        raise ValueError(f"the eye distance needs the points {[n for eye in EYE_CORNERS for n in eye]}; "
+                         f"found {len(columns)} of them")
+    centres = np.asarray(xy, dtype=np.float64)[columns].reshape(2, 2, 2).mean(axis=1)
+    return float(np.linalg.norm(centres[1] - centres[0]))
+
+
+def captured_range(captured: np.ndarray, neutral: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The range ``lo, hi (N, 2)`` px of each point's displacement over a pack's captured
+    geometries ``(K, N, 2)`` from its ``neutral (N, 2)``, widened to hold 0 (the neutral itself)."""
+    d = np.asarray(captured, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)[None]
+    return np.minimum(d.min(axis=0), 0.0), np.maximum(d.max(axis=0), 0.0)
+
+
+def soft_limit(u: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, margin: float) -> np.ndarray:
+    """Saturate values smoothly beyond a range, elementwise (shapes broadcast).
+
+    ``u`` on ``[lo, hi]`` is kept; above, ``hi + margin tanh((u - hi) / margin)``, and below,
+    ``lo - margin tanh((lo - u) / margin)``: continuous with slope 1 at the range's ends and never
+    more than ``margin`` beyond them. ``margin`` 0 clips to ``[lo, hi]``.
+    """
+    if not margin >= 0:
+        raise ValueError(f"margin must be >= 0, got {margin}")
+    u = np.asarray(u, dtype=np.float64)
+    if margin == 0:
+        return np.clip(u, lo, hi)
+    with np.errstate(invalid="ignore"):
+        above = hi + margin * np.tanh((u - hi) / margin)
+        below = lo - margin * np.tanh((lo - u) / margin)
+        return np.where(u > hi, above, np.where(u < lo, below, u))
+
+
+def separate_lips(xy: np.ndarray, valid: np.ndarray, neutral: np.ndarray,
+                  pairs: Sequence[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
+    """Keep upper inner-lip points above the lower ones facing them.
+
+    For each ``(upper, lower)`` column pair in order, the vertical gap ``y_lower - y_upper`` (px,
+    y down) is kept at or above ``min(0, gap on the neutral)``: 0, or the neutral's own slight
+    overlap of two touching lips, so that the neutral maps to itself. Where a frame's gap is
+    smaller, the upper point moves up and the lower one down by half the shortfall each. A move
+    only ever widens a gap, so a pair that was kept apart stays apart after the later ones.
+
+    Parameters
+    ----------
+    xy : (T, N, 2) float
+        Mapped geometry, px.
+    valid : (T, N) bool
+        A pair is guarded in the frames where both of its points are valid.
+    neutral : (N, 2) float
+        The geometry the mapping starts from (the target's neutral), px.
+    pairs : sequence of (upper, lower) int
+        Columns of facing points.
+
+    Returns
+    -------
+    xy : (T, N, 2) float64
+        The geometry with the pairs kept apart (a copy).
+    clamped : (T,) bool
+        Frames where some pair was moved.
+    """
+    xy = np.array(xy, dtype=np.float64)
+    clamped = np.zeros(len(xy), bool)
+    for upper, lower in pairs:
+        floor = min(0.0, float(neutral[lower, 1] - neutral[upper, 1]))
+        shortfall = floor - (xy[:, lower, 1] - xy[:, upper, 1])
+        move = valid[:, upper] & valid[:, lower] & (shortfall > 0)
+        xy[move, upper, 1] -= 0.5 * shortfall[move]
+        xy[move, lower, 1] += 0.5 * shortfall[move]
+        clamped |= move
+    return xy, clamped
+
+
 class ExpressionMap(SequenceStage):
     """``map.expression``: performer displacements -> target geometry of the tracked subset.
 
     The output covers the whole layout of the target's pack, as motion propagation (Sec. 10)
     expects: ``xy (T, N, 2)`` with the mapped tracked points valid and every other point at the
-    target's neutral position, flagged invalid (propagation infers it).
+    target's neutral position, flagged invalid (propagation infers it). Besides the ``points``
+    keys it carries ``range_limited (T,) bool`` (frames where a valid displacement lay more than
+    the margin outside the pack's captured range; always False with ``range_limit: none``) and
+    ``lips_clamped (T,) bool`` (frames where :func:`separate_lips` moved the inner lips apart);
+    both counts go to the log.
     """
 
     name = "map.expression"
-    version = "1"
-    doc = "carry compensated performer displacements onto the target's neutral (Sec. 11), size-normalized"
+    version = "2"
+    doc = "performer displacements onto the target's neutral (Sec. 11): size-normalized, range-limited, lips apart"
     inputs = {"displacements": "displacements", "pack": "dir"}
     outputs = {"points": "points"}
-    params = (Param("mode", str, "similarity", "displacement normalization (similarity | region | none)",
-                    choices=MODES),)
+    params = (
+        Param("mode", str, "eyes_nose", "displacement normalization (eyes_nose | similarity | region | none)",
+              choices=MODES),
+        Param("range_limit", str, "soft", "saturate displacements beyond the pack's captured range (soft | none)",
+              choices=RANGE_LIMITS),
+        Param("range_margin", float, 0.05,
+              "how far beyond the captured range a displacement may go, fraction of the target's eye distance"),
+    )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         params = {p.name: p.default for p in self.params} | dict(params)
         bundle = inputs["displacements"]
         if "neutral" not in bundle:
             raise StageError(f"{self.name}: the displacements carry no 'neutral' (the performer's neutral geometry)")
+        margin = float(params["range_margin"])
+        if not margin >= 0:
+            raise StageError(f"{self.name}: parameter range_margin must be >= 0, got {margin}")
         pack = load_pack(inputs["pack"])
         layout = pack.layout
         names = np.asarray(bundle["names"])
@@ -105,20 +241,40 @@ class ExpressionMap(SequenceStage):
             rows = [layout.index(str(n)) for n in names]
         except (KeyError, ValueError) as exc:
             raise StageError(f"{self.name}: point {exc} is not in the pack's layout {layout.name}") from None
-        rigid = rigid_columns(names, layout, at_least=2, stage=self.name)
+        reference = reference_columns(names, layout, params["mode"], stage=self.name)
         regions = [
             named_columns(names, tuple(layout.point_names[i] for i in fps.points))
             for fps in layout.feature_point_sets if fps.level == 1
         ]
-        target = np.asarray(pack.neutral.points, dtype=np.float64)[rows]
-        transforms = displacement_transforms(np.asarray(bundle["neutral"], dtype=np.float64), target, rigid,
+        neutral_all = np.asarray(pack.neutral.points, dtype=np.float64)
+        target = neutral_all[rows]
+        transforms = displacement_transforms(np.asarray(bundle["neutral"], dtype=np.float64), target, reference,
                                              mode=params["mode"], regions=regions)
-        mapped = map_expression(np.asarray(bundle["d"], dtype=np.float64), target, transforms)
-        n_frames = len(mapped)
-        xy = np.repeat(np.asarray(pack.neutral.points, dtype=np.float64)[None], n_frames, axis=0)
-        xy[:, rows] = mapped
+        valid_in = np.asarray(bundle["valid"], bool)
+        displacement = map_expression(np.asarray(bundle["d"], dtype=np.float64), target, transforms) - target[None]
+        n_frames = len(displacement)
+        limited = np.zeros(n_frames, bool)
+        captured = getattr(pack, "captured_points", None)
+        if params["range_limit"] == "soft" and captured is None:
+            ctx.log.warning(f"{self.name}: the pack carries no captured geometries; range limit off")
+        elif params["range_limit"] == "soft":
+            lo, hi = captured_range(captured, neutral_all)
+            lo, hi = lo[rows], hi[rows]
+            margin_px = margin * eye_distance(neutral_all, layout.point_names)
+            outside = (displacement > hi + margin_px) | (displacement < lo - margin_px)
+            limited = (outside.any(axis=2) & valid_in).any(axis=1)
+            displacement = soft_limit(displacement, lo, hi, margin=margin_px)
+        xy = np.repeat(neutral_all[None], n_frames, axis=0)
+        xy[:, rows] = target[None] + displacement
         valid = np.zeros((n_frames, layout.n_points), bool)
-        valid[:, rows] = np.asarray(bundle["valid"], bool)
-        out = {"xy": xy, "valid": valid, "names": np.array(layout.point_names)}
+        valid[:, rows] = valid_in
+        pairs = [(layout.index(u), layout.index(lw)) for u, lw in INNER_LIP_PAIRS
+                 if u in layout.point_names and lw in layout.point_names]
+        xy, clamped = separate_lips(xy, valid, neutral_all, pairs)
+        ctx.log.info(f"{self.name}: displacements beyond the pack's captured range (+{margin:g} eye distance) in "
+                     f"{int(limited.sum())} of {n_frames} frames ({params['range_limit']} limit); "
+                     f"inner lips kept apart in {int(clamped.sum())} frames")
+        out = {"xy": xy, "valid": valid, "names": np.array(layout.point_names),
+               "range_limited": limited, "lips_clamped": clamped}
         out.update({k: np.asarray(bundle[k]) for k in ("fps", "size") if k in bundle})
         return {"points": out}

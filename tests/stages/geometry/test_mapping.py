@@ -1,4 +1,5 @@
-"""Expression mapping's geometric step: displacements carried onto the target's neutral."""
+"""Expression mapping's geometric step: displacements carried onto the target's neutral, normalized on
+the eye corners and nose, limited to the pack's captured range, inner lips kept apart."""
 
 from __future__ import annotations
 
@@ -10,7 +11,10 @@ import pytest
 import stages.geometry.mapping
 from runner.stage import StageError
 from stages.geometry.compensate import apply_similarity
-from stages.geometry.mapping import ExpressionMap, displacement_transforms, map_expression
+from stages.geometry.mapping import (
+    NORMALIZATION_POINTS, ExpressionMap, captured_range, displacement_transforms, eye_distance, map_expression,
+    separate_lips, soft_limit,
+)
 from stages.layout import load_layout
 from tests.stages.geometry.synthetic import context
 
@@ -54,8 +58,7 @@ def test_stage_maps_onto_the_pack_neutral(tmp_path, monkeypatch):
     layout = load_layout("zhang134")
     rng = np.random.default_rng(2)
     target_all = rng.uniform(40, 200, (layout.n_points, 2))
-    monkeypatch.setattr(stages.geometry.mapping, "load_pack",
-                        lambda path: SimpleNamespace(layout=layout, neutral=SimpleNamespace(points=target_all)))
+    fake_pack(monkeypatch, layout, target_all)
     names = np.array([layout.point_names[i] for i in layout.tracked])
     target = target_all[list(layout.tracked)]
     performer = apply_similarity(np.array([1.5, 0.0, 10.0, 5.0]), target)
@@ -76,3 +79,145 @@ def test_stage_maps_onto_the_pack_neutral(tmp_path, monkeypatch):
     del bundle["neutral"]
     with pytest.raises(StageError, match="neutral"):
         ExpressionMap().run({"displacements": bundle, "pack": tmp_path}, {}, context(tmp_path))
+
+
+def fake_pack(monkeypatch, layout, neutral: np.ndarray, captured: np.ndarray | None = None) -> None:
+    """``load_pack`` answers a pack with this neutral and these captured geometries (default: the
+    neutral +- 1000 px, a range nothing leaves)."""
+    if captured is None:
+        captured = neutral[None] + np.array([-1000.0, 1000.0])[:, None, None]
+    pack = SimpleNamespace(layout=layout, neutral=SimpleNamespace(points=neutral), captured_points=captured)
+    monkeypatch.setattr(stages.geometry.mapping, "load_pack", lambda path: pack)
+
+
+def face(layout) -> np.ndarray:
+    """A frontal face ``(N, 2)``: eye centres 100 px apart at y = 100, nose tip (150, 160), nose base
+    (150, 175), hairline at y = 20, inner lips touching at y = 220; other points spread below."""
+    xy = np.column_stack([np.linspace(60, 240, layout.n_points), np.linspace(200, 300, layout.n_points)])
+    place = {"eye_l_0": (125, 100), "eye_l_6": (75, 100), "eye_r_0": (175, 100), "eye_r_6": (225, 100),
+             "nose_tip": (150, 160), "nose_base": (150, 175)}
+    place |= {f"hairline_{k}": (90 + 30 * k, 20) for k in range(5)}
+    place |= {f"mouth_inner_{k}": (120 + 12 * k, 220) for k in range(1, 5)}
+    place |= {f"mouth_inner_{k}": (240 - 12 * k, 220) for k in range(6, 10)}
+    for name, value in place.items():
+        xy[layout.index(name)] = value
+    return xy
+
+
+def test_eyes_nose_mode_ignores_a_low_stand_in_hairline(tmp_path, monkeypatch):
+    """The performer is the target at 1/1.5 the size, but its hairline points sit 20 px lower (a
+    landmark mesh's stand-in): the rigid fit inflates the motion, the eye-and-nose fit does not."""
+    layout = load_layout("zhang134")
+    target_all = face(layout)
+    fake_pack(monkeypatch, layout, target_all)
+    names = np.array([layout.point_names[i] for i in layout.tracked])
+    target = target_all[list(layout.tracked)]
+    performer = apply_similarity(np.array([1 / 1.5, 0.0, 40.0, 30.0]), target)
+    performer[[list(names).index(f"hairline_{k}") for k in range(5)], 1] += 20.0
+    d = np.random.default_rng(3).normal(0, 3.0, (3, len(names), 2))
+    bundle = {"d": d, "valid": np.ones((3, len(names)), bool), "names": names, "neutral": performer}
+    tracked = list(layout.tracked)
+    mapped = {mode: ExpressionMap().run({"displacements": bundle, "pack": tmp_path},
+                                        {"mode": mode, "range_limit": "none"}, context(tmp_path))["points"]
+              for mode in ("eyes_nose", "similarity")}
+    lips = [list(names).index(n) for n in ("mouth_inner_2", "mouth_inner_7")]
+    others = np.setdiff1d(np.arange(len(names)), lips)  # the lip guard may move the lips apart
+    np.testing.assert_allclose(mapped["eyes_nose"]["xy"][:, tracked][:, others], (target + 1.5 * d)[:, others],
+                               atol=1e-9)
+    inflated = np.linalg.norm(mapped["similarity"]["xy"][:, tracked] - target, axis=2).mean()
+    assert inflated > 1.1 * np.linalg.norm(1.5 * d, axis=2).mean()
+    del bundle["names"]
+    bundle["names"] = np.array([n for n in names if n not in NORMALIZATION_POINTS[1:]])
+    bundle["d"], bundle["neutral"] = d[:, : len(bundle["names"])], performer[: len(bundle["names"])]
+    bundle["valid"] = bundle["valid"][:, : len(bundle["names"])]
+    with pytest.raises(StageError, match="eyes_nose needs at least 2"):
+        ExpressionMap().run({"displacements": bundle, "pack": tmp_path}, {}, context(tmp_path))
+
+
+def test_soft_limit_by_hand():
+    lo, hi = np.array([-2.0]), np.array([5.0])
+    u = np.array([-5.0, -2.0, 3.0, 5.0, 9.0])
+    expected = [-2.0 - 2.0 * 0.9051482536448664, -2.0, 3.0, 5.0, 5.0 + 2.0 * 0.9640275800758169]
+    np.testing.assert_allclose(soft_limit(u, lo, hi, margin=2.0), expected, rtol=1e-12)
+    np.testing.assert_array_equal(soft_limit(u, lo, hi, margin=0.0), [-2.0, -2.0, 3.0, 5.0, 5.0])
+    assert soft_limit(np.array([1e6]), lo, hi, margin=2.0)[0] == pytest.approx(7.0)
+    with pytest.raises(ValueError, match="margin"):
+        soft_limit(u, lo, hi, margin=-1.0)
+    neutral = np.zeros((2, 2))
+    captured = np.array([[[1.0, 2.0], [-1.0, 0.5]], [[3.0, 1.0], [-2.0, 0.25]]])
+    low, high = captured_range(captured, neutral)
+    np.testing.assert_array_equal(low, [[0.0, 0.0], [-2.0, 0.0]])  # the neutral (0) is in every range
+    np.testing.assert_array_equal(high, [[3.0, 2.0], [0.0, 0.5]])
+
+
+def test_stage_range_limit_against_a_hand_computed_case(tmp_path, monkeypatch):
+    """The chin's captured vertical displacements span [-1, 4] px; the eye distance is 100 px, so a
+    margin of 0.05 is 5 px: 2 px stays, 12 px becomes 4 + 5 tanh(8 / 5), -10 px -1 - 5 tanh(9 / 5)."""
+    layout = load_layout("zhang134")
+    neutral = face(layout)
+    assert eye_distance(neutral, layout.point_names) == pytest.approx(100.0)
+    chin = layout.index("chin")
+    captured = np.repeat(neutral[None], 3, axis=0)
+    captured[0, chin, 1] += 4.0
+    captured[1, chin, 1] -= 1.0
+    fake_pack(monkeypatch, layout, neutral, captured)
+    names = np.array(["eye_l_0", "eye_r_0", "chin"])
+    d = np.zeros((4, 3, 2))
+    d[:, 2, 1] = [2.0, 12.0, -10.0, 8.0]  # 8 px: 4 beyond the range, inside the margin
+    bundle = {"d": d, "valid": np.ones((4, 3), bool), "names": names,
+              "neutral": neutral[[layout.index(n) for n in names]]}
+    out = ExpressionMap().run({"displacements": bundle, "pack": tmp_path}, {"mode": "none"},
+                              context(tmp_path))["points"]
+    expected = [2.0, 4.0 + 5.0 * np.tanh(8 / 5), -1.0 - 5.0 * np.tanh(9 / 5), 4.0 + 5.0 * np.tanh(4 / 5)]
+    np.testing.assert_allclose(out["xy"][:, chin, 1] - neutral[chin, 1], expected, rtol=1e-12)
+    np.testing.assert_array_equal(out["range_limited"], [False, True, True, False])
+    off = ExpressionMap().run({"displacements": bundle, "pack": tmp_path}, {"mode": "none", "range_limit": "none"},
+                              context(tmp_path))["points"]
+    np.testing.assert_allclose(off["xy"][:, chin, 1] - neutral[chin, 1], d[:, 2, 1])
+    assert not off["range_limited"].any()
+    with pytest.raises(StageError, match="range_margin"):
+        ExpressionMap().run({"displacements": bundle, "pack": tmp_path}, {"range_margin": -0.1}, context(tmp_path))
+
+
+def test_lips_of_a_performer_with_an_open_neutral_never_cross(tmp_path, monkeypatch):
+    """The performer's neutral frame has the mouth 6 px open; closing it fully (upper lip 4 px
+    down, lower 2 px up) would push the target's touching lips 6 px through each other: the guard
+    stops them where they touch on the target's neutral (its own 0.4 px overlap), each moved 3 px
+    back."""
+    layout = load_layout("zhang134")
+    neutral = face(layout)
+    upper, lower = layout.index("mouth_inner_3"), layout.index("mouth_inner_7")
+    neutral[lower, 1] -= 0.4  # the target's neutral lips overlap a little (annotation)
+    fake_pack(monkeypatch, layout, neutral)
+    names = np.array([layout.point_names[i] for i in layout.tracked] + ["mouth_inner_3"])
+    rows = [layout.index(n) for n in names]
+    d = np.zeros((3, len(names), 2))
+    up, low = list(names).index("mouth_inner_3"), list(names).index("mouth_inner_7")
+    d[1, up, 1], d[1, low, 1] = 4.0, -2.0  # closes: crosses by 6 px
+    d[2, up, 1], d[2, low, 1] = -2.0, 2.0  # opens: untouched
+    bundle = {"d": d, "valid": np.ones((3, len(names)), bool), "names": names, "neutral": neutral[rows]}
+    out = ExpressionMap().run({"displacements": bundle, "pack": tmp_path}, {}, context(tmp_path))["points"]
+    gap = out["xy"][:, lower, 1] - out["xy"][:, upper, 1]
+    np.testing.assert_allclose(gap, [-0.4, -0.4, 3.6], atol=1e-12)
+    np.testing.assert_allclose(out["xy"][1, [upper, lower], 1] - neutral[[upper, lower], 1], [1.0, 1.0], atol=1e-12)
+    np.testing.assert_array_equal(out["lips_clamped"], [False, True, False])
+    np.testing.assert_allclose(out["xy"][0, rows], neutral[rows], atol=1e-12)  # neutral maps to itself
+    bundle["valid"][1, low] = False  # an invalid partner: no guard, no count
+    out = ExpressionMap().run({"displacements": bundle, "pack": tmp_path}, {}, context(tmp_path))["points"]
+    assert not out["lips_clamped"].any()
+
+
+def test_separate_lips_keeps_every_pair_apart():
+    rng = np.random.default_rng(4)
+    neutral = np.zeros((4, 2))
+    xy = rng.normal(0, 3.0, (50, 4, 2))
+    pairs = [(0, 2), (1, 2), (1, 3)]  # upper 1 faces two lower points
+    out, clamped = separate_lips(xy, np.ones((50, 4), bool), neutral, pairs)
+    for upper, lower in pairs:
+        assert (out[:, lower, 1] - out[:, upper, 1] >= -1e-12).all()
+    crossed = np.zeros(50, bool)
+    for upper, lower in pairs:
+        crossed |= xy[:, lower, 1] < xy[:, upper, 1]
+    np.testing.assert_array_equal(clamped, crossed)
+    np.testing.assert_array_equal(out[:, :, 0], xy[:, :, 0])  # only vertical moves
+    np.testing.assert_array_equal(out[~crossed], xy[~crossed])
