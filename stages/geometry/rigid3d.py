@@ -30,6 +30,7 @@ import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
 from stages.geometry.compensate import compensate as similarity_2d
+from stages.geometry.signals import expression_signals
 from stages.geometry.subset import named_columns
 
 #: Points of the zhang134 layout that move with the skull: eye corners, nose bridge, forehead,
@@ -122,12 +123,17 @@ def compensate_rigid3d(xyz: np.ndarray, valid: np.ndarray, reference: int, rigid
         solved[f] = True
     if not solved.any():
         raise ValueError("no frame has 3 valid rigid points shared with the reference frame")
-    index = np.arange(n_frames)
-    nearest = np.flatnonzero(solved)[np.abs(index[:, None] - np.flatnonzero(solved)[None]).argmin(axis=1)]
+    nearest = nearest_valid(solved)
     R, s, t = R[nearest], s[nearest], t[nearest]
     back = np.einsum("tnk,tkj->tnj", xyz - t[:, None], R) / s[:, None, None]
     d = back[..., :2] - ref[None, :, :2]
     return {"d": d, "R": R, "s": s, "t": t, "residual_px": residual, "frame_valid": solved}
+
+
+def nearest_valid(valid: np.ndarray) -> np.ndarray:
+    """``(T,)`` bool -> ``(T,)`` int: each frame's nearest valid frame (itself when valid)."""
+    good = np.flatnonzero(valid)
+    return good[np.abs(np.arange(len(valid))[:, None] - good[None]).argmin(axis=1)]
 
 
 def euler_yaw_pitch_roll(R: np.ndarray) -> np.ndarray:
@@ -144,12 +150,20 @@ def expressiveness(blendshapes: np.ndarray, names: np.ndarray) -> np.ndarray:
     return np.asarray(blendshapes, np.float64)[:, keep].sum(axis=1)
 
 
-def choose_reference(blendshapes: np.ndarray, names: np.ndarray, matrix: np.ndarray, valid: np.ndarray, *,
-                     search_frames: int, degrees_weight: float = 0.05) -> int:
+def choose_reference(blendshapes: np.ndarray, names: np.ndarray, matrix: np.ndarray, mouth_open: np.ndarray,
+                     valid: np.ndarray, *, search_frames: int, degrees_weight: float = 0.05,
+                     mouth_weight: float = 10.0) -> int:
     """The reference (neutral) frame: among the first ``search_frames`` valid frames, the one
-    minimizing ``expressiveness + degrees_weight * head angle``, the head angle being the
-    rotation angle (degrees) of the landmarker's facial transformation matrix ``(T, 4, 4)``
-    (so 20 degrees of turn weigh as much as one fully active blendshape).
+    minimizing
+
+        expressiveness + degrees_weight * head angle + mouth_weight * max(mouth opening, 0)
+
+    with the head angle the rotation angle (degrees) of the landmarker's facial transformation
+    matrix ``(T, 4, 4)`` and the mouth opening the inner-lip gap in eye distances
+    (:func:`stages.geometry.signals.expression_signals`). With the defaults 20 degrees of turn,
+    one fully active blendshape and a gap of a tenth of the eye distance weigh the same: a
+    reference with the lips apart would push the target's lips through each other whenever the
+    performer closes more, and blendshapes barely register a small gap.
 
     Raises
     ------
@@ -160,8 +174,9 @@ def choose_reference(blendshapes: np.ndarray, names: np.ndarray, matrix: np.ndar
     if candidates.size == 0:
         raise ValueError("no frame with a face to take as the reference")
     angle = head_angle_deg(np.asarray(matrix, np.float64)[candidates, :3, :3])
-    cost = expressiveness(np.asarray(blendshapes)[candidates], names) + degrees_weight * angle
-    return int(candidates[np.argmin(cost)])
+    cost = (expressiveness(np.asarray(blendshapes)[candidates], names) + degrees_weight * angle
+            + mouth_weight * np.clip(np.asarray(mouth_open, np.float64)[candidates], 0, None))
+    return int(candidates[np.nanargmin(cost)])
 
 
 def head_angle_deg(R: np.ndarray) -> np.ndarray:
@@ -208,10 +223,14 @@ class CompensateRigid3D(SequenceStage):
                              "frame must show the face")
         try:
             if reference < 0:
-                reference = choose_reference(marks["blendshapes"], marks["blendshape_names"], marks["matrix"],
+                mouth = expression_signals(xy, names)["mouth_open"]
+                reference = choose_reference(marks["blendshapes"], marks["blendshape_names"], marks["matrix"], mouth,
                                              frame_ok, search_frames=int(params["search_frames"]))
             rigid = named_columns(names, tuple(params["rigid_points"]))
-            xyz = np.concatenate([xy, np.asarray(points["z"], np.float64)[..., None]], axis=-1)
+            # Frames without a face are held at the nearest frame with one (still flagged invalid).
+            held = nearest_valid(frame_ok)
+            xy = xy[held]
+            xyz = np.concatenate([xy, np.asarray(points["z"], np.float64)[held][..., None]], axis=-1)
             fit = compensate_rigid3d(xyz, valid, reference, rigid, huber_px=float(params["huber_px"]))
         except (KeyError, ValueError) as exc:
             raise StageError(f"{self.name}: {exc}") from None

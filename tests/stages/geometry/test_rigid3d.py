@@ -64,6 +64,9 @@ def test_choose_reference_prefers_frontal_neutral_frames():
     matrix = np.repeat(np.eye(4)[None], 4, axis=0)
     matrix[2, :3, :3] = Rotation.from_euler("Y", 30, degrees=True).as_matrix()
     valid = np.array([True, True, True, False])
-    assert choose_reference(shapes, names, matrix, valid, search_frames=10) == 1
-    assert choose_reference(shapes, names, matrix, valid, search_frames=1) == 0
+    closed = np.zeros(4)
+    assert choose_reference(shapes, names, matrix, closed, valid, search_frames=10) == 1
+    assert choose_reference(shapes, names, matrix, closed, valid, search_frames=1) == 0
+    lips_apart = np.array([0.2, 0.2, 0.0, 0.0])  # gaps the blendshapes missed
+    assert choose_reference(shapes, names, matrix, lips_apart, valid, search_frames=10) == 2
     np.testing.assert_allclose(head_angle_deg(2.0 * matrix[:, :3, :3]), [0, 0, 30, 0], atol=1e-4)

@@ -1,0 +1,248 @@
+"""Real faces: does the target follow a real performer? (`python scripts/bench.py real`)
+
+    python scripts/bench.py real [--json] [--work DIR] [--clip PATH ...] [--realtex-frames N]
+                                 [--realtex-seeds 1,2] [--no-realtex] [--no-clips]
+
+Two kinds of input:
+
+- **Real clips** (``--clip PATH``, repeatable; default every ``*.mp4`` of ``../shared/dev-clips/``
+  when that folder exists). No truth: the default ``pipeline.yaml`` is run on the clip with the
+  bundled target pack, and the output target geometry (``out/data/data.npz``, ``target_xy``) is
+  compared with the performer's geometry as the landmarker measured it (``tracked_xy``), through
+  the expression signals of :mod:`stages.geometry.signals` (each normalized by its own outer-eye
+  distance). Per clip (suffix ``_<clip file stem>``):
+  ``real_mouth_follow_r`` / ``real_mouth_amp_ratio`` (inner-lip gap: Pearson r, and standard
+  deviation of the target's over the performer's), ``real_brow_follow_r`` /
+  ``real_brow_amp_ratio`` (brow height above the eye line), ``real_target_jitter_px`` and
+  ``real_landmark_jitter_px`` (mean |second difference| over frames and points of the target
+  geometry and of the performer's landmarks, px of each), ``real_image_mouth_follow_r`` /
+  ``real_image_mouth_amp_ratio`` (the landmarker run on the rendered output frames, what a viewer
+  sees), ``real_pose_agree_r_{yaw,pitch,roll}`` (the pipeline's head rotation relative to its
+  reference frame vs the landmarker's facial transformation matrix, relative to the same frame),
+  ``real_pipeline_fps`` (whole pipeline, wall, start-up included), ``real_landmarker_fps`` (the
+  landmark stage alone, from the run's stage timings). Aggregates over the clips run:
+  ``real_mouth_follow_r_min``, ``real_mouth_amp_ratio_min`` / ``_max``, ``real_brow_follow_r_min``,
+  ``real_brow_amp_ratio_min`` / ``_max``, ``real_image_mouth_follow_r_min``. A contact sheet per
+  clip (performer | output at 6 frames across the clip) is written to
+  ``<work>/real/<stem>/sheet.png``.
+- **Real-texture clips** (``scripts/realface``: the astronaut photo of scikit-image moved with
+  known head pose and expression; truth exact). Per geometry method — ``landmarker`` (raw mesh
+  points), ``default`` (the pipeline's smoothed points) and ``correlation`` (the paper's NCC
+  tracker on the layout's tracked subset, started from the true first-frame points):
+  ``real_track_err_px_<method>`` mean over all points and frames, ``..._p95``, and per point
+  group (the layout's level-1 feature point sets) ``real_track_err_px_<method>_<group>``;
+  ``real_track_err_px`` is the default method's mean. ``real_pose_agree_r_{yaw,pitch,roll}``:
+  the pipeline's rotation relative to its reference frame vs the true one, Pearson r over
+  frames; ``real_pose_err_deg``: mean absolute angle error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+DEV_CLIPS = REPO.parent / "shared" / "dev-clips"
+BENCH = "real"
+SHEET_FRAMES = 6
+
+
+def row(metric: str, value: float, unit: str) -> dict[str, Any]:
+    return {"bench": BENCH, "metric": metric, "value": float(value), "unit": unit}
+
+
+def run_pipeline(clip: Path, work: Path, *extra: str) -> tuple[float, dict[str, float]]:
+    """Run ``pipeline.yaml`` on ``clip`` into ``work/out`` from an empty cache; return the wall
+    time (s) and each stage's own seconds (from ``--log-json``)."""
+    log = work / "log.jsonl"
+    log.unlink(missing_ok=True)
+    command = [sys.executable, "-c", "from runner.cli import main; main()", "run", str(REPO / "pipeline.yaml"),
+               "--in", str(clip), "--out", str(work / "out"), "--cache-dir", str(work / "cache"),
+               "--log-json", str(log), *extra]
+    start = time.perf_counter()
+    result = subprocess.run(command, cwd=REPO, env=dict(os.environ, PYTHONPATH=str(REPO)), capture_output=True,
+                            text=True)
+    elapsed = time.perf_counter() - start
+    if result.returncode != 0:
+        raise SystemExit(f"pipeline failed on {clip} ({result.returncode}): {result.stderr.strip()[-2000:]}")
+    seconds = {}
+    for line in log.read_text().splitlines():
+        event = json.loads(line)
+        if event.get("event") == "stage":
+            seconds[event["stage"]] = float(event.get("seconds", 0.0))
+    return elapsed, seconds
+
+
+def read_frames(path: Path) -> list[np.ndarray]:
+    """Every frame of a video as ``(H, W, 3)`` uint8 RGB (short clips only)."""
+    import av
+
+    with av.open(str(path)) as container:
+        return [frame.to_ndarray(format="rgb24") for frame in container.decode(video=0)]
+
+
+def landmark_layout_points(frames: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The landmarker on ``frames``: layout points ``(T, N, 2)``, face found ``(T,)``, and the
+    facial transformation matrices ``(T, 4, 4)``."""
+    from stages.landmarks.correspondence import layout_from_mesh, load_correspondence
+    from stages.landmarks.landmarker import Landmarker
+
+    meshes = []
+    with Landmarker() as landmarker:
+        for rgb in frames:
+            meshes.append(landmarker.detect(rgb))
+    xy = np.stack([m.xy for m in meshes])
+    return (layout_from_mesh(xy, load_correspondence("zhang134_mediapipe")), np.array([m.valid for m in meshes]),
+            np.stack([m.matrix for m in meshes]))
+
+
+def relative_ypr(R: np.ndarray, reference: int) -> np.ndarray:
+    """``(T, 3, 3)`` rotations -> ``(T, 3)`` yaw, pitch, roll (deg) of ``R[t] R[ref]^T``."""
+    from stages.geometry.rigid3d import euler_yaw_pitch_roll
+
+    R = R / np.cbrt(np.linalg.det(R))[:, None, None]
+    return euler_yaw_pitch_roll(R @ R[reference].T)
+
+
+def jitter(xy: np.ndarray) -> float:
+    """Mean |second difference| over frames and points, px."""
+    second = xy[2:] - 2 * xy[1:-1] + xy[:-2]
+    return float(np.nanmean(np.linalg.norm(second, axis=-1)))
+
+
+def contact_sheet(preview: Path, path: Path, count: int = SHEET_FRAMES) -> None:
+    """``count`` frames of the side-by-side preview (performer | output), evenly spaced, stacked
+    in two columns, written as PNG."""
+    import cv2
+
+    frames = read_frames(preview)
+    picks = [frames[i] for i in np.linspace(0, len(frames) - 1, count).round().astype(int)]
+    rows = [np.concatenate(picks[k:k + 2], axis=1) for k in range(0, count, 2)]
+    sheet = np.concatenate(rows, axis=0)
+    cv2.imwrite(str(path), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
+
+
+def clip_rows(clip: Path, work: Path) -> list[dict[str, Any]]:
+    """The follow, jitter, pose and speed rows of one real clip."""
+    from stages.geometry.signals import expression_signals, follow
+
+    work.mkdir(parents=True, exist_ok=True)
+    wall, seconds = run_pipeline(clip, work)
+    data = np.load(work / "out" / "data" / "data.npz")
+    names = [str(n) for n in data["target_names"]]
+    performer_xy, valid = data["tracked_xy"], data["tracked_valid"].all(axis=1)
+    target_xy = data["target_xy"]
+    frames = len(target_xy)
+    performer = expression_signals(performer_xy, names)
+    target = expression_signals(target_xy, names)
+    stem = clip.stem
+    rows = []
+    for signal, short in (("mouth_open", "mouth"), ("brow_raise", "brow")):
+        r, ratio = follow(performer[signal], target[signal], valid)
+        rows += [row(f"real_{short}_follow_r_{stem}", r, "r"), row(f"real_{short}_amp_ratio_{stem}", ratio, "ratio")]
+    rows += [row(f"real_target_jitter_px_{stem}", jitter(target_xy), "px"),
+             row(f"real_landmark_jitter_px_{stem}", jitter(performer_xy[valid]), "px")]
+    rendered, found, _ = landmark_layout_points(read_frames(work / "out" / "video" / "result.mp4"))
+    seen = expression_signals(rendered, names)
+    r, ratio = follow(performer["mouth_open"], seen["mouth_open"], valid & found)
+    rows += [row(f"real_image_mouth_follow_r_{stem}", r, "r"), row(f"real_image_mouth_amp_ratio_{stem}", ratio, "ratio")]
+    _, _, matrix = landmark_layout_points(read_frames(clip))
+    reference = int(data["pose_neutral_frame"])
+    ours, theirs = relative_ypr(data["pose_R"], reference), relative_ypr(matrix[:, :3, :3], reference)
+    for k, axis in enumerate(("yaw", "pitch", "roll")):
+        r, _ = follow(theirs[:, k], ours[:, k], valid)
+        rows.append(row(f"real_pose_agree_r_{axis}_{stem}", r, "r"))
+    rows += [row(f"real_pipeline_fps_{stem}", frames / wall, "frames/s"),
+             row(f"real_landmarker_fps_{stem}", frames / max(seconds.get("landmarks", np.nan), 1e-9), "frames/s"),
+             row(f"real_reference_frame_{stem}", reference, "frame")]
+    contact_sheet(work / "out" / "preview" / "preview.mp4", work / "sheet.png")
+    return rows
+
+
+def aggregate(rows: list[dict[str, Any]], stems: list[str]) -> list[dict[str, Any]]:
+    """The min / max rows over the clips run."""
+    value = {r["metric"]: r["value"] for r in rows}
+    out = []
+    for base, kinds in (("real_mouth_follow_r", ("min",)), ("real_mouth_amp_ratio", ("min", "max")),
+                        ("real_brow_follow_r", ("min",)), ("real_brow_amp_ratio", ("min", "max")),
+                        ("real_image_mouth_follow_r", ("min",))):
+        values = [value[f"{base}_{stem}"] for stem in stems]
+        for kind in kinds:
+            unit = "r" if base.endswith("_r") else "ratio"
+            out.append(row(f"{base}_{kind}", min(values) if kind == "min" else max(values), unit))
+    return out
+
+
+def realtex_rows(work: Path, frames: int, seeds: list[int]) -> list[dict[str, Any]]:
+    """Geometry and pose against truth on real-texture clips (astronaut photo, known motion)."""
+    from scripts.realface.clip import make_clip
+    from stages.geometry.signals import follow
+    from stages.geometry.track import track_points
+    from stages.landmarks.correspondence import layout_from_mesh, load_correspondence
+    from stages.layout import load_layout
+
+    layout = load_layout("zhang134")
+    correspondence = load_correspondence("zhang134_mediapipe")
+    groups = {s.name: np.array(s.points) for s in layout.feature_point_sets if s.level == 1}
+    tracked = np.array(layout.tracked)
+    errors: dict[str, list[np.ndarray]] = {"landmarker": [], "default": [], "correlation": [], "default_tracked": []}
+    truth_ypr, ours_ypr = [], []
+    for seed in seeds:
+        folder = work / f"realtex_{seed}"
+        clip, truth_path = make_clip(folder, frames=frames, seed=seed)
+        truth = np.load(truth_path)
+        true_xy = layout_from_mesh(truth["points"], correspondence)
+        run_pipeline(clip, folder)
+        data = np.load(folder / "out" / "data" / "data.npz")
+        errors["landmarker"].append(np.linalg.norm(data["tracked_xy"] - true_xy, axis=-1))
+        errors["default"].append(np.linalg.norm(data["smoothed_xy"] - true_xy, axis=-1))
+        errors["default_tracked"].append(errors["default"][-1][:, tracked])
+        tracks = track_points(read_frames(clip), true_xy[0, tracked], method="ncc")
+        errors["correlation"].append(np.linalg.norm(tracks.xy - true_xy[:, tracked], axis=-1))
+        reference = int(data["pose_neutral_frame"])
+        truth_ypr.append(relative_ypr(truth["R"], reference))
+        ours_ypr.append(relative_ypr(data["pose_R"], reference))
+    rows = []
+    for method in ("landmarker", "default", "correlation"):
+        err = np.concatenate(errors[method])
+        rows += [row(f"real_track_err_px_{method}", err.mean(), "px"),
+                 row(f"real_track_err_px_{method}_p95", np.percentile(err, 95), "px")]
+        if method != "correlation":
+            for name, cols in groups.items():
+                rows.append(row(f"real_track_err_px_{method}_{name}", err[:, cols].mean(), "px"))
+    rows.append(row("real_track_err_px_default_tracked_subset", np.concatenate(errors["default_tracked"]).mean(), "px"))
+    rows.append(row("real_track_err_px", np.concatenate(errors["default"]).mean(), "px"))
+    truth_ypr, ours_ypr = np.concatenate(truth_ypr), np.concatenate(ours_ypr)
+    for k, axis in enumerate(("yaw", "pitch", "roll")):
+        rows.append(row(f"real_pose_agree_r_{axis}", follow(truth_ypr[:, k], ours_ypr[:, k])[0], "r"))
+    rows.append(row("real_pose_err_deg", np.abs(ours_ypr - truth_ypr).mean(), "deg"))
+    return rows
+
+
+def run(args: argparse.Namespace) -> list[dict[str, Any]]:
+    parser = argparse.ArgumentParser(prog="bench.py real")
+    parser.add_argument("--clip", action="append", type=Path, default=[], help="a real clip (repeatable)")
+    parser.add_argument("--realtex-frames", type=int, default=150, help="frames of each real-texture clip")
+    parser.add_argument("--realtex-seeds", default="1,2", help="seeds of the real-texture clips")
+    parser.add_argument("--no-realtex", action="store_true", help="skip the real-texture clips")
+    parser.add_argument("--no-clips", action="store_true", help="skip the real clips")
+    options = parser.parse_args(args.extra)
+    work = Path(args.work) / BENCH
+    rows: list[dict[str, Any]] = []
+    if not options.no_realtex:
+        seeds = [int(s) for s in options.realtex_seeds.split(",") if s]
+        rows += realtex_rows(work, options.realtex_frames, seeds)
+    clips = options.clip or (sorted(DEV_CLIPS.glob("*.mp4")) if DEV_CLIPS.is_dir() else [])
+    if not options.no_clips and clips:
+        for clip in clips:
+            rows += clip_rows(clip, work / clip.stem)
+        rows += aggregate(rows, [c.stem for c in clips])
+    return rows
