@@ -202,7 +202,7 @@ class CompensateRigid3D(SequenceStage):
         Param("rigid_points", list, list(RIGID_POINTS), "layout points aligned in 3D (they move with the skull)"),
         Param("huber_px", float, 2.0, "Huber threshold of the robust 3D fit, px"),
         Param("warn_angle_deg", float, 12.0, "warn when the reference frame's head is turned more than this"),
-        Param("warn_expression", float, 1.0, "warn when the reference frame's expressiveness (sum of blendshapes) "
+        Param("warn_expression", float, 2.0, "warn when the reference frame's expressiveness (sum of blendshapes) "
               "exceeds this"),
     )
 
@@ -227,19 +227,23 @@ class CompensateRigid3D(SequenceStage):
                 reference = choose_reference(marks["blendshapes"], marks["blendshape_names"], marks["matrix"], mouth,
                                              frame_ok, search_frames=int(params["search_frames"]))
             rigid = named_columns(names, tuple(params["rigid_points"]))
-            # Frames without a face are held at the nearest frame with one (still flagged invalid).
+            # Frames without a face hold the nearest frame with one: the target keeps that expression
+            # (displacements valid, ``held`` True) while the points and pose stay flagged invalid.
             held = nearest_valid(frame_ok)
-            xy = xy[held]
+            xy, valid = xy[held], valid[held]
             xyz = np.concatenate([xy, np.asarray(points["z"], np.float64)[held][..., None]], axis=-1)
             fit = compensate_rigid3d(xyz, valid, reference, rigid, huber_px=float(params["huber_px"]))
         except (KeyError, ValueError) as exc:
             raise StageError(f"{self.name}: {exc}") from None
         self._warn_reference(ctx, reference, marks, params)
         frame_valid = fit["frame_valid"] & frame_ok
-        d_valid = valid & valid[reference][None] & frame_valid[:, None]
+        d_valid = valid & valid[reference][None] & fit["frame_valid"][:, None]
+        if (~frame_ok).any():
+            ctx.log.warning("%s: no face in %d of %d frames; each holds the expression of the nearest frame with "
+                            "one", self.name, int((~frame_ok).sum()), n_frames)
         extra = {k: np.asarray(points[k]) for k in ("fps", "size") if k in points}
         displacements = {"d": fit["d"], "valid": d_valid, "names": names, "neutral": xy[reference].copy(),
-                         "neutral_frame": np.array(reference), **extra}
+                         "neutral_frame": np.array(reference), "held": ~frame_ok, **extra}
         planar = similarity_2d(xy, valid, xy[reference], rigid)
         similarity = {"params": planar["params"], "residual_px": planar["residual_px"],
                       "valid": planar["frame_valid"] & frame_ok}

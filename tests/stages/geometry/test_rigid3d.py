@@ -70,3 +70,64 @@ def test_choose_reference_prefers_frontal_neutral_frames():
     lips_apart = np.array([0.2, 0.2, 0.0, 0.0])  # gaps the blendshapes missed
     assert choose_reference(shapes, names, matrix, lips_apart, valid, search_frames=10) == 2
     np.testing.assert_allclose(head_angle_deg(2.0 * matrix[:, :3, :3]), [0, 0, 30, 0], atol=1e-4)
+
+
+def _lower(ref, names):
+    from stages.geometry.rigid3d import RIGID_POINTS
+
+    return (ref[:, 1] > 200) & ~np.isin(names, RIGID_POINTS)
+
+
+def _bundles(n_frames=6):
+    """Points and landmarks bundles of a known head: frame k turned by 3k degrees of yaw; the
+    non-rigid points below y = 200 moved down by 2k px; frame 4 has no face."""
+    from stages.layout import load_layout
+
+    names = np.array(load_layout("zhang134").point_names)
+    rng = np.random.default_rng(1)
+    ref = np.c_[rng.uniform(100, 300, (len(names), 2)), rng.uniform(-40, 40, len(names))]
+    centre = ref.mean(0)
+    xyz, shapes = [], np.zeros((n_frames, 3), np.float32)
+    for k in range(n_frames):
+        R = Rotation.from_euler("Y", 3 * k, degrees=True).as_matrix()
+        moved = ref.copy()
+        moved[_lower(ref, names), 1] += 2 * k
+        xyz.append((moved - centre) @ R.T + centre)
+    xyz = np.stack(xyz)
+    face = np.ones(n_frames, bool)
+    face[4] = False
+    xyz[4] = np.nan
+    valid = np.repeat(face[:, None], len(names), axis=1)
+    points = {"xy": xyz[..., :2], "z": xyz[..., 2], "valid": valid, "names": names}
+    marks = {"valid": face, "blendshapes": shapes, "blendshape_names": np.array(["_neutral", "jawOpen", "browInnerUp"]),
+             "matrix": np.repeat(np.eye(4)[None], n_frames, axis=0)}
+    return points, marks, ref, names
+
+
+def test_stage_holds_frames_without_a_face_and_reports_the_reference():
+    from runner.stage import Context
+    from stages.geometry.rigid3d import CompensateRigid3D
+
+    points, marks, ref, names = _bundles()
+    stage = CompensateRigid3D()
+    params = {p.name: p.default for p in stage.params} | {"neutral_frame": 0}
+    out = stage.run({"points": points, "landmarks": marks}, params, Context(device="cpu", files_dir=None))
+    d = out["displacements"]
+    assert int(d["neutral_frame"]) == 0 and d["held"].tolist() == [False] * 4 + [True, False]
+    np.testing.assert_allclose(d["d"][4], d["d"][3])  # held from frame 3 (nearest; ties go earlier)
+    assert d["valid"][4].all() and not out["pose"]["valid"][4]
+    lower = _lower(ref, names)
+    np.testing.assert_allclose(d["d"][5][lower, 1], 10.0, atol=1e-6)
+    np.testing.assert_allclose(out["pose"]["ypr_deg"][5], [15, 0, 0], atol=1e-6)
+
+
+def test_stage_refuses_points_without_depth():
+    from runner.stage import Context, StageError
+    from stages.geometry.rigid3d import CompensateRigid3D
+
+    points, marks, _, _ = _bundles()
+    del points["z"]
+    stage = CompensateRigid3D()
+    with pytest.raises(StageError, match="no depth"):
+        stage.run({"points": points, "landmarks": marks}, {p.name: p.default for p in stage.params},
+                  Context(device="cpu", files_dir=None))
