@@ -122,16 +122,16 @@ class CacheStore:
         committed meanwhile by another process wins and ``tmp`` is dropped.
         """
         record = {**record, "key": key, "created": time.time(), "pid": os.getpid()}
-        (tmp / COMPLETE).write_text(json.dumps(record, indent=1, sort_keys=True))
+        try:
+            (tmp / COMPLETE).write_text(json.dumps(record, indent=1, sort_keys=True))
+        except OSError as exc:  # disk full: name the file
+            raise OSError(exc.errno, exc.strerror, str(tmp / COMPLETE)) from exc
         final = self.entry_path(key)
         final.parent.mkdir(parents=True, exist_ok=True)
-        if replace and final.exists():
-            old = self.tmp_dir / f"{key}.{os.getpid()}.{secrets.token_hex(4)}.old"
-            try:
-                os.replace(final, old)
-            except FileNotFoundError:
-                pass
-            shutil.rmtree(old, ignore_errors=True)
+        # Replace the entry when asked (--force) or when what is there is no complete entry (a
+        # folder whose completion record was damaged).
+        if final.exists() and (replace or self.lookup(key) is None):
+            self._remove_folder(key, final)
         try:
             os.replace(tmp, final)
         except OSError as exc:
@@ -240,7 +240,7 @@ class CacheStore:
             for entry in list(self.iter_entries()):
                 if entry.path.stat().st_mtime < limit:
                     counts["bytes"] += _size(entry.path)
-                    self._remove_entry(entry)
+                    self.discard(entry)
                     counts["entries"] += 1
         return counts
 
@@ -249,19 +249,23 @@ class CacheStore:
         counts = {"entries": 0, "bytes": 0}
         for entry in list(self.iter_entries()):
             counts["bytes"] += _size(entry.path)
-            self._remove_entry(entry)
+            self.discard(entry)
             counts["entries"] += 1
         counts["tmp"] = self.gc()["tmp"]
         if self.entries_dir.is_dir():
             shutil.rmtree(self.entries_dir, ignore_errors=True)
         return counts
 
-    def _remove_entry(self, entry: Entry) -> None:
-        """Rename the entry away first (so it vanishes atomically), then delete it."""
+    def discard(self, entry: Entry) -> None:
+        """Remove an entry (damaged, or collected): rename it away first, so that it vanishes
+        atomically, then delete it."""
+        self._remove_folder(entry.key, entry.path)
+
+    def _remove_folder(self, key: str, path: Path) -> None:
         self.tmp_dir.mkdir(parents=True, exist_ok=True)
-        gone = self.tmp_dir / f"{entry.key}.{os.getpid()}.{secrets.token_hex(4)}.old"
+        gone = self.tmp_dir / f"{key}.{os.getpid()}.{secrets.token_hex(4)}.old"
         try:
-            os.replace(entry.path, gone)
+            os.replace(path, gone)
         except OSError:
             return
         shutil.rmtree(gone, ignore_errors=True)

@@ -17,6 +17,7 @@ from runner.cache import DEFAULT_DIR, ENV_VAR, CacheStore, default_cache_dir, ho
 from runner.config import ConfigError, Issue, Where, bind_inputs, load_pipeline
 from runner.dag import to_dot, to_mermaid
 from runner.execute import Options, Runner, StageFailed, resolve_device
+from runner.publish import remove_leftovers
 from runner.registry import Registry, RegistryError
 from runner.stage import FrameStage
 
@@ -77,7 +78,8 @@ def run(pipeline: Path, clip: Path | None, named: tuple[str, ...], out: Path, dr
 
     options = Options(cache=CacheStore(cache_dir or default_cache_dir()), device=resolved, jobs=jobs,
                       force=frozenset(force), until=until, dry_run=dry_run, out=out,
-                      progress=sys.stderr.isatty(), log=log, echo=click.echo)
+                      progress=sys.stderr.isatty(), log=log, echo=click.echo,
+                      warn=lambda line: click.echo(line, err=True))
     if dry_run:
         click.echo(f"dry run of {pipeline}: nothing is run")
     started = time.perf_counter()
@@ -124,8 +126,10 @@ def stages() -> int:
         for port, kind in cls.outputs.items():
             click.echo(f"    out  {port}: {kind}")
         for p in cls.params:
-            choices = f" one of {', '.join(map(repr, p.choices))};" if p.choices else ""
-            click.echo(f"    param {p.name}: {p.type.__name__} = {p.default!r} —{choices} {p.help}")
+            allowed = f" one of {', '.join(map(repr, p.choices))};" if p.choices else ""
+            if p.min is not None or p.max is not None:
+                allowed += f" {'' if p.min is None else f'{p.min} <= '}{p.name}{'' if p.max is None else f' <= {p.max}'};"
+            click.echo(f"    param {p.name}: {p.type.__name__} = {p.default!r} —{allowed} {p.help}")
     return EXIT_OK
 
 
@@ -159,14 +163,17 @@ def cache_ls(cache_dir: Path | None) -> int:
 @cache.command("gc")
 @click.option("--older-than", type=click.FloatRange(min=0), metavar="DAYS",
               help="Also remove entries not used for DAYS days.")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("out"), show_default=True,
+              help="An output folder whose leftovers of killed publishes (.STAGE.PID.tmp/.old) are removed.")
 @cache_dir_option
-def cache_gc(older_than: float | None, cache_dir: Path | None) -> int:
-    """Remove leftovers of dead runs (temporary folders, stale locks) and, with --older-than,
-    entries not used recently."""
+def cache_gc(older_than: float | None, out: Path, cache_dir: Path | None) -> int:
+    """Remove leftovers of dead runs (temporary folders, stale locks, half-published output
+    folders) and, with --older-than, entries not used recently."""
     store = CacheStore(cache_dir or default_cache_dir())
     counts = store.gc(older_than_s=None if older_than is None else older_than * 86400)
+    published = remove_leftovers(out)
     click.echo(f"removed {counts['entries']} entries, {counts['tmp']} temporary folders, {counts['locks']} stale locks "
-               f"({counts['bytes'] / 1e6:.2f} MB)")
+               f"({counts['bytes'] / 1e6:.2f} MB), {published} leftover output folders in {out}")
     return EXIT_OK
 
 

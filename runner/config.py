@@ -20,13 +20,13 @@ Schema
         params: {codec: h264, crf: 18}
         inputs: {frames: gray.frames}
 
-The file is read with ``yaml.compose`` (SafeLoader) so that each node keeps its position;
-values are built with the safe constructor only.
+The file is read with :func:`runner.safe_yaml.compose` (the safe loader without aliases or
+unknown tags) so that each node keeps its position; values are built with the safe constructor
+only.
 """
 
 from __future__ import annotations
 
-import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +34,7 @@ from typing import Any
 
 import yaml
 
+from runner import safe_yaml
 from runner.dag import CycleError, topological_order
 from runner.registry import Registry, RegistryError, value_has_type
 from runner.stage import FrameStage, Param, Stage
@@ -200,11 +201,11 @@ def load_pipeline(path: Path, registry: Registry, *, overrides: list[str] = ()) 
     except OSError as exc:
         raise ConfigError([Issue(Where(shown), "file", f"cannot read: {exc.strerror}")]) from None
     try:
-        root = yaml.compose(text, Loader=yaml.SafeLoader)
-    except yaml.MarkedYAMLError as exc:
-        mark = exc.problem_mark or exc.context_mark
+        root = safe_yaml.compose(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
         where = Where(shown, mark.line + 1, mark.column + 1) if mark else Where(shown)
-        raise ConfigError([Issue(where, "yaml", f"{exc.problem or exc.context}")]) from None
+        raise ConfigError([Issue(where, "yaml", safe_yaml.error_message(exc))]) from None
     r = _Reader(shown)
     if root is None:
         raise ConfigError([Issue(Where(shown), "stages", "empty pipeline file")])
@@ -337,11 +338,7 @@ def _read_stages(r: _Reader, node: yaml.Node, registry: Registry, inputs: dict[s
 def _param_problem(param: Param, value: Any) -> str | None:
     if not value_has_type(value, param.type):
         return f"wrong type: expected {param.type.__name__}, got {type(value).__name__} {value!r}"
-    if param.choices is not None and value not in param.choices:
-        return f"wrong value: expected one of {', '.join(map(repr, param.choices))}, got {value!r}"
-    if isinstance(value, float) and not math.isfinite(value):
-        return f"wrong value: expected a finite number, got {value!r}"
-    return None
+    return param.problem(value)
 
 
 def _parse_typed(text: str, kind: type) -> Any:
@@ -354,7 +351,7 @@ def _parse_typed(text: str, kind: type) -> Any:
             raise ValueError(text)
         return words[text.lower()]
     if kind is list:
-        value = yaml.safe_load(text)
+        value = safe_yaml.load(text)
         if not isinstance(value, list):
             raise ValueError(text)
         return value

@@ -92,3 +92,12 @@ def tree_digest(folder: Path) -> str:
 def combine(parts: list[str]) -> str:
     """One digest for an ordered list of digests (a frame stream from its chunks)."""
     return cache_key(parts)
+
+
+def input_digest(kind: str, path: Path) -> str:
+    """Digest of a pipeline input of type ``video``, ``file`` (the file's bytes) or ``dir``
+    (:func:`tree_digest`), with the name's suffix: a stage may parse a file by its suffix
+    (``init.csv`` and ``init.json`` with the same bytes are different inputs)."""
+    path = Path(path)
+    content = tree_digest(path) if kind == "dir" else file_digest(path)
+    return cache_key({"kind": kind, "suffix": path.suffix, "content": content})

@@ -31,13 +31,12 @@ the whole stream and looks its entry up first. See :meth:`Runner._read_while_com
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import importlib.metadata
 import json
 import logging
 import os
-import shutil
-import socket
 import sys
 import threading
 import time
@@ -45,20 +44,25 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from tqdm import tqdm
 
-from runner.cache import CacheStore, Entry, holder_is_stale
-from runner.config import Pipeline, StageNode
-from runner.digest import array_digest, bundle_digest, cache_key, combine, file_digest, library_versions, tree_digest
+from runner.cache import CacheStore, Entry
+from runner.config import ConfigError, Issue, Pipeline, StageNode, Where
+from runner.depends import recording
+from runner.digest import cache_key, combine, file_digest, input_digest, library_versions
+from runner.outputs import Damaged, check_frames, load_bundle, load_frames, load_mapped, save_outputs, verify_files
+from runner.publish import Published, conflicts, publish, remove_leftovers
 from runner.stage import Context, FrameStage, StageError, StreamInfo
-from runner.streams import CachedStream, ChunkedStream, ComputedStream, chunk_ranges
+from runner.streams import ChunkedStream, ComputedStream, StoredStream, chunk_ranges
 
-BUNDLE_FILE = "{port}.npz"
-FRAMES_FILE = "{port}.npy"
-MANIFEST = "manifest.json"
+if TYPE_CHECKING:
+    from tqdm import tqdm
+
+# Part of every key: entries stored by an older layout of the cache (no sha256 per data file)
+# are never looked up.
+CACHE_FORMAT = 2
 
 
 class StageFailed(Exception):
@@ -81,6 +85,7 @@ class Options:
     progress: bool = False
     log: Callable[[dict[str, Any]], None] = lambda event: None
     echo: Callable[[str], None] = lambda line: None
+    warn: Callable[[str], None] = lambda line: None  # one line on stderr (a damaged cache entry)
 
 
 @dataclass
@@ -188,9 +193,11 @@ class Runner:
         self.values: dict[tuple[str | None, str], Value] = {}
         for name, path in bound.items():
             kind = pipeline.inputs[name].type
-            digest = file_digest(path) if kind in ("video", "file") else tree_digest(path)
-            self.values[(None, name)] = Value(kind, digest, load=lambda p=path: Path(p))
-        self.entries: dict[str, list[Entry]] = {}
+            self.values[(None, name)] = Value(kind, input_digest(kind, path), load=lambda p=path: Path(p))
+        self.entries: dict[str, list[Entry]] = {}  # per stage, its entries (one per chunk of a frame stage)
+        self.redo: dict[str, Callable[[int], Entry]] = {}  # per stage, recompute its entry i (found damaged)
+        self._file_digests: dict[Path, str | None] = {}  # files recorded by runner.depends, hashed this run
+        self._stale: dict[str, str] = {}  # per stage, why a stored entry was stale (dry-run reason)
         self.memo_dir = self.store.root / "runs"
         self.current: str | None = None  # the stage whose turn it is
         self._lazy: list[FrameChunks] = []  # lazy frame stages not reported yet
@@ -200,6 +207,23 @@ class Runner:
         return [node for name, node in self.pipeline.stages.items() if name in names]
 
     def run(self) -> list[Report]:
+        """Run (or plan) every selected stage, then publish.
+
+        Raises
+        ------
+        ConfigError
+            ``--out`` holds something at a stage's folder that no earlier publish wrote
+            (checked before anything runs).
+        StageFailed
+            A stage failed, or writing the cache or ``--out`` failed (disk full: the message
+            names the stage and the file).
+        """
+        publishing = [node for node in self.selected() if "files" in node.cls.outputs.values()]
+        if not self.opts.dry_run and self.opts.out is not None:
+            problems = conflicts(self.opts.out, [node.name for node in publishing])
+            if problems:
+                raise ConfigError([Issue(Where("--out"), str(self.opts.out), p) for p in problems])
+            remove_leftovers(self.opts.out)
         reports: list[Report] = []
 
         def emit(report: Report) -> None:
@@ -212,14 +236,11 @@ class Runner:
                 self.current = node.name
                 self.opts.log({"event": "stage_start", "stage": node.name, "uses": node.uses})
                 spent: list[float] = []
-                try:
-                    with _own_time(spent.append):
-                        if issubclass(node.cls, FrameStage):
-                            report = self._frame_stage(node)
-                        else:
-                            report = self._sequence_stage(node)
-                except StageError as exc:
-                    raise StageFailed(node, exc) from exc
+                with _own_time(spent.append), _stage_errors(node):
+                    if issubclass(node.cls, FrameStage):
+                        report = self._frame_stage(node)
+                    else:
+                        report = self._sequence_stage(node)
                 for finished in self._finished_lazy():
                     emit(finished)
                 if report is not None:  # None: a lazy frame stage, reported once resolved
@@ -234,12 +255,31 @@ class Runner:
             for chunks in self._lazy:
                 chunks.close()
         if not self.opts.dry_run and self.opts.out is not None:
-            for node in self.selected():
-                try:
-                    self._publish(node)
-                except StageError as exc:
-                    raise StageFailed(node, exc) from exc
+            for node in publishing:
+                ports = [p for p, kind in node.cls.outputs.items() if kind == "files"]
+                if self.entries.get(node.name):
+                    item = Published(node.name, node.uses, ports, self.entries[node.name], self.redo[node.name])
+                    with _stage_errors(node):
+                        publish(self.opts.out, item, on_damaged=lambda exc, n=node: self.damaged(n, exc))
         return reports
+
+    def damaged(self, node: StageNode, exc: Damaged) -> None:
+        """Report a damaged cache file (one line on stderr, a ``damaged`` event); the caller
+        recomputes its entry."""
+        self.opts.warn(f"warning: stage {node.name!r}: damaged cache entry ({exc}); recomputing it")
+        self.opts.log({"event": "damaged", "stage": node.name, "file": str(exc.path)})
+
+    def read_stored(self, node: StageNode, index: int, read: Callable[[Entry], Any]) -> Any:
+        """``read(entry)`` of the stage's entry ``index``; if that raises :class:`Damaged`, the
+        entry is reported, recomputed and read again."""
+        try:
+            return read(self.entries[node.name][index])
+        except Damaged as exc:
+            self.damaged(node, exc)
+        try:
+            return read(self.redo[node.name](index))
+        except Damaged as exc:
+            raise StageFailed(node, StageError(f"cache entry damaged again right after it was computed: {exc}")) from None
 
     def _finished_lazy(self) -> list[Report]:
         """Reports of the lazy frame stages whose chunks are now all resolved."""
@@ -262,6 +302,7 @@ class Runner:
     def _material(self, node: StageNode, digests: dict[str, str]) -> dict[str, Any]:
         schema = {p.name: p for p in node.cls.params}
         material = {
+            "cache_format": CACHE_FORMAT,
             "stage": node.uses,
             "version": node.cls.version,
             "params": {k: v for k, v in node.params.items() if k not in schema or schema[k].in_key},
@@ -300,7 +341,37 @@ class Runner:
         tmp.write_text(json.dumps(material, sort_keys=True))
         os.replace(tmp, path)
 
+    def lookup(self, node: StageNode, key: str) -> Entry | None:
+        """The complete entry for ``key`` if the files it recorded (:mod:`runner.depends`)
+        are unchanged; a stale entry is removed (kept in a dry run) and None returned."""
+        entry = self.store.lookup(key)
+        if entry is None:
+            return None
+        recorded = entry.record.get("depends", {})
+        changed = [path for path, sha256 in recorded.items() if self._file_sha256(Path(path)) != sha256]
+        if not changed:
+            return entry
+        self._stale[node.name] = f"file {changed[0]} changed"
+        if not self.opts.dry_run:
+            self.store.discard(entry)
+        return None
+
+    def depends_digests(self, files: set[Path]) -> dict[str, str | None]:
+        """``{path: sha256}`` of the files a computation recorded (None: missing)."""
+        return {str(path): self._file_sha256(path) for path in sorted(files)}
+
+    def _file_sha256(self, path: Path) -> str | None:
+        """sha256 of a recorded file, hashed once per run."""
+        if path not in self._file_digests:
+            try:
+                self._file_digests[path] = file_digest(path)
+            except OSError:
+                self._file_digests[path] = None
+        return self._file_digests[path]
+
     def _why(self, node: StageNode, material: dict[str, Any]) -> str:
+        if node.name in self._stale:
+            return self._stale[node.name]
         old = self._memo(node)
         if old is None:
             return "never run with this configuration"
@@ -338,17 +409,17 @@ class Runner:
                 self._set_unknown(node)
                 return Report(node.name, node.uses, "may run", _after(unknown))
             material = self._material(node, self._digests(inputs))
-            entry = None if forced else self.store.lookup(cache_key(material))
+            entry = None if forced else self.lookup(node, cache_key(material))
             if entry is None:
                 self._set_unknown(node)
                 return Report(node.name, node.uses, "will run", "forced (--force)" if forced else self._why(node, material))
-            self._set_outputs(node, entry)
+            self._set_outputs(node, entry, inputs)
             return Report(node.name, node.uses, "cached", "cache hit")
         report = Report(node.name, node.uses, "cached")
         pending = {port: v for port, v in inputs.items() if v.resolved_digest(compute=False) is None}
         streaming = bool(pending) and (forced or self._read_while_computed(node, pending))
         key = None if streaming else cache_key(self._material(node, self._digests(inputs)))
-        entry = None if forced or key is None else self.store.lookup(key)
+        entry = None if forced or key is None else self.lookup(node, key)
         if entry is None:
             entry, ran = self._run_sequence(node, inputs, key, forced)
             report.status = "ran" if ran else "cached"
@@ -359,7 +430,7 @@ class Runner:
         streams = {port: v.chunks.digests(v.port, 0, len(v.chunks.ranges) - 1)
                    for port, v in inputs.items() if v.chunks is not None and v.type == "frames"}
         self._remember(node, {**self._material(node, self._digests(inputs)), "input_chunks": streams})
-        self._set_outputs(node, entry)
+        self._set_outputs(node, entry, inputs)
         return report
 
     def _read_while_computed(self, node: StageNode, pending: dict[str, Value]) -> bool:
@@ -390,17 +461,18 @@ class Runner:
         frames = next((v.info.frames for v in inputs.values() if v.info is not None), None)
         lock = contextlib.nullcontext() if key is None else self.store.locked(key, on_wait=self._waiting(node))
         with self._bar(node, frames) as bar, lock:
-            entry = None if forced or key is None else self.store.lookup(key)
+            entry = None if forced or key is None else self.lookup(node, key)
             if entry is not None:
                 return entry, False
             with self.store.writing(key or f"pending-{node.name}") as tmp:
                 values = {port: v.get() for port, v in inputs.items()}
-                result = node.cls().run(values, dict(node.params), self._context(tmp, bar.update))
-                record = _save_outputs(node, result, tmp, frames=None)
+                with recording(set()) as files:
+                    result = node.cls().run(values, dict(node.params), self._context(tmp, bar.update))
+                record = save_outputs(node.cls.outputs, result, tmp, frames=None)
                 if key is None:
                     key = cache_key(self._material(node, self._digests(inputs)))
-                return self.store.commit(key, tmp, {"stage": node.name, "uses": node.uses, **record},
-                                         replace=forced), True
+                return self.store.commit(key, tmp, {"stage": node.name, "uses": node.uses, **record,
+                                                    "depends": self.depends_digests(files)}, replace=forced), True
 
     # -- frame stages ----------------------------------------------------------------------
 
@@ -494,65 +566,22 @@ class Runner:
         for port, kind in node.cls.outputs.items():
             self.values[(node.name, port)] = Value(kind, None)
 
-    def _set_outputs(self, node: StageNode, entry: Entry) -> None:
-        """Publish a sequence stage's cached outputs to downstream stages (loaded when read)."""
+    def _set_outputs(self, node: StageNode, entry: Entry, inputs: dict[str, Value]) -> None:
+        """Hand a sequence stage's stored outputs to downstream stages (read, verified, when
+        first needed; a damaged entry is recomputed from ``inputs``)."""
         self.entries[node.name] = [entry]
-        for port, kind in node.cls.outputs.items():
-            path = entry.path / entry.record["outputs"][port]["file"]
-            load = (lambda p=path: p) if kind == "files" else (lambda p=path: _load_bundle([p]))
-            self.values[(node.name, port)] = Value(kind, entry.record["outputs"][port]["digest"], load)
 
-    def _publish(self, node: StageNode) -> None:
-        """Copy a stage's ``files`` outputs to ``--out/<stage>/`` (one port) or
-        ``--out/<stage>/<port>/`` (several), writing ``manifest.json`` last and moving the
-        folder into place whole, so a partial output folder never looks complete."""
-        ports = [p for p, kind in node.cls.outputs.items() if kind == "files"]
-        entries = self.entries.get(node.name)
-        if not ports or not entries:
-            return
-        out = Path(self.opts.out)
-        final = out / node.name
-        keys = [e.key for e in entries]
-        try:  # already published by the same entries, and every file still there with its size
-            published = json.loads((final / MANIFEST).read_text())
-            if published.get("keys") == keys and all(
-                    (final / f["path"]).is_file() and (final / f["path"]).stat().st_size == f["size"]
-                    for f in published["files"]):
-                return
-        except (OSError, ValueError, KeyError, TypeError):
-            pass
-        out.mkdir(parents=True, exist_ok=True)
-        for leftover in out.glob(f".{node.name}.*"):  # from runs killed while publishing
-            pid = leftover.name.split(".")[2]
-            if pid.isdigit() and holder_is_stale({"pid": int(pid), "host": socket.gethostname()}):
-                shutil.rmtree(leftover, ignore_errors=True)
-        tmp = out / f".{node.name}.{os.getpid()}.tmp"
-        shutil.rmtree(tmp, ignore_errors=True)
-        listed = []
-        for port in ports:
-            target = tmp if len(ports) == 1 else tmp / port
-            for entry in entries:
-                source = entry.path / entry.record["outputs"][port]["file"]
-                for rel, size, digest in entry.record["outputs"][port]["files"]:
-                    dest = target / rel
-                    if dest.exists():
-                        raise StageError(f"{port}: two chunks wrote the same file {rel!r}")
-                    dest.parent.mkdir(parents=True, exist_ok=True)
-                    shutil.copyfile(source / rel, dest)
-                    listed.append({"path": dest.relative_to(tmp).as_posix(), "size": size, "sha256": digest})
-        manifest = {"stage": node.name, "uses": node.uses, "keys": keys, "files": listed}
-        (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1))
-        old = out / f".{node.name}.{os.getpid()}.old"
-        shutil.rmtree(old, ignore_errors=True)
-        try:
-            os.replace(final, old)
-        except FileNotFoundError:
-            pass
-        try:
-            os.replace(tmp, final)
-        except OSError:  # another run published the same stage meanwhile
-            shutil.rmtree(tmp, ignore_errors=True)
-        shutil.rmtree(old, ignore_errors=True)
+        def redo(index: int) -> Entry:
+            self.store.discard(self.entries[node.name][index])
+            with _stage_errors(node):
+                self.entries[node.name][index] = self._run_sequence(node, inputs, entry.key, forced=False)[0]
+            return self.entries[node.name][index]
+
+        self.redo[node.name] = redo
+        for port, kind in node.cls.outputs.items():
+            read = (lambda e, p=port: verify_files(e, p)) if kind == "files" else (lambda e, p=port: load_bundle(e, p))
+            self.values[(node.name, port)] = Value(kind, entry.record["outputs"][port]["digest"],
+                                                   lambda r=read: self.read_stored(node, 0, r))
 
     # -- helpers ---------------------------------------------------------------------------
 
@@ -565,6 +594,8 @@ class Runner:
         return Context(device=self.opts.device, files_dir=files_dir, progress=progress)
 
     def _bar(self, node: StageNode, total: int | None) -> tqdm:
+        from tqdm import tqdm  # here: importing it costs start-up time
+
         return tqdm(total=total, desc=node.name, unit="frame", file=sys.stderr, leave=False,
                     disable=not self.opts.progress, dynamic_ncols=True)
 
@@ -593,6 +624,7 @@ class FrameChunks:
         self.ranges = chunk_ranges(info.frames, runner.pipeline.chunk_frames)
         self.keys: list[str | None] = [None] * len(self.ranges)
         self.entries: list[Entry | None] = [None] * len(self.ranges)
+        self._cached = [False] * len(self.ranges)  # per chunk: found stored (not computed) in this run
         self.report = Report(node.name, node.uses, "cached", chunks=len(self.ranges), frames=info.frames)
         self._locks = [threading.Lock() for _ in self.ranges]
         self._book = threading.Lock()  # guards the report, the bar and the dicts below
@@ -600,6 +632,10 @@ class FrameChunks:
         self._streams: dict[str, ComputedStream] = {}
         self._readers: list[str] = []
         self._bar: tqdm | None = None
+        self._verified: set[tuple[int, str]] = set()  # (chunk, port) read and hashed in this run
+        self._depends: set[Path] = set()  # files recorded by runner.depends while chunks were computed
+        runner.entries[node.name] = self.entries
+        runner.redo[node.name] = self.redo
 
     # -- keys and digests ------------------------------------------------------------------
 
@@ -652,7 +688,7 @@ class FrameChunks:
         with self._locks[i]:
             if self.entries[i] is None:
                 key = self.key(i, compute=compute)
-                found = None if key is None or self.forced else self.runner.store.lookup(key)
+                found = None if key is None or self.forced else self.runner.lookup(self.node, key)
                 if found is None and not compute:
                     return None
                 ran = found is None
@@ -674,25 +710,40 @@ class FrameChunks:
         store, node = self.runner.store, self.node
         start, stop = self.ranges[i]
         with store.locked(key, on_wait=self.runner._waiting(node)):
-            entry = None if self.forced else store.lookup(key)
+            entry = None if self.forced else self.runner.lookup(node, key)
             if entry is not None:
                 return entry, False
             timing = _own_time(self._spent) if self.lazy else contextlib.nullcontext()
             with timing, store.writing(key) as tmp:
-                try:
-                    result = self.stage.process(start, stop, self._inputs(), dict(node.params),
-                                                self.runner._context(tmp, lambda n: None))
-                    record = _save_outputs(node, result, tmp, frames=(stop - start, self.info))
-                except StageError as exc:
-                    raise StageFailed(node, exc) from exc
+                with _stage_errors(node):
+                    with recording(set()) as files:
+                        result = self.stage.process(start, stop, self._inputs(), dict(node.params),
+                                                    self.runner._context(tmp, lambda n: None))
+                    record = save_outputs(node.cls.outputs, result, tmp, frames=(stop - start, self.info))
+                with self._book:  # a stage may read such a file once, for all its chunks
+                    self._depends |= files
+                    files = set(self._depends)
                 entry = store.commit(key, tmp, {"stage": node.name, "uses": node.uses, "range": [start, stop],
-                                                **record}, replace=self.forced)
+                                                **record, "depends": self.runner.depends_digests(files)},
+                                     replace=self.forced)
         return entry, True
+
+    def redo(self, i: int) -> Entry:
+        """Recompute chunk ``i``, whose stored entry was found damaged; the new entry."""
+        with self._locks[i]:
+            damaged = self.entries[i]
+            if damaged is not None:
+                self.runner.store.discard(damaged)
+                self.entries[i] = None
+                with self._book:
+                    self.report.chunks_cached -= self._cached[i]
+        return self.entry(i)
 
     def _resolved(self, i: int, entry: Entry, ran: bool) -> None:
         runner = self.runner
         with self._book:
             self.entries[i] = entry
+            self._cached[i] = not ran
             self.report.chunks_cached += not ran
             if runner.opts.dry_run:
                 return
@@ -725,7 +776,6 @@ class FrameChunks:
             report.reason = f"computed while {', '.join(self._readers)} read it"
         self.close()
         self.runner._remember(self.node, self.runner._material(self.node, self.runner._digests(self.inputs)))
-        self.runner.entries[self.node.name] = list(self.entries)
         return report
 
     def close(self) -> None:
@@ -737,36 +787,42 @@ class FrameChunks:
     def stream(self, port: str) -> ChunkedStream:
         """Frames of output ``port``: of a cached stage, its stored chunks, each resolved (so
         computed and stored, if missing) when first read and read back from its entry (from
-        the page cache: about one copy); of an uncached stage, chunks computed as read."""
+        the page cache: about one copy), verified on the first read; of an uncached stage,
+        chunks computed as read."""
         if self.node.cls.cached:
-            return CachedStream(self.info, self.ranges, lambda i: self._file(self.entry(i), port))
+            return StoredStream(self.info, self.ranges, lambda i: self._frames(i, port))
         with self._book:
             if port not in self._streams:
                 self._streams[port] = ComputedStream(self.info, self.ranges, lambda i, p=port: self._computed(p, i),
                                                      keep=self.runner.opts.jobs + 2)
             return self._streams[port]
 
-    def load(self, port: str) -> Any:
-        """A bundle output (chunks concatenated) or a ``files`` output's folder (of the first
-        chunk), once every chunk is resolved."""
-        self.resolve_all()
-        paths = [self._file(entry, port) for entry in self.entries]
-        return paths[0] if self.node.cls.outputs[port] == "files" else _load_bundle(paths)
+    def _frames(self, i: int, port: str) -> np.ndarray:
+        """Frames ``(B, H, W, C)`` of output ``port`` in chunk ``i``: hashed against the entry's
+        record on the first read in this run (a damaged entry is recomputed), memory-mapped
+        after that."""
+        self.entry(i)
+        if (i, port) in self._verified:
+            return load_mapped(self.entries[i], port)
+        frames = self.runner.read_stored(self.node, i, lambda entry: load_frames(entry, port))
+        self._verified.add((i, port))
+        return frames
 
-    @staticmethod
-    def _file(entry: Entry, port: str) -> Path:
-        return entry.path / entry.record["outputs"][port]["file"]
+    def load(self, port: str) -> dict[str, np.ndarray]:
+        """A bundle output, its chunks concatenated, once every chunk is resolved."""
+        self.resolve_all()
+        parts = [self.runner.read_stored(self.node, i, lambda entry: load_bundle(entry, port))
+                 for i in range(len(self.ranges))]
+        return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
     def _computed(self, port: str, i: int) -> np.ndarray:
         """Frames ``(B, H, W, C)`` of output ``port`` in chunk ``i`` of an uncached stage."""
         start, stop = self.ranges[i]
         ctx = Context(device=self.runner.opts.device, files_dir=_no_files(self.node),
                       log=logging.getLogger(f"runner.stage.{self.node.name}"))
-        try:
+        with _stage_errors(self.node):
             frames = np.asarray(self.stage.process(start, stop, self._inputs(), dict(self.node.params), ctx)[port])
-        except StageError as exc:
-            raise StageFailed(self.node, exc) from exc
-        _check_frames(self.node, port, frames, stop - start, self.info)
+            check_frames(port, frames, stop - start, self.info)
         return frames
 
 
@@ -787,65 +843,23 @@ def _no_files(node: StageNode) -> Callable[[str], Path]:
     return files_dir
 
 
-def _check_frames(node: StageNode, port: str, frames: np.ndarray, count: int, info: StreamInfo) -> None:
-    if frames.ndim != 4 or frames.shape[0] != count or frames.shape[1:3] != (info.height, info.width):
-        raise StageFailed(node, StageError(
-            f"output {port!r}: expected frames ({count}, {info.height}, {info.width}, C), got {frames.shape}"))
+_DISK_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO)
 
 
-def _save_outputs(node: StageNode, result: Any, tmp: Path, *, frames: tuple[int, StreamInfo] | None) -> dict[str, Any]:
-    """Store a stage's result in the entry folder ``tmp``; return the record's ``outputs``.
-
-    ``frames`` is ``(chunk length, stream info)`` for a frame stage's chunk, None for a sequence
-    stage.
-    """
-    declared = node.cls.outputs
-    if not isinstance(result, dict) or set(result) != set(declared):
-        got = sorted(result) if isinstance(result, dict) else type(result).__name__
-        raise StageError(f"returned {got}, expected outputs {sorted(declared)}")
-    outputs = {}
-    for port, kind in declared.items():
-        value = result[port]
-        if kind == "frames":
-            array = np.asarray(value)
-            _check_frames(node, port, array, frames[0], frames[1])
-            name = FRAMES_FILE.format(port=port)
-            np.save(tmp / name, array, allow_pickle=False)
-            outputs[port] = {"type": kind, "file": name, "digest": array_digest(array)}
-        elif kind == "files":
-            folder = tmp / "files" / port
-            folder.mkdir(parents=True, exist_ok=True)
-            listed = []
-            for path in sorted(p for p in folder.rglob("*") if p.is_file()):
-                listed.append([path.relative_to(folder).as_posix(), path.stat().st_size, file_digest(path)])
-            digest = cache_key([[rel, sha] for rel, _, sha in listed])
-            outputs[port] = {"type": kind, "file": f"files/{port}", "digest": digest, "files": listed}
-        else:
-            if not isinstance(value, dict):
-                raise StageError(f"output {port!r} ({kind}): expected a dict of arrays, got {type(value).__name__}")
-            arrays = {k: np.asarray(v) for k, v in value.items()}
-            bad = [k for k, a in arrays.items() if a.dtype.hasobject]
-            if bad:
-                raise StageError(f"output {port!r}: {bad[0]!r} is an object array (not storable without pickle)")
-            if frames is not None:
-                wrong = [k for k, a in arrays.items() if a.ndim == 0 or a.shape[0] != frames[0]]
-                if wrong:
-                    raise StageError(f"output {port!r}: {wrong[0]!r} must have {frames[0]} rows (one per frame)")
-            name = BUNDLE_FILE.format(port=port)
-            np.savez(tmp / name, **arrays)
-            outputs[port] = {"type": kind, "file": name, "digest": bundle_digest(arrays)}
-    return {"outputs": outputs}
-
-
-def _load_bundle(paths: list[Path]) -> dict[str, np.ndarray]:
-    """A bundle from one ``.npz`` (sequence stage) or the concatenation of per-chunk ones."""
-    parts = []
-    for path in paths:
-        with np.load(path, allow_pickle=False) as data:
-            parts.append({k: data[k] for k in data.files})
-    if len(parts) == 1:
-        return parts[0]
-    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+@contextlib.contextmanager
+def _stage_errors(node: StageNode) -> Iterator[None]:
+    """Turn a :class:`StageError`, or an :class:`OSError` of a full or failing disk, raised
+    while ``node`` runs, is stored or is published into :class:`StageFailed` naming the stage
+    (and the file)."""
+    try:
+        yield
+    except StageError as exc:
+        raise StageFailed(node, exc) from exc
+    except OSError as exc:
+        if exc.errno not in _DISK_ERRORS:
+            raise
+        where = f"{exc.filename}: " if exc.filename else ""
+        raise StageFailed(node, StageError(f"{where}{exc.strerror or exc}")) from exc
 
 
 def _map_ordered(fn: Callable[[int], Any], items: list[int], *, jobs: int):

@@ -118,6 +118,11 @@ def check_stage_class(stage_cls: type[Stage]) -> None:
         seen.add(param.name)
         if not value_has_type(param.default, param.type):
             raise RegistryError(f"{where}: default of {param.name!r} is not a {param.type.__name__}")
+        if (param.min is not None or param.max is not None) and param.type not in (int, float):
+            raise RegistryError(f"{where}: parameter {param.name!r} has min/max but is not an int or float")
+        problem = param.problem(param.default)
+        if problem:
+            raise RegistryError(f"{where}: default of {param.name!r}: {problem}")
 
 
 def value_has_type(value: object, expected: type) -> bool:

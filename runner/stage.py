@@ -27,6 +27,7 @@ fixed-width unicode arrays). Two ports connect only when their type strings are 
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, ClassVar, Iterator, Mapping, Protocol
@@ -39,6 +40,11 @@ RUNNER_TYPES = ("video", "file", "dir", "frames", "files")
 @dataclass(frozen=True)
 class Param:
     """One declared parameter: name, Python type (int, float, str, bool, list), default, help.
+
+    Allowed values: ``choices`` (the value must be one of them) and, for ``int`` and ``float``,
+    the closed range ``[min, max]`` (either bound may be None). The pipeline loader checks them
+    (and ``--set`` values) when the graph is loaded, so ``run``/``process`` never see a value
+    outside them.
 
     Cache key (docs/runner.md, "Cache"): the value enters the stage's key unless ``in_key`` is
     False (a setting that cannot change the outputs, such as a thread count). With ``file`` True,
@@ -53,6 +59,21 @@ class Param:
     choices: tuple[Any, ...] | None = None
     file: bool = False
     in_key: bool = True
+    min: float | None = None
+    max: float | None = None
+
+    def problem(self, value: Any) -> str | None:
+        """Why ``value`` (already of the declared type) is not allowed, or None."""
+        if self.choices is not None and value not in self.choices:
+            return f"wrong value: expected one of {', '.join(map(repr, self.choices))}, got {value!r}"
+        if isinstance(value, float) and not math.isfinite(value):
+            return f"wrong value: expected a finite number, got {value!r}"
+        below = self.min is not None and value < self.min
+        if below or (self.max is not None and value > self.max):
+            low = "" if self.min is None else f"{self.min!r} <= "
+            high = "" if self.max is None else f" <= {self.max!r}"
+            return f"out of range: expected {low}{self.name}{high}, got {value!r}"
+        return None
 
 
 @dataclass(frozen=True)

@@ -54,17 +54,26 @@ class ChunkedStream:
 
 
 class CachedStream(ChunkedStream):
-    """Chunks stored as ``.npy`` files in complete cache entries: ``files`` lists them, or gives
-    chunk ``index``'s file when first read (a stage computed while it is read stores the chunk
-    then)."""
+    """Chunks stored as ``.npy`` files, one per chunk, read when touched."""
 
-    def __init__(self, info: StreamInfo, ranges: list[tuple[int, int]],
-                 files: list[Path] | Callable[[int], Path]):
+    def __init__(self, info: StreamInfo, ranges: list[tuple[int, int]], files: list[Path]):
         super().__init__(info, ranges)
-        self._file = files.__getitem__ if isinstance(files, list) else files
+        self._files = files
 
     def chunk(self, index: int, *, mmap: bool = False) -> np.ndarray:
-        return np.load(self._file(index), mmap_mode="r" if mmap else None, allow_pickle=False)
+        return np.load(self._files[index], mmap_mode="r" if mmap else None, allow_pickle=False)
+
+
+class StoredStream(ChunkedStream):
+    """Chunks of a cached frame stage, obtained from ``load(index)`` (which resolves the chunk,
+    computing and storing it if missing, and reads it back verified)."""
+
+    def __init__(self, info: StreamInfo, ranges: list[tuple[int, int]], load: Callable[[int], np.ndarray]):
+        super().__init__(info, ranges)
+        self._load = load
+
+    def chunk(self, index: int, *, mmap: bool = False) -> np.ndarray:
+        return self._load(index)
 
 
 class ComputedStream(ChunkedStream):

@@ -23,7 +23,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from runner.stage import StageError
@@ -104,9 +103,13 @@ class _PackReader:
         return self.data[key]
 
     def file(self, value: Any, field: str) -> Path:
+        """The pack file named by ``value``; it must lie inside the pack folder (the runner's
+        key for a pack covers that folder's files only)."""
         if not isinstance(value, str) or not value:
             raise self.fail(self.manifest, field, "expected a file path relative to the pack")
         path = self.root / value
+        if Path(value).is_absolute() or not path.resolve().is_relative_to(self.root.resolve()):
+            raise self.fail(self.manifest, field, f"{value!r} is outside the pack folder {self.root}")
         if not path.is_file():
             raise self.fail(self.manifest, field, f"file not found: {path}")
         return path
@@ -116,10 +119,10 @@ class _PackReader:
         if fmt != FORMAT:
             raise self.fail(self.manifest, "format", f"expected {FORMAT!r}, got {fmt!r}")
         layout_ref = self.field("layout")
-        if not isinstance(layout_ref, str):
+        if not isinstance(layout_ref, str) or not layout_ref:
             raise self.fail(self.manifest, "layout", "expected a layout name or file path")
-        local = self.root / layout_ref
-        self.layout = load_layout(local if local.is_file() else layout_ref)
+        bundled = "/" not in layout_ref and not Path(layout_ref).suffix and not (self.root / layout_ref).exists()
+        self.layout = load_layout(layout_ref if bundled else self.file(layout_ref, "layout"))
         size = self.field("image_size")
         if not (isinstance(size, list) and len(size) == 2 and all(isinstance(v, int) and v > 0 for v in size)):
             raise self.fail(self.manifest, "image_size", f"expected [W, H] positive integers, got {size!r}")
@@ -228,6 +231,7 @@ class _PackReader:
             raise self.fail(path, field, f"point {name!r} at ({x:.1f}, {y:.1f}) is outside the {w}x{h} image")
 
     def image(self, path: Path, field: str) -> np.ndarray:
+        import cv2
         img = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if img is None:
             raise self.fail(path, field, "cannot read image")

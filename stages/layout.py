@@ -14,10 +14,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import yaml
 
+from runner import safe_yaml
+from runner.depends import depends_on
 from runner.stage import StageError
 
 LAYOUT_DIR = Path(__file__).resolve().parent / "layouts"
@@ -115,14 +116,19 @@ def load_layout(path_or_name: str | Path) -> Layout:
 
 
 def read_yaml(path: Path, *, what: str, noun: str = "file", error: type[StageError] = StageError) -> Any:
-    """``yaml.safe_load`` of a file; an unreadable file or invalid YAML raises ``error`` with one
-    line naming ``what`` (e.g. ``"layout"``) and the path."""
+    """The value of a YAML file read with :func:`runner.safe_yaml.load` (safe, no aliases); an
+    unreadable file or invalid YAML raises ``error`` with one line naming ``what`` (e.g.
+    ``"layout"``) and ``path:line:column``. The file enters the cache key of the stage reading it
+    (:func:`runner.depends.depends_on`): a bundled layout named by a pack or a parameter is
+    outside every input the runner hashes."""
+    depends_on(path)
     try:
-        return yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+        return safe_yaml.load(Path(path).read_text(encoding="utf-8"))
     except OSError as exc:
         raise error(f"{what} {path}: cannot read {noun} ({exc.strerror or exc})") from None
     except yaml.YAMLError as exc:
-        raise error(f"{what} {path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+        where = safe_yaml.error_position(exc, path)
+        raise error(f"{what} {where}: not valid YAML ({safe_yaml.error_message(exc)})") from None
 
 
 def parse_layout(data: Any, *, source: str = "<layout>") -> Layout:
@@ -236,6 +242,7 @@ def subregion_mask(layout: Layout, points: np.ndarray, size: tuple[int, int]) ->
     numpy.ndarray
         ``(H, W)`` int16: the subregion index (position in ``layout.subregions``), -1 outside.
     """
+    import cv2
     points = np.asarray(points, dtype=np.float64)
     if points.shape != (layout.n_points, 2):
         raise ValueError(f"expected points of shape ({layout.n_points}, 2), got {points.shape}")

@@ -8,13 +8,12 @@ that cannot be converted to RGB) raises :class:`runner.stage.StageError` naming 
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator, Mapping
 from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
-import av
-import cv2
 import numpy as np
 
 from runner.stage import Context, FrameStage, Param, SequenceStage, StageError, StreamInfo
@@ -25,6 +24,7 @@ CODECS = {"h264": ("libx264", "yuv420p", ".mp4"), "ffv1": ("ffv1", "bgr0", ".mkv
 
 def _open(path: Path) -> tuple[av.container.InputContainer, av.video.stream.VideoStream]:
     """Open ``path`` and its first video stream, or raise a one-line :class:`StageError`."""
+    import av
     if not path.is_file():
         raise StageError(f"{path}: no such file")
     try:
@@ -42,6 +42,7 @@ def _reason(exc: BaseException) -> str:
 
 
 def _to_rgb(frame: av.VideoFrame, path: Path) -> np.ndarray:
+    import av
     try:
         return frame.to_ndarray(format="rgb24")
     except (av.FFmpegError, OSError, ValueError) as exc:
@@ -50,12 +51,20 @@ def _to_rgb(frame: av.VideoFrame, path: Path) -> np.ndarray:
 
 def probe(path: Path) -> StreamInfo:
     """Frame count (counted by demuxing, not from header metadata), rate and size of the first
-    video stream of ``path``; decodes the first frame to check the pixel format converts."""
+    video stream of ``path``; decodes the first frame to check the pixel format converts.
+
+    The pipeline's time fields are ``frame / fps`` (a constant rate). A clip whose frame
+    durations differ by more than a tenth of the mean one (variable frame rate) is still
+    processed, with one warning line saying that its timestamps are replaced by that
+    constant rate.
+    """
+    import av
     container, stream = _open(path)
     with container:
         rate = stream.average_rate or stream.guessed_rate
         try:
-            count = sum(1 for packet in container.demux(stream) if packet.size)
+            stamps = [packet.pts for packet in container.demux(stream) if packet.size]
+            count = len(stamps)
             container.seek(0)
             first = next(container.decode(stream), None)
         except av.FFmpegError as exc:
@@ -65,7 +74,20 @@ def probe(path: Path) -> StreamInfo:
         if not rate:
             raise StageError(f"{path}: the video stream has no frame rate")
         _to_rgb(first, path)
+        _warn_if_variable_rate(path, stamps, stream.time_base, float(rate))
         return StreamInfo(frames=count, fps=float(rate), width=first.width, height=first.height)
+
+
+def _warn_if_variable_rate(path: Path, pts: list[int | None], time_base: Fraction | None, fps: float) -> None:
+    """Log one warning if the frame durations (from the packets' presentation times ``pts``, in
+    ``time_base`` s) vary by more than a tenth of a frame period at ``fps``."""
+    if time_base is None or len(pts) < 3 or None in pts:
+        return
+    durations = np.diff(np.sort(np.asarray(pts, dtype=np.float64))) * float(time_base)
+    if durations.max() - durations.min() > 0.1 / fps:
+        logging.getLogger("stages.video").warning(
+            "warning: %s: variable frame rate (frame durations %.4f..%.4f s); the outputs' time fields "
+            "assume a constant %.3f fps (time_s = frame / fps)", path, durations.min(), durations.max(), fps)
 
 
 class _Reader:
@@ -79,6 +101,7 @@ class _Reader:
         self._frames: Iterator[av.VideoFrame] = self._container.decode(stream)
 
     def read(self, start: int, stop: int) -> np.ndarray:
+        import av
         if start < self.position:
             self.close()
             self.__init__(self.path)
@@ -144,6 +167,7 @@ class ImageGray(FrameStage):
 
 def to_gray(frames: np.ndarray) -> np.ndarray:
     """``(B, H, W, 3)`` uint8 RGB -> ``(B, H, W, 1)`` uint8 BT.601 luma."""
+    import cv2
     b, h, w, _ = frames.shape
     gray = cv2.cvtColor(np.ascontiguousarray(frames).reshape(b * h, w, 3), cv2.COLOR_RGB2GRAY)
     return gray.reshape(b, h, w, 1)
@@ -171,6 +195,7 @@ class VideoWriter:
     """
 
     def __init__(self, path: Path, *, fps: float, width: int, height: int, codec: str = "h264", crf: int = 18):
+        import av
         if codec not in CODECS:
             raise StageError(f"{path}: unknown codec {codec!r} (expected one of {', '.join(CODECS)})")
         if not 0 <= crf <= 51:
@@ -197,6 +222,7 @@ class VideoWriter:
 
     def write(self, frames: np.ndarray) -> None:
         """Append frames ``(B, H, W, 3)`` uint8 RGB or ``(B, H, W, 1)`` uint8 gray."""
+        import av
         if frames.dtype != np.uint8 or frames.ndim != 4 or frames.shape[1:3] != (self.height, self.width) \
                 or frames.shape[3] not in (1, 3):
             raise StageError(f"{self.path}: expected frames (B, {self.height}, {self.width}, 3 or 1) uint8, "
@@ -241,7 +267,7 @@ class WriteVideo(SequenceStage):
     params = (
         Param("codec", str, "h264", "h264 (yuv420p MP4, plays in browsers) or ffv1 (lossless RGB MKV)",
               choices=tuple(CODECS)),
-        Param("crf", int, 18, "x264 constant rate factor 0..51 (lower = better); ignored by ffv1"),
+        Param("crf", int, 18, "x264 constant rate factor 0..51 (lower = better); ignored by ffv1", min=0, max=51),
         Param("filename", str, "video", "file name without extension"),
     )
 

@@ -21,9 +21,7 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
-import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 from runner.stage import Context, Param, SequenceStage, StageError
 from stages.actor_pack import load_pack
@@ -45,6 +43,7 @@ def default_intrinsics(size: tuple[int, int]) -> np.ndarray:
 def reprojection_error(rvec: np.ndarray, tvec: np.ndarray, model: np.ndarray, image: np.ndarray,
                        camera: np.ndarray) -> float:
     """RMS distance in px between ``image (n, 2)`` and ``model (n, 3)`` projected with the pose."""
+    import cv2
     projected, _ = cv2.projectPoints(model, rvec, tvec, camera, None)
     return float(np.sqrt(np.mean(np.sum((projected.reshape(-1, 2) - image) ** 2, axis=1))))
 
@@ -76,6 +75,7 @@ def adapt_model(model: np.ndarray, image: np.ndarray, camera: np.ndarray) -> np.
 def interpolate_poses(rvec: np.ndarray, tvec: np.ndarray, known: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Fill the frames where ``known (T,)`` is False: rotations ``rvec (T, 3)`` by slerp and
     translations ``tvec (T, 3)`` linearly between the nearest known frames, held at the ends."""
+    from scipy.spatial.transform import Rotation, Slerp
     frames = np.arange(len(known))
     times = frames[known]
     rvec, tvec = rvec.copy(), tvec.copy()
@@ -92,6 +92,7 @@ def interpolate_poses(rvec: np.ndarray, tvec: np.ndarray, known: np.ndarray) -> 
 def smooth_poses(rvec: np.ndarray, tvec: np.ndarray, known: np.ndarray, *, sigma: float) -> tuple[np.ndarray, np.ndarray]:
     """Gaussian smoothing over time (:func:`gaussian_smooth`) of the known poses: quaternions made
     sign-continuous, smoothed and renormalized; translations smoothed. Shapes ``(T, 3)``."""
+    from scipy.spatial.transform import Rotation, Slerp
     quat = Rotation.from_rotvec(rvec).as_quat()
     for t in range(1, len(quat)):
         if np.dot(quat[t], quat[t - 1]) < 0:
@@ -130,6 +131,8 @@ def estimate_poses(image: np.ndarray, valid: np.ndarray, model: np.ndarray, came
         model's units), ``R (T, 3, 3)``, ``reproj_err_px (T,)`` (RMS over the frame's valid rigid
         points, NaN where none), ``valid (T,)`` (False where the pose was interpolated).
     """
+    import cv2
+    from scipy.spatial.transform import Rotation, Slerp
     model = np.ascontiguousarray(model, dtype=np.float64)
     camera = np.asarray(camera, dtype=np.float64)
     n_frames = len(image)
@@ -196,6 +199,8 @@ def estimate_face_poses(image: np.ndarray, valid: np.ndarray, model: FaceModel, 
         As :func:`estimate_poses`; ``reproj_err_px`` is the RMS distance of the valid points to
         the fitted model.
     """
+    import cv2
+    from scipy.spatial.transform import Rotation, Slerp
     fit = model.first_frame_fit()
     n_frames = len(image)
     rvec, tvec = np.zeros((n_frames, 3)), np.zeros((n_frames, 3))

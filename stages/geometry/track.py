@@ -29,7 +29,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Mapping
 
-import cv2
 import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
@@ -68,6 +67,7 @@ class Tracks:
 def to_gray(frame: np.ndarray) -> np.ndarray:
     """An ``(H, W)``, ``(H, W, 1)`` or RGB ``(H, W, 3)`` frame as an ``(H, W)`` float32 image in
     the frame's own intensity units."""
+    import cv2
     if frame.ndim == 3 and frame.shape[2] == 3:
         frame = cv2.cvtColor(np.ascontiguousarray(frame), cv2.COLOR_RGB2GRAY)
     elif frame.ndim == 3:
@@ -205,6 +205,7 @@ def sample_patches(image: np.ndarray, centres: np.ndarray, side: int, linear: np
     """Square patches ``(N, side, side)`` float32 of ``image`` (bicubic, replicated border): patch
     cell ``(r, c)`` of point ``n`` is the image at ``centres[n] + linear[n] @ (c - h, r - h)``,
     ``h = (side - 1) / 2`` (``linear (N, 2, 2)``: identity if omitted)."""
+    import cv2
     ux, uy = patch_grid(side)
     cx, cy = centres.astype(np.float32).T
     if linear is None:
@@ -370,6 +371,7 @@ class NCCTracker:
         return np.minimum(self.model_noise_px ** 2 / np.maximum(self.noise, 1e-12), 4.0)
 
     def step(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        import cv2
         image = to_gray(frame)
         predicted = self.last + self.velocity
         centre = np.rint(predicted)
@@ -412,6 +414,7 @@ class LKTracker:
     round trip returns within ``fb_px`` of the start and the point lies in the frame."""
 
     def __init__(self, *, template_px: int = 15, levels: int = 2, fb_px: float = 1.0) -> None:
+        import cv2
         self.params = dict(
             winSize=(template_px, template_px),
             maxLevel=levels,
@@ -428,6 +431,7 @@ class LKTracker:
         self.last = xy.astype(np.float64).copy()
 
     def step(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        import cv2
         gray = self._gray8(frame)
         p0 = self.last.astype(np.float32).reshape(-1, 1, 2)
         p1, st1, _ = cv2.calcOpticalFlowPyrLK(self.previous, gray, p0, None, **self.params)
@@ -441,15 +445,22 @@ class LKTracker:
         return self.last.copy(), valid, np.exp(-error / self.fb_px).astype(np.float32)
 
 
+def _cv2() -> Any:
+    """OpenCV, imported when first used (importing it costs start-up time)."""
+    import cv2
+
+    return cv2
+
+
 class OpenCVTracker:
     """One OpenCV single-object tracker (CSRT, KCF or legacy MOSSE) per point, on a
     ``box_px``-square box centred on the point; the point is the box centre plus the first
     frame's sub-pixel offset. ``valid`` is the tracker's success flag and the point in frame."""
 
     FACTORIES: dict[str, Callable[[], Any]] = {
-        "csrt": lambda: cv2.TrackerCSRT_create(),
-        "kcf": lambda: cv2.TrackerKCF_create(),
-        "mosse": lambda: cv2.legacy.TrackerMOSSE_create(),
+        "csrt": lambda: _cv2().TrackerCSRT_create(),
+        "kcf": lambda: _cv2().TrackerKCF_create(),
+        "mosse": lambda: _cv2().legacy.TrackerMOSSE_create(),
     }
 
     def __init__(self, method: str, *, box_px: int = 31) -> None:

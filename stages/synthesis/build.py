@@ -41,9 +41,7 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
-import cv2
 import numpy as np
-import torch
 
 from runner.stage import Context, Param, SequenceStage, StageError
 from stages.actor_pack import ActorPack, load_pack
@@ -83,6 +81,7 @@ def blend_weight_map(
     i1, i2 : (H, W) int16
         The G and B channels: the pixel's own label and its blending partner.
     """
+    import cv2
     H, W = region.shape
     i1 = region.astype(np.int16)
     r = np.ones((H, W), np.float32)
@@ -165,6 +164,7 @@ def align_to_standard(
     -------
     (M, H, W, 3) uint8, each image warped so that its points land on ``standard_points``.
     """
+    import torch
     M = len(images)
     if M == 0:
         return images.copy()

@@ -14,7 +14,6 @@ from dataclasses import dataclass
 from typing import Any, Mapping
 
 import numpy as np
-import torch
 
 from runner.stage import Context, SequenceStage, StageError
 from stages.synthesis.qp import project_onto_convex_hull
@@ -59,6 +58,7 @@ class SubregionQP:
 
     def _family(self, rows: list[int], members: list[np.ndarray], example_points: np.ndarray) -> _Family:
         """Gather G^R of each subregion (``members``: (N,) bool each), zero-padded to a common size."""
+        import torch
         n = max((int(m.sum()) for m in members), default=1)
         index = np.zeros((len(members), n), np.int64)
         weight = np.zeros((len(members), n, 2))
@@ -104,6 +104,7 @@ class SubregionQP:
             the ``Mt`` teeth examples, zero-padded to ``K = max(M, Mt)``.
         distance2 : (B, S) float64, the squared distance to each hull (eq. 5), px^2.
         """
+        import torch
         if mode not in QP_MODES:
             raise ValueError(f"mode must be one of {QP_MODES}, got {mode!r}")
         pts = torch.as_tensor(np.asarray(points, np.float64), device=self.device)

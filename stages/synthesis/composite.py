@@ -26,7 +26,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 
 __all__ = ["Compositor", "prepare_compositor", "composite"]
 
@@ -76,6 +75,7 @@ def prepare_compositor(model: dict[str, np.ndarray], *, device: str = "cpu") -> 
 
     Images become float32 sRGB in [0, 1].
     """
+    import torch
     W, H = (int(v) for v in model["size"])
     teeth_flags = np.asarray(model["subregion_teeth"], bool)
     S = len(teeth_flags)
@@ -128,6 +128,7 @@ def _kept(c: list[float], min_coeff: float) -> list[tuple[int, float]]:
 
 def _fill(buffer: torch.Tensor, segment: _Segment, terms: list[tuple[int, float]]) -> None:
     """``buffer[:, segment] = sum_k c_k stack_k`` without gathering the stack."""
+    import torch
     if segment.stop == segment.start:
         return
     view = buffer[:, segment.start : segment.stop]
@@ -156,6 +157,7 @@ def composite(comp: Compositor, coeffs: torch.Tensor, *, min_coeff: float = 1e-3
     -------
     (B, 4, H, W) float32: sRGB colour in [0, 1] in the standard geometry, and the face alpha.
     """
+    import torch
     W, H = comp.size
     B, S = coeffs.shape[:2]
     device = comp.images.device

@@ -8,8 +8,6 @@ and then over the mask.
 
 from __future__ import annotations
 
-import torch
-import torch.nn.functional as F
 
 __all__ = ["masked_psnr", "ssim_map", "masked_ssim"]
 
@@ -22,6 +20,7 @@ def masked_psnr(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor, *, data_ra
     a, b : (C, H, W) tensors
     mask : (H, W) bool tensor
     """
+    import torch
     diff = (a.double() - b.double())[:, mask]
     mse = float((diff * diff).mean())
     return float("inf") if mse == 0 else 10.0 * float(torch.log10(torch.tensor(data_range**2 / mse)))
@@ -38,6 +37,8 @@ def ssim_map(a: torch.Tensor, b: torch.Tensor, *, data_range: float = 1.0, sigma
     -------
     (H, W) float64 tensor.
     """
+    import torch
+    import torch.nn.functional as F
     x = torch.arange(-radius, radius + 1, dtype=torch.float64)
     g = torch.exp(-(x * x) / (2 * sigma * sigma))
     g = g / g.sum()

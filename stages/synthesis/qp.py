@@ -18,7 +18,6 @@ predictor-corrector on the KKT system of a simplex-constrained QP, for a whole b
 
 from __future__ import annotations
 
-import torch
 
 __all__ = ["solve_simplex_qp", "project_onto_convex_hull"]
 
@@ -66,6 +65,7 @@ def solve_simplex_qp(
         Coefficients on the simplex (clipped at 0 and renormalised to sum exactly to one), on the
         dtype and device of ``Q``.
     """
+    import torch
     if Q.ndim != 3 or Q.shape[-1] != Q.shape[-2]:
         raise ValueError(f"Q must be (B, M, M), got {tuple(Q.shape)}")
     B, M, _ = Q.shape
@@ -152,6 +152,7 @@ def project_onto_convex_hull(
     distance2 : (B,) tensor
         The objective (eq. 5) at ``coeffs``: squared distance to the hull, px^2.
     """
+    import torch
     if examples.ndim != 3 or target.shape != (examples.shape[0], examples.shape[2]):
         raise ValueError(f"examples must be (B, M, D) and target (B, D); got {tuple(examples.shape)}, {tuple(target.shape)}")
     X = examples - target[:, None, :]

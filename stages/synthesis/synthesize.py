@@ -18,7 +18,6 @@ from __future__ import annotations
 from typing import Any, Mapping
 
 import numpy as np
-import torch
 
 from runner.stage import Context, FrameStage, Param, StageError, StreamInfo
 from stages.synthesis.composite import Compositor, composite, prepare_compositor
@@ -104,6 +103,7 @@ class Synthesizer:
     """
 
     def __init__(self, model: Mapping[str, np.ndarray], *, device: str = "cpu") -> None:
+        import torch
         self.device = device
         self.qp = SubregionQP(model, device=device)
         self.compositor: Compositor = prepare_compositor(dict(model), device=device)
@@ -150,6 +150,7 @@ class Synthesizer:
         alpha : (B, 1, H, W) float32 face alpha in [0, 1]
         coeffs : (B, S, K) float64 (zeros in ``warp-only`` mode)
         """
+        import torch
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
         points = np.asarray(points, np.float64)
@@ -213,6 +214,7 @@ class Synthesize(FrameStage):
         return self._prepared[2]
 
     def process(self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
+        import torch
         xy, _ = target_geometry(inputs, stage=self.name)
         points = xy[start:stop]
         if not np.isfinite(points).all():

@@ -11,11 +11,7 @@ Coordinates are OpenCV's: x right, y down, pixel centres at integers.
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
-import torch
-import torch.nn.functional as F
-from scipy.spatial import Delaunay
 
 __all__ = ["border_anchors", "triangulate", "triangle_index_map", "backward_map", "warp_images"]
 
@@ -63,6 +59,7 @@ def triangulate(points: np.ndarray) -> np.ndarray:
     (K, 3) int32 array of point indices; duplicate points are left out of every triangle and
     zero-area triangles are dropped.
     """
+    from scipy.spatial import Delaunay
     tri = Delaunay(np.asarray(points, dtype=np.float64)).simplices.astype(np.int32)
     p = points[tri]
     area = (p[:, 1, 0] - p[:, 0, 0]) * (p[:, 2, 1] - p[:, 0, 1]) - (p[:, 2, 0] - p[:, 0, 0]) * (p[:, 1, 1] - p[:, 0, 1])
@@ -84,6 +81,7 @@ def triangle_index_map(points: np.ndarray, triangles: np.ndarray, size: tuple[in
     (H, W) int32 array: triangle index, -1 where no triangle covers the pixel. Where triangles
     overlap (fold-overs) the later one wins; zero-area triangles cover nothing.
     """
+    import cv2
     W, H = size
     index = np.full((H, W), -1, dtype=np.int32)
     verts = np.round(np.asarray(points, dtype=np.float64)[triangles] * (1 << _SHIFT))
@@ -97,6 +95,7 @@ def triangle_index_map(points: np.ndarray, triangles: np.ndarray, size: tuple[in
 
 def _dst_to_src_affines(src: torch.Tensor, dst: torch.Tensor, triangles: torch.Tensor) -> torch.Tensor:
     """(B, K, 2, 3) affine maps taking each destination triangle onto its source triangle."""
+    import torch
     s = src[:, triangles]  # (B, K, 3, 2)
     d = dst[:, triangles]
     ones = torch.ones(d.shape[:-1] + (1,), dtype=d.dtype, device=d.device)
@@ -112,7 +111,7 @@ def backward_map(
     triangles: np.ndarray,
     size: tuple[int, int],
     *,
-    dtype: torch.dtype = torch.float32,
+    dtype: torch.dtype | None = None,
     source_size: tuple[int, int] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Dense backward map of a piecewise-affine warp: for each destination pixel, its source position.
@@ -125,8 +124,9 @@ def backward_map(
         One triangulation shared by both point sets (see :func:`triangulate`).
     size : (W, H)
         Destination image size.
-    dtype : torch.dtype
-        Precision of the per-pixel map (the per-triangle affines are always solved in float64).
+    dtype : torch.dtype, optional
+        Precision of the per-pixel map, default ``torch.float32`` (the per-triangle affines are
+        always solved in float64).
     source_size : (W_src, H_src), optional
         When given, the map is returned in ``grid_sample``'s normalised coordinates for a source
         image of that size (``align_corners=True``: -1 and 1 are the centres of the outer
@@ -139,6 +139,8 @@ def backward_map(
     covered : (B, H, W) bool tensor
         False where no destination triangle covers the pixel (the map is the identity there).
     """
+    import torch
+    dtype = torch.float32 if dtype is None else dtype
     W, H = size
     device = src_points.device
     B = src_points.shape[0]
@@ -197,6 +199,8 @@ def warp_images(
     -------
     (B, C, H_out, W_out) tensor of the dtype of ``images``.
     """
+    import torch
+    import torch.nn.functional as F
     _, _, H, W = images.shape
     size = size or (W, H)
     dtype = torch.float64 if images.dtype == torch.float64 else torch.float32

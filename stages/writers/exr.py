@@ -21,7 +21,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import OpenImageIO as oiio
 
 from runner.stage import Context, FrameStage, Param, StageError
 from stages.color import srgb_to_linear, to_unit_float
@@ -99,6 +98,7 @@ def exr_spec(width: int, height: int, *, attributes: Mapping[str, Attribute], co
     Float tuples are written as ``float[n]`` attributes. ``DateTime`` is set empty (not written) so
     that the same frame always gives the same bytes (resumed runs match uninterrupted ones).
     """
+    import OpenImageIO as oiio
     spec = oiio.ImageSpec(width, height, 4, "half")
     spec.channelnames = ("R", "G", "B", "A")
     spec.alpha_channel = 3
@@ -130,6 +130,7 @@ def write_exr(
     StageError
         The file cannot be created or written (folder missing or read-only, disk full).
     """
+    import OpenImageIO as oiio
     height, width = rgba.shape[:2]
     spec = exr_spec(width, height, attributes=attributes, compression=compression)
     try:

@@ -9,7 +9,6 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-import cv2
 import numpy as np
 
 from runner.stage import Context, FrameStage, Param, StageError, StreamInfo
@@ -44,6 +43,7 @@ def side_by_side_size(
 
 def _fit(image: np.ndarray, height: int, width: int) -> np.ndarray:
     """Resize (H, W, 3) uint8 to (height, width, 3): area averaging down, bilinear up."""
+    import cv2
     if image.shape[:2] == (height, width):
         return image
     shrink = height < image.shape[0]

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import importlib.metadata
+import io
 import json
 from pathlib import Path
 
@@ -11,6 +13,7 @@ import numpy as np
 import pytest
 
 from runner.cache import CacheStore
+from runner.cli import main
 from stages.video import VideoDecode, to_gray
 from tests.runner.helpers import DATA, TINY, chunk_status, read_log, run_cli, stage_status, tree_bytes
 
@@ -128,19 +131,37 @@ def test_bad_clip_is_one_line_error(env, tmp_path, content, words):
     assert str(clip) in done.stderr and words in done.stderr
 
 
-def test_config_errors_exit_2_with_positions(env, tmp_path):
+def cli_main(*args: str | Path) -> tuple[int, str, str]:
+    """Run ``runner ARGS`` in this process: exit code, stdout, stderr (errors found before
+    anything runs need no subprocess)."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), pytest.raises(SystemExit) as info:
+        main([str(a) for a in args])
+    return info.value.code, out.getvalue(), err.getvalue()
+
+
+def test_config_errors_exit_2_with_positions(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("RUNNER_CACHE_DIR", str(tmp_path / "cache"))
     bad = tmp_path / "bad.yaml"
     bad.write_text("stages:\n  a:\n    uses: no.such\n  b:\n    uses: image.gray\n    inputs: {frames: a.frames}\n")
-    done = run_cli("run", bad, env=env, cwd=tmp_path)
-    assert done.returncode == 2
-    assert done.stderr.splitlines() == [f"error: {bad}:3:11: stages.a.uses: unknown stage 'no.such' (see `runner stages`)",
-                                        f"error: {bad}:6:22: stages.b.inputs.frames: missing input: no stage named 'a'"]
-    assert run_cli("run", CHAIN, "--set", "write.crf=high", env=env, cwd=tmp_path).returncode == 2
-    assert run_cli("run", CHAIN, "--until", "nope", env=env, cwd=tmp_path).returncode == 2
-    assert run_cli("run", CHAIN, "--jobs", "0", env=env, cwd=tmp_path).returncode == 2
+    code, _, err = cli_main("run", bad)
+    assert code == 2
+    assert err.splitlines() == [f"error: {bad}:3:11: stages.a.uses: unknown stage 'no.such' (see `runner stages`)",
+                                f"error: {bad}:6:22: stages.b.inputs.frames: missing input: no stage named 'a'"]
+    assert cli_main("run", CHAIN, "--set", "write.crf=high")[0] == 2
+    code, _, err = cli_main("run", CHAIN, "--set", "write.crf=100")
+    assert code == 2 and err == "error: --set: write.crf: out of range: expected 0 <= crf <= 51, got 100\n"
+    assert cli_main("run", CHAIN, "--until", "nope")[0] == 2
+    assert cli_main("run", CHAIN, "--jobs", "0")[0] == 2
     if importlib.metadata.version("torch").endswith("+cpu"):
-        done = run_cli("run", CHAIN, "--device", "cuda", env=env, cwd=tmp_path)
-        assert done.returncode == 2 and "CUDA is not available" in done.stderr
+        code, _, err = cli_main("run", CHAIN, "--device", "cuda")
+        assert code == 2 and "CUDA is not available" in err
+    bad.write_text("stages:\n  a:\n    uses: !!python/object/apply:os.system ['echo owned']\n")
+    code, out, err = cli_main("run", bad)
+    assert code == 2 and "owned" not in out
+    assert err == f"error: {bad}:3:11: yaml: tag 'tag:yaml.org,2002:python/object/apply:os.system' is not allowed\n"
+    assert not (tmp_path / "cache").exists()
 
 
 def test_stages_dag_and_cache_commands(env, tmp_path):

@@ -45,7 +45,14 @@ class Smooth(SequenceStage):
     outputs = {"points": "points"}
 
 
-REGISTRY = Registry(classes=[Source, Track, Smooth])
+class Encode(SequenceStage):
+    name = "t.encode"
+    version = "1"
+    inputs = {"points": "points"}
+    params = (Param("crf", int, 18, "quality", min=0, max=51), Param("scale", float, 1.0, "factor", min=0.0))
+
+
+REGISTRY = Registry(classes=[Source, Track, Smooth, Encode])
 
 
 def load(tmp_path: Path, text: str, **kwargs):
@@ -200,3 +207,27 @@ def test_bind_inputs(tmp_path):
     assert bind_inputs(p, clip=None, named=[f"clip={clip}", f"pack={tmp_path}"]) == {"clip": clip, "pack": tmp_path}
     with pytest.raises(ConfigError, match="unknown pipeline input"):
         bind_inputs(p, clip=clip, named=["other=x"])
+
+
+def test_parameter_ranges_are_checked_when_the_graph_is_loaded(tmp_path):
+    text = GOOD + "  enc: {uses: t.encode, params: {crf: 52, scale: -0.5}, inputs: {points: track.points}}\n"
+    assert issues(tmp_path, text) == ["13:39: stages.enc.params.crf: out of range: expected 0 <= crf <= 51, got 52",
+                                      "13:50: stages.enc.params.scale: out of range: expected 0.0 <= scale, got -0.5"]
+    good = GOOD + "  enc: {uses: t.encode, inputs: {points: track.points}}\n"
+    assert issues(tmp_path, good, overrides=["enc.crf=100"]) == [
+        "--set: enc.crf: out of range: expected 0 <= crf <= 51, got 100"]
+    assert load(tmp_path, good, overrides=["enc.crf=0", "enc.scale=0"]).stages["enc"].params == {"crf": 0, "scale": 0.0}
+
+
+def test_yaml_aliases_are_refused_with_their_position(tmp_path):
+    bomb = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
+        f"{b}: &{b} [{', '.join([f'*{a}'] * 9)}]\n" for a, b in zip("abcdefghi", "bcdefghij")) + "stages: {}\n"
+    assert issues(tmp_path, bomb) == ["2:8: yaml: alias *a is not allowed (aliases are refused)"]
+    found = issues(tmp_path, "stages:\n  a: {uses: t.smooth, params: &p {}}\n  b: {uses: t.smooth, params: *p}\n")
+    assert found == ["3:31: yaml: alias *p is not allowed (aliases are refused)"]
+
+
+def test_python_tags_are_refused_with_their_position(tmp_path):
+    found = issues(tmp_path, "stages:\n  a:\n    uses: !!python/object/apply:os.system ['true']\n")
+    assert found == ["3:11: yaml: tag 'tag:yaml.org,2002:python/object/apply:os.system' is not allowed"]
+    assert issues(tmp_path, GOOD, overrides=["track.ids=!!python/name:os.system"])[0].startswith("--set: track.ids: wrong type")

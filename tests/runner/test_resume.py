@@ -4,7 +4,6 @@ publishes outputs byte-identical to an uninterrupted run's; concurrent runs shar
 from __future__ import annotations
 
 import os
-import random
 import signal
 import subprocess
 import time
@@ -129,14 +128,16 @@ def test_kill_mid_write(env, tmp_path, reference):
                                      "mean": "ran", "table": "ran"}
 
 
-@pytest.mark.parametrize("seed", [1, 2, 3])
-def test_kill_at_random_moment(env, tmp_path, reference, seed):
-    delay = random.Random(seed).uniform(0.4, 1.5)  # within the ~1.5 s run
-
+@pytest.mark.parametrize("computed", [1, 6, 11])
+def test_kill_after_observed_chunks(env, tmp_path, reference, computed):
+    """Killed once ``computed`` of the 12 chunks of add and gray were logged as computed (early,
+    midway, near the end), so that the kill always lands inside the work."""
     def wait(proc, log):
-        time.sleep(delay)
+        _wait_for(log, proc, lambda events: len(_ran_chunks(events, "add")) + len(_ran_chunks(events, "gray")) >= computed)
 
-    _kill_then_resume(env, tmp_path, reference, wait=wait, RUNNER_TEST_SLEEP="0.1", RUNNER_TEST_WRITE_SLEEP="0.05")
+    killed, _, stored = _kill_then_resume(env, tmp_path, reference, wait=wait, RUNNER_TEST_SLEEP="0.1",
+                                          RUNNER_TEST_WRITE_SLEEP="0.05")
+    assert len(stored["add"]) + len(stored["gray"]) >= computed
 
 
 def test_stale_lock_of_killed_run_is_broken(env, tmp_path, reference):

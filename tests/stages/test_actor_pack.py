@@ -9,9 +9,10 @@ import cv2
 import numpy as np
 import pytest
 
+from runner.depends import recording
 from runner.stage import StageError
 from stages.actor_pack import PackError, load_pack
-from stages.layout import load_layout
+from stages.layout import LAYOUT_DIR, load_layout
 
 REPO = Path(__file__).resolve().parents[2]
 W, H = 40, 30
@@ -117,10 +118,42 @@ def test_pack_error_is_a_stage_error(pack_dir):
         load_pack(root)
 
 
-@pytest.mark.skipif(not (REPO / "fixtures" / "packs" / "target" / "pack.yaml").exists(), reason="fixtures not generated")
 def test_committed_fixture_packs_load():
     for name in ("performer", "target"):
         pack = load_pack(REPO / "fixtures" / "packs" / name)
         assert 10 <= len(pack.examples) <= 15
         assert 30 <= pack.captured_points.shape[0] <= 40
         assert pack.teeth_examples and pack.standard.image.shape[:2] == pack.image_size[::-1]
+
+
+@pytest.mark.parametrize("value", ["../outside.png", "images/../../outside.png", "ABSOLUTE"])
+def test_pack_files_must_lie_inside_the_pack(pack_dir, value):
+    root, _ = pack_dir
+    outside = root.parent / "outside.png"
+    shutil.copy(root / "images" / "neutral.png", outside)
+    value = str(outside) if value == "ABSOLUTE" else value
+    manifest = root / "pack.yaml"
+    manifest.write_text(manifest.read_text().replace("image: images/neutral.png", f"image: {value}"))
+    with pytest.raises(PackError) as info:
+        load_pack(root)
+    assert str(manifest) in str(info.value) and "'neutral.image'" in str(info.value) and "outside the pack" in str(info.value)
+
+
+def test_a_layout_outside_the_pack_is_refused_and_a_bundled_one_is_recorded(pack_dir):
+    root, _ = pack_dir
+    with recording(set()) as files:
+        load_pack(root)
+    assert (LAYOUT_DIR / "zhang134.yaml").resolve() in files  # enters the key of the stage loading the pack
+    shutil.copy(LAYOUT_DIR / "zhang134.yaml", root.parent / "mine.yaml")
+    manifest = root / "pack.yaml"
+    manifest.write_text(manifest.read_text().replace("layout: zhang134", "layout: ../mine.yaml"))
+    with pytest.raises(PackError, match="field 'layout': '../mine.yaml' is outside the pack folder"):
+        load_pack(root)
+
+
+def test_yaml_aliases_in_a_manifest_are_refused_with_their_position(pack_dir):
+    root, _ = pack_dir
+    manifest = root / "pack.yaml"
+    manifest.write_text("a: &a [1, 1, 1]\nb: [*a, *a]\n" + manifest.read_text())
+    with pytest.raises(PackError, match=f"{manifest}:2:5: not valid YAML \\(alias \\*a is not allowed"):
+        load_pack(root)

@@ -174,3 +174,30 @@ def test_bad_input_is_one_line_stage_error_naming_the_file(tmp_path, kind, words
         stage.process(0, probe(path).frames, {"video": path}, {}, None)
     message = str(info.value)
     assert str(path) in message and words in message and "\n" not in message
+
+
+def _clip_with_timestamps(path: Path, pts_ms: list[int]) -> None:
+    """An FFV1 MKV of gray frames shown at ``pts_ms`` (milliseconds)."""
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("ffv1", rate=25)
+        stream.width, stream.height, stream.pix_fmt = 16, 16, "bgr0"
+        stream.codec_context.time_base = Fraction(1, 1000)
+        for i, pts in enumerate(pts_ms):
+            frame = av.VideoFrame.from_ndarray(np.full((16, 16, 3), 10 * i, np.uint8), format="rgb24")
+            frame.pts, frame.time_base = pts, Fraction(1, 1000)
+            for packet in stream.encode(frame):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+
+
+def test_variable_frame_rate_is_one_warning_line(tmp_path, caplog):
+    constant, variable = tmp_path / "cfr.mkv", tmp_path / "vfr.mkv"
+    _clip_with_timestamps(constant, [40 * i for i in range(8)])
+    _clip_with_timestamps(variable, [0, 40, 80, 120, 300, 340, 380, 420])
+    with caplog.at_level("WARNING"):
+        assert probe(constant).frames == 8
+        assert caplog.records == []
+        assert probe(variable).frames == 8
+    assert len(caplog.records) == 1
+    assert str(variable) in caplog.text and "variable frame rate" in caplog.text and "constant" in caplog.text

@@ -36,7 +36,6 @@ stages:
 """
 
 
-@pytest.mark.skipif(not TINY.exists(), reason="fixture clip missing")
 def test_pipeline_publishes_exr_frames_and_preview(tmp_path: Path) -> None:
     info = tmp_path / "site" / "writers_test-0.dist-info"
     info.mkdir(parents=True)

@@ -1,0 +1,212 @@
+"""Storing a stage's outputs in a cache entry, and reading them back verified.
+
+Every data file of an entry has its sha256 in the entry's completion record: a frames chunk
+``<port>.npy`` and a bundle ``<port>.npz`` under ``outputs.<port>.sha256``, the files of a
+``files`` output under ``outputs.<port>.files`` (``[relative path, size, sha256]``). Readers
+hash the bytes they read (one read: the array is built on the buffer that was hashed) and raise
+:class:`Damaged` on a mismatch or a file that cannot be parsed, so the runner recomputes the
+entry instead of handing damaged data on.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import io
+import math
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from runner.cache import Entry
+from runner.digest import array_digest, bundle_digest, cache_key, file_digest
+from runner.stage import StageError, StreamInfo
+
+BUNDLE_FILE = "{port}.npz"
+FRAMES_FILE = "{port}.npy"
+
+
+class Damaged(Exception):
+    """A stored file does not match the sha256 its entry recorded, or cannot be parsed."""
+
+    def __init__(self, path: Path, reason: str):
+        self.path = path
+        super().__init__(f"{path}: {reason}")
+
+
+class _HashingWriter:
+    """A write-only file object that hashes what passes through it (``np.save`` target)."""
+
+    def __init__(self, raw: io.BufferedWriter):
+        self.raw = raw
+        self.sha256 = hashlib.sha256()
+
+    def write(self, data: bytes | memoryview) -> int:
+        self.sha256.update(data)
+        return self.raw.write(data)
+
+
+@contextlib.contextmanager
+def _naming(path: Path) -> Iterator[None]:
+    """Give an :class:`OSError` raised while writing ``path`` (disk full) the file's name."""
+    try:
+        yield
+    except OSError as exc:
+        if exc.filename is not None:
+            raise
+        raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from exc
+
+
+def check_frames(port: str, frames: np.ndarray, count: int, info: StreamInfo) -> None:
+    """Raise :class:`StageError` unless ``frames`` is ``(count, info.height, info.width, C)``."""
+    if frames.ndim != 4 or frames.shape[0] != count or frames.shape[1:3] != (info.height, info.width):
+        raise StageError(f"output {port!r}: expected frames ({count}, {info.height}, {info.width}, C), got {frames.shape}")
+
+
+def save_outputs(declared: Mapping[str, str], result: Any, tmp: Path, *,
+                 frames: tuple[int, StreamInfo] | None) -> dict[str, Any]:
+    """Store a stage's result in the entry folder ``tmp``; return the record's ``outputs``.
+
+    Parameters
+    ----------
+    declared
+        The stage's output ports, name -> type.
+    result
+        What the stage returned: per port an array (frames), a dict of arrays (bundle) or None
+        (``files``, already written under ``tmp/files/<port>/``).
+    frames
+        ``(chunk length, stream info)`` for a frame stage's chunk, None for a sequence stage.
+
+    Raises
+    ------
+    StageError
+        The result does not match the declared outputs.
+    """
+    if not isinstance(result, dict) or set(result) != set(declared):
+        got = sorted(result) if isinstance(result, dict) else type(result).__name__
+        raise StageError(f"returned {got}, expected outputs {sorted(declared)}")
+    outputs = {}
+    for port, kind in declared.items():
+        value = result[port]
+        if kind == "frames":
+            array = np.asarray(value)
+            check_frames(port, array, frames[0], frames[1])
+            name = FRAMES_FILE.format(port=port)
+            with _naming(tmp / name), open(tmp / name, "wb") as raw:
+                writer = _HashingWriter(raw)
+                np.save(writer, array, allow_pickle=False)
+            outputs[port] = {"type": kind, "file": name, "digest": array_digest(array),
+                             "sha256": writer.sha256.hexdigest()}
+        elif kind == "files":
+            folder = tmp / "files" / port
+            folder.mkdir(parents=True, exist_ok=True)
+            listed = [[path.relative_to(folder).as_posix(), path.stat().st_size, file_digest(path)]
+                      for path in sorted(p for p in folder.rglob("*") if p.is_file())]
+            digest = cache_key([[rel, sha] for rel, _, sha in listed])
+            outputs[port] = {"type": kind, "file": f"files/{port}", "digest": digest, "files": listed}
+        else:
+            arrays = _bundle_arrays(port, kind, value, frames)
+            name = BUNDLE_FILE.format(port=port)
+            with _naming(tmp / name):
+                np.savez(tmp / name, **arrays)
+            outputs[port] = {"type": kind, "file": name, "digest": bundle_digest(arrays),
+                             "sha256": file_digest(tmp / name)}
+    return {"outputs": outputs}
+
+
+def _bundle_arrays(port: str, kind: str, value: Any, frames: tuple[int, StreamInfo] | None) -> dict[str, np.ndarray]:
+    if not isinstance(value, dict):
+        raise StageError(f"output {port!r} ({kind}): expected a dict of arrays, got {type(value).__name__}")
+    arrays = {k: np.asarray(v) for k, v in value.items()}
+    bad = [k for k, a in arrays.items() if a.dtype.hasobject]
+    if bad:
+        raise StageError(f"output {port!r}: {bad[0]!r} is an object array (not storable without pickle)")
+    if frames is not None:
+        wrong = [k for k, a in arrays.items() if a.ndim == 0 or a.shape[0] != frames[0]]
+        if wrong:
+            raise StageError(f"output {port!r}: {wrong[0]!r} must have {frames[0]} rows (one per frame)")
+    return arrays
+
+
+def output_path(entry: Entry, port: str) -> Path:
+    """The file (or ``files`` folder) of output ``port`` in ``entry``."""
+    return entry.path / entry.record["outputs"][port]["file"]
+
+
+def _read_verified(path: Path, sha256: str | None) -> bytearray:
+    """The bytes of ``path``, read once into a writable buffer and checked against ``sha256``."""
+    if not sha256:
+        raise Damaged(path, "no sha256 recorded")
+    try:
+        with open(path, "rb") as f:
+            size = f.seek(0, io.SEEK_END)
+            f.seek(0)
+            data = bytearray(size)
+            got = f.readinto(data)
+    except OSError as exc:
+        raise Damaged(path, f"cannot read ({exc.strerror or exc})") from None
+    if got != size or hashlib.sha256(data).hexdigest() != sha256:
+        raise Damaged(path, "sha256 differs from the one recorded when it was stored")
+    return data
+
+
+def load_frames(entry: Entry, port: str) -> np.ndarray:
+    """Frames ``(B, H, W, C)`` of output ``port`` of a frame chunk's entry, verified (the array is
+    a view of the one buffer read and hashed). Raises :class:`Damaged`."""
+    path = output_path(entry, port)
+    data = _read_verified(path, entry.record["outputs"][port].get("sha256"))
+    header = io.BytesIO(data)
+    try:
+        version = np.lib.format.read_magic(header)
+        read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+        shape, fortran, dtype = read_header(header)
+        count = math.prod(shape)
+        array = np.frombuffer(data, dtype=dtype, count=count, offset=header.tell())
+    except ValueError as exc:
+        raise Damaged(path, f"not a readable .npy ({exc})") from None
+    return array.reshape(shape, order="F" if fortran else "C")
+
+
+def load_mapped(entry: Entry, port: str) -> np.ndarray:
+    """Frames of output ``port`` memory-mapped read-only, unverified: for chunks already read
+    with :func:`load_frames` in this run."""
+    return np.load(output_path(entry, port), mmap_mode="r", allow_pickle=False)
+
+
+def load_bundle(entry: Entry, port: str) -> dict[str, np.ndarray]:
+    """Bundle ``port`` of ``entry``, verified. Raises :class:`Damaged`."""
+    path = output_path(entry, port)
+    data = _read_verified(path, entry.record["outputs"][port].get("sha256"))
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as stored:
+            return {k: stored[k] for k in stored.files}
+    except (ValueError, OSError, EOFError) as exc:
+        raise Damaged(path, f"not a readable .npz ({exc})") from None
+
+
+def verify_files(entry: Entry, port: str) -> Path:
+    """The folder of ``files`` output ``port`` once every file in it matches its recorded size
+    and sha256. Raises :class:`Damaged`."""
+    folder = output_path(entry, port)
+    for rel, _, sha256 in entry.record["outputs"][port]["files"]:
+        _read_verified(folder / rel, sha256)
+    return folder
+
+
+def copy_verified(source: Path, dest: Path, sha256: str) -> None:
+    """Copy ``source`` to ``dest``, hashing while copying; :class:`Damaged` (and ``dest``
+    removed) if the bytes differ from ``sha256``."""
+    h = hashlib.sha256()
+    try:
+        with open(source, "rb") as src, open(dest, "wb") as out:
+            while block := src.read(1 << 20):
+                h.update(block)
+                out.write(block)
+    except FileNotFoundError:
+        raise Damaged(source, "missing") from None
+    if h.hexdigest() != sha256:
+        dest.unlink(missing_ok=True)
+        raise Damaged(source, "sha256 differs from the one recorded when it was stored")
+

@@ -1,0 +1,281 @@
+"""The cache's guarantees, in-process: damaged entries are detected when read or published and
+recomputed (never used, never a traceback); what a result depends on is in its key (input file
+suffix, files recorded with runner.depends); publishing replaces only what an earlier publish
+wrote; a full disk names the stage and the file."""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import json
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from runner import depends, outputs
+from runner.cache import CacheStore
+from runner.cli import cli
+from runner.config import ConfigError, bind_inputs, load_pipeline
+from runner.execute import Options, Runner, StageFailed
+from runner.registry import Registry
+from runner.stage import FrameStage, Param, SequenceStage, StreamInfo
+
+N, H, W = 12, 3, 4
+
+
+def truth() -> np.ndarray:
+    """Frame t filled with 10 t + 1 (no frame is all zeros, like a black streak would be)."""
+    return np.broadcast_to((10 * np.arange(N, dtype=np.uint8) + 1)[:, None, None, None], (N, H, W, 1)).copy()
+
+
+class Ramp(FrameStage):
+    name, version = "i.ramp", "1"
+    outputs = {"frames": "frames"}
+
+    def stream_info(self, inputs, params):
+        return StreamInfo(N, 25.0, W, H)
+
+    def process(self, start, stop, inputs, params, ctx):
+        return {"frames": truth()[start:stop]}
+
+
+class Sums(SequenceStage):
+    """Per-frame sums of a stream; ``note`` changes the key only (to make it read again)."""
+
+    name, version = "i.sums", "1"
+    inputs = {"frames": "frames"}
+    outputs = {"sums": "sums"}
+    params = (Param("note", str, "", "ignored"),)
+
+    def run(self, inputs, params, ctx):
+        sums = np.concatenate([c.reshape(len(c), -1).sum(axis=1) for _, c in inputs["frames"].chunks()])
+        return {"sums": {"sum": sums}}
+
+
+class Table(SequenceStage):
+    """Writes the sums as ``sums.json`` (a ``files`` output)."""
+
+    name, version = "i.table", "1"
+    inputs = {"sums": "sums"}
+    outputs = {"table": "files"}
+    params = (Param("note", str, "", "ignored"),)
+
+    def run(self, inputs, params, ctx):
+        (ctx.files_dir("table") / "sums.json").write_text(json.dumps(inputs["sums"]["sum"].tolist()))
+        return {"table": None}
+
+
+class Parse(SequenceStage):
+    """Parses its ``init`` file by suffix (``.csv`` numbers; anything else: its length), and
+    reads the file named by ``extra`` (recorded with runner.depends, as a layout loader does)."""
+
+    name, version = "i.parse", "1"
+    inputs = {"init": "file"}
+    outputs = {"value": "value"}
+    params = (Param("extra", str, "", "a file read besides the inputs"),)
+
+    def run(self, inputs, params, ctx):
+        text = Path(inputs["init"]).read_text()
+        value = float(sum(map(float, text.split(",")))) if inputs["init"].suffix == ".csv" else float(len(text))
+        if params["extra"]:
+            depends.depends_on(params["extra"])
+            value += float(Path(params["extra"]).read_text())
+        return {"value": {"v": np.array([value])}}
+
+
+REGISTRY = Registry(classes=[Ramp, Sums, Table, Parse])
+CHAIN = """
+chunk_frames: 4
+stages:
+  ramp: {uses: i.ramp}
+  sums: {uses: i.sums, inputs: {frames: ramp.frames}}
+  table: {uses: i.table, inputs: {sums: sums.sums}}
+"""
+PARSE = """
+inputs:
+  init: {type: file}
+stages:
+  parse: {uses: i.parse, inputs: {init: init}}
+"""
+
+
+class Recorder:
+    def __init__(self):
+        self.warnings: list[str] = []
+        self.events: list[dict] = []
+
+
+def run(tmp_path: Path, text: str = CHAIN, *, overrides=(), named=(), out: Path | None = None,
+        recorder: Recorder | None = None) -> Runner:
+    path = tmp_path / "p.yaml"
+    path.write_text(textwrap.dedent(text))
+    pipeline = load_pipeline(path, REGISTRY, overrides=list(overrides))
+    recorder = recorder or Recorder()
+    options = Options(cache=CacheStore(tmp_path / "cache"), out=out if out is not None else tmp_path / "out",
+                      warn=recorder.warnings.append, log=recorder.events.append)
+    runner = Runner(pipeline, bind_inputs(pipeline, clip=None, named=list(named)), options)
+    runner.run()
+    return runner
+
+
+def statuses(recorder: Recorder) -> dict[str, str]:
+    return {e["stage"]: e["status"] for e in recorder.events if e.get("event") == "stage"}
+
+
+def entry_files(tmp_path: Path, stage: str, name: str) -> list[Path]:
+    return sorted(p for e in CacheStore(tmp_path / "cache").iter_entries() if e.record.get("stage") == stage
+                  for p in e.path.rglob(name))
+
+
+def published_sums(tmp_path: Path) -> list[int]:
+    return json.loads((tmp_path / "out" / "table" / "sums.json").read_text())
+
+
+EXPECTED = truth().reshape(N, -1).sum(axis=1).tolist()
+
+
+# -- damaged entries ------------------------------------------------------------------------
+
+@pytest.mark.parametrize("damage", ["flip", "truncate", "zeros"])
+def test_damaged_frame_chunk_is_recomputed_when_read(tmp_path, damage):
+    run(tmp_path)
+    chunk = entry_files(tmp_path, "ramp", "frames.npy")[1]
+    data = bytearray(chunk.read_bytes())
+    if damage == "flip":
+        data[-5] ^= 0xFF
+    elif damage == "truncate":
+        data = data[:len(data) // 2]
+    else:  # a black streak: the pixels zeroed, the header intact
+        data[-H * W * 4:] = bytes(H * W * 4)
+    chunk.write_bytes(bytes(data))
+    recorder = Recorder()
+    run(tmp_path, overrides=["sums.note=again"], recorder=recorder)  # sums reads every chunk
+    assert published_sums(tmp_path) == EXPECTED
+    assert len(recorder.warnings) == 1 and "'ramp'" in recorder.warnings[0] and str(chunk) in recorder.warnings[0]
+    assert [e["file"] for e in recorder.events if e.get("event") == "damaged"] == [str(chunk)]
+    # The entry was replaced: a third run reads it without complaint.
+    again = Recorder()
+    run(tmp_path, overrides=["sums.note=third"], recorder=again)
+    assert again.warnings == [] and published_sums(tmp_path) == EXPECTED
+
+
+def test_damaged_bundle_of_a_sequence_stage_is_recomputed(tmp_path):
+    run(tmp_path)
+    bundle = entry_files(tmp_path, "sums", "sums.npz")[0]
+    bundle.write_bytes(bundle.read_bytes()[:-7])
+    recorder = Recorder()
+    run(tmp_path, overrides=["table.note=again"], recorder=recorder)
+    assert published_sums(tmp_path) == EXPECTED
+    assert len(recorder.warnings) == 1 and "'sums'" in recorder.warnings[0]
+
+
+def test_damaged_completion_record_is_a_miss_and_replaced(tmp_path):
+    run(tmp_path)
+    record = entry_files(tmp_path, "sums", "complete.json")[0]
+    record.write_text("{not json")
+    recorder = Recorder()
+    run(tmp_path, recorder=recorder)
+    assert statuses(recorder)["sums"] == "ran"
+    assert json.loads(record.read_text())["stage"] == "sums"
+
+
+def test_damaged_cached_file_is_not_published(tmp_path):
+    run(tmp_path)
+    cached = entry_files(tmp_path, "table", "sums.json")[0]
+    cached.write_text("[0, 0]")
+    (tmp_path / "out" / "table" / "sums.json").unlink()  # publishing copies from the cache again
+    recorder = Recorder()
+    run(tmp_path, recorder=recorder)
+    assert published_sums(tmp_path) == EXPECTED
+    manifest = json.loads((tmp_path / "out" / "table" / "manifest.json").read_text())
+    assert manifest["files"][0]["sha256"] == hashlib.sha256((tmp_path / "out" / "table" / "sums.json").read_bytes()).hexdigest()
+    assert len(recorder.warnings) == 1 and "'table'" in recorder.warnings[0]
+
+
+# -- what is in a key -----------------------------------------------------------------------
+
+def test_input_file_suffix_is_in_the_key(tmp_path):
+    (tmp_path / "init.csv").write_text("1,2,3")
+    (tmp_path / "init.txt").write_text("1,2,3")
+    first = run(tmp_path, PARSE, named=["init=" + str(tmp_path / "init.csv")])
+    second = run(tmp_path, PARSE, named=["init=" + str(tmp_path / "init.txt")])
+    assert first.values[("parse", "value")].get()["v"][0] == 6.0
+    assert second.values[("parse", "value")].get()["v"][0] == 5.0  # parsed as text, not the .csv's entry
+
+
+def test_recorded_dependency_change_invalidates_the_entry(tmp_path):
+    (tmp_path / "init.csv").write_text("1")
+    extra = tmp_path / "extra.txt"
+    extra.write_text("10")
+    args = dict(named=["init=" + str(tmp_path / "init.csv")], overrides=[f"parse.extra={extra}"])
+    assert run(tmp_path, PARSE, **args).values[("parse", "value")].get()["v"][0] == 11.0
+    recorder = Recorder()
+    run(tmp_path, PARSE, recorder=recorder, **args)
+    assert statuses(recorder)["parse"] == "cached"
+    extra.write_text("20")
+    recorder = Recorder()
+    assert run(tmp_path, PARSE, recorder=recorder, **args).values[("parse", "value")].get()["v"][0] == 21.0
+    assert statuses(recorder)["parse"] == "ran"
+
+
+# -- what publishing may replace --------------------------------------------------------------
+
+@pytest.mark.parametrize("layout", ["user folder", "user file", "file in published folder"])
+def test_out_never_replaces_user_files(tmp_path, layout):
+    out = tmp_path / "out"
+    if layout == "file in published folder":
+        run(tmp_path)
+        (out / "table" / "notes.txt").write_text("mine")
+    elif layout == "user folder":
+        (out / "table").mkdir(parents=True)
+        (out / "table" / "data.csv").write_text("mine")
+    else:
+        out.mkdir()
+        (out / "table").write_text("mine")
+    entries_before = len(list(CacheStore(tmp_path / "cache").iter_entries()))
+    with pytest.raises(ConfigError) as info:
+        run(tmp_path, overrides=["table.note=changed"])
+    assert "table" in str(info.value) and "--out" in str(info.value)
+    assert len(list(CacheStore(tmp_path / "cache").iter_entries())) == entries_before  # nothing ran
+    mine = {"user folder": out / "table" / "data.csv", "user file": out / "table",
+            "file in published folder": out / "table" / "notes.txt"}[layout]
+    assert mine.read_text() == "mine"
+
+
+def _dead_pid() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def test_leftovers_of_a_killed_publish_are_removed(tmp_path):
+    out = tmp_path / "out"
+    run(tmp_path)
+    pid = _dead_pid()
+    for name in (f".table.{pid}.old", f".table.{pid}.tmp"):
+        (out / name).mkdir()
+        (out / name / "sums.json").write_text("[]")
+    run(tmp_path)
+    assert sorted(p.name for p in out.iterdir()) == ["table"]
+    (out / f".table.{pid}.old").mkdir()
+    done = CliRunner().invoke(cli, ["cache", "gc", "--cache-dir", str(tmp_path / "cache"), "--out", str(out)])
+    assert done.exit_code == 0 and "1 leftover output folders" in done.output
+    assert sorted(p.name for p in out.iterdir()) == ["table"]
+
+
+# -- failures -----------------------------------------------------------------------------
+
+def test_disk_full_names_the_stage_and_the_file(tmp_path, monkeypatch):
+    def full(self, data):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(outputs._HashingWriter, "write", full)
+    with pytest.raises(StageFailed) as info:
+        run(tmp_path)
+    message = str(info.value)
+    assert "'ramp'" in message and "frames.npy" in message and "No space left on device" in message
