@@ -160,6 +160,33 @@ def soft_limit(u: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, margin: float) 
         return np.where(u > hi, above, np.where(u < lo, below, u))
 
 
+def limit_displacements(displacement: np.ndarray, valid: np.ndarray, lo: np.ndarray, hi: np.ndarray, *,
+                        margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`soft_limit` of mapped displacements against each point's captured range.
+
+    Parameters
+    ----------
+    displacement : (T, n, 2) float
+        Mapped displacements ``S_i d_i`` in the target's frame, px.
+    valid : (T, n) bool
+        Which of them count as limited.
+    lo, hi : (n, 2) float
+        Each point's range (:func:`captured_range`), px.
+    margin : float
+        Width of the soft zone beyond the range, px.
+
+    Returns
+    -------
+    limited : (T, n, 2) float64
+        The displacements after the soft limit.
+    outside : (T, n) bool
+        Valid displacements more than ``margin`` beyond their range in a component (the
+        limit took away over a quarter of what lay beyond it).
+    """
+    outside = ((displacement > hi + margin) | (displacement < lo - margin)).any(axis=2) & valid
+    return soft_limit(displacement, lo, hi, margin=margin), outside
+
+
 def separate_lips(xy: np.ndarray, valid: np.ndarray, neutral: np.ndarray,
                   pairs: Sequence[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
     """Keep upper inner-lip points above the lower ones facing them.
@@ -253,17 +280,15 @@ class ExpressionMap(SequenceStage):
         valid_in = np.asarray(bundle["valid"], bool)
         displacement = map_expression(np.asarray(bundle["d"], dtype=np.float64), target, transforms) - target[None]
         n_frames = len(displacement)
-        limited = np.zeros(n_frames, bool)
+        outside = np.zeros(valid_in.shape, bool)  # (T, n): beyond the captured range by more than the margin
         captured = getattr(pack, "captured_points", None)
         if params["range_limit"] == "soft" and captured is None:
             ctx.log.warning(f"{self.name}: the pack carries no captured geometries; range limit off")
         elif params["range_limit"] == "soft":
             lo, hi = captured_range(captured, neutral_all)
-            lo, hi = lo[rows], hi[rows]
-            margin_px = margin * eye_distance(neutral_all, layout.point_names)
-            outside = (displacement > hi + margin_px) | (displacement < lo - margin_px)
-            limited = (outside.any(axis=2) & valid_in).any(axis=1)
-            displacement = soft_limit(displacement, lo, hi, margin=margin_px)
+            displacement, outside = limit_displacements(displacement, valid_in, lo[rows], hi[rows],
+                                                        margin=margin * eye_distance(neutral_all, layout.point_names))
+        limited = outside.any(axis=1)
         xy = np.repeat(neutral_all[None], n_frames, axis=0)
         xy[:, rows] = target[None] + displacement
         valid = np.zeros((n_frames, layout.n_points), bool)
@@ -271,9 +296,13 @@ class ExpressionMap(SequenceStage):
         pairs = [(layout.index(u), layout.index(lw)) for u, lw in INNER_LIP_PAIRS
                  if u in layout.point_names and lw in layout.point_names]
         xy, clamped = separate_lips(xy, valid, neutral_all, pairs)
+        per_point = outside.sum(axis=0)
+        most = ", ".join(f"{names[i]} {per_point[i]}"
+                         for i in np.argsort(-per_point, kind="stable")[:3] if per_point[i])
         ctx.log.info(f"{self.name}: displacements beyond the pack's captured range (+{margin:g} eye distance) in "
-                     f"{int(limited.sum())} of {n_frames} frames ({params['range_limit']} limit); "
-                     f"inner lips kept apart in {int(clamped.sum())} frames")
+                     f"{int(limited.sum())} of {n_frames} frames ({params['range_limit']} limit)"
+                     + (f", most often (frames): {most}" if most else "")
+                     + f"; inner lips kept apart in {int(clamped.sum())} frames")
         out = {"xy": xy, "valid": valid, "names": np.array(layout.point_names),
                "range_limited": limited, "lips_clamped": clamped}
         out.update({k: np.asarray(bundle[k]) for k in ("fps", "size") if k in bundle})

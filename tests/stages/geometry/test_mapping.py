@@ -221,3 +221,23 @@ def test_separate_lips_keeps_every_pair_apart():
     np.testing.assert_array_equal(clamped, crossed)
     np.testing.assert_array_equal(out[:, :, 0], xy[:, :, 0])  # only vertical moves
     np.testing.assert_array_equal(out[~crossed], xy[~crossed])
+
+
+def test_the_log_names_the_points_limited_most(tmp_path, monkeypatch, caplog):
+    layout = load_layout("zhang134")
+    neutral = face(layout)
+    fake_pack(monkeypatch, layout, neutral, np.repeat(neutral[None], 2, axis=0))  # nothing moves in the pack
+    names = np.array(["eye_l_0", "eye_r_0", "chin", "nose_tip"])
+    d = np.zeros((5, 4, 2))
+    d[1:, 2, 1] = 9.0  # chin: 4 frames 9 px beyond its (empty) range, margin 5 px
+    d[3, 3, 0] = 6.0  # nose tip: 1 frame
+    d[4, 3, 0] = 4.0  # inside the margin: softened, not counted
+    bundle = {"d": d, "valid": np.ones((5, 4), bool), "names": names,
+              "neutral": neutral[[layout.index(n) for n in names]]}
+    with caplog.at_level("INFO"):
+        out = ExpressionMap().run({"displacements": bundle, "pack": tmp_path}, {"mode": "none"},
+                                  context(tmp_path))["points"]
+    np.testing.assert_array_equal(out["range_limited"], [False, True, True, True, True])
+    assert "in 4 of 5 frames (soft limit), most often (frames): chin 4, nose_tip 1;" in caplog.text
+    assert out["xy"][4, layout.index("nose_tip"), 0] - neutral[layout.index("nose_tip"), 0] == pytest.approx(
+        5.0 * np.tanh(4.0 / 5.0))
