@@ -55,6 +55,13 @@ def geometry(neutral: np.ndarray, names: tuple[str, ...], eye: float, opening: n
     return xy
 
 
+def gradients(T: int, H: int, W: int) -> np.ndarray:
+    """``(T, H, W, 3)`` float in [0, 1]: smooth colour ramps that change from frame to frame."""
+    y, x = np.mgrid[0:H, 0:W] / max(H, W)
+    phase = np.arange(T)[:, None, None] / T
+    return np.stack([x + 0 * phase, (y + phase) % 1.0, 0.5 + 0.5 * np.sin(6 * (x + y) + phase * 6)], axis=-1)
+
+
 def inputs(T: int = 40, *, tracked_names: tuple[str, ...] | None = None, size: tuple[int, int] = (64, 48),
            with_mapped: bool = True) -> dict[str, Any]:
     """The stage's inputs. ``tracked_names``: the performer's point subset (default: all points).
@@ -81,8 +88,8 @@ def inputs(T: int = 40, *, tracked_names: tuple[str, ...] | None = None, size: t
     limited = np.zeros(T, bool)
     limited[list(LIMITED)] = True
     W, H = size
-    performer_frames = (rng.integers(0, 256, (T, H, W, 3))).astype(np.uint8)
-    result_frames = rng.random((T, 2 * H, 2 * W, 3)).astype(np.float16)
+    performer_frames = (255 * gradients(T, H, W)).astype(np.uint8)
+    result_frames = gradients(T, 2 * H, 2 * W)[..., ::-1].astype(np.float16)
     out = {
         "performer": MemoryStream(performer_frames, fps=FPS),
         "result": MemoryStream(result_frames, fps=FPS),

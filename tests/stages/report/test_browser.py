@@ -1,0 +1,43 @@
+"""The report page in headless Chromium: loads with no console or page error, requests nothing
+outside its folder, and every image decodes (naturalWidth > 0).
+
+Needs Debian's ``chromium`` and the ``playwright`` package (never ``playwright install``). Without
+them the test is skipped, unless ``CI`` is set: then it fails.
+"""
+
+import importlib.util
+import os
+from pathlib import Path
+
+import pytest
+
+from tests.stages.report.browser import chromium, visit
+from tests.stages.report.test_stage import PARAMS, embedded, stage_inputs, write
+
+MISSING = [what for what, absent in (("the chromium executable", chromium() is None),
+                                     ("the playwright package", importlib.util.find_spec("playwright") is None))
+           if absent]
+
+
+@pytest.fixture(autouse=True)
+def browser_available():
+    if MISSING:
+        reason = f"{' and '.join(MISSING)} not installed (.ci/install-browser installs chromium)"
+        if os.environ.get("CI"):
+            pytest.fail(f"CI is set but {reason}")
+        pytest.skip(reason)
+
+
+def test_page_loads_cleanly_in_chromium(tmp_path: Path):
+    page = write(stage_inputs(), tmp_path)
+    shot = tmp_path / "top.png"
+    seen = visit(page, screenshot=shot)
+    assert seen.console_errors == [] and seen.page_errors == []
+    folder = page.parent.resolve().as_uri() + "/"
+    outside = [url for url in seen.requests if not (url.startswith(folder) or url.startswith("data:"))]
+    assert outside == [], outside
+    sheet = len(embedded(page)["contact_sheet"])
+    assert len(seen.images) == sheet + 3  # the contact sheet, the two timelines and the heatmap
+    assert all(width > 0 and height > 0 for width, height in seen.images), seen.images
+    assert seen.images[0][1] == PARAMS["thumb_height"]
+    assert shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and shot.stat().st_size < 400_000
