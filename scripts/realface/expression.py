@@ -1,0 +1,119 @@
+"""Expression deformations of the fitted mesh: mouth opening, brow raise, smile.
+
+Each expression ``k`` is a parameter ``p_k`` in [0, 1] and a displacement field ``B_k`` ``(V, 3)``
+mm per unit parameter, applied in the head frame before the pose:
+``X(p) = X_neutral + sum_k p_k B_k`` (linear, so the truth is exact for any mix).
+Weights are smooth functions of each vertex's photo position (``smoothstep`` falloffs), with
+lengths in units of the outer-eye-corner distance ``D``:
+
+- ``mouth_open``: lower lip, chin and jaw move down by up to :data:`MOUTH_OPEN_MAX` ``D`` (the lower
+  lip's centre; the lip corners stay), slightly backwards (a jaw rotation's direction); the
+  weight is 1 below the line through the mouth corners, fading within the corners' reach, below
+  the chin (the neck stretches) and towards the ears. Lips are told apart by their contours
+  (upper lip 0, lower lip by a profile across the mouth).
+- ``brow_raise``: brows and forehead up by :data:`BROW_RAISE_MAX` ``D``, from 0 at the upper
+  eyelids to 1 at the brows, fading into the hair and beyond the temples.
+- ``smile``: mouth corners up and out by :data:`SMILE_CORNER_MAX` ``D`` (Gaussian falloff), cheeks
+  up by :data:`SMILE_CHEEK_MAX` ``D``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from matplotlib.path import Path as PolygonPath
+
+from .landmarks import (BROWS, CHEEKS, CHIN, FACE_OVAL, FOREHEAD, LIPS_INNER_LOWER, LIPS_INNER_UPPER, LIPS_OUTER_LOWER,
+                        LIPS_OUTER_UPPER, MOUTH_CORNERS, N_LANDMARKS, UPPER_LIDS)
+from .mesh import MOUTH_OPEN_MAX, RealFaceMesh
+
+EXPRESSIONS = ("mouth_open", "brow_raise", "smile")
+BROW_RAISE_MAX = 0.12
+SMILE_CORNER_MAX = 0.13
+SMILE_CHEEK_MAX = 0.07
+JAW_BACK = 0.15  # backward (z) motion of the jaw per unit of downward motion
+
+
+def smoothstep(lo: float, hi: float, x: np.ndarray) -> np.ndarray:
+    """0 below ``lo``, 1 above ``hi``, ``3u^2 - 2u^3`` between (``lo > hi`` gives the falling step)."""
+    u = np.clip((np.asarray(x, dtype=np.float64) - lo) / (hi - lo), 0.0, 1.0)
+    return u * u * (3.0 - 2.0 * u)
+
+
+def _lip_sides(px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Boolean ``(V,)`` masks of the upper and the lower lip (contour points included, the
+    corners in neither)."""
+    lm = px[:N_LANDMARKS]
+    upper_poly = PolygonPath(lm[list(LIPS_OUTER_UPPER + LIPS_INNER_UPPER[::-1])])
+    lower_poly = PolygonPath(lm[list(LIPS_OUTER_LOWER + LIPS_INNER_LOWER[::-1])])
+    upper = upper_poly.contains_points(px)
+    lower = lower_poly.contains_points(px)
+    corners = {LIPS_OUTER_UPPER[0], LIPS_OUTER_UPPER[-1], LIPS_INNER_UPPER[0], LIPS_INNER_UPPER[-1]}
+    upper[list(set(LIPS_OUTER_UPPER + LIPS_INNER_UPPER) - corners)] = True
+    lower[list(set(LIPS_OUTER_LOWER + LIPS_INNER_LOWER) - corners)] = True
+    lower &= ~upper
+    return upper, lower
+
+
+def _mouth_open(px: np.ndarray, D: float) -> np.ndarray:
+    """``(V,)`` downward weight of the jaw."""
+    lm = px[:N_LANDMARKS]
+    left, right = lm[MOUTH_CORNERS[0]], lm[MOUTH_CORNERS[1]]
+    centre = (left + right) / 2.0
+    half = np.linalg.norm(right - left) / 2.0
+    slope = (right[1] - left[1]) / (right[0] - left[0])
+    below = px[:, 1] - (left[1] + slope * (px[:, 0] - left[0]))
+    across = np.abs(px[:, 0] - centre[0])
+    jaw = smoothstep(0.0, 0.6 * half, below)
+    jaw *= smoothstep(lm[CHIN, 1] + 0.6 * D, lm[CHIN, 1] + 0.1 * D, px[:, 1])
+    jaw *= smoothstep(1.1 * D, 0.4 * D, across)
+    upper, lower = _lip_sides(px)
+    profile = smoothstep(1.0 * half, 0.3 * half, across)
+    return np.where(upper, 0.0, np.where(lower, profile, jaw))
+
+
+def _brow_raise(px: np.ndarray, D: float) -> np.ndarray:
+    """``(V,)`` upward weight of brows and forehead."""
+    lm = px[:N_LANDMARKS]
+    lid = lm[list(UPPER_LIDS), 1].mean()
+    brow = lm[list(BROWS), 1].mean()
+    centre_x = lm[list(FACE_OVAL), 0].mean()
+    w = smoothstep(lid, brow, px[:, 1])
+    w *= smoothstep(lm[FOREHEAD, 1] - 0.7 * D, lm[FOREHEAD, 1], px[:, 1])
+    w *= smoothstep(1.0 * D, 0.7 * D, np.abs(px[:, 0] - centre_x))
+    return w
+
+
+def _gaussian(px: np.ndarray, centre: np.ndarray, sigma: float) -> np.ndarray:
+    return np.exp(-np.sum((px - centre) ** 2, axis=1) / (2.0 * sigma * sigma))
+
+
+def expression_basis(mesh: RealFaceMesh) -> np.ndarray:
+    """Displacement fields ``(3, V, 3)`` mm per unit parameter, in :data:`EXPRESSIONS` order.
+
+    The mouth cavity's vertices (the upper teeth) stay with the upper jaw when the mouth opens
+    or the brows rise, and follow the smile's field (so the teeth stay behind the lips).
+    """
+    px, D, mm = mesh.source_px, mesh.eye_px, mesh.mm_per_px
+    basis = np.zeros((len(EXPRESSIONS), len(px), 3))
+    skin = np.arange(len(px)) < len(px) - mesh.n_cavity
+    down = MOUTH_OPEN_MAX * D * mm * _mouth_open(px, D) * skin
+    basis[0, :, 1] = down
+    basis[0, :, 2] = JAW_BACK * down
+    basis[1, :, 1] = -BROW_RAISE_MAX * D * mm * _brow_raise(px, D) * skin
+    lm = px[:N_LANDMARKS]
+    centre_x = lm[list(MOUTH_CORNERS), 0].mean()
+    for corner, cheek in zip(MOUTH_CORNERS, CHEEKS):
+        side = np.sign(lm[corner, 0] - centre_x)
+        g = _gaussian(px, lm[corner], 0.35 * D)
+        basis[2, :, 0] += side * SMILE_CORNER_MAX * 0.6 * D * mm * g
+        basis[2, :, 1] -= SMILE_CORNER_MAX * 0.8 * D * mm * g
+        basis[2, :, 1] -= SMILE_CHEEK_MAX * D * mm * _gaussian(px, lm[cheek], 0.4 * D)
+    return basis
+
+
+def deform(mesh: RealFaceMesh, basis: np.ndarray, params: np.ndarray) -> np.ndarray:
+    """Head-frame vertices ``(V, 3)`` mm of expression ``params`` ``(3,)`` in [0, 1]."""
+    params = np.asarray(params, dtype=np.float64)
+    if params.shape != (len(EXPRESSIONS),) or np.any(params < 0) or np.any(params > 1):
+        raise ValueError(f"params: expected ({len(EXPRESSIONS)},) values in [0, 1], got {params!r}")
+    return mesh.vertices + np.tensordot(params, basis, axes=1)
