@@ -1,0 +1,90 @@
+"""``expression-editor``: start the editor's local web server and print its URL.
+
+    expression-editor --pack PACK [--performance RUN/data/data.npz] [--host 127.0.0.1]
+                      [--port 0] [--device cpu] [--jpeg-quality 85] [--allow-remote]
+
+The URL carries a random token made for this run; the server answers no request without it.
+It binds to 127.0.0.1 unless ``--host`` names another address, which also needs
+``--allow-remote`` (and prints a warning: anyone who can reach the port and learns the URL can
+use the editor). ``--port 0`` picks a free port.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import ipaddress
+import logging
+import secrets
+import sys
+from pathlib import Path
+
+from aiohttp import web
+
+from runner.stage import StageError
+
+def is_loopback(host: str) -> bool:
+    """True for a loopback address or ``localhost``."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="expression-editor", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--pack", type=Path, required=True, help="the target's actor pack (folder with pack.yaml)")
+    parser.add_argument("--performance", type=Path, help="a run's data/data.npz whose frames (target_xy) can be loaded and touched up")
+    parser.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
+    parser.add_argument("--port", type=int, default=0, help="port (default 0: any free port)")
+    parser.add_argument("--allow-remote", action="store_true", help="allow a --host that is not a loopback address")
+    parser.add_argument("--device", default="cpu", help="torch device of the synthesis (cpu, cuda)")
+    parser.add_argument("--jpeg-quality", type=int, default=85, choices=range(1, 101), metavar="1..100", help="quality of the images sent to the page")
+    return parser.parse_args(argv)
+
+
+async def serve(args: argparse.Namespace) -> None:
+    from editor.engine import EditorEngine
+    from editor.server import make_app
+
+    engine = EditorEngine(args.pack, device=args.device, jpeg_quality=args.jpeg_quality, performance=args.performance)
+    token = secrets.token_urlsafe(24)
+    runner = web.AppRunner(make_app(engine, token=token), access_log=None)
+    await runner.setup()
+    site = web.TCPSite(runner, args.host, args.port)
+    await site.start()
+    port = runner.addresses[0][1]
+    shown = f"[{args.host}]" if ":" in args.host else args.host
+    print(f"expression editor: http://{shown}:{port}/?token={token}", flush=True)
+    try:
+        await asyncio.Event().wait()
+    finally:
+        await runner.cleanup()
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    if not is_loopback(args.host):
+        if not args.allow_remote:
+            print(f"expression-editor: --host {args.host} is not a loopback address; add --allow-remote to bind it", file=sys.stderr)
+            return 2
+        print(f"WARNING: binding {args.host}: anyone who can reach this port and learns the URL (its token) can use the editor",
+              file=sys.stderr, flush=True)
+    if not (args.pack / "pack.yaml").is_file():
+        print(f"expression-editor: --pack {args.pack}: no pack.yaml there", file=sys.stderr)
+        return 2
+    try:
+        asyncio.run(serve(args))
+    except KeyboardInterrupt:
+        return 130
+    except (ValueError, OSError, StageError) as exc:
+        print(f"expression-editor: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

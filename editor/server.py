@@ -1,0 +1,204 @@
+"""The editor's web server (aiohttp): the page, and the JSON/binary API behind it.
+
+Every request needs the per-run token (header ``X-Editor-Token`` or query ``token``); bodies
+are bounded (``MAX_BODY`` bytes) and validated (:mod:`editor.validate`); every error is a JSON
+``{"error": message}`` with a 4xx status (5xx for a fault of the server's own), and the server
+keeps serving.
+
+API (POST bodies are JSON)
+--------------------------
+``GET  /``                 the page (``editor/static/index.html``)
+``GET  /static/NAME``      its script and style
+``GET  /api/describe``     size, point names, neutral, subregion outlines, performance frames
+``GET  /api/frame?index=K`` frame K's geometry of the ``--performance`` data.npz
+``POST /api/render``       ``{client, seq, base, pinned}`` -> propagated geometry + its image
+``POST /api/inbetweens``   ``{client, seq, from, to}`` -> the five in-between images (Sec. 14.2)
+``POST /api/export``       ``{fps, keyframes: [{time_s, points}]}`` -> the points file (.npz)
+
+Image answers are ``application/octet-stream``: a little-endian uint32 byte count, that many
+bytes of UTF-8 JSON (``points``, ``seq``, ``synth_ms``, ``sizes``: the byte count of each
+image), then the JPEG images back to back. Stale work is dropped: a request whose ``seq`` is
+older than the newest one seen from its ``client`` is answered 409 ``superseded`` without
+being computed, also when a newer one arrives while it waits for the renderer.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hmac
+import json
+import logging
+import struct
+from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any, Awaitable, Callable
+
+import numpy as np
+from aiohttp import web
+
+from editor import validate
+from editor.engine import EditorEngine
+from editor.geometry import edited_geometry, inbetweens, interpolate_keyframes
+from editor.points_file import points_file_bytes
+
+STATIC = Path(__file__).resolve().parent / "static"
+MAX_BODY = 4 * 1024 * 1024  # bytes; an export of MAX_KEYFRAMES keyframes of 134 points fits
+MAX_CLIENTS = 64  # clients whose newest sequence number is remembered
+TOKEN_HEADER = "X-Editor-Token"
+log = logging.getLogger("editor.server")
+
+ENGINE = web.AppKey("engine", EditorEngine)
+TOKEN = web.AppKey("token", str)
+NEWEST = web.AppKey("newest", OrderedDict)
+EXECUTOR = web.AppKey("executor", ThreadPoolExecutor)
+
+
+def json_error(status: int, message: str) -> web.Response:
+    return web.json_response({"error": message}, status=status, headers={"Cache-Control": "no-store"})
+
+
+@web.middleware
+async def guard(request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]) -> web.StreamResponse:
+    """Token check, errors as JSON, no caching, a restrictive content policy."""
+    token = request.app[TOKEN]
+    given = request.headers.get(TOKEN_HEADER) or request.query.get("token", "")
+    if not hmac.compare_digest(given.encode(), token.encode()):
+        return json_error(403, "missing or wrong token")
+    try:
+        response = await handler(request)
+    except web.HTTPException as exc:
+        if exc.status < 400:
+            raise
+        return json_error(exc.status, exc.reason)
+    except ValueError as exc:  # validation (json.JSONDecodeError is one)
+        return json_error(400, str(exc))
+    except Exception:  # a fault of ours: logged, answered, and the server goes on
+        log.exception("error serving %s %s", request.method, request.path)
+        return json_error(500, "internal error (see the server's log)")
+    response.headers["Cache-Control"] = "no-store"
+    response.headers["Referrer-Policy"] = "no-referrer"
+    response.headers["X-Content-Type-Options"] = "nosniff"
+    response.headers["Content-Security-Policy"] = "default-src 'self'; img-src 'self' blob: data:; frame-ancestors 'none'"
+    return response
+
+
+async def read_json(request: web.Request) -> Any:
+    """The request's JSON body; 413 past MAX_BODY (aiohttp's client_max_size), 415 if not JSON."""
+    if request.content_type != "application/json":
+        raise web.HTTPUnsupportedMediaType(reason=f"expected Content-Type application/json, got {request.content_type!r}")
+    text = await request.text()
+    return json.loads(text)
+
+
+def claim(app: web.Application, client: str, seq: int) -> bool:
+    """Record ``seq`` as ``client``'s newest request; False when a newer one was seen."""
+    newest = app[NEWEST]
+    if seq < newest.get(client, -1):
+        return False
+    newest[client] = seq
+    newest.move_to_end(client)
+    while len(newest) > MAX_CLIENTS:
+        newest.popitem(last=False)
+    return True
+
+
+def image_answer(meta: dict[str, Any], images: list[bytes]) -> web.Response:
+    header = json.dumps({**meta, "sizes": [len(i) for i in images]}).encode()
+    body = b"".join([struct.pack("<I", len(header)), header, *images])
+    return web.Response(body=body, content_type="application/octet-stream")
+
+
+async def render_images(request: web.Request, client: str, seq: int, geometries: np.ndarray) -> web.Response | None:
+    """Synthesize ``geometries (B, N, 2)`` on the renderer thread, unless superseded first."""
+    app = request.app
+    engine = app[ENGINE]
+
+    def job() -> tuple[list[bytes], float] | None:
+        if app[NEWEST].get(client) != seq:
+            return None
+        return engine.render(geometries)
+
+    done = await asyncio.get_running_loop().run_in_executor(app[EXECUTOR], job)
+    if done is None:
+        return None
+    images, seconds = done
+    return image_answer({"seq": seq, "synth_ms": seconds * 1e3, "points": geometries[-1].tolist()}, images)
+
+
+def _limit(engine: EditorEngine) -> float:
+    return 4.0 * max(engine.size)
+
+
+async def handle_render(request: web.Request) -> web.Response:
+    engine = request.app[ENGINE]
+    body = await read_json(request)
+    client, seq = validate.sequence_number(body)
+    base, pinned = validate.render_request(body, n_points=engine.pca.n_points, limit=_limit(engine))
+    if not claim(request.app, client, seq):
+        return json_error(409, "superseded")
+    geometry = edited_geometry(engine.pca, pinned, base=base)
+    answer = await render_images(request, client, seq, geometry[None])
+    return answer or json_error(409, "superseded")
+
+
+async def handle_inbetweens(request: web.Request) -> web.Response:
+    engine = request.app[ENGINE]
+    body = await read_json(request)
+    client, seq = validate.sequence_number(body)
+    previous, current = validate.inbetween_request(body, n_points=engine.pca.n_points, limit=_limit(engine))
+    if not claim(request.app, client, seq):
+        return json_error(409, "superseded")
+    answer = await render_images(request, client, seq, np.concatenate([inbetweens(previous, current), current[None]]))
+    return answer or json_error(409, "superseded")
+
+
+async def handle_export(request: web.Request) -> web.Response:
+    engine = request.app[ENGINE]
+    times, geometries, fps = validate.export_request(await read_json(request), n_points=engine.pca.n_points, limit=_limit(engine))
+    data = points_file_bytes(interpolate_keyframes(times, geometries, fps=fps), engine.layout.point_names, fps=fps)
+    return web.Response(body=data, content_type="application/octet-stream",
+                        headers={"Content-Disposition": 'attachment; filename="keyframes.npz"'})
+
+
+async def handle_describe(request: web.Request) -> web.Response:
+    return web.json_response(request.app[ENGINE].description())
+
+
+async def handle_frame(request: web.Request) -> web.Response:
+    performance = request.app[ENGINE].performance
+    if performance is None:
+        return json_error(404, "no performance loaded (start the editor with --performance RUN/data/data.npz)")
+    text = request.query.get("index", "")
+    if not text.isdigit() or int(text) >= len(performance):
+        raise ValueError(f"query 'index': expected an integer in 0..{len(performance) - 1}, got {text!r}")
+    return web.json_response({"index": int(text), "points": performance[int(text)].tolist()})
+
+
+async def handle_index(request: web.Request) -> web.Response:
+    page = (STATIC / "index.html").read_text(encoding="utf-8").replace("__TOKEN__", request.app[TOKEN])
+    return web.Response(text=page, content_type="text/html")
+
+
+async def _shutdown(app: web.Application) -> None:
+    app[EXECUTOR].shutdown(wait=False, cancel_futures=True)
+
+
+def make_app(engine: EditorEngine, *, token: str) -> web.Application:
+    """The editor's application, serving ``engine`` to holders of ``token``."""
+    if len(token) < 16:
+        raise ValueError(f"token must have at least 16 characters, got {len(token)}")
+    app = web.Application(middlewares=[guard], client_max_size=MAX_BODY)
+    app[ENGINE] = engine
+    app[TOKEN] = token
+    app[NEWEST] = OrderedDict()
+    app[EXECUTOR] = ThreadPoolExecutor(max_workers=1, thread_name_prefix="editor-render")
+    app.on_cleanup.append(_shutdown)
+    app.router.add_get("/", handle_index)
+    app.router.add_get("/api/describe", handle_describe)
+    app.router.add_get("/api/frame", handle_frame)
+    app.router.add_post("/api/render", handle_render)
+    app.router.add_post("/api/inbetweens", handle_inbetweens)
+    app.router.add_post("/api/export", handle_export)
+    app.router.add_static("/static/", STATIC, show_index=False, follow_symlinks=False)
+    return app
