@@ -218,6 +218,8 @@ class Landmarker:
     select
         Which face to keep when there are several: ``"largest"`` (bounding-box area) or
         ``"central"`` (box centre nearest the frame centre).
+        The rule applies among the faces of the searched region; the next frame is searched
+        around the face kept first, so that face is followed even if another becomes larger.
     min_detection_confidence
         Detector score threshold.
     crop_scale

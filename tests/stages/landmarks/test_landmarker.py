@@ -126,3 +126,24 @@ def test_options_are_checked():
         Landmarker(select="first")
     with pytest.raises(ValueError, match="crop_scale"):
         Landmarker(crop_scale=0.5)
+
+
+@pytest.mark.parametrize("select, expected", [("largest", "large"), ("central", "small")])
+def test_several_faces_choose_by_the_rule(select, expected):
+    """Two astronaut faces, a large one in a corner and a small one at the centre of the frame."""
+    x0, y0, x1, y1 = CROP
+    small = np.ascontiguousarray(data.astronaut()[y0:y1, x0:x1])  # mesh ~90 px wide
+    large = cv2.resize(small, None, fx=1.6, fy=1.6, interpolation=cv2.INTER_CUBIC)
+    frame = np.full((560, 720, 3), 100, np.uint8)
+    frame[10:10 + large.shape[0], 10:10 + large.shape[1]] = large
+    cy, cx = 280 - small.shape[0] // 2, 360 - small.shape[1] // 2 + 60
+    frame[cy:cy + small.shape[0], cx:cx + small.shape[1]] = small
+    with Landmarker(select=select) as lm:
+        mesh = lm.detect(frame)
+    assert mesh.valid and mesh.faces == 2
+    width = np.ptp(mesh.xy[:, 0])
+    centre_x = mesh.xy[:, 0].mean()
+    if expected == "large":
+        assert width > 120 and centre_x < 300
+    else:
+        assert width < 110 and centre_x > 300
