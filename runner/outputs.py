@@ -14,7 +14,7 @@ import contextlib
 import hashlib
 import io
 import math
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +22,7 @@ import numpy as np
 
 from runner.cache import Entry
 from runner.digest import array_digest, bundle_digest, cache_key, file_digest
-from runner.stage import StageError, StreamInfo
+from runner.stage import Context, StageError, StreamInfo
 
 BUNDLE_FILE = "{port}.npz"
 FRAMES_FILE = "{port}.npy"
@@ -210,3 +210,29 @@ def copy_verified(source: Path, dest: Path, sha256: str) -> None:
         dest.unlink(missing_ok=True)
         raise Damaged(source, "sha256 differs from the one recorded when it was stored")
 
+
+
+def read_or_redo(read: Callable[[Entry], Any], entry: Entry, *, redo: Callable[[], Entry],
+                 on_damaged: Callable[[Damaged], None]) -> Any:
+    """``read(entry)``; if that raises :class:`Damaged`, report it to ``on_damaged``, recompute
+    the entry with ``redo`` and read the new one. Raises :class:`StageError` if the new entry is
+    damaged too (a failing disk)."""
+    try:
+        return read(entry)
+    except Damaged as exc:
+        on_damaged(exc)
+    try:
+        return read(redo())
+    except Damaged as exc:
+        raise StageError(f"cache entry damaged again right after it was computed: {exc}") from None
+
+
+def entry_context(tmp: Path, *, device: str, progress: Callable[[int], None]) -> Context:
+    """The :class:`Context` of a stage computing the entry written in ``tmp``: its ``files``
+    outputs go to ``tmp/files/<port>/``."""
+    def files_dir(port: str) -> Path:
+        folder = tmp / "files" / port
+        folder.mkdir(parents=True, exist_ok=True)
+        return folder
+
+    return Context(device=device, files_dir=files_dir, progress=progress)

@@ -1,0 +1,371 @@
+"""The chunks of one frame stage in one run (:class:`FrameChunks`), and the values stages hand
+each other (:class:`Value`).
+
+A chunk is *resolved* once per run: its key (which resolves the upstream chunks its window
+reads), then its stored entry, or compute, store and commit it under the entry's lock. Reading a
+stored chunk hashes it against its entry's record the first time in a run; a damaged chunk is
+reported and recomputed (:func:`runner.outputs.read_or_redo`). Frame chunks use the run through
+:class:`RunServices` only: the run's :class:`runner.keys.Keys`, the cache store, progress
+reporting and ``--jobs``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import threading
+from collections.abc import Callable
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from runner.cache import CacheStore, Entry
+from runner.config import StageNode
+from runner.depends import recording
+from runner.digest import cache_key, combine
+from runner.errors import stage_errors
+from runner.keys import Keys
+from runner.outputs import check_frames, entry_context, load_bundle, load_frames, load_mapped, read_or_redo, save_outputs
+from runner.progress import Progress, Report, own_time
+from runner.stage import Context, FrameStage, StreamInfo
+from runner.streams import ChunkedStream, ComputedStream, StoredStream, chunk_ranges
+
+if TYPE_CHECKING:
+    from tqdm import tqdm
+
+
+@dataclass(frozen=True)
+class RunServices:
+    """What frame chunks use of the run: its keys, the cache store, progress reporting, and how
+    many chunks are computed at once."""
+
+    keys: Keys
+    store: CacheStore
+    progress: Progress
+    jobs: int
+
+
+@dataclass
+class Value:
+    """What one output (or pipeline input) gives downstream stages.
+
+    Outputs of frame stages name their producer's :class:`FrameChunks` (``chunks``, ``port``),
+    which gives digests per chunk as they are resolved, and the stream shape (``info``); other
+    values carry their ``digest``, None in a dry run when the producer has not run yet.
+    """
+
+    type: str
+    digest: str | None = None
+    load: Callable[[], Any] | None = None
+    chunks: FrameChunks | None = None
+    port: str = ""
+    info: StreamInfo | None = None
+    _loaded: Any = field(default=None, repr=False)
+
+    def resolved_digest(self, *, compute: bool = True) -> str | None:
+        """The value's digest; for a frame stage's output, the digest of all its chunks, which
+        resolves them (computing the missing ones), or None if ``compute`` is False and some
+        chunk is not stored yet."""
+        if self.chunks is None:
+            return self.digest
+        return self.chunks.digest(self.port, compute=compute)
+
+    def get(self) -> Any:
+        if self.chunks is not None and self.type == "frames":
+            return self.chunks.stream(self.port)
+        if self._loaded is None:
+            self._loaded = self.load()
+        return self._loaded
+
+
+def input_digests(inputs: dict[str, Value], *, compute: bool = True) -> dict[str, str] | None:
+    """Digest per input port (resolving frame streams); None if ``compute`` is False and one is
+    not known without computing."""
+    digests = {port: v.resolved_digest(compute=compute) for port, v in inputs.items()}
+    return None if None in digests.values() else digests
+
+
+class FrameChunks:
+    """The chunks of one frame stage in one run, each resolved at most once.
+
+    Resolving chunk ``i`` (:meth:`entry`) computes its key, which resolves the upstream chunks
+    its window reads, then takes the stored entry or computes, stores and commits it under the
+    entry's lock (a cached stage), logging a ``chunk`` event either way. An uncached stage
+    stores nothing: its chunks are computed whenever read (:meth:`stream`) and their digests
+    derive from their keys. A *lazy* stage is resolved by its readers. Thread-safe: one lock
+    per chunk.
+
+    What it uses of the run is ``run`` (:class:`RunServices`): keys, the store, progress.
+    ``entries`` (one per chunk, None until resolved) and :meth:`redo` serve publishing.
+    """
+
+    def __init__(self, run: RunServices, node: StageNode, stage: FrameStage, inputs: dict[str, Value],
+                 info: StreamInfo, *, forced: bool, lazy: bool):
+        self.run, self.node, self.stage, self.inputs, self.info = run, node, stage, inputs, info
+        self.forced, self.lazy = forced, lazy
+        self.ranges = chunk_ranges(info.frames, run.keys.chunk_frames)
+        self.keys: list[str | None] = [None] * len(self.ranges)
+        self.entries: list[Entry | None] = [None] * len(self.ranges)
+        self._cached = [False] * len(self.ranges)  # per chunk: found stored (not computed) in this run
+        self.report = Report(node.name, node.uses, "cached", chunks=len(self.ranges), frames=info.frames)
+        self._locks = [threading.Lock() for _ in self.ranges]
+        self._book = threading.Lock()  # guards the report, the bar and the dicts below
+        self._upstream: dict[str, Any] | None = None
+        self._streams: dict[str, ComputedStream] = {}
+        self._readers: list[str] = []
+        self._bar: tqdm | None = None
+        self._verified: set[tuple[int, str]] = set()  # (chunk, port) read and hashed in this run
+        self._depends: set[Path] = set()  # files recorded by runner.depends while chunks were computed
+
+    # -- keys and digests ------------------------------------------------------------------
+
+    def key(self, i: int, *, compute: bool = True) -> str | None:
+        """Cache key of chunk ``i``; None if ``compute`` is False and an input chunk it reads
+        is not stored yet."""
+        if self.keys[i] is None:
+            plain = {p: v for p, v in self.inputs.items() if v.type != "frames"}
+            digests = input_digests(plain, compute=compute)
+            start, stop = self.ranges[i]
+            used = None if digests is None else self._chunk_inputs(start, stop, compute=compute)
+            if used is None:
+                return None
+            self.keys[i] = cache_key({**self.run.keys.material(self.node, digests), "chunk": [start, stop],
+                                      "info": asdict(self.info), "chunk_inputs": used})
+        return self.keys[i]
+
+    def _chunk_inputs(self, start: int, stop: int, *, compute: bool) -> dict[str, Any] | None:
+        """Digests of the upstream frame chunks that frames ``[start - window, stop + window)``
+        touch (clamped to the clip), resolving them; None if ``compute`` is False and one is
+        not stored yet. A stage that defines its own stream shape may map output frames to any
+        input frames, so each of its chunks depends on whole input streams."""
+        own_shape = defines_stream_info(self.node.cls)
+        used = {}
+        for port, v in self.inputs.items():
+            if v.type != "frames":
+                continue
+            if own_shape:
+                digest = v.resolved_digest(compute=compute)
+                if digest is None:
+                    return None
+                used[port] = {"info": asdict(v.info), "stream": digest}
+                continue
+            size, window = self.run.keys.chunk_frames, self.node.cls.window
+            lo = max(0, start - window) // size
+            hi = (min(v.info.frames, stop + window) - 1) // size
+            digests = v.chunks.digests(v.port, lo, hi, compute=compute)
+            if digests is None:
+                return None
+            used[port] = {"info": asdict(v.info), "chunks": digests}
+        return used
+
+    def digests(self, port: str, lo: int, hi: int, *, compute: bool = True) -> list[str] | None:
+        """Digests of output ``port`` in chunks ``lo..hi`` (inclusive), resolving them; None if
+        ``compute`` is False and one is not stored yet."""
+        out = []
+        for i in range(lo, hi + 1):
+            if not self.node.cls.cached:
+                key = self.key(i, compute=compute)
+                if key is None:
+                    return None
+                out.append(cache_key({"computed": key, "port": port}))
+                continue
+            entry = self.entry(i, compute=compute)
+            if entry is None:
+                return None
+            out.append(entry.record["outputs"][port]["digest"])
+        return out
+
+    def digest(self, port: str, *, compute: bool = True) -> str | None:
+        """Digest of the whole output ``port``: of its chunk digests and the stream shape."""
+        digests = self.digests(port, 0, len(self.ranges) - 1, compute=compute)
+        return None if digests is None else combine([*digests, json.dumps(asdict(self.info))])
+
+    # -- resolving -------------------------------------------------------------------------
+
+    def entry(self, i: int, *, compute: bool = True) -> Entry | None:
+        """The stored entry of chunk ``i`` (cached stages), computed and committed if missing;
+        None if ``compute`` is False (or in a dry run) and it is not stored."""
+        if self.entries[i] is not None:
+            return self.entries[i]
+        compute = compute and not self.run.keys.dry_run
+        with self._locks[i]:
+            if self.entries[i] is None:
+                key = self.key(i, compute=compute)
+                found = None if key is None or self.forced else self.run.keys.lookup(self.node, key)
+                if found is None and not compute:
+                    return None
+                ran = found is None
+                if ran:
+                    found, ran = self._compute(i, key)
+                self._resolved(i, found, ran)
+            return self.entries[i]
+
+    def resolve_all(self) -> None:
+        """Resolve every chunk now, ``--jobs`` at once."""
+        for _ in map_ordered(self.entry, list(range(len(self.ranges))), jobs=self.run.jobs):
+            pass
+
+    def complete(self) -> bool:
+        return all(entry is not None for entry in self.entries)
+
+    def _compute(self, i: int, key: str) -> tuple[Entry, bool]:
+        """Compute chunk ``i`` under its entry's lock, unless another run stored it meanwhile."""
+        store, keys, node = self.run.store, self.run.keys, self.node
+        start, stop = self.ranges[i]
+        with store.locked(key, on_wait=self.run.progress.waiting(node)):
+            entry = None if self.forced else keys.lookup(node, key)
+            if entry is not None:
+                return entry, False
+            timing = own_time(self._spent) if self.lazy else contextlib.nullcontext()
+            with timing, store.writing(key) as tmp:
+                with stage_errors(node):
+                    with recording(set()) as files:
+                        result = self.stage.process(start, stop, self._inputs(), dict(node.params),
+                                                    entry_context(tmp, device=keys.device, progress=lambda n: None))
+                    record = save_outputs(node.cls.outputs, result, tmp, frames=(stop - start, self.info))
+                with self._book:  # a stage may read such a file once, for all its chunks
+                    self._depends |= files
+                    files = set(self._depends)
+                entry = store.commit(key, tmp, {"stage": node.name, "uses": node.uses, "range": [start, stop],
+                                                **record, "depends": keys.depends(files)},
+                                     replace=self.forced)
+        return entry, True
+
+    def redo(self, i: int) -> Entry:
+        """Recompute chunk ``i``, whose stored entry was found damaged; the new entry."""
+        with self._locks[i]:
+            damaged = self.entries[i]
+            if damaged is not None:
+                self.run.store.discard(damaged)
+                self.entries[i] = None
+                with self._book:
+                    self.report.chunks_cached -= self._cached[i]
+        return self.entry(i)
+
+    def _resolved(self, i: int, entry: Entry, ran: bool) -> None:
+        progress = self.run.progress
+        with self._book:
+            self.entries[i] = entry
+            self._cached[i] = not ran
+            self.report.chunks_cached += not ran
+            if self.run.keys.dry_run:
+                return
+            start, stop = self.ranges[i]
+            progress.log({"event": "chunk", "stage": self.node.name, "start": start, "stop": stop,
+                          "status": "ran" if ran else "cached"})
+            if self._bar is None:
+                self._bar = progress.bar(self.node, self.info.frames)
+            self._bar.update(stop - start)
+            if ran and self.lazy and progress.current not in (None, self.node.name, *self._readers):
+                self._readers.append(progress.current)
+        self.run.store.touch(entry)
+
+    def _spent(self, seconds: float) -> None:
+        with self._book:
+            self.report.seconds += seconds
+
+    def _inputs(self) -> dict[str, Any]:
+        """What ``process`` is handed: frame streams, loaded bundles, paths (loaded once)."""
+        if self._upstream is None:
+            self._upstream = {port: v.get() for port, v in self.inputs.items()}
+        return self._upstream
+
+    def finish(self) -> Report:
+        """The stage's report once every chunk is resolved; remembers its key material."""
+        report, count = self.report, len(self.ranges)
+        report.status = "cached" if report.chunks_cached == count else "ran" if report.chunks_cached == 0 else "partial"
+        if self._readers:
+            report.reason = f"computed while {', '.join(self._readers)} read it"
+        self.close()
+        self.run.keys.remember(self.node, self.run.keys.material(self.node, input_digests(self.inputs)))
+        return report
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+
+    # -- outputs ---------------------------------------------------------------------------
+
+    def stream(self, port: str) -> ChunkedStream:
+        """Frames of output ``port``: of a cached stage, its stored chunks, each resolved (so
+        computed and stored, if missing) when first read and read back from its entry (from
+        the page cache: about one copy), verified on the first read; of an uncached stage,
+        chunks computed as read."""
+        if self.node.cls.cached:
+            return StoredStream(self.info, self.ranges, lambda i: self._frames(i, port))
+        with self._book:
+            if port not in self._streams:
+                self._streams[port] = ComputedStream(self.info, self.ranges, lambda i, p=port: self._computed(p, i),
+                                                     keep=self.run.jobs + 2)
+            return self._streams[port]
+
+    def _frames(self, i: int, port: str) -> np.ndarray:
+        """Frames ``(B, H, W, C)`` of output ``port`` in chunk ``i``: hashed against the entry's
+        record on the first read in this run (a damaged entry is recomputed), memory-mapped
+        after that."""
+        self.entry(i)
+        if (i, port) in self._verified:
+            return load_mapped(self.entries[i], port)
+        frames = self._read(i, lambda entry: load_frames(entry, port))
+        self._verified.add((i, port))
+        return frames
+
+    def _read(self, i: int, read: Callable[[Entry], Any]) -> Any:
+        """``read`` of chunk ``i``'s entry, recomputing the chunk if it is damaged."""
+        return read_or_redo(read, self.entries[i], redo=lambda: self.redo(i),
+                            on_damaged=lambda exc: self.run.progress.damaged(self.node, exc))
+
+    def load(self, port: str) -> dict[str, np.ndarray]:
+        """A bundle output, its chunks concatenated, once every chunk is resolved."""
+        self.resolve_all()
+        parts = [self._read(i, lambda entry: load_bundle(entry, port)) for i in range(len(self.ranges))]
+        return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+    def _computed(self, port: str, i: int) -> np.ndarray:
+        """Frames ``(B, H, W, C)`` of output ``port`` in chunk ``i`` of an uncached stage."""
+        start, stop = self.ranges[i]
+        ctx = Context(device=self.run.keys.device, files_dir=_no_files(self.node),
+                      log=logging.getLogger(f"runner.stage.{self.node.name}"))
+        with stage_errors(self.node):
+            frames = np.asarray(self.stage.process(start, stop, self._inputs(), dict(self.node.params), ctx)[port])
+            check_frames(port, frames, stop - start, self.info)
+        return frames
+
+
+def defines_stream_info(cls: type[FrameStage]) -> bool:
+    """True if the stage computes its own output shape instead of taking its frames input's."""
+    return cls.stream_info is not FrameStage.stream_info
+
+
+def _no_files(node: StageNode) -> Callable[[str], Path]:
+    def files_dir(port: str) -> Path:
+        raise RuntimeError(f"{node.uses} has cached = False and cannot write files")
+
+    return files_dir
+
+
+def map_ordered(fn: Callable[[int], Any], items: list[int], *, jobs: int):
+    """Yield ``(item, fn(item))``; with ``jobs > 1`` up to ``jobs`` calls run in threads, at
+    most ``2 * jobs`` submitted ahead (bounded memory). The first exception cancels the rest."""
+    if jobs <= 1:
+        for item in items:
+            yield item, fn(item)
+        return
+    pool = ThreadPoolExecutor(max_workers=jobs)
+    pending: dict[Future, int] = {}
+    queue = list(items)
+    try:
+        while queue or pending:
+            while queue and len(pending) < 2 * jobs:
+                item = queue.pop(0)
+                pending[pool.submit(fn, item)] = item
+            done, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for future in done:
+                item = pending.pop(future)
+                yield item, future.result()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)

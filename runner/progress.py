@@ -1,0 +1,92 @@
+"""What a run tells its user while it goes: per-stage reports, chunk and warning events,
+progress bars, and each stage's own time."""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from runner.config import StageNode
+from runner.outputs import Damaged
+
+if TYPE_CHECKING:
+    from tqdm import tqdm
+
+
+@dataclass
+class Report:
+    """One stage's outcome: ``status`` is cached / ran / partial / on demand (run) or
+    cached / will run / may run / on demand (dry run)."""
+
+    stage: str
+    uses: str
+    status: str
+    reason: str = ""
+    chunks: int | None = None
+    chunks_cached: int = 0
+    frames: int | None = None
+    seconds: float = 0.0
+
+    def line(self) -> str:
+        parts = [f"{self.stage:<14} {self.uses:<18} {self.status:<9}"]
+        if self.chunks is not None:
+            parts.append(f"{self.chunks_cached}/{self.chunks} chunks cached")
+        if self.frames is not None:
+            parts.append(f"{self.frames} frames")
+        if self.status in ("cached", "ran", "partial"):
+            parts.append(f"{self.seconds:.2f} s")
+        if self.reason:
+            parts.append(f"({self.reason})")
+        return "  ".join(parts)
+
+
+class Progress:
+    """Events (``log``, one JSON-able dict each), warning lines (``warn``), progress bars on
+    stderr (``bars``), and ``current``: the stage whose turn it is."""
+
+    def __init__(self, *, log: Callable[[dict[str, Any]], None], warn: Callable[[str], None], bars: bool):
+        self.log, self.warn, self.bars = log, warn, bars
+        self.current: str | None = None
+
+    def bar(self, node: StageNode, total: int | None) -> tqdm:
+        from tqdm import tqdm  # here: importing it costs start-up time
+
+        return tqdm(total=total, desc=node.name, unit="frame", file=sys.stderr, leave=False,
+                    disable=not self.bars, dynamic_ncols=True)
+
+    def waiting(self, node: StageNode) -> Callable[[dict[str, Any]], None]:
+        """``on_wait`` for :meth:`runner.cache.CacheStore.locked`: a ``wait`` event."""
+        def on_wait(holder: dict[str, Any]) -> None:
+            self.log({"event": "wait", "stage": node.name, "holder_pid": holder.get("pid")})
+
+        return on_wait
+
+    def damaged(self, node: StageNode, exc: Damaged) -> None:
+        """A damaged cache file (one line on stderr, a ``damaged`` event); its entry is
+        recomputed by the caller."""
+        self.warn(f"warning: stage {node.name!r}: damaged cache entry ({exc}); recomputing it")
+        self.log({"event": "damaged", "stage": node.name, "file": str(exc.path)})
+
+
+_clock = threading.local()
+
+
+@contextlib.contextmanager
+def own_time(add: Callable[[float], None]) -> Iterator[None]:
+    """Time the block and pass ``add`` its wall seconds minus those of timed blocks nested in
+    it on this thread (chunks of an upstream stage computed while this one reads them), so
+    that each stage's summary counts its own time only."""
+    outer = getattr(_clock, "nested", 0.0)
+    _clock.nested = 0.0
+    started = time.perf_counter()
+    try:
+        yield
+    finally:
+        elapsed = time.perf_counter() - started
+        add(elapsed - _clock.nested)
+        _clock.nested = outer + elapsed
