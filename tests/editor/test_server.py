@@ -1,0 +1,142 @@
+"""The editor's server as started by its command: token, bounded and validated bodies, 4xx JSON
+errors, stale requests dropped, and still serving after all of them."""
+
+from __future__ import annotations
+
+import io
+import json
+import struct
+import subprocess
+import sys
+import urllib.error
+import urllib.request
+
+import numpy as np
+import pytest
+
+from editor.server import MAX_BODY, TOKEN_HEADER
+from stages.actor_pack import load_pack
+from tests.editor.conftest import PACK, REPO
+
+N = load_pack(PACK).layout.n_points
+
+
+def call(editor, path, body=None, *, token=None, raw: bytes | None = None, content_type="application/json"):
+    """(status, headers, body bytes) of one request."""
+    data = raw if raw is not None else (None if body is None else json.dumps(body).encode())
+    request = urllib.request.Request(editor.base + path, data=data, method="POST" if data is not None else "GET")
+    request.add_header(TOKEN_HEADER, editor.token if token is None else token)
+    if data is not None:
+        request.add_header("Content-Type", content_type)
+    try:
+        with urllib.request.urlopen(request, timeout=120) as response:
+            return response.status, response.headers, response.read()
+    except urllib.error.HTTPError as error:
+        return error.code, error.headers, error.read()
+
+
+def unpack(body: bytes) -> tuple[dict, list[bytes]]:
+    (length,) = struct.unpack("<I", body[:4])
+    meta = json.loads(body[4 : 4 + length])
+    images, offset = [], 4 + length
+    for size in meta["sizes"]:
+        images.append(body[offset : offset + size])
+        offset += size
+    assert offset == len(body)
+    return meta, images
+
+
+SEQ = iter(range(1, 10**6))
+
+
+def render_body(pinned, *, base=None, client="tests"):
+    return {"client": client, "seq": next(SEQ), "base": base, "pinned": pinned}
+
+
+def test_render_answers_the_propagated_geometry_and_a_jpeg(editor_server):
+    neutral = load_pack(PACK).neutral.points
+    status, headers, body = call(editor_server, "/api/render", render_body([[40, neutral[40][0], neutral[40][1] + 4.0]]))
+    assert status == 200 and headers["Content-Type"] == "application/octet-stream"
+    meta, (jpeg,) = unpack(body)
+    assert jpeg[:3] == b"\xff\xd8\xff"
+    points = np.array(meta["points"])
+    assert points.shape == (N, 2)
+    np.testing.assert_allclose(points[40], neutral[40] + [0.0, 4.0])
+
+
+@pytest.mark.parametrize(
+    "body, expected",
+    [
+        ({"client": "t", "seq": 1, "base": None, "pinned": [[N, 1.0, 2.0]]}, "index"),
+        ({"client": "t", "seq": 1, "base": None, "pinned": [[-1, 1.0, 2.0]]}, "index"),
+        ({"client": "t", "seq": 1, "base": None, "pinned": [[3, 1.0, 1e9]]}, "number in"),
+        ({"client": "t", "seq": 1, "base": None, "pinned": [[3, "1", 2.0]]}, "finite number"),
+        ({"client": "t", "seq": 1, "base": None, "pinned": [[3, 1.0, 2.0], [3, 1.0, 2.0]]}, "twice"),
+        ({"client": "t", "seq": 1, "base": [[0.0, 0.0]], "pinned": []}, "field 'base'"),
+        ({"client": "t", "seq": -1, "base": None, "pinned": []}, "seq"),
+        ({"client": "t", "base": None, "pinned": []}, "seq"),
+        ([1, 2, 3], "JSON object"),
+    ],
+)
+def test_bad_render_bodies_are_400_json(editor_server, body, expected):
+    status, headers, answer = call(editor_server, "/api/render", body)
+    assert status == 400 and headers["Content-Type"].startswith("application/json")
+    assert expected in json.loads(answer)["error"]
+
+
+def test_nan_malformed_oversized_and_unauthorised_requests(editor_server):
+    nan = b'{"client": "t", "seq": 1, "base": null, "pinned": [[3, NaN, 2.0]]}'
+    status, _, answer = call(editor_server, "/api/render", raw=nan)
+    assert status == 400 and "finite" in json.loads(answer)["error"]
+    status, _, answer = call(editor_server, "/api/render", raw=b'{"client": "t", "seq": 1,')
+    assert status == 400 and "error" in json.loads(answer)
+    status, _, answer = call(editor_server, "/api/render", raw=b"x" * (MAX_BODY + 1))
+    assert status == 413 and "error" in json.loads(answer)
+    status, _, _ = call(editor_server, "/api/render", raw=b"{}", content_type="text/plain")
+    assert status == 415
+    for token in ("", "wrong" * 8):
+        status, _, answer = call(editor_server, "/api/describe", token=token)
+        assert status == 403 and json.loads(answer)["error"] == "missing or wrong token"
+    status, _, _ = call(editor_server, "/static/editor.js", token="")
+    assert status == 403
+    status, _, answer = call(editor_server, "/api/frame?index=0")
+    assert status == 404 and "performance" in json.loads(answer)["error"]
+    # ...and it still serves.
+    status, _, answer = call(editor_server, "/api/describe")
+    assert status == 200 and len(json.loads(answer)["names"]) == N
+
+
+def test_a_request_older_than_the_newest_is_dropped(editor_server):
+    newer = render_body([], client="stale-test")
+    older = dict(newer, seq=newer["seq"] - 1)
+    assert call(editor_server, "/api/render", newer)[0] == 200
+    status, _, answer = call(editor_server, "/api/render", older)
+    assert status == 409 and json.loads(answer)["error"] == "superseded"
+
+
+def test_inbetweens_are_five_frames_and_the_current_one(editor_server):
+    neutral = load_pack(PACK).neutral.points
+    current = neutral + [0.0, 1.5]
+    status, _, body = call(editor_server, "/api/inbetweens", {"client": "tests", "seq": next(SEQ), "from": neutral.tolist(), "to": current.tolist()})
+    assert status == 200
+    meta, images = unpack(body)
+    assert len(images) == 6 and all(image[:3] == b"\xff\xd8\xff" for image in images)
+    np.testing.assert_allclose(meta["points"], current)
+
+
+def test_export_answers_a_points_file(editor_server):
+    neutral = load_pack(PACK).neutral.points
+    keys = [{"time_s": 0.0, "points": neutral.tolist()}, {"time_s": 0.5, "points": (neutral + 2.0).tolist()}]
+    status, headers, body = call(editor_server, "/api/export", {"fps": 4, "keyframes": keys})
+    assert status == 200 and "keyframes.npz" in headers["Content-Disposition"]
+    with np.load(io.BytesIO(body), allow_pickle=False) as data:
+        np.testing.assert_allclose(data["xy"][:, 0], [neutral[0], neutral[0] + 1.0, neutral[0] + 2.0])
+        assert float(data["fps"]) == 4.0
+    status, _, answer = call(editor_server, "/api/export", {"fps": 4, "keyframes": keys[::-1]})
+    assert status == 400 and "increase" in json.loads(answer)["error"]
+
+
+def test_binding_a_remote_address_needs_an_explicit_option():
+    result = subprocess.run([sys.executable, "-m", "editor.cli", "--pack", str(PACK), "--host", "0.0.0.0"],
+                            cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and "--allow-remote" in result.stderr
