@@ -13,7 +13,7 @@ PARAMS = {"model_file": "", "rotation": True, "ridge": 0.0}
 
 @pytest.fixture(scope="module")
 def bundle():
-    return toy_model(samples=80).to_bundle()
+    return toy_model().to_bundle()
 
 
 def clip(T=5):

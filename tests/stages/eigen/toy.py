@@ -18,7 +18,7 @@ def random_similarity(rng: np.random.Generator) -> np.ndarray:
     return np.array([s * np.cos(ang), s * np.sin(ang), rng.uniform(-5, 5), rng.uniform(-5, 5)])
 
 
-def toy_model(*, samples: int = 120, q: int = 6, seed: int = 0) -> EigenModel:
+def toy_model(*, samples: int = 60, q: int = 6, seed: int = 0) -> EigenModel:
     rng = np.random.default_rng(seed)
     windows = scene.windows()
     params = rng.random((samples, 4))
