@@ -74,7 +74,7 @@ def _mouth_open(px: np.ndarray, D: float) -> np.ndarray:
 def _brow_raise(px: np.ndarray, D: float) -> np.ndarray:
     """``(V,)`` upward weight of brows and forehead."""
     lm = px[:N_LANDMARKS]
-    lid = lm[list(UPPER_LIDS), 1].mean()
+    lid = lm[list(UPPER_LIDS), 1].min()  # the higher lid: neither moves
     brow = lm[list(BROWS), 1].mean()
     centre_x = lm[list(FACE_OVAL), 0].mean()
     w = smoothstep(lid, brow, px[:, 1])

@@ -37,8 +37,8 @@ def _events(rng: np.random.Generator, frames: int, length: tuple[int, int], gap:
         n = int(rng.integers(length[0], length[1] + 1))
         amp = rng.uniform(0.5, 1.0)
         if ramp is None:
-            u = np.clip((f - start + 1) / (n + 1), 0.0, 1.0)
-            shape = np.sin(np.pi * u) ** 2
+            inside = (f >= start) & (f < start + n)
+            shape = np.where(inside, np.sin(np.pi * (f - start + 1) / (n + 1)) ** 2, 0.0)
         else:
             r = int(rng.integers(ramp[0], ramp[1] + 1))
             shape = smoothstep(start, start + r, f) * smoothstep(start + n, start + n - r, f)
