@@ -8,6 +8,8 @@ geometry against the fixture's ground truth (the ideal mapping, `target_points`)
 from __future__ import annotations
 
 import csv
+import hashlib
+import json
 import os
 import shutil
 import subprocess
@@ -20,6 +22,8 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
+from runner.cache import CacheStore
+from runner.outputs import load_frames
 from stages.actor_pack import load_pack
 
 REPO = Path(__file__).resolve().parent.parent
@@ -114,6 +118,7 @@ def test_rerun_is_all_cached_and_byte_identical(default_run):
         (["--input", "target=fixtures/clips"], 1, "pack.yaml"),
         (["--set", "synthesize.mode=bogus"], 2, "synthesize.mode"),
         (["--set", "smooth.sigma=nan"], 2, "expected a finite number"),
+        (["--set", "video.crf=100"], 2, "video.crf: out of range"),
         (["--log-json", "/nonexistent/folder/log.jsonl"], 2, "/nonexistent/folder/log.jsonl"),
     ],
 )
@@ -147,3 +152,34 @@ def test_data_coefficients_are_those_of_the_synthesized_frames(tmp_path):
     coeff = data["coefficients_coeff"][:, face, :n_examples]
     np.testing.assert_array_equal(coeff, np.broadcast_to(coeff[:, :1], coeff.shape))
     np.testing.assert_allclose(coeff.sum(-1), 1.0, atol=1e-9)
+
+
+def _cached_files(cache: Path, stage: str, pattern: str) -> list[Path]:
+    return sorted(p for e in CacheStore(cache).iter_entries() if e.record.get("stage") == stage for p in e.path.rglob(pattern))
+
+
+def test_damaged_cache_entries_are_recomputed_not_used(default_run):
+    """The issue's cases: a synthesize chunk zeroed in the cache (a black streak in result.mp4)
+    and a damaged cached EXR (published with a manifest sha256 that did not match) are each
+    reported on one line and recomputed; the outputs are those of an undamaged cache."""
+    cache = default_run.parent / "cache"
+    chunk = _cached_files(cache, "synthesize", "frames.npy")[1]
+    data = chunk.read_bytes()
+    chunk.write_bytes(data[:len(data) // 2] + bytes(len(data) - len(data) // 2))
+    exr = _cached_files(cache, "exr", "frame.*.exr")[3]
+    exr.write_bytes(exr.read_bytes()[:-64] + bytes(64))
+    out = default_run.parent / "repaired"
+    result = run_cli("run", "pipeline.yaml", "--set", "video.crf=17", "--out", str(out), "--cache-dir", str(cache))
+    assert result.returncode == 0, result.stderr
+    warnings = [line for line in result.stderr.splitlines() if "damaged cache entry" in line]
+    assert len(warnings) == 2 and "'synthesize'" in warnings[0] + warnings[1] and "'exr'" in warnings[0] + warnings[1]
+    for entry in CacheStore(cache).iter_entries():  # the recomputed chunk reads back verified
+        if entry.record.get("stage") == "synthesize" and "range" in entry.record:
+            load_frames(entry, "frames")
+    manifest = json.loads((out / "exr" / "manifest.json").read_text())
+    for listed in manifest["files"]:
+        assert hashlib.sha256((out / "exr" / listed["path"]).read_bytes()).hexdigest() == listed["sha256"]
+    assert (out / "exr").joinpath(exr.name).read_bytes() == (default_run / "exr" / exr.name).read_bytes()
+    with av.open(str(out / "video" / "result.mp4")) as repaired, av.open(str(default_run / "video" / "result.mp4")) as first:
+        for a, b in zip(repaired.decode(video=0), first.decode(video=0)):
+            assert np.abs(a.to_ndarray(format="rgb24").astype(int) - b.to_ndarray(format="rgb24")).mean() < 3

@@ -158,7 +158,7 @@ class WriteExr(FrameStage):
     outputs = {"exr": "files"}
     params = (
         Param("compression", str, "zip", "lossless EXR compression", choices=COMPRESSIONS),
-        Param("threads", int, 0, "frames written in parallel; 0 = one per CPU core", in_key=False),
+        Param("threads", int, 0, "frames written in parallel; 0 = one per CPU core", in_key=False, min=0),
     )
 
     def process(

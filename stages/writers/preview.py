@@ -77,7 +77,7 @@ class SideBySide(FrameStage):
     doc = "performer | result frames side by side (uint8 RGB, even size) for a preview video"
     inputs = {"performer": "frames", "result": "frames"}
     outputs = {"frames": "frames"}
-    params = (Param("height", int, 0, "common height in px (rounded down to even); 0 = the result's height"),)
+    params = (Param("height", int, 0, "common height in px (rounded down to even); 0 = the result's height", min=0),)
 
     def stream_info(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> StreamInfo:
         performer, result = inputs["performer"].info, inputs["result"].info
@@ -85,8 +85,6 @@ class SideBySide(FrameStage):
             raise StageError(
                 f"preview.side_by_side: 'performer' has {performer.frames} frames, 'result' {result.frames}"
             )
-        if params["height"] < 0:
-            raise StageError(f"preview.side_by_side: 'height' must be >= 0, got {params['height']}")
         h, w_left, w_right = side_by_side_size(
             (performer.height, performer.width), (result.height, result.width), height=params["height"]
         )

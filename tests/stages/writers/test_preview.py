@@ -47,3 +47,10 @@ def test_frame_count_mismatch_is_a_stage_error() -> None:
     result = MemoryStream(np.zeros((4, 8, 8, 3), np.float32))
     with pytest.raises(StageError, match="3 frames"):
         SideBySide().stream_info({"performer": performer, "result": result}, {"height": 0})
+
+
+def test_negative_height_is_refused_by_the_declaration():
+    """The range is declared on the parameter, so the pipeline loader refuses it (exit 2)."""
+    height = next(p for p in SideBySide.params if p.name == "height")
+    assert height.problem(-2) == "out of range: expected 0 <= height, got -2"
+    assert height.problem(0) is None
