@@ -193,6 +193,16 @@ def test_committed_fixture_is_what_the_generator_makes():
     np.testing.assert_allclose(rvec, truth["rvec"], atol=1e-12)
 
 
+def test_mediapipe_pixels_have_their_origin_at_the_top_left_pixel_centre(face):
+    """An image upscaled 2x by pixel replication holds the same content at ``x2 = 2 x + 0.5``
+    (centre origin; ``2 x`` with a corner origin): the landmarks follow the centre origin."""
+    doubled = np.repeat(np.repeat(face.photo, 2, axis=0), 2, axis=1)
+    with open_landmarker() as landmarker:
+        found = detect(landmarker, doubled)
+    offset = np.mean(found[:, :2] - 2 * face.landmarks[:, :2], axis=0)
+    assert np.all(np.abs(offset - 0.5) < 0.25), offset
+
+
 def test_bad_input_is_a_clear_error(tmp_path):
     with pytest.raises(ValueError, match="even"):
         source_photo(255)
