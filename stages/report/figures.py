@@ -23,6 +23,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
 WIDTH_IN, DPI = 10.0, 90
+FULL_COLOUR = 0.5  # a dominant coefficient from this up is drawn in full colour
 LEGEND_IN, NAMES_IN, ROW_IN = 1.8, 1.3, 0.22  # heatmap: right margin (legend), left margin (names), row height
 PANEL_IN, GAP_IN, TOP_IN, BOTTOM_IN, LEFT_IN, RIGHT_IN = 1.35, 0.45, 0.75, 0.55, 0.8, 0.2  # fixed layout, inches
 SHADES = {"no face": "0.82", "limited": "#f4a259"}  # span kind -> colour
@@ -109,7 +110,8 @@ def example_colors(count: int) -> np.ndarray:
 def dominant_heatmap(example: np.ndarray, weight: np.ndarray, *, subregions: Sequence[str],
                      examples: Sequence[str], limited: np.ndarray | None) -> bytes:
     """Subregions (rows) over frames (columns), coloured by the example with the largest synthesis
-    coefficient, paler for a smaller coefficient (white = 0, grey = none); with ``limited``, a last
+    coefficient, in full colour from ``FULL_COLOUR`` up and paler below (white = 0, grey = no
+    coefficient); with ``limited``, a last
     row marks the frames whose geometry was limited to the pack's range.
 
     Parameters
@@ -125,7 +127,7 @@ def dominant_heatmap(example: np.ndarray, weight: np.ndarray, *, subregions: Seq
     """
     T, S = example.shape
     colors = example_colors(len(examples))
-    shade = weight.T[..., None]
+    shade = np.clip(weight.T / FULL_COLOUR, 0.0, 1.0)[..., None]
     rgb = np.where((example.T >= 0)[..., None], shade * colors[example.T.clip(0)] + (1 - shade), 0.75)
     names = [str(s) for s in subregions]
     if limited is not None:
@@ -139,7 +141,7 @@ def dominant_heatmap(example: np.ndarray, weight: np.ndarray, *, subregions: Seq
         ax.imshow(rgb, aspect="auto", interpolation="nearest", extent=(-0.5, T - 0.5, len(names) - 0.5, -0.5))
         ax.set_yticks(range(len(names)), names, fontsize=8)
         ax.set_xlabel("frame")
-        ax.set_title("example with the largest coefficient per subregion (paler = smaller coefficient)",
+        ax.set_title(f"example with the largest coefficient per subregion (paler: coefficient below {FULL_COLOUR:g})",
                      loc="left", fontsize=10)
         used = sorted(set(example[example >= 0].tolist()))
         if used:
