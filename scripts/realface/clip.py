@@ -51,12 +51,13 @@ def pose(face: RealFace, angles: np.ndarray, shift: np.ndarray) -> tuple[np.ndar
 
 
 def render_state(face: RealFace, params: np.ndarray, angles: np.ndarray, shift: np.ndarray, *,
-                 supersample: int = 2) -> tuple[Frame, np.ndarray]:
+                 supersample: int = 2) -> tuple[Frame, np.ndarray, np.ndarray, np.ndarray]:
     """One frame of expression ``params`` ``(3,)`` at head ``angles`` ``(3,)`` deg and ``shift``
-    ``(3,)`` mm; returns the frame and the head-frame vertices ``(V, 3)`` mm."""
+    ``(3,)`` mm; returns the frame, the head-frame vertices ``(V, 3)`` mm and the pose
+    ``R (3, 3)``, ``t (3,)`` mm."""
     vertices = deform(face.mesh, face.basis, params)
     R, t = pose(face, angles, shift)
-    return render(face.mesh, face.textures, vertices, R, t, supersample=supersample), vertices
+    return render(face.mesh, face.textures, vertices, R, t, supersample=supersample), vertices, R, t
 
 
 def make_clip(out: Path, *, frames: int, seed: int, size: int = 512, fps: int = 25, codec: str = "h264", crf: int = 12,
@@ -75,9 +76,8 @@ def make_clip(out: Path, *, frames: int, seed: int, size: int = 512, fps: int = 
     truth = {k: [] for k in ("points", "visible", "depth", "points3d", "R", "tvec")}
     with VideoWriter(clip_path, fps=fps, width=size, height=size, codec=codec, crf=crf) as writer:
         for f in range(frames):
-            frame, vertices = render_state(face, params[f], angles[f], shift[f], supersample=supersample)
+            frame, vertices, R, t = render_state(face, params[f], angles[f], shift[f], supersample=supersample)
             writer.write(frame.image[None])
-            R, t = pose(face, angles[f], shift[f])
             for key, value in zip(truth, (frame.points, frame.visible, frame.depth, vertices[:N_LANDMARKS], R, t)):
                 truth[key].append(value)
     arrays = {k: np.stack(v) for k, v in truth.items()}

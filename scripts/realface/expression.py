@@ -40,18 +40,14 @@ def smoothstep(lo: float, hi: float, x: np.ndarray) -> np.ndarray:
 
 
 def _lip_sides(px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Boolean ``(V,)`` masks of the upper and the lower lip (contour points included, the
-    corners in neither)."""
+    """Boolean ``(V,)`` masks of the upper and the lower lip (inside each lip's outline or on its
+    contours; the mouth corners count as upper lip, so they stay when the mouth opens)."""
     lm = px[:N_LANDMARKS]
-    upper_poly = PolygonPath(lm[list(LIPS_OUTER_UPPER + LIPS_INNER_UPPER[::-1])])
-    lower_poly = PolygonPath(lm[list(LIPS_OUTER_LOWER + LIPS_INNER_LOWER[::-1])])
-    upper = upper_poly.contains_points(px)
-    lower = lower_poly.contains_points(px)
-    corners = {LIPS_OUTER_UPPER[0], LIPS_OUTER_UPPER[-1], LIPS_INNER_UPPER[0], LIPS_INNER_UPPER[-1]}
-    upper[list(set(LIPS_OUTER_UPPER + LIPS_INNER_UPPER) - corners)] = True
-    lower[list(set(LIPS_OUTER_LOWER + LIPS_INNER_LOWER) - corners)] = True
-    lower &= ~upper
-    return upper, lower
+    upper = PolygonPath(lm[list(LIPS_OUTER_UPPER + LIPS_INNER_UPPER[::-1])]).contains_points(px)
+    lower = PolygonPath(lm[list(LIPS_OUTER_LOWER + LIPS_INNER_LOWER[::-1])]).contains_points(px)
+    upper[list(LIPS_OUTER_UPPER + LIPS_INNER_UPPER)] = True
+    lower[list(LIPS_OUTER_LOWER + LIPS_INNER_LOWER)] = True
+    return upper, lower & ~upper
 
 
 def _mouth_open(px: np.ndarray, D: float) -> np.ndarray:

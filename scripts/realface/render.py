@@ -113,10 +113,9 @@ def rasterize(px: np.ndarray, depth: np.ndarray, triangles: np.ndarray, shape: t
     iz_a = np.einsum("sk,sk->s", a, inv_z[corners])
     iz_c = np.einsum("sk,sk->s", c, inv_z[corners])
     n = last - first + 1
+    pix = np.arange(int(n.sum())) + np.repeat(y * w + first - (np.cumsum(n) - n), n)
+    iz = np.repeat(iz_a, n) * pix + np.repeat(iz_c - iz_a * (y * w), n)  # = iz_a x + iz_c on row y
     span = np.repeat(np.arange(len(n)), n)
-    x = first[span] + np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
-    iz = iz_a[span] * x + iz_c[span]
-    pix = y[span] * w + x
     best = np.zeros(h * w)
     np.maximum.at(best, pix, iz)
     owner = np.full(h * w, -1, np.int64)
@@ -140,8 +139,10 @@ def interpolate(raster: Raster, values: np.ndarray, weights: np.ndarray) -> np.n
     v = values[raster.corners]  # (s, 3, k)
     num_a, num_c = np.einsum("sj,sj,sjk->sk", raster.a, g, v), np.einsum("sj,sj,sjk->sk", raster.c, g, v)
     den_a, den_c = np.einsum("sj,sj->s", raster.a, g), np.einsum("sj,sj->s", raster.c, g)
-    s, x = raster.span, raster.x
-    return (num_a[s] * x[:, None] + num_c[s]) / (den_a[s] * x + den_c[s])[:, None]
+    coef_a = np.column_stack([num_a, den_a])[raster.span]
+    coef = np.column_stack([num_c, den_c])[raster.span]
+    coef += coef_a * raster.x[:, None]
+    return coef[:, :-1] / coef[:, -1:]
 
 
 def sample_texture(texture: np.ndarray, uv: np.ndarray, uv_depth: np.ndarray, raster: Raster) -> np.ndarray:

@@ -49,9 +49,9 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
 
 def test_identity_pose_reproduces_the_photo(face):
     keep = _outside_mouth(face, 3)
-    exact, _ = render_state(face, ZERO, ZERO, ZERO, supersample=1)
+    exact = render_state(face, ZERO, ZERO, ZERO, supersample=1)[0]
     assert np.abs(exact.image.astype(int) - face.photo)[keep].max() <= 1
-    smooth, _ = render_state(face, ZERO, ZERO, ZERO, supersample=2)
+    smooth = render_state(face, ZERO, ZERO, ZERO, supersample=2)[0]
     assert _psnr(smooth.image[keep], face.photo[keep]) > 35.0
     np.testing.assert_allclose(exact.points, face.landmarks[:, :2], atol=1e-9)
     assert exact.visible.all()
@@ -87,7 +87,7 @@ def test_rasterizer_coverage_and_nearest_wins():
 
 def test_yaw_moves_the_nose_tip_as_projected(face):
     yaw = np.deg2rad(12.0)
-    frame, _ = render_state(face, ZERO, np.array([12.0, 0.0, 0.0]), ZERO)
+    frame = render_state(face, ZERO, np.array([12.0, 0.0, 0.0]), ZERO)[0]
     ry = np.array([[np.cos(yaw), 0, np.sin(yaw)], [0, 1, 0], [-np.sin(yaw), 0, np.cos(yaw)]])
     cam = ry @ face.mesh.vertices[NOSE_TIP] + face.mesh.head_centre
     expected = (face.mesh.intrinsics @ cam)[:2] / cam[2]
@@ -113,7 +113,7 @@ def test_mediapipe_finds_the_truth_points_on_rendered_frames(face):
     groups = point_groups()
     with open_landmarker() as landmarker:
         for params, angles, inner_px, eyes_px in states:
-            frame, _ = render_state(face, params, angles, np.array([2.0, -1.0, 5.0]))
+            frame = render_state(face, params, angles, np.array([2.0, -1.0, 5.0]))[0]
             found = detect(landmarker, frame.image)
             assert found is not None
             err = np.linalg.norm(found[:, :2] - frame.points, axis=1)
@@ -186,7 +186,7 @@ def test_committed_fixture_is_what_the_generator_makes():
         np.testing.assert_allclose(vertices[:478], truth["points3d"][f], atol=1e-3)
         np.testing.assert_allclose(project(vertices[:478], R, t, truth["intrinsics"])[0], truth["points"][f], atol=1e-3)
         if f in (0, frames // 2, frames - 1):
-            frame, _ = render_state(face, params[f], angles[f], shift[f])
+            frame = render_state(face, params[f], angles[f], shift[f])[0]
             assert np.sum(frame.visible != truth["visible"][f]) <= 2
             assert _psnr(decoded[f], frame.image) > 38.0
     rvec = np.stack([cv2.Rodrigues(R)[0].ravel() for R in truth["R"]])
