@@ -4,7 +4,8 @@
 
 The demo fixture set (600x800 target pack, 640x480 performer clips) is generated under
 ``--work`` on first use. Each run starts from an empty cache and writes every output of
-``pipeline.yaml`` (EXR frames, result and preview mp4, per-frame data).
+``pipeline_paper.yaml`` (EXR frames, result and preview mp4, per-frame data): the paper's tracker
+path, whose ground truth the demo clips carry.
 
 Metrics
 -------
@@ -42,9 +43,9 @@ def row(metric: str, value: float, unit: str) -> dict[str, Any]:
 
 
 def run_pipeline(root: Path, clip: str, out: Path, cache: Path, *extra: str) -> float:
-    """Run ``pipeline.yaml`` on ``root``'s fixture set; return the wall time in s."""
+    """Run ``pipeline_paper.yaml`` on ``root``'s fixture set; return the wall time in s."""
     command = [
-        sys.executable, "-c", "from runner.cli import main; main()", "run", str(REPO / "pipeline.yaml"),
+        sys.executable, "-c", "from runner.cli import main; main()", "run", str(REPO / "pipeline_paper.yaml"),
         "--in", str(root / "clips" / f"{clip}.mp4"),
         "--input", f"init={root / 'clips' / f'{clip}_track0.csv'}",
         "--input", f"performer={root / 'packs' / 'performer'}",

@@ -53,6 +53,7 @@ REPO = Path(__file__).resolve().parent.parent
 DEV_CLIPS = REPO.parent / "shared" / "dev-clips"
 BENCH = "real"
 SHEET_FRAMES = 6
+PIPELINE = REPO / "pipeline.yaml"
 
 
 def row(metric: str, value: float, unit: str) -> dict[str, Any]:
@@ -64,7 +65,7 @@ def run_pipeline(clip: Path, work: Path, *extra: str) -> tuple[float, dict[str, 
     time (s) and each stage's own seconds (from ``--log-json``)."""
     log = work / "log.jsonl"
     log.unlink(missing_ok=True)
-    command = [sys.executable, "-c", "from runner.cli import main; main()", "run", str(REPO / "pipeline.yaml"),
+    command = [sys.executable, "-c", "from runner.cli import main; main()", "run", str(PIPELINE),
                "--in", str(clip), "--out", str(work / "out"), "--cache-dir", str(work / "cache"),
                "--log-json", str(log), *extra]
     start = time.perf_counter()

@@ -160,12 +160,17 @@ def _pipeline_rows(work: Path, env: dict[str, str]) -> list[dict]:
     """Start-up of ``runner dag`` and a fully cached run of the repository's pipeline.yaml on the
     live clip, each a new process (best of ``REPEATS``)."""
     runner = [sys.executable, "-m", "runner.cli"]
-    [(dag_s, _)] = _best(lambda: subprocess.run([*runner, "dag", "pipeline.yaml"], cwd=REPO, env=env, check=True,
-                                                capture_output=True))
-    command = [*runner, "run", "pipeline.yaml", "--in", "fixtures/clips/live.mp4",
-               "--input", "init=fixtures/clips/live_track0.csv", "--out", str(work / "pipeline_out"),
+    [(dag_s, _)] = _best(lambda: _run_checked([*runner, "dag", "pipeline.yaml"], env))
+    command = [*runner, "run", "pipeline.yaml", "--in", "fixtures/clips/live.mp4", "--out", str(work / "pipeline_out"),
                "--cache-dir", str(work / "pipeline_cache")]
-    subprocess.run(command, cwd=REPO, env=env, check=True, capture_output=True)  # fills the cache once
-    [(rerun_s, _)] = _best(lambda: subprocess.run(command, cwd=REPO, env=env, check=True, capture_output=True))
+    _run_checked(command, env)  # fills the cache once
+    [(rerun_s, _)] = _best(lambda: _run_checked(command, env))
     return [{"bench": "runner", "metric": "runner_cli_startup_s", "value": dag_s, "unit": "s"},
             {"bench": "runner", "metric": "runner_cached_pipeline_rerun_s", "value": rerun_s, "unit": "s"}]
+
+
+def _run_checked(command: list[str], env: dict[str, str]) -> None:
+    """Run ``command`` in the repository; RuntimeError with its stderr if it fails."""
+    done = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True)
+    if done.returncode:
+        raise RuntimeError(f"{' '.join(command)} exited with {done.returncode}: {done.stderr.strip()}")
