@@ -8,8 +8,9 @@ lengths in units of the outer-eye-corner distance ``D``:
 
 - ``mouth_open``: lower lip, chin and jaw move down by up to :data:`MOUTH_OPEN_MAX` ``D`` (the lower
   lip's centre; the lip corners stay), slightly backwards (a jaw rotation's direction); the
-  weight is 1 below the line through the mouth corners, fading within the corners' reach, below
-  the chin (the neck stretches) and towards the ears. Lips are told apart by their contours
+  weight rises from 0 on the line through the mouth corners to 1 within a band (0.6 of the half
+  mouth width at the centre, wider towards the ears), fading below the chin (the neck stretches)
+  and towards the ears. Lips are told apart by their contours
   (upper lip 0, lower lip by a profile across the mouth).
 - ``brow_raise``: brows and forehead up by :data:`BROW_RAISE_MAX` ``D``, from 0 at the upper
   eyelids to 1 at the brows, fading into the hair and beyond the temples.
@@ -59,7 +60,8 @@ def _mouth_open(px: np.ndarray, D: float) -> np.ndarray:
     slope = (right[1] - left[1]) / (right[0] - left[0])
     below = px[:, 1] - (left[1] + slope * (px[:, 0] - left[0]))
     across = np.abs(px[:, 0] - centre[0])
-    jaw = smoothstep(0.0, 0.6 * half, below)
+    band = 0.6 * half + np.maximum(across - half, 0.0)  # wider towards the ears: no step at the jaw line
+    jaw = smoothstep(0.0, band, below)
     jaw *= smoothstep(lm[CHIN, 1] + 0.6 * D, lm[CHIN, 1] + 0.1 * D, px[:, 1])
     jaw *= smoothstep(1.1 * D, 0.4 * D, across)
     upper, lower = _lip_sides(px)
