@@ -6,8 +6,8 @@ Units and frames. Millimetres, scaled so the outer eye corners (landmarks 33, 26
 origin at the centre of the top-left pixel). Landmark ``(x, y, z_px)`` of the photo is placed at
 depth ``Z = Z0 + z_px * mm_per_px`` with ``Z0 = f * mm_per_px`` and back-projected through its own
 pixel, ``X = (x - c) Z / f``, so the neutral mesh at the identity pose projects exactly onto the
-photo's landmarks. The head frame is the camera frame moved to the head centre ``C`` (on the
-face's vertical centre line, :data:`HEAD_CENTRE_BEHIND_NOSE_MM` behind the nose tip): a vertex's
+photo's landmarks. The head frame is the camera frame moved to the head centre ``C`` (seen through the
+face oval's centroid in the photo, at the nose tip's depth + :data:`HEAD_CENTRE_BEHIND_NOSE_MM`): a vertex's
 head coordinates are ``X_cam - C``; a pose ``(R, t)`` maps them to ``R X + t`` (identity: ``t = C``).
 """
 
