@@ -22,6 +22,13 @@ A port type is a string. Four have a fixed meaning to the runner:
 Every other type name (``points``, ``pose``, ``similarity``, ``pca_model``…) is a *bundle*: a
 ``dict[str, numpy.ndarray]`` stored as ``.npz`` without pickle (so no object arrays; strings as
 fixed-width unicode arrays). Two ports connect only when their type strings are equal.
+
+What a result depends on
+------------------------
+A stage's cache key covers its inputs, parameters and version (docs/runner.md, "Cache"). A
+stage (or a loader it calls) that reads any other file, such as a bundled layout named by a
+parameter or a pack manifest, calls :func:`runner.depends.depends_on` with its path; the runner
+records the file's digest with the entry and recomputes the entry when the file changes.
 """
 
 from __future__ import annotations
