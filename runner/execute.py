@@ -173,7 +173,7 @@ class Runner:
         self._lazy = [chunks for chunks in self._lazy if chunks not in done]
         return [chunks.finish() for chunks in done]
 
-    # -- keys ------------------------------------------------------------------------------
+    # -- inputs ----------------------------------------------------------------------------
 
     def _inputs(self, node: StageNode) -> dict[str, Value]:
         return {port: self.values[(ref.stage, ref.port)] for port, ref in node.inputs.items()}
