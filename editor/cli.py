@@ -15,8 +15,12 @@ import argparse
 import asyncio
 import ipaddress
 import logging
+import os
+import re
 import secrets
+import subprocess
 import sys
+import time
 from pathlib import Path
 
 from aiohttp import web
@@ -41,6 +45,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--port", type=int, default=0, help="port (default 0: any free port)")
     parser.add_argument("--allow-remote", action="store_true", help="allow a --host that is not a loopback address")
     parser.add_argument("--device", default="cpu", help="torch device of the synthesis (cpu, cuda)")
+    parser.add_argument("--threads", type=int, default=1, help="torch/OpenCV threads of the synthesis (default 1, see docs/editor.md)")
     parser.add_argument("--jpeg-quality", type=int, default=85, choices=range(1, 101), metavar="1..100", help="quality of the images sent to the page")
     return parser.parse_args(argv)
 
@@ -76,6 +81,11 @@ def main(argv: list[str] | None = None) -> int:
     if not (args.pack / "pack.yaml").is_file():
         print(f"expression-editor: --pack {args.pack}: no pack.yaml there", file=sys.stderr)
         return 2
+    import cv2
+    import torch
+
+    torch.set_num_threads(max(args.threads, 1))
+    cv2.setNumThreads(max(args.threads, 1))
     try:
         asyncio.run(serve(args))
     except KeyboardInterrupt:
@@ -84,6 +94,26 @@ def main(argv: list[str] | None = None) -> int:
         print(f"expression-editor: {exc}", file=sys.stderr)
         return 1
     return 0
+
+
+def spawn(pack: Path, *options: str, timeout_s: float = 300.0) -> tuple[subprocess.Popen, str]:
+    """Start ``python -m editor.cli --pack PACK OPTIONS`` (tests, benchmarks) and return the
+    process and the URL it printed (with its token). The process's stderr is discarded."""
+    repo = Path(__file__).resolve().parent.parent
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(repo), os.environ.get("PYTHONPATH")])))
+    process = subprocess.Popen([sys.executable, "-m", "editor.cli", "--pack", str(pack), *options], cwd=repo, env=env,
+                               stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    deadline = time.monotonic() + timeout_s
+    line = ""
+    while time.monotonic() < deadline:
+        line = process.stdout.readline()
+        match = re.search(r"http://\S+/\?token=\S+", line)
+        if match:
+            return process, match.group(0)
+        if not line and process.poll() is not None:
+            break
+    process.kill()
+    raise RuntimeError(f"the editor did not start (exit code {process.poll()}, last line {line!r})")
 
 
 if __name__ == "__main__":

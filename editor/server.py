@@ -16,10 +16,12 @@ API (POST bodies are JSON)
 ``POST /api/export``       ``{fps, keyframes: [{time_s, points}]}`` -> the points file (.npz)
 
 Image answers are ``application/octet-stream``: a little-endian uint32 byte count, that many
-bytes of UTF-8 JSON (``points``, ``seq``, ``synth_ms``, ``sizes``: the byte count of each
-image), then the JPEG images back to back. Stale work is dropped: a request whose ``seq`` is
+bytes of UTF-8 JSON (``points``, ``seq``, ``synth_ms`` and ``synth_cpu_ms``: wall-clock and
+CPU time of synthesis and encoding, ``sizes``: the byte count of each image), then the JPEG images back to back. Stale work is dropped: a request whose ``seq`` is
 older than the newest one seen from its ``client`` is answered 409 ``superseded`` without
-being computed, also when a newer one arrives while it waits for the renderer.
+being computed, also when a newer one arrives while it waits for a renderer thread.
+Propagation and synthesis run on ``RENDER_THREADS`` threads (one torch thread each by default),
+so the work of two consecutive requests overlaps on two cores.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ from editor.points_file import points_file_bytes
 STATIC = Path(__file__).resolve().parent / "static"
 MAX_BODY = 4 * 1024 * 1024  # bytes; an export of MAX_KEYFRAMES keyframes of 134 points fits
 MAX_CLIENTS = 64  # clients whose newest sequence number is remembered
+RENDER_THREADS = 2  # renderer threads: a page keeps up to this many requests in flight
 TOKEN_HEADER = "X-Editor-Token"
 log = logging.getLogger("editor.server")
 
@@ -109,21 +112,25 @@ def image_answer(meta: dict[str, Any], images: list[bytes]) -> web.Response:
     return web.Response(body=body, content_type="application/octet-stream")
 
 
-async def render_images(request: web.Request, client: str, seq: int, geometries: np.ndarray) -> web.Response | None:
-    """Synthesize ``geometries (B, N, 2)`` on the renderer thread, unless superseded first."""
+async def render_images(request: web.Request, client: str, seq: int, geometries: Callable[[], np.ndarray]) -> web.Response:
+    """Synthesize ``geometries() (B, N, 2)`` on a renderer thread, or answer 409 ``superseded``
+    when a newer request of ``client`` arrived before the work started. The last geometry is
+    sent with the images."""
     app = request.app
     engine = app[ENGINE]
 
-    def job() -> tuple[list[bytes], float] | None:
+    def job() -> tuple[np.ndarray, list[bytes], float, float] | None:
         if app[NEWEST].get(client) != seq:
             return None
-        return engine.render(geometries)
+        points = geometries()
+        return (points, *engine.render(points))
 
     done = await asyncio.get_running_loop().run_in_executor(app[EXECUTOR], job)
     if done is None:
-        return None
-    images, seconds = done
-    return image_answer({"seq": seq, "synth_ms": seconds * 1e3, "points": geometries[-1].tolist()}, images)
+        return json_error(409, "superseded")
+    points, images, wall, cpu = done
+    meta = {"seq": seq, "synth_ms": wall * 1e3, "synth_cpu_ms": cpu * 1e3, "points": points[-1].tolist()}
+    return image_answer(meta, images)
 
 
 def _limit(engine: EditorEngine) -> float:
@@ -137,9 +144,7 @@ async def handle_render(request: web.Request) -> web.Response:
     base, pinned = validate.render_request(body, n_points=engine.pca.n_points, limit=_limit(engine))
     if not claim(request.app, client, seq):
         return json_error(409, "superseded")
-    geometry = edited_geometry(engine.pca, pinned, base=base)
-    answer = await render_images(request, client, seq, geometry[None])
-    return answer or json_error(409, "superseded")
+    return await render_images(request, client, seq, lambda: edited_geometry(engine.pca, pinned, base=base)[None])
 
 
 async def handle_inbetweens(request: web.Request) -> web.Response:
@@ -149,8 +154,7 @@ async def handle_inbetweens(request: web.Request) -> web.Response:
     previous, current = validate.inbetween_request(body, n_points=engine.pca.n_points, limit=_limit(engine))
     if not claim(request.app, client, seq):
         return json_error(409, "superseded")
-    answer = await render_images(request, client, seq, np.concatenate([inbetweens(previous, current), current[None]]))
-    return answer or json_error(409, "superseded")
+    return await render_images(request, client, seq, lambda: np.concatenate([inbetweens(previous, current), current[None]]))
 
 
 async def handle_export(request: web.Request) -> web.Response:
@@ -192,7 +196,7 @@ def make_app(engine: EditorEngine, *, token: str) -> web.Application:
     app[ENGINE] = engine
     app[TOKEN] = token
     app[NEWEST] = OrderedDict()
-    app[EXECUTOR] = ThreadPoolExecutor(max_workers=1, thread_name_prefix="editor-render")
+    app[EXECUTOR] = ThreadPoolExecutor(max_workers=RENDER_THREADS, thread_name_prefix="editor-render")
     app.on_cleanup.append(_shutdown)
     app.router.add_get("/", handle_index)
     app.router.add_get("/api/describe", handle_describe)

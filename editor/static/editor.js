@@ -21,7 +21,8 @@ const history = [];           // edits before, for undo
 const future = [];            // edits undone, for redo
 let seq = 0;                  // sequence number of our image requests (the server drops older ones)
 let latestShown = -1;         // sequence number of the image on screen
-let inFlight = false;         // one render request at a time
+const MAX_IN_FLIGHT = 2;      // render requests under way at once (the server has two renderer threads)
+let inFlight = 0;             // render requests under way
 let pending = null;           // the newest edit not yet sent: {body, time}
 let drag = null;              // {index, moved, before: edit, from: geometry}
 let playback = 0;             // generation of the in-between animation (a new drag stops it)
@@ -30,7 +31,7 @@ let keyframes = [];           // [{time_s, points}]
 let idleWaiters = [];
 
 // Measurements read by the tests and scripts/bench_editor.py.
-const stats = { updates: [], latencies: [], synthMs: [], errors: 0 };
+const stats = { updates: [], latencies: [], synthMs: [], synthCpuMs: [], errors: 0 };
 window.editor = {
   stats,
   geometry: () => geometry,
@@ -104,24 +105,27 @@ function requestRender(time) {
 }
 
 async function pump() {
-  if (inFlight || !pending) return;
+  if (inFlight >= MAX_IN_FLIGHT || !pending) return;
   const job = pending;
   pending = null;
-  inFlight = true;
+  inFlight += 1;
   try {
     const response = await api("api/render", job.body);
     if (response.ok) {
       const { meta, images } = await unpack(response);
-      const [bitmap] = await decode(images);
-      if (meta.seq >= latestShown) {
-        latestShown = meta.seq;
-        show(bitmap);
-        geometry = meta.points;
-        drawOverlay();
-        const now = performance.now();
-        stats.updates.push(now);
-        stats.latencies.push(now - job.time);
-        stats.synthMs.push(meta.synth_ms);
+      if (meta.seq > latestShown) {           // an answer overtaken by a newer one is not shown
+        const [bitmap] = await decode(images);
+        if (meta.seq > latestShown) {
+          latestShown = meta.seq;
+          show(bitmap);
+          geometry = meta.points;
+          drawOverlay();
+          const now = performance.now();
+          stats.updates.push(now);
+          stats.latencies.push(now - job.time);
+          stats.synthMs.push(meta.synth_ms);
+          stats.synthCpuMs.push(meta.synth_cpu_ms);
+        }
       }
       status("");
     } else if (response.status !== 409) {
@@ -131,10 +135,11 @@ async function pump() {
     stats.errors += 1;
     status(`request failed: ${e}`);
   } finally {
-    inFlight = false;
+    inFlight -= 1;
     if (pending) pump(); else wakeIdle();
   }
 }
+
 // ---- when the mouse stops: the five in-betweens from the previous to the current geometry -----
 async function playInbetweens(from) {
   const generation = ++playback;
@@ -144,7 +149,7 @@ async function playInbetweens(from) {
   const { meta, images } = await unpack(response);
   const bitmaps = await decode(images);
   for (const bitmap of bitmaps) {
-    if (generation !== playback) return;
+    if (generation !== playback || latestShown > meta.seq) return;
     show(bitmap);
     await new Promise((resolve) => setTimeout(resolve, INBETWEEN_MS));
   }

@@ -4,22 +4,17 @@ and Debian's Chromium driven by playwright for the browser tests."""
 from __future__ import annotations
 
 import os
-import re
 import subprocess
-import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 
+from editor.browser import CHROMIUM, chromium
+from editor.cli import spawn
+
 REPO = Path(__file__).resolve().parents[2]
 PACK = REPO / "fixtures" / "packs" / "target"
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync",
-]
 
 
 @dataclass(frozen=True)
@@ -30,22 +25,10 @@ class Editor:
     process: subprocess.Popen
 
 
-def start_editor(pack: Path, *extra: str, timeout_s: float = 300.0) -> Editor:
-    """Start ``python -m editor.cli --pack PACK`` and read the URL it prints."""
-    env = dict(os.environ, PYTHONPATH=str(REPO))
-    process = subprocess.Popen([sys.executable, "-m", "editor.cli", "--pack", str(pack), *extra], cwd=REPO, env=env,
-                               stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-    deadline = time.monotonic() + timeout_s
-    line = ""
-    while time.monotonic() < deadline:
-        line = process.stdout.readline()
-        match = re.search(r"(http://[^/\s]+)/\?token=(\S+)", line)
-        if match:
-            return Editor(match.group(0), match.group(1), match.group(2), process)
-        if not line and process.poll() is not None:
-            break
-    process.kill()
-    raise RuntimeError(f"the editor did not start (exit code {process.poll()}, last line {line!r})")
+def start_editor(pack: Path, *options: str) -> Editor:
+    process, url = spawn(pack, *options)
+    base, _, token = url.partition("/?token=")
+    return Editor(url, base, token, process)
 
 
 def stop_editor(editor: Editor) -> None:
@@ -63,21 +46,12 @@ def editor_server():
     stop_editor(editor)
 
 
-def browser_or_skip():
-    """Chromium via playwright; skip when it is absent, unless under CI, where that fails."""
+@pytest.fixture(scope="session")
+def browser():
+    """Chromium via playwright; skipped when it is absent, unless under CI, where that fails."""
     if not CHROMIUM.is_file():
         if os.environ.get("CI"):
             pytest.fail(f"{CHROMIUM} is missing under CI: run .ci/install-browser first")
-        pytest.skip(f"{CHROMIUM} is missing (run .ci/install-browser); browser tests need Debian's Chromium")
-    from playwright.sync_api import sync_playwright
-
-    return sync_playwright, CHROMIUM_ARGS
-
-
-@pytest.fixture(scope="session")
-def browser():
-    sync_playwright, args = browser_or_skip()
-    with sync_playwright() as playwright:
-        chromium = playwright.chromium.launch(executable_path=str(CHROMIUM), args=args, headless=True)
-        yield chromium
-        chromium.close()
+        pytest.skip(f"{CHROMIUM} is missing (run .ci/install-browser); the browser tests need Debian's Chromium")
+    with chromium() as browser:
+        yield browser

@@ -1,0 +1,180 @@
+"""Editor benchmark: image updates per second while dragging, in a real browser.
+
+The editor (``python -m editor.cli``) serves the 600x800 demo target with 15 examples (the
+target of ``make_fixtures.py --demo``, only its target pack rendered under ``--work``, with
+held-out expressions added as examples up to 15). Debian's Chromium, driven by playwright,
+drags the lower lip's centre round a small ellipse for ``--seconds``, one pointer move every
+``--move-ms``; the page keeps one request in flight and sends only the newest geometry. The page
+records, per image drawn, the time since the pointer event whose geometry it shows.
+
+* ``editor_update_fps``: images drawn per second while dragging;
+* ``editor_latency_ms_p50``, ``editor_latency_ms_p95``: pointer event -> new image drawn on the
+  canvas, ms;
+* ``editor_synth_fps``: the synthesis-only rate in the same run, 1000 / median server time per
+  image (synthesis and JPEG encoding, without propagation, transfer and decoding).
+
+    python scripts/bench.py editor --json [--pack PACK] [--seconds 8] [--screenshot docs/img/editor.png]
+
+* ``editor_synth_cpu_ms_p50``: the CPU time of the server's renderer thread per image (with one
+  torch thread, all of synthesis and encoding; unlike wall-clock time it does not grow when
+  other processes load the machine).
+
+The server runs with ``--threads 1`` (its default; ``--threads N`` here to compare): on 2 cores
+the browser needs the other one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from editor.browser import chromium  # noqa: E402
+from editor.cli import spawn  # noqa: E402
+
+EXAMPLES = 15
+
+
+def bench_pack(work: Path) -> Path:
+    """The 600x800 demo target with ``EXAMPLES`` examples, made once under ``work``."""
+    from scripts.make_fixtures import DEMO, make_part
+
+    folder = work / "editor_demo" / "target"
+    if (folder / "pack.yaml").is_file():
+        return folder
+    source = work / "editor_demo" / "demo" / "packs" / "target"
+    if not (source / "pack.yaml").is_file():
+        make_part(source.parent.parent, "pack:target", seed=1, spec=DEMO)
+    tmp = folder.with_name("target.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(source, tmp)
+    manifest = yaml.safe_load((tmp / "pack.yaml").read_text(encoding="utf-8"))
+    with np.load(tmp / "truth.npz", allow_pickle=False) as truth:
+        index, images, points, names = truth["heldout_index"], truth["heldout_image"], truth["captured_points"], truth["point_names"]
+    extra = [(k, str(image)) for k, image in zip(index, images) if image][: max(EXAMPLES - len(manifest["examples"]), 0)]
+    for k, image in extra:
+        name = Path(image).stem
+        rows = ["name,x,y"] + [f"{n},{x:.6f},{y:.6f}" for n, (x, y) in zip(names, points[k])]
+        (tmp / "points" / f"{name}.csv").write_text("\n".join(rows) + "\n", encoding="utf-8")
+        manifest["examples"].append({"name": name, "image": image, "points": f"points/{name}.csv"})
+    (tmp / "pack.yaml").write_text(yaml.safe_dump(manifest, sort_keys=False), encoding="utf-8")
+    tmp.rename(folder)
+    return folder
+
+
+def percentile(values: list[float], q: float) -> float:
+    return float(np.percentile(np.asarray(values, np.float64), q)) if values else float("nan")
+
+
+def drag_session(page, *, point: str, seconds: float, move_ms: float) -> dict:
+    """Drag ``point`` round an ellipse for ``seconds``; the page's stats of that window."""
+    layout = page.evaluate("window.editor.layout()")
+    index = layout["names"].index(point)
+    x0, y0 = page.evaluate("window.editor.geometry()")[index]
+    box = page.locator("#overlay").bounding_box()
+    cx, cy = box["x"] + x0 + 0.5, box["y"] + y0 + 0.5
+    page.mouse.move(cx, cy)
+    page.mouse.down()
+    page_start = page.evaluate("performance.now()")
+    start = time.perf_counter()
+    while (elapsed := time.perf_counter() - start) < seconds:
+        phase = 2 * np.pi * elapsed / 2.0
+        page.mouse.move(cx + 6.0 * np.sin(phase), cy + 10.0 * (1 - np.cos(phase)))
+        time.sleep(move_ms / 1000.0)
+    page_end = page.evaluate("performance.now()")
+    page.mouse.up()
+    page.evaluate("window.editor.idle()")
+    stats = page.evaluate("window.editor.stats")
+    inside = [k for k, t in enumerate(stats["updates"]) if page_start < t <= page_end]
+    return {
+        "fps": len(inside) / ((page_end - page_start) / 1000.0),
+        "latencies": [stats["latencies"][k] for k in inside],
+        "synth_ms": [stats["synthMs"][k] for k in inside],
+        "synth_cpu_ms": [stats["synthCpuMs"][k] for k in inside],
+        "errors": stats["errors"],
+    }
+
+
+def run(args: argparse.Namespace) -> list[dict]:
+    parser = argparse.ArgumentParser(prog="bench.py editor")
+    parser.add_argument("--pack", type=Path, help="target pack (default: the 600x800 demo target with 15 examples, made under --work)")
+    parser.add_argument("--seconds", type=float, default=8.0, help="dragging time measured")
+    parser.add_argument("--move-ms", type=float, default=8.0, help="pause between pointer moves, ms")
+    parser.add_argument("--point", default="mouth_outer_12", help="the feature point dragged")
+    parser.add_argument("--threads", type=int, default=1, help="torch/OpenCV threads of the server (its --threads)")
+    parser.add_argument("--screenshot", type=Path, help="also save a screenshot of the editor (PNG, subregions shown)")
+    opts = parser.parse_args(getattr(args, "extra", []))
+    pack = opts.pack or bench_pack(Path(args.work))
+    process, url = spawn(pack, "--threads", str(opts.threads))
+    try:
+        with chromium() as browser:
+            page = browser.new_page(viewport={"width": 1000, "height": 840})
+            page.goto(url)
+            page.wait_for_function("() => window.editor && window.editor.stats.updates.length > 0", timeout=300_000)
+            drag_session(page, point=opts.point, seconds=1.0, move_ms=opts.move_ms)  # warm-up
+            page.click("#reset")
+            page.evaluate("window.editor.idle()")
+            result = drag_session(page, point=opts.point, seconds=opts.seconds, move_ms=opts.move_ms)
+            if opts.screenshot:
+                save_screenshot(page, opts.screenshot)
+    finally:
+        process.terminate()
+        process.wait(timeout=30)
+    row = lambda metric, value, unit: {"bench": "editor", "metric": metric, "value": value, "unit": unit}  # noqa: E731
+    return [
+        row("editor_update_fps", result["fps"], "images/s"),
+        row("editor_latency_ms_p50", percentile(result["latencies"], 50), "ms"),
+        row("editor_latency_ms_p95", percentile(result["latencies"], 95), "ms"),
+        row("editor_synth_fps", 1000.0 / percentile(result["synth_ms"], 50), "images/s"),
+        row("editor_synth_cpu_ms_p50", percentile(result["synth_cpu_ms"], 50), "ms"),
+        row("editor_updates", len(result["latencies"]), "images"),
+        row("editor_errors", result["errors"], "responses"),
+        row("editor_load_avg", os.getloadavg()[0], "processes"),
+    ]
+
+
+def save_screenshot(page, path: Path, *, max_bytes: int = 300_000) -> None:
+    """A PNG of the editor after an edit (lower lip dragged down, a keyframe saved, subregions
+    shown), downscaled until it is under ``max_bytes``."""
+    page.click("#reset")
+    page.evaluate("window.editor.idle()")
+    page.click("#save-key")
+    layout = page.evaluate("window.editor.layout()")
+    x, y = page.evaluate("window.editor.geometry()")[layout["names"].index("mouth_outer_12")]
+    box = page.locator("#overlay").bounding_box()
+    page.mouse.move(box["x"] + x + 0.5, box["y"] + y + 0.5)
+    page.mouse.down()
+    for k in range(1, 21):
+        page.mouse.move(box["x"] + x + 0.5, box["y"] + y + 0.5 + 1.5 * k)
+    page.mouse.up()
+    page.evaluate("window.editor.idle()")
+    page.click("#save-key")
+    page.check("#show-subregions")
+    png = page.screenshot(full_page=True)
+    image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    scale = 1.0
+    while True:
+        small = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else image
+        ok, data = cv2.imencode(".png", small, [cv2.IMWRITE_PNG_COMPRESSION, 9])
+        if ok and (len(data) <= max_bytes or scale < 0.2):
+            break
+        scale *= 0.85
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(data.tobytes())
+
+
+if __name__ == "__main__":
+    import json
+
+    for r in run(argparse.Namespace(extra=sys.argv[1:], work=ROOT / ".cache" / "bench")):
+        print(json.dumps(r))
