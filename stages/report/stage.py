@@ -46,6 +46,59 @@ def reference_frame(*bundles: Mapping[str, np.ndarray] | None) -> int | None:
     return None
 
 
+def frame_warnings(*, no_face: np.ndarray, pose_valid: np.ndarray, limited: np.ndarray | None,
+                   mapped: Mapping[str, np.ndarray] | None, warp_only: bool) -> list[str]:
+    """One line per problem of the run's frames (plain text).
+
+    Parameters
+    ----------
+    no_face, pose_valid : (T,) bool.
+    limited : (T,) bool or None, frames soft-limited to the pack's range.
+    mapped : the mapping's bundle or None (its ``lips_clamped (T,)`` is read when present).
+    warp_only : every synthesis coefficient is zero.
+    """
+    T = len(no_face)
+    flagged = [("No face in {n} of {T} frames: {f}", no_face),
+               ("No valid head pose in {n} frames with a face: {f}", ~np.asarray(pose_valid, bool) & ~no_face)]
+    if limited is not None:
+        flagged.append(("Geometry soft-limited to the target pack's range in {n} of {T} frames: {f}", limited))
+    if mapped is not None and "lips_clamped" in mapped:
+        flagged.append(("Inner lips kept apart in {n} of {T} frames: {f}", np.asarray(mapped["lips_clamped"], bool)))
+    lines = [text.format(n=int(flags.sum()), T=T, f=frame_list(flags)) for text, flags in flagged if flags.any()]
+    if warp_only:
+        lines.append("No synthesis coefficients: every subregion is zero in every frame (warp-only run)")
+    return lines
+
+
+def expression_section(expression: Mapping[str, Mapping[str, np.ndarray]] | None, *, reference: int,
+                       shaded: Mapping[str, list[tuple[int, int]]], fps: float) -> tuple[str, dict, list[str]]:
+    """The expression section's HTML, its ``follow`` numbers and its warnings (a poorly followed
+    signal); ``expression`` from :func:`series.expression_series`."""
+    follows, rows, warnings = {}, [], []
+    for signal in SIGNALS:
+        r, ratio = follow(expression[signal]["performer"], expression[signal]["target"])
+        follows[signal] = {"r": r, "amplitude_ratio": ratio}
+        rows.append([signal.replace("_", " "), f"{r:.2f}", f"{ratio:.2f}"])
+        if np.isfinite(r) and r < FOLLOW_WARN_R:
+            warnings.append(f"The target's {signal.replace('_', ' ')} follows the performer's poorly (r = {r:.2f})")
+    panels = [Panel(f"{s.replace('_', ' ')} (change from frame {reference})", "eye distances",
+                    {"performer": expression[s]["performer"], "target": expression[s]["target"]}, {"target": "--"})
+              for s in SIGNALS]
+    body = (image(timeline(panels, shaded=shaded, fps=fps), "image/png", "expression signals")
+            + "<p>How well the target follows (over frames with a face): Pearson r and the amplitude ratio "
+            "(target / performer standard deviation).</p>" + table(["signal", "r", "amplitude ratio"], rows))
+    return body, follows, warnings
+
+
+def contact_sheet(performer: Any, result: Any, frames: list[tuple[int, str]], *, height: int, fps: float) -> str:
+    """The contact sheet's HTML: one captioned performer | result image per ``(frame, label)``."""
+    figures = "".join(
+        f"<figure>{image(sheet_image(performer, result, f, height=height), 'image/jpeg', f'frame {f}', css='')}"
+        f"<figcaption>frame {f} ({f / fps:.2f} s){': ' + label if label else ''}</figcaption></figure>"
+        for f, label in frames)
+    return f'<div class="sheet">{figures}</div>' if figures else not_available("no frame chosen")
+
+
 def report_html(inputs: Mapping[str, Any], *, evenly: int, thumb_height: int, title: str) -> str:
     """The report page of one run.
 
@@ -63,54 +116,30 @@ def report_html(inputs: Mapping[str, Any], *, evenly: int, thumb_height: int, ti
     The HTML document (str). Raises ValueError for inconsistent inputs.
     """
     performer, result = inputs["performer"], inputs["result"]
-    info = performer.info
-    T, fps = info.frames, float(info.fps)
+    T, fps = performer.info.frames, float(performer.info.fps)
     tracked, target, pose, similarity = inputs["tracked"], inputs["target"], inputs["pose"], inputs["similarity"]
-    displacements, mapped = inputs.get("displacements"), inputs.get("mapped")
-    chosen = reference_frame(displacements, pose)
+    mapped, coefficients = inputs.get("mapped"), inputs["coefficients"]
+    chosen = reference_frame(inputs.get("displacements"), pose)
     reference = 0 if chosen is None else chosen
     no_face = ~series.frame_valid(tracked)
     limited = series.limited_frames(mapped)
     shaded = {"no face": series.spans(no_face), "limited": [] if limited is None else series.spans(limited)}
-    data: dict[str, Any] = {"frames": T, "fps": fps, "reference_frame": reference, "no_face": no_face}
     warnings = [f"Reference (neutral) frame: {reference}" + (
         " (recorded by the run)" if chosen is not None else " (the run records none; the pipeline takes the first frame)")]
-    sections = []
+    data: dict[str, Any] = {"frames": T, "fps": fps, "reference_frame": reference, "no_face": no_face,
+                            "limited": limited}
 
-    # Expression signals, then the contact sheet at their peaks (shown first).
     try:
         expression = series.expression_series(tracked, target, reference=reference)
     except ValueError as exc:
         expression, expression_body = None, not_available(str(exc))
     if expression is not None:
+        expression_body, data["follow"], poorly = expression_section(expression, reference=reference, shaded=shaded,
+                                                                     fps=fps)
         data["expression"] = expression
-        data["follow"] = {}
-        rows = []
-        for signal in SIGNALS:
-            r, ratio = follow(expression[signal]["performer"], expression[signal]["target"])
-            data["follow"][signal] = {"r": r, "amplitude_ratio": ratio}
-            rows.append([signal.replace("_", " "), f"{r:.2f}", f"{ratio:.2f}"])
-            if np.isfinite(r) and r < FOLLOW_WARN_R:
-                warnings.append(f"The target's {signal.replace('_', ' ')} follows the performer's poorly (r = {r:.2f})")
-        panels = [Panel(f"{s.replace('_', ' ')} (change from frame {reference})", "eye distances",
-                        {"performer": expression[s]["performer"], "target": expression[s]["target"]},
-                        {"target": "--"}) for s in SIGNALS]
-        expression_body = (image(timeline(panels, shaded=shaded, fps=fps), "image/png", "expression signals")
-                           + "<p>How well the target follows (over frames with a face): Pearson r and the "
-                           "amplitude ratio (target / performer standard deviation).</p>"
-                           + table(["signal", "r", "amplitude ratio"], rows))
-    chosen_frames = sheet_frames(T, evenly=evenly, peaks=series.peak_frames(expression) if expression else [])
-    data["contact_sheet"] = chosen_frames
-    figures = "".join(
-        f"<figure>{image(sheet_image(performer, result, f, height=thumb_height), 'image/jpeg', f'frame {f}', css='')}"
-        f"<figcaption>frame {f} ({f / fps:.2f} s){': ' + label if label else ''}</figcaption></figure>"
-        for f, label in chosen_frames)
-    sections.append(Section("Contact sheet: performer | result",
-                            f'<div class="sheet">{figures}</div>' if figures else not_available("no frame chosen")))
-    sections.append(Section("Expression: performer vs target (mouth opening, mouth width, brow raise)",
-                            expression_body))
+        warnings += poorly
+    data["contact_sheet"] = sheet_frames(T, evenly=evenly, peaks=series.peak_frames(expression) if expression else [])
 
-    # Head pose, tracking, residuals, propagation.
     data["head_pose"] = series.head_pose_series(pose)
     data["tracking"] = series.tracking_series(tracked)
     data["residuals"] = series.residual_series(pose, similarity)
@@ -118,43 +147,32 @@ def report_html(inputs: Mapping[str, Any], *, evenly: int, thumb_height: int, ti
     panels = [Panel("head pose", "degrees", data["head_pose"]),
               Panel("tracking: valid points and mean confidence", "fraction", data["tracking"]),
               Panel("fit residuals", "px", data["residuals"])]
-    panels += [Panel(f"motion propagation: {key.replace('_', ' ')}", key.split("_")[-1] if "px" in key else "count",
-                     {key: values}) for key, values in data["propagation"].items()]
-    sections.append(Section("Head pose, tracking and propagation",
-                            image(timeline(panels, shaded=shaded, fps=fps), "image/png", "head pose and tracking")
-                            + ("" if data["propagation"] else not_available(
-                                "the target points carry no propagation iterations or residual"))))
+    panels += [Panel(f"motion propagation: {key}", "px" if key.endswith("_px") else "count", {key: values})
+               for key, values in data["propagation"].items()]
+    geometry_body = image(timeline(panels, shaded=shaded, fps=fps), "image/png", "head pose and tracking") + (
+        "" if data["propagation"] else not_available("the target points carry no propagation iterations or residual"))
 
-    # Synthesis coefficients and the pack's range.
-    coefficients = inputs["coefficients"]
     dominant = series.dominant_examples(coefficients)
     data["coefficients"] = {**dominant, "subregions": coefficients["subregions"], "examples": coefficients["examples"]}
-    data["limited"] = limited
     heatmap = dominant_heatmap(dominant["example"], dominant["weight"], subregions=coefficients["subregions"],
                                examples=coefficients["examples"], limited=limited)
-    sections.append(Section("Which example drives which subregion", image(heatmap, "image/png", "coefficients")
-                            + ("" if limited is not None else not_available(
-                                "the run records no per-frame range limit (connect the mapping's points to 'mapped')"))))
+    coefficient_body = image(heatmap, "image/png", "coefficients") + ("" if limited is not None else not_available(
+        "the run records no per-frame range limit (connect the mapping's points to 'mapped')"))
 
-    # Warnings and timings.
-    if no_face.any():
-        warnings.append(f"No face in {int(no_face.sum())} of {T} frames: {frame_list(no_face)}")
-    bad_pose = ~np.asarray(pose["valid"], bool) & ~no_face
-    if bad_pose.any():
-        warnings.append(f"No valid head pose in {int(bad_pose.sum())} frames with a face: {frame_list(bad_pose)}")
-    if limited is not None and limited.any():
-        warnings.append(f"Geometry soft-limited to the target pack's range in {int(limited.sum())} of {T} frames: "
-                        f"{frame_list(limited)}")
-    if mapped is not None and "lips_clamped" in mapped and np.asarray(mapped["lips_clamped"], bool).any():
-        clamped = np.asarray(mapped["lips_clamped"], bool)
-        warnings.append(f"Inner lips kept apart in {int(clamped.sum())} frames: {frame_list(clamped)}")
-    if (dominant["example"] < 0).all():
-        warnings.append("No synthesis coefficients: every subregion is zero in every frame (warp-only run)")
+    warnings += frame_warnings(no_face=no_face, pose_valid=pose["valid"], limited=limited, mapped=mapped,
+                               warp_only=bool((dominant["example"] < 0).all()))
     data["warnings"] = warnings
-    sections.insert(0, Section("Warnings", listing(warnings, css="warn")))
-    sections.append(Section("Stage timings", not_available(TIMINGS_NOTE)))
-    meta = (f"{T} frames at {fps:g} frames/s ({T / fps:.2f} s), performer {info.width}x{info.height}, "
-            f"result {result.info.width}x{result.info.height}")
+    sections = [
+        Section("Warnings", listing(warnings, css="warn")),
+        Section("Contact sheet: performer | result",
+                contact_sheet(performer, result, data["contact_sheet"], height=thumb_height, fps=fps)),
+        Section("Expression: performer vs target (mouth opening, mouth width, brow raise)", expression_body),
+        Section("Head pose, tracking and propagation", geometry_body),
+        Section("Which example drives which subregion", coefficient_body),
+        Section("Stage timings", not_available(TIMINGS_NOTE)),
+    ]
+    meta = (f"{T} frames at {fps:g} frames/s ({T / fps:.2f} s), performer {performer.info.width}x"
+            f"{performer.info.height}, result {result.info.width}x{result.info.height}")
     return page(title=title, meta=meta, sections=sections, data=data)
 
 
