@@ -88,6 +88,11 @@ def run(pipeline: Path, clip: Path | None, named: tuple[str, ...], out: Path, dr
         seconds = time.perf_counter() - started
         log({"event": "run_end", "status": "ok", "exit_code": EXIT_OK, "seconds": seconds})
     except StageFailed as exc:
+        media = [str(bound[ref.port]) for name in loaded.ancestors(exc.node.name)
+                 for ref in loaded.stages[name].inputs.values()
+                 if ref.stage is None and loaded.inputs[ref.port].type == "video" and ref.port in bound]
+        if media:  # name the clip whose content failed the stage
+            exc.args = (f"{exc} [{', '.join(dict.fromkeys(media))}]",)
         log({"event": "run_end", "status": "failed", "exit_code": EXIT_STAGE, "error": str(exc)})
         raise
     except KeyboardInterrupt:

@@ -225,3 +225,43 @@ def test_damaged_cache_entries_are_recomputed_not_used(default_run):
     with av.open(str(out / "video" / "result.mp4")) as repaired, av.open(str(default_run / "video" / "result.mp4")) as first:
         for a, b in zip(repaired.decode(video=0), first.decode(video=0)):
             assert np.abs(a.to_ndarray(format="rgb24").astype(int) - b.to_ndarray(format="rgb24")).mean() < 3
+
+
+def _write_clip(path: Path, frames: list[np.ndarray], fps: int = 25) -> Path:
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("libx264", rate=fps)
+        stream.height, stream.width = frames[0].shape[:2]
+        stream.pix_fmt = "yuv420p"
+        for image in frames:
+            for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    return path
+
+
+def test_clip_without_a_face_is_one_line_naming_the_clip(tmp_path):
+    clip = _write_clip(tmp_path / "empty_room.mp4", [np.full((128, 160, 3), 90 + k, np.uint8) for k in range(12)])
+    result = run_cli("run", "pipeline.yaml", "--in", str(clip), "--out", str(tmp_path / "out"),
+                     "--cache-dir", str(tmp_path / "cache"))
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert len(lines) == 1 and "no face" in lines[0] and "empty_room.mp4" in lines[0]
+
+
+def test_face_lost_for_a_stretch_is_held_and_counted(tmp_path):
+    """The calm clip with its face covered (a grey card) in frames 10-19: those frames are masked
+    in the performer points, the target holds its expression, and the run says how many."""
+    with av.open(str(REPO / "fixtures" / "clips" / "calm.mp4")) as container:
+        frames = [frame.to_ndarray(format="rgb24") for frame in container.decode(video=0)][:32]
+    for k in range(10, 20):
+        frames[k] = np.full_like(frames[k], 128)
+    clip = _write_clip(tmp_path / "covered.mp4", frames)
+    result = run_cli("run", "pipeline.yaml", "--in", str(clip), "--out", str(tmp_path / "out"),
+                     "--cache-dir", str(tmp_path / "cache"), "--until", "data")
+    assert result.returncode == 0, result.stderr
+    assert "no face in 10 of 32 frames" in result.stderr
+    data = np.load(tmp_path / "out" / "data" / "data.npz", allow_pickle=False)
+    assert (~data["tracked_valid"].any(axis=1)).sum() == 10 and not data["tracked_valid"][10:20].any()
+    assert np.isfinite(data["target_xy"]).all()
+    np.testing.assert_allclose(data["target_xy"][10:15], np.repeat(data["target_xy"][9:10], 5, axis=0), atol=1e-6)
