@@ -22,7 +22,7 @@ import numpy as np
 
 from stages.eigen.eigenfeatures import eigen_scores, fit_eigenfeatures
 from stages.eigen.estimator import normal_equations, solve_estimator
-from stages.eigen.patches import FeatureWindow, cut_patches, similarity_apply
+from stages.eigen.patches import FeatureWindow, patch_vectors, similarity_apply
 
 ROTATION_ROWS = 3  # (r_x, r_y, r_z) = (pitch, yaw, roll) deg, first in lambda
 
@@ -45,6 +45,13 @@ class EigenModel:
     geometry_base: np.ndarray  # (N, 2) px
     geometry_basis: np.ndarray  # (C, N, 2) px per unit parameter
     min_inside: float
+    blur_px: float
+    normalize: bool
+
+    def vectors(self, image: np.ndarray, similarity: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+        """The frame's patch vectors and validity (:func:`.patches.patch_vectors`)."""
+        return patch_vectors(image, similarity, self.windows, blur_px=self.blur_px, normalize=self.normalize,
+                             min_inside=self.min_inside)
 
     @property
     def q(self) -> int:
@@ -87,7 +94,8 @@ class EigenModel:
             "basis": np.concatenate(self.bases),
             "gram": self.gram, "cross": self.cross, "rms": self.rms, "count": np.array(self.count),
             "geometry_base": self.geometry_base, "geometry_basis": self.geometry_basis,
-            "min_inside": np.array(self.min_inside),
+            "min_inside": np.array(self.min_inside), "blur_px": np.array(self.blur_px),
+            "normalize": np.array(self.normalize),
         }
 
     @classmethod
@@ -95,7 +103,7 @@ class EigenModel:
         """Inverse of :meth:`to_bundle`; ValueError naming a missing or inconsistent key."""
         keys = ("point_names", "param_names", "feature_names", "feature_points", "feature_origin", "feature_step",
                 "feature_shape", "neutral", "mean", "basis", "gram", "cross", "rms", "count", "geometry_base",
-                "geometry_basis", "min_inside")
+                "geometry_basis", "min_inside", "blur_px", "normalize")
         missing = [k for k in keys if k not in bundle]
         if missing:
             raise ValueError(f"eigen model: expected keys {missing}, got none of them")
@@ -115,7 +123,8 @@ class EigenModel:
                     np.asarray(bundle["neutral"], dtype=np.float64), windows, tuple(np.split(mean, cuts)),
                     tuple(np.split(basis, cuts)), np.asarray(bundle["gram"]), np.asarray(bundle["cross"]),
                     np.asarray(bundle["rms"]), int(bundle["count"]), np.asarray(bundle["geometry_base"]),
-                    np.asarray(bundle["geometry_basis"]), float(bundle["min_inside"]))
+                    np.asarray(bundle["geometry_basis"]), float(bundle["min_inside"]), float(bundle["blur_px"]),
+                    bool(bundle["normalize"]))
         if model.gram.shape != (model.n_rows, model.n_rows) or model.cross.shape != (len(model.param_names), model.n_rows):
             raise ValueError(f"eigen model: expected gram ({model.n_rows}, {model.n_rows}) and cross "
                              f"({len(model.param_names)}, {model.n_rows}), got {model.gram.shape} and {model.cross.shape}")
@@ -141,16 +150,17 @@ def fit_geometry_map(parameters: np.ndarray, points: np.ndarray) -> tuple[np.nda
     return coef[0].reshape(pts.shape[1:]), coef[1:].reshape(mu.shape[1], *pts.shape[1:])
 
 
-def fit_eigen_model(patches: list[np.ndarray], angles: np.ndarray, parameters: np.ndarray, *,
+def fit_eigen_model(samples: Iterable[tuple[np.ndarray, np.ndarray]], angles: np.ndarray, parameters: np.ndarray, *,
                     windows: tuple[FeatureWindow, ...], neutral: np.ndarray, point_names: tuple[str, ...],
                     param_names: tuple[str, ...], geometry: tuple[np.ndarray, np.ndarray], q: int,
-                    min_inside: float = 0.98) -> EigenModel:
+                    blur_px: float = 0.0, normalize: bool = False, min_inside: float = 0.98) -> EigenModel:
     """Train the model from rendered samples.
 
     Parameters
     ----------
-    patches : list of p arrays (m, n_j)
-        Flattened training patches of each feature (the datasets ``D_{i,j}``).
+    samples : iterable of m (image (H, W, 3) uint8, similarity (4,))
+        Each training render and the similarity mapping the neutral onto it (known feature
+        locations); its patches are the datasets ``D_{i,j}``.
     angles : (m, 3)
         Head rotation of each sample, (yaw, pitch, roll) deg relative to the neutral's pose.
     parameters : (m, C)
@@ -161,23 +171,35 @@ def fit_eigen_model(patches: list[np.ndarray], angles: np.ndarray, parameters: n
         From :func:`fit_geometry_map`.
     q : int
         Eigenfeatures per feature.
+    blur_px, normalize, min_inside
+        Patch conditioning (:func:`.patches.patch_vectors`), kept in the model for the analysis.
     """
-    if len(patches) != len(windows):
-        raise ValueError(f"expected {len(windows)} patch sets (one per feature), got {len(patches)}")
-    fitted = [fit_eigenfeatures(D, q=q) for D in patches]
-    scores = [eigen_scores(D, mean, basis) for D, (mean, basis) in zip(patches, fitted)]
+    patches: list[list[np.ndarray]] = [[] for _ in windows]
+    for image, similarity in samples:
+        vectors, ok = patch_vectors(image, similarity, windows, blur_px=blur_px, normalize=normalize,
+                                    min_inside=min_inside)
+        if not ok.all():
+            raise ValueError(f"expected every training patch inside the image, got features "
+                             f"{[w.name for w, v in zip(windows, ok) if not v]} outside in sample {len(patches[0])}")
+        for j, v in enumerate(vectors):
+            patches[j].append(v)
+    if len(patches[0]) != len(angles):
+        raise ValueError(f"expected {len(angles)} samples (one per angle row), got {len(patches[0])}")
+    D = [np.stack(P) for P in patches]
+    fitted = [fit_eigenfeatures(d, q=q) for d in D]
+    scores = [eigen_scores(d, mean, basis) for d, (mean, basis) in zip(D, fitted)]
     lam = np.stack([observation(angles[i], [s[i] for s in scores]) for i in range(len(angles))])
     gram, cross, rms = normal_equations(lam, parameters)
     return EigenModel(tuple(point_names), tuple(param_names), np.asarray(neutral, dtype=np.float64), tuple(windows),
                       tuple(m for m, _ in fitted), tuple(b for _, b in fitted), gram, cross, rms, len(lam),
                       np.asarray(geometry[0], dtype=np.float64), np.asarray(geometry[1], dtype=np.float64),
-                      float(min_inside))
+                      float(min_inside), float(blur_px), bool(normalize))
 
 
 def frame_scores(model: EigenModel, image: np.ndarray, similarity: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
     """Per-feature scores ``p x (q,)`` of one frame and which features are inside it ``(p,)``."""
-    patches, valid = cut_patches(image, similarity, model.windows, min_inside=model.min_inside)
-    return [eigen_scores(P.ravel(), m, b) for P, m, b in zip(patches, model.means, model.bases)], valid
+    vectors, valid = model.vectors(image, similarity)
+    return [eigen_scores(v, m, b) for v, m, b in zip(vectors, model.means, model.bases)], valid
 
 
 def analyze_frames(model: EigenModel, frames: Iterable[np.ndarray], similarity: np.ndarray, valid: np.ndarray,

@@ -149,3 +149,25 @@ def cut_patches(image: np.ndarray, similarity: np.ndarray, windows: tuple[Featur
         patches.append(cv2.remap(gray, at[..., 0].astype(np.float32), at[..., 1].astype(np.float32),
                                  cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
     return patches, valid
+
+
+def patch_vectors(image: np.ndarray, similarity: np.ndarray, windows: tuple[FeatureWindow, ...], *,
+                  blur_px: float = 0.0, normalize: bool = False, min_inside: float = 0.98
+                  ) -> tuple[list[np.ndarray], np.ndarray]:
+    """The patches of :func:`cut_patches`, conditioned and flattened: the vectors the eigenfeatures
+    decompose (the same in training and analysis).
+
+    ``blur_px``: Gaussian of that standard deviation (patch px) first, so that a feature a pixel
+    off its window changes the vector less; ``normalize``: each patch to zero mean and unit
+    standard deviation (shading that changes with the head's rotation). Returns ``p`` vectors
+    ``(h w,)`` float32 and ``valid (p,)`` bool; a masked patch stays all zeros.
+    """
+    patches, valid = cut_patches(image, similarity, windows, min_inside=min_inside)
+    vectors = []
+    for P, ok in zip(patches, valid):
+        if ok and blur_px > 0:
+            P = cv2.GaussianBlur(P, (0, 0), blur_px, borderType=cv2.BORDER_REFLECT)
+        if ok and normalize:
+            P = (P - P.mean()) / max(float(P.std()), 1e-6)
+        vectors.append(P.ravel())
+    return vectors, valid

@@ -41,7 +41,7 @@ def paper_sampling(n_params: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def rich_sampling(n_params: int, count: int, *, seed: int = 0, active: float = 0.35,
-                  max_deg: tuple[float, float, float] = (15.0, 10.0, 6.0)) -> tuple[np.ndarray, np.ndarray]:
+                  max_deg: tuple[float, float, float] = (25.0, 15.0, 10.0)) -> tuple[np.ndarray, np.ndarray]:
     """Random combinations of parameters under a wider range of head rotations.
 
     Each parameter is active with probability ``active`` and then uniform in [0, 1]; angles are

@@ -1,9 +1,11 @@
 """Stage wrappers of the eigenfeature analysis (Valente & Dugelay): ``train.eigenfeatures`` and
 ``analyze.eigenfeatures``, a second reading of the performer's expression beside point tracking.
 
-``analyze.eigenfeatures`` outputs a ``points`` bundle of all layout points (docs/CONTRACTS.md),
-so it feeds the compensation, mapping and synthesis stages exactly as the tracked geometry does
-(``pipeline_eigen.yaml``).
+``analyze.eigenfeatures`` outputs, for all layout points (docs/CONTRACTS.md), a ``points`` bundle
+(the geometry in the frame, placed by the frame's 2D similarity) and a ``displacements`` bundle
+in the neutral's frame (``d = x(mu) - x_neutral``: the expression without head motion, what the
+compensation stages make of tracked points), which ``map.expression`` takes as it takes
+``compensate.pose3d``'s (``pipeline_eigen.yaml``).
 """
 
 from __future__ import annotations
@@ -41,11 +43,13 @@ class TrainEigenfeatures(SequenceStage):
     outputs = {"model": "eigen_model"}
     params = (
         Param("sampling", str, "rich", "paper: each parameter alone x {-3,0,3} deg X/Y; rich: plus random "
-              "combinations under +-15 yaw, +-10 pitch, +-6 roll", choices=("paper", "rich")),
+              "combinations under +-25 yaw, +-15 pitch, +-10 roll (the live clip's range)", choices=("paper", "rich")),
         Param("samples", int, 500, "random combinations added by sampling=rich", min=1),
         Param("seed", int, 0, "random seed of sampling=rich"),
         Param("q", int, 16, "eigenfeatures per feature", min=1),
         Param("margin", float, 0.25, "room around each feature's points, fraction of its box", min=0.0),
+        Param("blur_px", float, 0.0, "Gaussian blur of each patch before PCA, patch px (0: off)", min=0.0),
+        Param("normalize", bool, False, "each patch to zero mean and unit standard deviation"),
         Param("supersample", int, 2, "antialiasing of the training renders (the fixture clips: 2)", min=1, max=4),
     )
 
@@ -55,6 +59,7 @@ class TrainEigenfeatures(SequenceStage):
             controls, angles = training_sampling(params["sampling"], len(rig.param_names),
                                                  samples=int(params["samples"]), seed=int(params["seed"]))
             model = train_on_renders(rig, controls, angles, q=int(params["q"]), margin=float(params["margin"]),
+                                     blur_px=float(params["blur_px"]), normalize=bool(params["normalize"]),
                                      supersample=int(params["supersample"]), progress=ctx.progress)
         except ValueError as exc:
             raise StageError(f"{self.name}: {exc}") from exc
@@ -66,14 +71,16 @@ class TrainEigenfeatures(SequenceStage):
 class AnalyzeEigenfeatures(SequenceStage):
     """Runtime: per frame the eigenfeature scores of the patches cut through the frame's
     similarity, with the head rotation, give the animation parameters (mu = L lambda), and the
-    parameters the geometry of all layout points in the frame."""
+    parameters the geometry of all layout points: in the neutral's frame (``displacements``, no
+    head motion) and in the frame through its similarity (``points``; a 2D model, so out-of-plane
+    rotation is not in it). Points of a feature whose patch left the image are flagged invalid."""
 
     name = "analyze.eigenfeatures"
     version = "1"
     doc = "animation parameters and all layout points from eigenfeature scores (Valente & Dugelay)"
     inputs = {"frames": "frames", "similarity": "similarity", "pose": "pose", "model": "eigen_model"}
     optional_inputs = frozenset({"pose", "model"})
-    outputs = {"points": "points", "parameters": "eigen_parameters"}
+    outputs = {"points": "points", "displacements": "displacements", "parameters": "eigen_parameters"}
     params = (
         Param("model_file", str, "", "a trained model (.npz of train.eigenfeatures) instead of the model input",
               file=True),
@@ -107,18 +114,22 @@ class AnalyzeEigenfeatures(SequenceStage):
         mu, feature_valid = analyze_frames(model, _frames(frames, ctx), similarity, valid, angles,
                                            ridge=float(params["ridge"]))
         read = ~np.isnan(mu).any(axis=1)
+        expression = parameters_to_points(model, np.where(read[:, None], mu, 0.0))
         xy = parameters_to_points(model, np.where(read[:, None], mu, 0.0), similarity)
         point_valid = np.repeat(read[:, None], len(model.point_names), axis=1)
         for j, window in enumerate(model.windows):
             point_valid[np.ix_(~feature_valid[:, j], list(window.points))] = False
-        points = {"xy": xy, "valid": point_valid, "names": np.array(model.point_names, dtype=str)}
+        names = np.array(model.point_names, dtype=str)
+        points = {"xy": xy, "valid": point_valid, "names": names}
+        displacements = {"d": expression - model.neutral[None], "valid": point_valid, "names": names,
+                         "neutral": model.neutral.copy()}
         for scalar in ("fps", "size"):
             if scalar in sim:
-                points[scalar] = np.asarray(sim[scalar])
+                points[scalar] = displacements[scalar] = np.asarray(sim[scalar])
         parameters = {"params": mu, "names": np.array(model.param_names, dtype=str), "valid": read,
                       "feature_valid": feature_valid,
                       "feature_names": np.array([w.name for w in model.windows], dtype=str)}
-        return {"points": points, "parameters": parameters}
+        return {"points": points, "displacements": displacements, "parameters": parameters}
 
     def model(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> EigenModel:
         """The model from the input port or ``model_file`` (exactly one)."""

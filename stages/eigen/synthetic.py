@@ -16,13 +16,13 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
-from typing import Callable
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 import yaml
 
 from stages.eigen.model import EigenModel, fit_eigen_model, fit_geometry_map
-from stages.eigen.patches import cut_patches, feature_windows
+from stages.eigen.patches import feature_windows
 from stages.geometry.compensate import fit_similarity
 from stages.layout import load_layout
 
@@ -96,11 +96,24 @@ def performer_rig(pack_dir: Path) -> PerformerRig:
                         np.asarray(fixtures.NECK_PIVOT, dtype=np.float64), tuple(face_mod.CONTROLS))
 
 
+def training_samples(rig: PerformerRig, controls: np.ndarray, angles: np.ndarray, *, supersample: int = 2,
+                     progress: Callable[[int], None] = lambda n: None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Render each sample: ``(image (H, W, 3) uint8, similarity (4,))`` with the similarity of its
+    rigid points to the neutral's (the paper's "known feature locations and pose")."""
+    rigid = list(rig.face.layout.rigid)
+    neutral = rig.points(np.zeros(len(rig.param_names)))
+    for c, a in zip(controls, angles):
+        image, points = rig.render(c, a, supersample=supersample)
+        yield image, fit_similarity(neutral[rigid], points[rigid])
+        progress(1)
+
+
 def train_on_renders(rig: PerformerRig, controls: np.ndarray, angles: np.ndarray, *, q: int, margin: float = 0.25,
-                     step: float = 1.0, supersample: int = 2, min_inside: float = 0.98,
+                     step: float = 1.0, supersample: int = 2, blur_px: float = 0.0, normalize: bool = False,
+                     min_inside: float = 0.98, samples: Iterable[tuple[np.ndarray, np.ndarray]] | None = None,
                      progress: Callable[[int], None] = lambda n: None) -> EigenModel:
-    """Render every sample, cut its patches through the similarity of its rigid points (the
-    paper's "known feature locations and pose") and fit the model.
+    """Render every sample (or take ``samples``, the renders of :func:`training_samples` made
+    before), cut its patches and fit the model.
 
     Parameters
     ----------
@@ -108,26 +121,18 @@ def train_on_renders(rig: PerformerRig, controls: np.ndarray, angles: np.ndarray
         Animation parameters per sample (:mod:`.sampling`).
     angles : (m, 3)
         (yaw, pitch, roll) deg per sample.
-    q, margin, step, min_inside
-        Eigenfeatures per feature and the patch windows (:func:`.patches.feature_windows`).
+    q, margin, step, blur_px, normalize, min_inside
+        Eigenfeatures per feature, the patch windows (:func:`.patches.feature_windows`) and their
+        conditioning (:func:`.patches.patch_vectors`).
     supersample : int
         The generator's antialiasing (the fixture clips use 2).
     """
     layout = rig.face.layout
-    rigid = list(layout.rigid)
     neutral = rig.points(np.zeros(len(rig.param_names)))
     windows = feature_windows(neutral, layout.point_names, margin=margin, step=step)
-    patches: list[list[np.ndarray]] = [[] for _ in windows]
-    for c, a in zip(controls, angles):
-        image, points = rig.render(c, a, supersample=supersample)
-        cut, ok = cut_patches(image, fit_similarity(neutral[rigid], points[rigid]), windows, min_inside=min_inside)
-        if not ok.all():
-            raise ValueError(f"expected every training patch inside the image, got features "
-                             f"{[w.name for w, v in zip(windows, ok) if not v]} outside at angles {a.tolist()}")
-        for j, P in enumerate(cut):
-            patches[j].append(P.ravel())
-        progress(1)
+    if samples is None:
+        samples = training_samples(rig, controls, angles, supersample=supersample, progress=progress)
     geometry = fit_geometry_map(controls, np.stack([rig.points(c) for c in controls]))
-    return fit_eigen_model([np.stack(P) for P in patches], angles, controls, windows=windows, neutral=neutral,
+    return fit_eigen_model(samples, angles, controls, windows=windows, neutral=neutral,
                            point_names=layout.point_names, param_names=rig.param_names, geometry=geometry, q=q,
-                           min_inside=min_inside)
+                           blur_px=blur_px, normalize=normalize, min_inside=min_inside)

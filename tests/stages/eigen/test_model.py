@@ -12,7 +12,11 @@ def model():
     return toy_model()
 
 
-def test_parameters_are_recovered_from_new_frames(model):
+# normalizing each patch by its own contrast makes the scores a little non-linear in the parameters
+@pytest.mark.parametrize("conditioning, tolerance", [({}, 0.05), ({"blur_px": 1.0, "normalize": True}, 0.1)])
+def test_parameters_are_recovered_from_new_frames(model, conditioning, tolerance):
+    if conditioning:
+        model = toy_model(**conditioning)
     rng = np.random.default_rng(11)
     truth = rng.random((6, 4))
     sims = np.stack([random_similarity(rng) for _ in truth])
@@ -20,7 +24,7 @@ def test_parameters_are_recovered_from_new_frames(model):
     mu, fv = analyze_frames(model, frames, sims, np.ones(6, bool), np.zeros((6, 3)))
     assert mu.shape == (6, 4) and mu.dtype == np.float64 and fv.shape == (6, 2) and fv.dtype == bool
     assert fv.all()
-    assert np.abs(mu - truth).max() < 0.05
+    assert np.abs(mu - truth).max() < tolerance
 
 
 def test_masked_feature_keeps_the_other_features_parameters(model):
@@ -62,7 +66,7 @@ def test_samplings():
     assert ((c > 0).sum(axis=1) <= 1).all()  # each parameter alone
     assert set(map(tuple, a[:9])) == {(y, p, 0.0) for y in (-3.0, 0.0, 3.0) for p in (-3.0, 0.0, 3.0)}
     c, a = rich_sampling(12, 50, seed=1)
-    assert c.shape == (50, 12) and 0 <= c.min() and c.max() <= 1 and np.abs(a).max(axis=0).tolist() <= [15, 10, 6]
+    assert c.shape == (50, 12) and 0 <= c.min() and c.max() <= 1 and np.all(np.abs(a).max(axis=0) <= [25, 15, 10])
 
 
 def test_rotation_angles_invert_the_generators_rotation():

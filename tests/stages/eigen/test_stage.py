@@ -39,6 +39,10 @@ def test_points_bundle_follows_the_contract(bundle):
     assert np.abs(params["params"][:4] - truth[:4]).max() < 0.05
     assert points["valid"][:4].all()
     assert points["valid"][4].tolist() == [True, True, True, False, False, False]  # feature b's points masked
+    disp = out["displacements"]
+    assert disp["d"].shape == (5, 6, 2) and disp["d"].dtype == np.float64 and disp["neutral"].shape == (6, 2)
+    np.testing.assert_allclose((disp["neutral"][None] + disp["d"])[:4], points["xy"][:4], atol=1e-9)  # identity similarity
+    np.testing.assert_array_equal(disp["valid"], points["valid"])
 
 
 def test_model_file_and_errors(bundle, tmp_path):
@@ -61,6 +65,6 @@ def test_model_file_and_errors(bundle, tmp_path):
 
 def test_training_needs_a_generator_pack(tmp_path):
     (tmp_path / "pack.yaml").write_text("format: actor-pack/1\nname: real\nimage_size: [320, 240]\n")
-    params = {"sampling": "paper", "samples": 1, "seed": 0, "q": 4, "margin": 0.25, "supersample": 1}
+    params = {p.name: p.default for p in TrainEigenfeatures.params}
     with pytest.raises(StageError, match="generator"):
         TrainEigenfeatures().run({"pack": tmp_path}, params, CTX)

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 
 from stages.eigen.model import EigenModel, fit_eigen_model, fit_geometry_map
-from stages.eigen.patches import cut_patches
 from tests.stages.eigen import scene
 
 MOTION = np.zeros((4, len(scene.NAMES), 2))
@@ -18,17 +17,12 @@ def random_similarity(rng: np.random.Generator) -> np.ndarray:
     return np.array([s * np.cos(ang), s * np.sin(ang), rng.uniform(-5, 5), rng.uniform(-5, 5)])
 
 
-def toy_model(*, samples: int = 60, q: int = 6, seed: int = 0) -> EigenModel:
+def toy_model(*, samples: int = 60, q: int = 6, seed: int = 0, blur_px: float = 0.0, normalize: bool = False) -> EigenModel:
     rng = np.random.default_rng(seed)
-    windows = scene.windows()
     params = rng.random((samples, 4))
-    patches = [[] for _ in windows]
-    for p in params:
-        T = random_similarity(rng)
-        cut, _ = cut_patches(scene.scene(p, T), T, windows)
-        for j, P in enumerate(cut):
-            patches[j].append(P.ravel())
+    sims = [random_similarity(rng) for _ in params]
+    renders = ((scene.scene(p, T), T) for p, T in zip(params, sims))
     geometry = fit_geometry_map(params, scene.NEUTRAL[None] + np.einsum("mc,cnk->mnk", params, MOTION))
-    return fit_eigen_model([np.stack(P) for P in patches], np.zeros((samples, 3)), params, windows=windows,
-                           neutral=scene.NEUTRAL, point_names=scene.NAMES, param_names=("p0", "p1", "p2", "p3"),
-                           geometry=geometry, q=q)
+    return fit_eigen_model(renders, np.zeros((samples, 3)), params, windows=scene.windows(), neutral=scene.NEUTRAL,
+                           point_names=scene.NAMES, param_names=("p0", "p1", "p2", "p3"), geometry=geometry, q=q,
+                           blur_px=blur_px, normalize=normalize)
