@@ -8,6 +8,7 @@ import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from editor.browser import CHROMIUM, chromium
@@ -40,8 +41,19 @@ def stop_editor(editor: Editor) -> None:
 
 
 @pytest.fixture(scope="session")
-def editor_server():
-    editor = start_editor(PACK)
+def performance(tmp_path_factory) -> Path:
+    """A run's data.npz stand-in: five of the pack's captured geometries as frames."""
+    from stages.actor_pack import load_pack
+
+    pack = load_pack(PACK)
+    path = tmp_path_factory.mktemp("run") / "data.npz"
+    np.savez(path, target_xy=pack.captured_points[:5], target_names=np.array(pack.layout.point_names))
+    return path
+
+
+@pytest.fixture(scope="session")
+def editor_server(performance):
+    editor = start_editor(PACK, "--performance", str(performance))
     yield editor
     stop_editor(editor)
 

@@ -149,3 +149,20 @@ def test_exported_keyframes_render_with_the_pipeline(page, tmp_path):
     frames = sorted((out / "exr").glob("frame.*.exr"))
     assert len(frames) == 4
     assert (out / "video" / "keyframes.mp4").stat().st_size > 0
+
+
+def test_touching_up_a_performance_frame(page, performance):
+    with np.load(performance, allow_pickle=False) as data:
+        frame = data["target_xy"][2]
+    page.fill("#frame-index", "2")
+    page.click("#load-frame")
+    page.evaluate("window.editor.idle()")
+    np.testing.assert_allclose(geometry(page), frame, atol=1e-9)
+    lip = LAYOUT.index("mouth_outer_12")
+    drag(page, lip, (0.0, 6.0))
+    moved = geometry(page) - frame
+    np.testing.assert_allclose(moved[lip], [0.0, 6.0], atol=0.51)
+    assert (moved[[LAYOUT.index("mouth_outer_11"), LAYOUT.index("mouth_outer_13")], 1] > 1.0).all()
+    page.click("#undo")
+    page.evaluate("window.editor.idle()")
+    np.testing.assert_allclose(geometry(page), frame, atol=1e-9)

@@ -77,3 +77,22 @@ def test_keyframes_reject_bad_input(times, fps):
 def test_five_inbetweens_at_sixths():
     a, b = np.zeros((2, 2)), np.ones((2, 2)) * 6.0
     np.testing.assert_allclose(inbetweens(a, b)[:, 0, 0], [1.0, 2.0, 3.0, 4.0, 5.0])
+
+
+def test_performance_files_are_checked(tmp_path):
+    from editor.engine import read_performance
+
+    layout = load_pack(PACK).layout
+    good = tmp_path / "good.npz"
+    np.savez(good, target_xy=np.zeros((2, layout.n_points, 2)), target_names=np.array(layout.point_names))
+    assert read_performance(good, layout).shape == (2, layout.n_points, 2)
+    for name, fields in {
+        "missing": {"xy": np.zeros((2, layout.n_points, 2))},
+        "shape": {"target_xy": np.zeros((2, 3, 2))},
+        "names": {"target_xy": np.zeros((2, layout.n_points, 2)), "target_names": np.array(["x"] * layout.n_points)},
+        "nan": {"target_xy": np.full((2, layout.n_points, 2), np.nan)},
+    }.items():
+        path = tmp_path / f"{name}.npz"
+        np.savez(path, **fields)
+        with pytest.raises(ValueError, match="target_"):
+            read_performance(path, layout)

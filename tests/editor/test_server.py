@@ -99,8 +99,9 @@ def test_nan_malformed_oversized_and_unauthorised_requests(editor_server):
         assert status == 403 and json.loads(answer)["error"] == "missing or wrong token"
     status, _, _ = call(editor_server, "/static/editor.js", token="")
     assert status == 403
-    status, _, answer = call(editor_server, "/api/frame?index=0")
-    assert status == 404 and "performance" in json.loads(answer)["error"]
+    for index in ("5", "-1", "x"):
+        status, _, answer = call(editor_server, f"/api/frame?index={index}")
+        assert status == 400 and "0..4" in json.loads(answer)["error"]
     # ...and it still serves.
     status, _, answer = call(editor_server, "/api/describe")
     assert status == 200 and len(json.loads(answer)["names"]) == N
@@ -134,6 +135,13 @@ def test_export_answers_a_points_file(editor_server):
         assert float(data["fps"]) == 4.0
     status, _, answer = call(editor_server, "/api/export", {"fps": 4, "keyframes": keys[::-1]})
     assert status == 400 and "increase" in json.loads(answer)["error"]
+
+
+def test_frames_of_the_performance(editor_server, performance):
+    status, _, answer = call(editor_server, "/api/frame?index=3")
+    assert status == 200
+    with np.load(performance, allow_pickle=False) as data:
+        np.testing.assert_array_equal(json.loads(answer)["points"], data["target_xy"][3])
 
 
 def test_binding_a_remote_address_needs_an_explicit_option():
