@@ -1,0 +1,267 @@
+"""Which usable frames become the pack's neutral, standard, examples, teeth examples and captured
+geometries (paper Sec. 5.2, 6, 8, 10, 14).
+
+Geometries are compared in one frame: every frame's layout points are mapped by the least-squares
+2D similarity (eq. 8-9, :func:`stages.geometry.compensate.fit_similarity`) of its stable points
+(eye corners, nose tip and base: :data:`stages.geometry.mapping.NORMALIZATION_POINTS`) onto the
+neutral's, then by one more similarity that puts the neutral upright and centred in the pack's
+image and the clip's faces inside it (:func:`canvas_similarity`). Distances between geometries are RMS point distances in the
+pack's pixels.
+
+Sec. 14 asks for example expressions "sufficiently different from each other while covering all
+captured expressions". That is the k-center problem; :func:`k_center` is the greedy 2-approximation
+(Gonzalez 1985): start from the neutral, repeatedly add the frame farthest from the chosen ones.
+After ``k`` picks the *coverage radius* — the largest distance of any usable frame to its nearest
+chosen one — is at most twice the optimum, and no two chosen frames are closer than it. The 30-40
+captured geometries of Sec. 10 continue the same sequence from the examples (so they include
+them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from stages.geometry.compensate import apply_similarity, fit_similarity
+from stages.geometry.mapping import NORMALIZATION_POINTS
+from stages.geometry.rigid3d import choose_reference
+from stages.geometry.signals import EYE_OUTER, expression_signals
+from stages.layout import Layout
+
+
+def compose_similarity(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
+    """``(4,)`` or ``(T, 4)`` parameters of ``outer(inner(x))`` for similarities ``(a, b, tx, ty)``
+    of eq. 8 (``x -> [[a, -b], [b, a]] x + t``; in complex numbers ``z -> c z + t``, ``c = a + ib``)."""
+    outer, inner = np.asarray(outer, np.float64), np.asarray(inner, np.float64)
+    c_o = outer[..., 0] + 1j * outer[..., 1]
+    c_i = inner[..., 0] + 1j * inner[..., 1]
+    t = c_o * (inner[..., 2] + 1j * inner[..., 3]) + outer[..., 2] + 1j * outer[..., 3]
+    c = c_o * c_i
+    return np.stack(np.broadcast_arrays(c.real, c.imag, t.real, t.imag), axis=-1)
+
+
+def stable_columns(layout: Layout) -> list[int]:
+    """Rows of the stable points the geometries are aligned on (eye corners, nose tip and base)."""
+    return list(layout.indices(NORMALIZATION_POINTS))
+
+
+def align_to_reference(xy: np.ndarray, valid: np.ndarray, reference: np.ndarray, columns: list[int]) -> np.ndarray:
+    """Per frame, the similarity (eq. 9) mapping the frame's stable points onto the reference's.
+
+    Parameters
+    ----------
+    xy : (T, N, 2) float, px
+    valid : (T,) bool
+        Frames to fit; the others get the identity ``(1, 0, 0, 0)``.
+    reference : (N, 2) float, px
+    columns : list of int
+        The stable points' rows.
+
+    Returns
+    -------
+    (T, 4) float64 ``(a, b, tx, ty)``, frame -> reference.
+    """
+    xy = np.asarray(xy, np.float64)
+    out = np.tile([1.0, 0.0, 0.0, 0.0], (len(xy), 1))
+    for t in np.flatnonzero(valid):
+        out[t] = fit_similarity(xy[t, columns], reference[columns])
+    return out
+
+
+def canvas_similarity(neutral: np.ndarray, geometries: np.ndarray, layout: Layout, size: tuple[int, int], *,
+                      fill: float = 0.9) -> np.ndarray:
+    """The similarity that puts the neutral face upright and the clip's faces centred in an image of ``size``.
+
+    The neutral's eye line (outer eye corners, :data:`stages.geometry.signals.EYE_OUTER`) is made
+    horizontal; the box spanned by the ``geometries`` (from the 1st percentile of the frames'
+    smallest coordinates to the 99th of their largest: a rare landmark glitch does not shrink
+    the face) is scaled to ``fill`` of the image height or width, whichever is smaller, and
+    centred.
+
+    Parameters
+    ----------
+    neutral : (N, 2) float, px
+    geometries : (K, N, 2) float, px
+        The usable frames' points, already aligned to the neutral's frame.
+    size : (W, H) px
+
+    Returns
+    -------
+    (4,) float64 ``(a, b, tx, ty)``, neutral frame -> pack image.
+    """
+    W, H = size
+    left, right = (neutral[layout.index(n)] for n in EYE_OUTER)
+    direction = complex(*(right - left))
+    if abs(direction) == 0:
+        raise ValueError("the neutral's outer eye corners coincide")
+    rot = np.conj(direction) / abs(direction)
+    z = (geometries[..., 0] + 1j * geometries[..., 1]) * rot
+    x0, y0 = np.percentile(z.real.min(axis=-1), 1), np.percentile(z.imag.min(axis=-1), 1)
+    x1, y1 = np.percentile(z.real.max(axis=-1), 99), np.percentile(z.imag.max(axis=-1), 99)
+    scale = fill * min(H / (y1 - y0), W / (x1 - x0))
+    c = rot * scale
+    t = complex((W - 1) / 2, (H - 1) / 2) - complex((x0 + x1) / 2, (y0 + y1) / 2) * scale
+    return np.array([c.real, c.imag, t.real, t.imag])
+
+
+def k_center(features: np.ndarray, k: int, *, seeds: list[int] | tuple[int, ...], min_distance: float = 0.0) -> tuple[list[int], list[float]]:
+    """Greedy k-center (Gonzalez 1985): add the point farthest from the chosen ones.
+
+    Parameters
+    ----------
+    features : (T, D) float
+        One row per candidate; distances are Euclidean.
+    k : int
+        How many to choose in all, seeds included.
+    seeds : sequence of int
+        Rows chosen first, in order (at least one).
+    min_distance : float
+        Stop early when the farthest candidate is no farther than this from the chosen ones
+        (no more distinct candidates).
+
+    Returns
+    -------
+    chosen : list of int
+        Rows in the order chosen (``min(k, ...)`` long, seeds first).
+    radii : list of float
+        ``radii[j]``: the coverage radius after the first ``j + 1`` rows were chosen,
+        ``max_i min_{c <= j} ||f_i - f_c||``; non-increasing.
+    """
+    features = np.asarray(features, np.float64)
+    if features.ndim != 2 or len(features) == 0:
+        raise ValueError(f"expected features (T, D) with T >= 1, got {features.shape}")
+    if not seeds:
+        raise ValueError("k_center needs at least one seed row")
+    if k < 1:
+        raise ValueError(f"expected k >= 1, got {k}")
+    chosen: list[int] = []
+    radii: list[float] = []
+    nearest = np.full(len(features), np.inf)
+    for row in seeds:
+        if len(chosen) == k:
+            break
+        chosen.append(int(row))
+        nearest = np.minimum(nearest, np.linalg.norm(features - features[row], axis=1))
+        radii.append(float(nearest.max()))
+    while len(chosen) < k:
+        far = int(np.argmax(nearest))
+        if nearest[far] <= min_distance:
+            break
+        chosen.append(far)
+        nearest = np.minimum(nearest, np.linalg.norm(features - features[far], axis=1))
+        radii.append(float(nearest.max()))
+    return chosen, radii
+
+
+@dataclass
+class Selection:
+    """The frames chosen for a pack (indices into the clip) and how they map into the pack's image.
+
+    ``to_pack (T, 4)``: per frame the similarity frame -> pack image; ``example_radius_px`` /
+    ``captured_radius_px``: coverage radii of the examples / captured set over the usable frames
+    (RMS point distance, pack px); ``warnings``: what the selection could not do as asked.
+    """
+
+    neutral: int
+    standard: int
+    examples: list[int]
+    teeth: list[int]
+    captured: list[int]
+    to_pack: np.ndarray
+    example_radius_px: float
+    captured_radius_px: float
+    mouth_open: np.ndarray
+    warnings: list[str] = field(default_factory=list)
+
+
+def select_frames(xy: np.ndarray, keep: np.ndarray, *, layout: Layout, blendshapes: np.ndarray,
+                  blendshape_names: np.ndarray, matrix: np.ndarray, angles: np.ndarray,
+                  teeth_fraction: np.ndarray, size: tuple[int, int], n_examples: int = 12,
+                  n_captured: int = 35, n_teeth: int = 4, min_distinct_px: float = 1.0,
+                  frontal_deg: float = 8.0, min_teeth_open: float = 0.08,
+                  min_teeth_fraction: float = 0.1) -> Selection:
+    """Choose the pack's frames among the usable ones.
+
+    - **neutral**: the least expressive usable frame
+      (:func:`stages.geometry.rigid3d.choose_reference`: blendshape activity, head angle, lip gap);
+    - **examples**: :func:`k_center` over the aligned geometries from the neutral, ``n_examples``
+      in all, stopping early when no usable frame is ``min_distinct_px`` from the chosen ones;
+    - **captured**: the same sequence continued to ``n_captured`` (examples included);
+    - **standard**: the widest mouth opening among the usable frames within ``frontal_deg`` of
+      frontal (all usable frames if none is);
+    - **teeth**: usable frames with the lips apart (``>= min_teeth_open`` eye distances) and teeth
+      visible (``teeth_fraction >= min_teeth_fraction``), ``n_teeth`` different openings by
+      :func:`k_center` on the opening from the widest; the widest opening alone if none shows teeth.
+
+    Parameters
+    ----------
+    xy : (T, N, 2) float
+        Layout points per frame, px (frame coordinates).
+    keep : (T,) bool
+        Usable frames (:func:`stages.packbuild.filters.classify_frames`); at least 2.
+    blendshapes : (T, 52), blendshape_names : (52,), matrix : (T, 4, 4)
+        The landmarker's outputs.
+    angles : (T, 3) float
+        Yaw, pitch, roll in degrees.
+    teeth_fraction : (T,) float
+    size : (W, H)
+        The pack's image size, px.
+
+    Raises
+    ------
+    ValueError
+        Fewer than 2 usable frames.
+    """
+    xy = np.asarray(xy, np.float64)
+    keep = np.asarray(keep, bool)
+    usable = np.flatnonzero(keep)
+    if usable.size < 2:
+        raise ValueError(f"{usable.size} usable frame(s); a pack needs at least 2")
+    warnings: list[str] = []
+    safe = np.where(keep[:, None, None], xy, xy[usable[0]])
+    mouth_open = expression_signals(safe, layout.point_names)["mouth_open"]
+    neutral = choose_reference(blendshapes, blendshape_names, matrix, mouth_open, keep, search_frames=len(xy))
+    columns = stable_columns(layout)
+    to_neutral = align_to_reference(xy, keep, xy[neutral], columns)
+    in_neutral = np.stack([apply_similarity(to_neutral[t], xy[t]) for t in usable])
+    canvas = canvas_similarity(xy[neutral], in_neutral, layout, size)
+    to_pack = compose_similarity(canvas, to_neutral)
+    features = apply_similarity(canvas, in_neutral).reshape(len(usable), -1)
+    features /= np.sqrt(layout.n_points)  # Euclidean distance = RMS point distance, px
+    seed = int(np.searchsorted(usable, neutral))
+    order, radii = k_center(features, n_captured, seeds=[seed], min_distance=min_distinct_px)
+    examples = order[:n_examples]
+    if len(examples) < n_examples:
+        warnings.append(f"only {len(examples)} distinct expressions (>= {min_distinct_px:g} px apart) among "
+                        f"{usable.size} usable frames; {n_examples} examples were asked")
+    if len(examples) < 2:
+        examples = [seed, int(np.argmax(np.linalg.norm(features - features[seed], axis=1)))]
+        order = examples
+        radii = [radii[0], 0.0]
+    if len(order) < n_captured:
+        warnings.append(f"{len(order)} captured geometries instead of {n_captured}: no more distinct expressions")
+
+    frontal = keep & (np.abs(angles) <= frontal_deg).all(axis=1)
+    pool = frontal if frontal.any() else keep
+    if not frontal.any():
+        warnings.append(f"no usable frame within {frontal_deg:g} degrees of frontal: the standard image is turned")
+    standard = int(np.flatnonzero(pool)[np.argmax(mouth_open[pool])])
+
+    shows_teeth = keep & (mouth_open >= min_teeth_open) & (np.asarray(teeth_fraction) >= min_teeth_fraction)
+    if shows_teeth.any():
+        candidates = np.flatnonzero(shows_teeth)
+        widest = int(np.argmax(mouth_open[candidates]))
+        picked, _ = k_center(mouth_open[candidates, None], n_teeth, seeds=[widest], min_distance=0.0)
+        teeth = [int(candidates[j]) for j in picked]
+    else:
+        teeth = [int(usable[np.argmax(mouth_open[usable])])]
+        warnings.append(f"no usable frame shows teeth (lips >= {min_teeth_open:g} eye distances apart and >= "
+                        f"{min_teeth_fraction:.0%} teeth pixels); the widest opening is the only teeth example")
+    return Selection(
+        neutral=int(neutral), standard=standard,
+        examples=[int(usable[j]) for j in examples], teeth=teeth,
+        captured=[int(usable[j]) for j in order], to_pack=to_pack,
+        example_radius_px=float(radii[len(examples) - 1]), captured_radius_px=float(radii[len(order) - 1]),
+        mouth_open=mouth_open, warnings=warnings,
+    )

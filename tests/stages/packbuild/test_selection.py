@@ -1,0 +1,152 @@
+"""Frame selection for packs: similarity composition, the pack frame, greedy k-center (covering radius
+against brute force, spread), and select_frames on known geometries (the fixture pack's examples seen
+through random head motions)."""
+
+import itertools
+
+import numpy as np
+import pytest
+
+from stages.actor_pack import load_pack
+from stages.geometry.compensate import apply_similarity
+from stages.landmarks.landmarker import BLENDSHAPE_NAMES
+from stages.packbuild.selection import canvas_similarity, compose_similarity, k_center, select_frames
+from tests.stages.synthesis.test_fixture_pack import PACK
+
+
+def optimal_radius(features, k, seed):
+    """The smallest covering radius of any k centres that include ``seed`` (brute force)."""
+    others = [i for i in range(len(features)) if i != seed]
+    best = np.inf
+    for rest in itertools.combinations(others, k - 1):
+        centres = features[[seed, *rest]]
+        radius = np.linalg.norm(features[:, None] - centres[None], axis=-1).min(axis=1).max()
+        best = min(best, radius)
+    return best
+
+
+def test_compose_similarity_is_applying_one_after_the_other():
+    rng = np.random.default_rng(0)
+    inner, outer = rng.normal(size=4), rng.normal(size=4)
+    xy = rng.normal(size=(7, 2)) * 50
+    np.testing.assert_allclose(apply_similarity(compose_similarity(outer, inner), xy),
+                               apply_similarity(outer, apply_similarity(inner, xy)), atol=1e-9)
+
+
+def test_k_center_on_a_line_picks_the_far_end_then_the_middle():
+    features = np.arange(11.0)[:, None]
+    chosen, radii = k_center(features, 3, seeds=[0])
+    assert chosen == [0, 10, 5]
+    assert radii == [10.0, 5.0, 2.0]
+
+
+@pytest.mark.parametrize("seed_row", [0, 7])
+def test_k_center_radius_within_twice_the_optimum_and_chosen_rows_spread(seed_row):
+    rng = np.random.default_rng(seed_row)
+    features = np.concatenate([rng.normal(c, 0.3, size=(4, 2)) for c in ((0, 0), (6, 0), (0, 6), (6, 6), (3, 12))])
+    k = 5
+    chosen, radii = k_center(features, k, seeds=[seed_row])
+    assert len(chosen) == k and len(set(chosen)) == k
+    # one centre per cluster: the clusters are 6 apart, their spread below 1.5
+    assert {c // 4 for c in chosen} == set(range(5))
+    nearest = np.linalg.norm(features[:, None] - features[chosen][None], axis=-1).min(axis=1)
+    assert radii[-1] == pytest.approx(nearest.max())
+    assert radii[-1] <= 2 * optimal_radius(features, k, seed_row) + 1e-12
+    pairwise = np.linalg.norm(features[chosen][:, None] - features[chosen][None], axis=-1)
+    assert pairwise[~np.eye(k, dtype=bool)].min() >= radii[-1]  # no two chosen closer than the radius
+    assert all(a >= b for a, b in zip(radii, radii[1:]))
+
+
+def test_k_center_stops_when_nothing_distinct_is_left():
+    features = np.array([[0.0], [0.0], [0.1], [5.0], [5.05]])
+    chosen, radii = k_center(features, 4, seeds=[0], min_distance=0.5)
+    assert chosen == [0, 4] and radii[-1] == pytest.approx(0.1)  # 5.05 is the farthest; 5.0 is covered by it
+
+
+def test_k_center_rejects_bad_arguments():
+    with pytest.raises(ValueError, match="seed"):
+        k_center(np.zeros((3, 2)), 2, seeds=[])
+    with pytest.raises(ValueError, match="features"):
+        k_center(np.zeros(3), 2, seeds=[0])
+
+
+@pytest.fixture(scope="module")
+def pack():
+    if not (PACK / "pack.yaml").is_file():
+        pytest.skip("fixture pack not generated (make fixtures)")
+    return load_pack(PACK)
+
+
+def test_canvas_puts_the_eye_line_level_and_every_face_inside(pack):
+    neutral = pack.neutral.points
+    theta = np.radians(12)
+    tilted = apply_similarity(np.array([0.8 * np.cos(theta), 0.8 * np.sin(theta), 30.0, -10.0]), neutral)
+    geometries = np.stack([tilted, tilted + (0, 15)])
+    params = canvas_similarity(tilted, geometries, pack.layout, (300, 400), fill=0.9)
+    placed = apply_similarity(params, geometries)
+    left, right = (placed[0, pack.layout.index(n)] for n in ("eye_l_6", "eye_r_6"))
+    assert abs(right[1] - left[1]) < 1e-9 and right[0] > left[0]
+    lo, hi = placed.reshape(-1, 2).min(0), placed.reshape(-1, 2).max(0)
+    assert np.all(lo >= -0.5) and hi[0] <= 299.5 and hi[1] <= 399.5
+    # the box is from percentiles of the frames (1st of the minima, 99th of the maxima): about the fill
+    assert max((hi[0] - lo[0]) / 300, (hi[1] - lo[1]) / 400) == pytest.approx(0.9, abs=0.005)
+
+
+def moving_clip(pack, repeats=3, noise_px=0.01, seed=0):
+    """Each of the pack's neutral and example geometries ``repeats`` times under a random similarity
+    (rotation up to 10 degrees, scale 0.8-1.2, shift up to 40 px) plus noise; (xy, cluster of each frame)."""
+    rng = np.random.default_rng(seed)
+    shapes = [pack.neutral.points] + [e.points for e in pack.examples]
+    xy, cluster = [], []
+    for c, shape in enumerate(shapes):
+        for _ in range(repeats):
+            angle, scale = np.radians(rng.uniform(-10, 10)), rng.uniform(0.8, 1.2)
+            params = np.array([scale * np.cos(angle), scale * np.sin(angle), *rng.uniform(-40, 40, 2)])
+            xy.append(apply_similarity(params, shape) + rng.normal(0, noise_px, shape.shape))
+            cluster.append(c)
+    order = rng.permutation(len(xy))
+    return np.stack(xy)[order], np.array(cluster)[order]
+
+
+def select(pack, xy, cluster, **options):
+    T = len(xy)
+    blendshapes = np.where(cluster[:, None] == 0, 0.0, 0.3).astype(np.float32) * np.ones((T, len(BLENDSHAPE_NAMES)))
+    return select_frames(xy, np.ones(T, bool), layout=pack.layout, blendshapes=blendshapes,
+                         blendshape_names=np.array(BLENDSHAPE_NAMES), matrix=np.tile(np.eye(4), (T, 1, 1)),
+                         angles=np.zeros((T, 3)), teeth_fraction=np.full(T, 0.5), size=(240, 320), **options)
+
+
+def test_select_frames_one_example_per_distinct_expression_whatever_the_head_motion(pack):
+    xy, cluster = moving_clip(pack)
+    distinct = 1 + len(pack.examples)
+    chosen = select(pack, xy, cluster, n_examples=distinct, n_captured=distinct + 3, n_teeth=2)
+    assert cluster[chosen.neutral] == 0
+    assert sorted(cluster[chosen.examples]) == list(range(distinct))
+    assert chosen.examples[0] == chosen.neutral and chosen.captured[:distinct] == chosen.examples
+    # the head motion is undone: frames of one expression land on the same pack points
+    placed = np.stack([apply_similarity(chosen.to_pack[t], xy[t]) for t in range(len(xy))])
+    for c in range(distinct):
+        group = placed[cluster == c]
+        assert np.abs(group - group[0]).max() < 0.2
+    assert chosen.example_radius_px < 0.2  # every frame is a repeat of a chosen expression
+    # the standard has the widest inner-lip gap, the teeth examples are open mouths
+    assert chosen.mouth_open[chosen.standard] == pytest.approx(chosen.mouth_open.max())
+    assert all(chosen.mouth_open[t] >= 0.08 for t in chosen.teeth) and len(chosen.teeth) == 2
+    assert chosen.warnings == [f"{len(chosen.captured)} captured geometries instead of {distinct + 3}: no more distinct expressions"]
+
+
+def test_select_frames_warns_when_fewer_distinct_expressions_than_examples(pack):
+    xy, cluster = moving_clip(pack)
+    keep = cluster < 4
+    chosen = select(pack, xy[keep], cluster[keep], n_examples=10, n_captured=30)
+    assert len(chosen.examples) == 4
+    assert any("only 4 distinct expressions" in w and "10 examples were asked" in w for w in chosen.warnings)
+
+
+def test_select_frames_needs_two_usable_frames(pack):
+    xy, cluster = moving_clip(pack, repeats=1)
+    with pytest.raises(ValueError, match="1 usable frame"):
+        select_frames(xy, np.arange(len(xy)) == 0, layout=pack.layout,
+                      blendshapes=np.zeros((len(xy), len(BLENDSHAPE_NAMES))), blendshape_names=np.array(BLENDSHAPE_NAMES),
+                      matrix=np.tile(np.eye(4), (len(xy), 1, 1)), angles=np.zeros((len(xy), 3)),
+                      teeth_fraction=np.zeros(len(xy)), size=(240, 320))
