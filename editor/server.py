@@ -17,7 +17,8 @@ API (POST bodies are JSON)
 
 Image answers are ``application/octet-stream``: a little-endian uint32 byte count, that many
 bytes of UTF-8 JSON (``points``, ``seq``, ``synth_ms`` and ``synth_cpu_ms``: wall-clock and
-CPU time of synthesis and encoding, ``sizes``: the byte count of each image), then the JPEG images back to back. Stale work is dropped: a request whose ``seq`` is
+CPU time of synthesis and encoding, ``propagate_cpu_ms``: CPU time of the propagation,
+``sizes``: the byte count of each image), then the JPEG images back to back. Stale work is dropped: a request whose ``seq`` is
 older than the newest one seen from its ``client`` is answered 409 ``superseded`` without
 being computed, also when a newer one arrives while it waits for a renderer thread.
 Propagation and synthesis run on ``RENDER_THREADS`` threads (one torch thread each by default),
@@ -31,6 +32,7 @@ import hmac
 import json
 import logging
 import struct
+import time
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -119,17 +121,19 @@ async def render_images(request: web.Request, client: str, seq: int, geometries:
     app = request.app
     engine = app[ENGINE]
 
-    def job() -> tuple[np.ndarray, list[bytes], float, float] | None:
+    def job() -> tuple[np.ndarray, float, list[bytes], float, float] | None:
         if app[NEWEST].get(client) != seq:
             return None
+        start = time.thread_time()
         points = geometries()
-        return (points, *engine.render(points))
+        return (points, time.thread_time() - start, *engine.render(points))
 
     done = await asyncio.get_running_loop().run_in_executor(app[EXECUTOR], job)
     if done is None:
         return json_error(409, "superseded")
-    points, images, wall, cpu = done
-    meta = {"seq": seq, "synth_ms": wall * 1e3, "synth_cpu_ms": cpu * 1e3, "points": points[-1].tolist()}
+    points, propagate_cpu, images, wall, cpu = done
+    meta = {"seq": seq, "propagate_cpu_ms": propagate_cpu * 1e3, "synth_ms": wall * 1e3, "synth_cpu_ms": cpu * 1e3,
+            "points": points[-1].tolist()}
     return image_answer(meta, images)
 
 

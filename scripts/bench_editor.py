@@ -15,9 +15,10 @@ records, per image drawn, the time since the pointer event whose geometry it sho
 
     python scripts/bench.py editor --json [--pack PACK] [--seconds 8] [--screenshot docs/img/editor.png]
 
-* ``editor_synth_cpu_ms_p50``: the CPU time of the server's renderer thread per image (with one
-  torch thread, all of synthesis and encoding; unlike wall-clock time it does not grow when
-  other processes load the machine).
+* ``editor_synth_cpu_ms_p50``, ``editor_propagate_cpu_ms_p50``: CPU time of the server's
+  renderer thread per image for synthesis and JPEG encoding, and for motion propagation (with
+  one torch thread that is all of it; unlike wall-clock time it hardly grows when other
+  processes load the machine, so it tells what an idle machine would do).
 
 The server runs with ``--threads 1`` (its default; ``--threads N`` here to compare): on 2 cores
 the browser needs the other one.
@@ -101,6 +102,7 @@ def drag_session(page, *, point: str, seconds: float, move_ms: float) -> dict:
         "latencies": [stats["latencies"][k] for k in inside],
         "synth_ms": [stats["synthMs"][k] for k in inside],
         "synth_cpu_ms": [stats["synthCpuMs"][k] for k in inside],
+        "propagate_cpu_ms": [stats["propagateCpuMs"][k] for k in inside],
         "errors": stats["errors"],
     }
 
@@ -137,6 +139,7 @@ def run(args: argparse.Namespace) -> list[dict]:
         row("editor_latency_ms_p95", percentile(result["latencies"], 95), "ms"),
         row("editor_synth_fps", 1000.0 / percentile(result["synth_ms"], 50), "images/s"),
         row("editor_synth_cpu_ms_p50", percentile(result["synth_cpu_ms"], 50), "ms"),
+        row("editor_propagate_cpu_ms_p50", percentile(result["propagate_cpu_ms"], 50), "ms"),
         row("editor_updates", len(result["latencies"]), "images"),
         row("editor_errors", result["errors"], "responses"),
         row("editor_load_avg", os.getloadavg()[0], "processes"),

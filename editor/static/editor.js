@@ -31,7 +31,7 @@ let keyframes = [];           // [{time_s, points}]
 let idleWaiters = [];
 
 // Measurements read by the tests and scripts/bench_editor.py.
-const stats = { updates: [], latencies: [], synthMs: [], synthCpuMs: [], errors: 0 };
+const stats = { updates: [], latencies: [], synthMs: [], synthCpuMs: [], propagateCpuMs: [], errors: 0 };
 window.editor = {
   stats,
   geometry: () => geometry,
@@ -125,6 +125,7 @@ async function pump() {
           stats.latencies.push(now - job.time);
           stats.synthMs.push(meta.synth_ms);
           stats.synthCpuMs.push(meta.synth_cpu_ms);
+          stats.propagateCpuMs.push(meta.propagate_cpu_ms);
         }
       }
       status("");
