@@ -16,8 +16,7 @@ import click
 from runner.cache import DEFAULT_DIR, ENV_VAR, CacheStore, default_cache_dir, holder_is_stale
 from runner.config import ConfigError, Issue, Where, bind_inputs, load_pipeline
 from runner.dag import to_dot, to_mermaid
-from runner.execute import Options, Runner, StageFailed, resolve_device
-from runner.publish import remove_leftovers
+from runner.errors import StageFailed
 from runner.registry import Registry, RegistryError
 from runner.stage import FrameStage
 
@@ -56,6 +55,8 @@ def run(pipeline: Path, clip: Path | None, named: tuple[str, ...], out: Path, dr
         until: str | None, overrides: tuple[str, ...], device: str, jobs: int, log_json: Path | None,
         cache_dir: Path | None) -> int:
     """Run PIPELINE (a pipeline.yaml)."""
+    from runner.execute import Options, Runner, resolve_device  # here: `dag`, `stages` start faster without it
+
     loaded = load_pipeline(pipeline, Registry.from_entry_points(), overrides=list(overrides))
     unknown = [Issue(Where(flag), name, "unknown stage in this pipeline")
                for flag, names in (("--force", force), ("--until", (until,) if until else ()))
@@ -174,6 +175,8 @@ def cache_ls(cache_dir: Path | None) -> int:
 def cache_gc(older_than: float | None, out: Path, cache_dir: Path | None) -> int:
     """Remove leftovers of dead runs (temporary folders, stale locks, half-published output
     folders) and, with --older-than, entries not used recently."""
+    from runner.publish import remove_leftovers
+
     store = CacheStore(cache_dir or default_cache_dir())
     counts = store.gc(older_than_s=None if older_than is None else older_than * 86400)
     published = remove_leftovers(out)
