@@ -3,7 +3,7 @@
 PY := .venv/bin/python
 VENV_STAMP := .venv/.installed-$(shell sha256sum pyproject.toml | cut -c1-12)
 
-.PHONY: run test bench fixtures clean
+.PHONY: run test browser bench fixtures clean
 
 $(VENV_STAMP): pyproject.toml
 	test -x $(PY) || python3 -m venv .venv
@@ -13,8 +13,12 @@ $(VENV_STAMP): pyproject.toml
 run: $(VENV_STAMP)
 	.venv/bin/runner run pipeline.yaml --in fixtures/clips/calm.mp4 --out out
 
-test: $(VENV_STAMP)
+test: $(VENV_STAMP) browser
 	$(PY) -m pytest -q tests
+
+# Debian's Chromium for the browser tests (editor, run report); a no-op once installed.
+browser:
+	bash .ci/install-browser
 
 fixtures: $(VENV_STAMP)
 	$(PY) scripts/make_fixtures.py --out fixtures
