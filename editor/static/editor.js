@@ -6,6 +6,7 @@
 const TOKEN = document.body.dataset.token;
 const CLIENT = Array.from(crypto.getRandomValues(new Uint8Array(8)), (b) => b.toString(16).padStart(2, "0")).join("");
 const PICK_RADIUS = 9;        // px on screen: how near a press must be to take a point
+const CLICK_SLOP = 2;         // px on screen a press may wander and still be a click (unpin)
 const INBETWEEN_MS = 70;      // display time of each in-between frame (Sec. 14.2)
 
 const imageCanvas = document.getElementById("image");
@@ -213,11 +214,12 @@ overlay.addEventListener("pointerdown", (event) => {
   if (index < 0) return;
   overlay.setPointerCapture(event.pointerId);
   playback += 1;
-  drag = { index, moved: false, before: snapshot(), from: geometry };
+  drag = { index, moved: false, before: snapshot(), from: geometry, down: [event.clientX, event.clientY] };
 });
 
 overlay.addEventListener("pointermove", (event) => {
   if (!drag) return;
+  if (!drag.moved && Math.hypot(event.clientX - drag.down[0], event.clientY - drag.down[1]) < CLICK_SLOP) return;
   drag.moved = true;
   const xy = toImage(event);
   edit.pinned.set(drag.index, xy);
