@@ -1,12 +1,15 @@
 """Make the synthetic fixture set: actor packs, held-out ground truth, performer clips with truth.
 
-    python scripts/make_fixtures.py --out DIR [--seed N] [--demo]
+    python scripts/make_fixtures.py --out DIR [--seed N] [--demo] [--combo] [--part PART]
     python scripts/make_fixtures.py render --identity SEED [--controls smile=0.5,jaw_drop=0.3]
         [--pose YAW,PITCH,ROLL[,TX,TY,TZ]] [--size WxH] --out PREFIX
 
 Without ``--demo`` it writes the small CI set (the bytes committed under ``fixtures/``); with
 ``--demo`` the paper-sized set (600x800 target pack, 300-frame 640x480 clips). The performer is
-identity ``N`` and the target identity ``N + 1`` (default N = 1). Formats: docs/fixtures.md.
+identity ``N`` and the target identity ``N + 1`` (default N = 1). ``--combo`` adds the
+combinatorial target pack ``packs/combo`` (examples moving one facial region each, held-out
+expressions combining regions); ``--part`` writes one piece only (e.g. ``--part pack:combo``).
+Formats: docs/fixtures.md.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from scripts.facegen.face import CONTROLS, expression_points3d, mean_model3d  # noqa: E402
+from scripts.facegen.face import CONTROLS, JAW_HINGE_END, expression_points3d, mean_model3d  # noqa: E402
 from scripts.facegen.io import Mp4Writer, save_npz, write_named_rows, write_png, write_points_csv  # noqa: E402
 from scripts.facegen.render import (  # noqa: E402
     Camera,
@@ -35,8 +38,11 @@ from scripts.facegen.render import (  # noqa: E402
     texture_ppm,
 )
 from scripts.facegen.sequences import (  # noqa: E402
+    STANDARD,
+    TEETH,
     captured_controls,
     clip_trajectory,
+    combo_controls,
     controls_of,
     farthest_point_selection,
     similarity_eq9,
@@ -63,9 +69,9 @@ class Spec:
     supersample: int
 
 
-CI = Spec(target_size=(240, 320), clip_size=(320, 240), clip_frames=48, fps=30, captured=40, examples=12,
+CI = Spec(target_size=(240, 320), clip_size=(320, 240), clip_frames=48, fps=30, captured=40, examples=14,
           heldout_images=6, supersample=2)
-DEMO = Spec(target_size=(600, 800), clip_size=(640, 480), clip_frames=300, fps=30, captured=40, examples=12,
+DEMO = Spec(target_size=(600, 800), clip_size=(640, 480), clip_frames=300, fps=30, captured=40, examples=14,
             heldout_images=None, supersample=1)
 
 
@@ -75,10 +81,15 @@ def pack_pose(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
 
 
 def write_pack(folder: Path, face: FaceModel, camera: Camera, R: np.ndarray, t: np.ndarray, spec: Spec, *,
-               name: str, rng: np.random.Generator) -> dict[str, np.ndarray]:
+               name: str, captured: np.ndarray, captured_names: list[str], examples: np.ndarray | None = None,
+               heldout_images: int | None = None) -> dict[str, np.ndarray]:
     """Render and write one actor pack (pack.yaml, images, points, model3d, captured, truth.npz).
 
-    Returns the pack's truth arrays (also written to ``truth.npz``).
+    ``captured`` ``(K, C)`` are the controls of the captured expressions, ``captured_names`` their
+    names; ``examples`` the rows that become example images (default: ``spec.examples`` rows by
+    farthest-point selection over the geometries, Sec. 14); the rest are held out, the first
+    ``heldout_images`` of them (None: all) with an image. Returns the pack's truth arrays (also
+    written to ``truth.npz``).
     """
     layout = face.layout
     names = layout.point_names
@@ -101,20 +112,21 @@ def write_pack(folder: Path, face: FaceModel, camera: Camera, R: np.ndarray, t: 
         return {"name": key, "image": f"{sub}/{key}.png", "points": f"points/{key}.csv"}
 
     entries: dict[str, object] = {"neutral": save("neutral", controls_of())}
-    standard_c = controls_of(jaw_drop=0.55, upper_lip_raise=0.35)
+    standard_c = controls_of(**STANDARD)
     entries["standard"] = save("standard", standard_c)
-    cap_c = captured_controls(rng, spec.captured)
+    cap_c = captured
     cap_p3 = np.stack([expression_points3d(face.neutral, c, layout) for c in cap_c])
     cap_pts = np.stack([render_points(p, R, t, camera) for p in cap_p3])
     neutral_pts = render_points(face.neutral, R, t, camera)
-    chosen = farthest_point_selection((cap_pts - neutral_pts).reshape(len(cap_pts), -1), spec.examples)
+    if examples is None:
+        examples = farthest_point_selection((cap_pts - neutral_pts).reshape(len(cap_pts), -1), spec.examples)
+    chosen = np.asarray(examples, dtype=np.int64)
     heldout = np.setdiff1d(np.arange(len(cap_c)), chosen)
-    cap_names = [f"cap{k:02d}" for k in range(len(cap_c))]
+    cap_names = list(captured_names)
     entries["examples"] = [save(cap_names[k], cap_c[k], captured=int(k)) for k in chosen]
-    teeth_c = np.stack([controls_of(jaw_drop=0.4, smile=0.5), controls_of(jaw_drop=0.75, upper_lip_raise=0.3),
-                        controls_of(jaw_drop=1.0, lip_stretch=0.3)])
+    teeth_c = np.stack([controls_of(**c) for c in TEETH])
     entries["teeth_examples"] = [save(f"teeth{k}", c) for k, c in enumerate(teeth_c)]
-    limit = len(heldout) if spec.heldout_images is None else spec.heldout_images
+    limit = len(heldout) if heldout_images is None else heldout_images
     held_paths = [save(cap_names[k], cap_c[k], "heldout", captured=int(k))["image"] if j < limit else ""
                   for j, k in enumerate(heldout)]
     for k in range(len(cap_c)):
@@ -277,6 +289,7 @@ def _strip_frame(image: np.ndarray, tracked: np.ndarray, frame: int) -> np.ndarr
 
 
 PARTS = ("clip:live", "clip:calm", "pack:performer", "pack:target")  # independent pieces, slowest first
+COMBO = "pack:combo"  # the combinatorial target pack, made with --combo
 
 
 def make_part(out: Path, part: str, *, seed: int, spec: Spec) -> None:
@@ -287,33 +300,41 @@ def make_part(out: Path, part: str, *, seed: int, spec: Spec) -> None:
     target_cam = make_camera(spec.target_size)
     tR, tt = pack_pose(target_cam)
     kind, _, name = part.partition(":")
-    if part == "pack:performer":
-        write_pack(out / "packs" / "performer", make_face(seed, layout), clip_cam, np.eye(3), t0, spec, name="performer",
-                   rng=np.random.default_rng(np.random.SeedSequence([seed, 1])))
-    elif part == "pack:target":
-        write_pack(out / "packs" / "target", make_face(seed + 1, layout), target_cam, tR, tt, spec, name="target",
-                   rng=np.random.default_rng(np.random.SeedSequence([seed + 1, 1])))
+    if part in ("pack:performer", "pack:target"):
+        identity = seed if name == "performer" else seed + 1
+        camera, R, t = (clip_cam, np.eye(3), t0) if name == "performer" else (target_cam, tR, tt)
+        controls = captured_controls(np.random.default_rng(np.random.SeedSequence([identity, 1])), spec.captured,
+                                     jaw_max=1.0 if name == "target" else JAW_HINGE_END)
+        write_pack(out / "packs" / name, make_face(identity, layout), camera, R, t, spec, name=name, captured=controls,
+                   captured_names=[f"cap{k:02d}" for k in range(len(controls))], heldout_images=spec.heldout_images)
+    elif part == COMBO:
+        controls, names, n_examples = combo_controls()
+        write_pack(out / "packs" / "combo", make_face(seed + 1, layout), target_cam, tR, tt, spec, name="combo",
+                   captured=controls, captured_names=names, examples=np.arange(n_examples))
     elif kind == "clip":
         write_clip(out / "clips", name, make_face(seed, layout), make_face(seed + 1, layout), clip_cam, t0, target_cam, tR, tt, spec)
     else:
-        raise ValueError(f"unknown part {part!r}; known: {', '.join(PARTS)}")
+        raise ValueError(f"unknown part {part!r}; known: {', '.join(PARTS + (COMBO,))}")
 
 
-def make_set(out: Path, *, seed: int = 1, demo: bool = False, spec: Spec | None = None, jobs: int = 1) -> None:
+def make_set(out: Path, *, seed: int = 1, demo: bool = False, spec: Spec | None = None, jobs: int = 1,
+             combo: bool = False) -> None:
     """Write the whole fixture set for performer ``seed``, target ``seed + 1``.
 
     ``spec`` defaults to :data:`DEMO` with ``demo`` else :data:`CI` (tests pass a smaller one).
-    ``jobs > 1`` runs the parts in that many worker processes (``--part``; the standard specs
-    only); the bytes are the same either way.
+    ``combo`` adds the combinatorial pack ``packs/combo`` (:data:`COMBO`). ``jobs > 1`` runs the
+    parts in that many worker processes (``--part``; the standard specs only); the bytes are the
+    same either way.
     """
+    parts = PARTS + ((COMBO,) if combo else ())
     if jobs <= 1 or spec is not None:
-        for part in PARTS:
+        for part in parts:
             make_part(out, part, seed=seed, spec=spec or (DEMO if demo else CI))
         return
     base = [sys.executable, str(Path(__file__).resolve()), "--out", str(out), "--seed", str(seed)] + (["--demo"] if demo else [])
     running: list[tuple[str, subprocess.Popen]] = []
     failed = []
-    for part in PARTS:
+    for part in parts:
         if len(running) >= jobs:
             name, proc = running.pop(0)
             if proc.wait() != 0:
@@ -388,12 +409,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=1, help="performer identity seed; the target is seed + 1")
     parser.add_argument("--demo", action="store_true", help="paper-sized set: 600x800 target, 300-frame 640x480 clips")
     parser.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
-    parser.add_argument("--part", choices=PARTS, help=argparse.SUPPRESS)  # one piece, run by a worker
+    parser.add_argument("--combo", action="store_true",
+                        help="also write packs/combo: one-region examples, held-out combinations (docs/fixtures.md)")
+    parser.add_argument("--part", choices=PARTS + (COMBO,), help="write only this piece of the set")
     args = parser.parse_args(argv)
     if args.part:
         make_part(args.out, args.part, seed=args.seed, spec=DEMO if args.demo else CI)
     else:
-        make_set(args.out, seed=args.seed, demo=args.demo, jobs=args.jobs)
+        make_set(args.out, seed=args.seed, demo=args.demo, jobs=args.jobs, combo=args.combo)
     return 0
 
 

@@ -31,8 +31,18 @@ CONTROLS: tuple[str, ...] = (
     "chin_raise",          # AU17
 )
 
-JAW_PIVOT = np.array([0.0, -30.0, 70.0])  # effective jaw hinge axis (x-parallel), mm: condyle rotation + glide
-JAW_MAX_DEG = 22.0
+# Jaw drop (AU26/27) in two phases, each a rotation of the jaw-borne points about an x-parallel
+# axis (mm, head frame). Up to jaw_drop = JAW_HINGE_END the hinge phase of speech-sized openings
+# (inner lips about 8% of the outer-eye-corner distance apart at its end); beyond it the wide
+# opening (AU27), where the condyles glide forward: the chin swings down and forward again, the
+# two phases together turning the jaw about its angle, and the upper lip stretches up off the
+# upper teeth. At jaw_drop = 1 the inner lips are about half the outer-eye-corner distance apart.
+JAW_PIVOT = np.array([0.0, -30.0, 70.0])  # axis of the hinge phase
+JAW_MAX_DEG = 22.0  # hinge-phase degrees per unit of jaw_drop
+JAW_HINGE_END = 0.5
+JAW_WIDE_PIVOT = np.array([0.0, 130.0, 110.0])  # axis of the wide phase
+JAW_WIDE_UPPER_LIP_MM = 4.5  # inner upper lip up at jaw_drop = 1 (at the midline)
+JAW_WIDE_DEG = 18.0  # degrees added from JAW_HINGE_END to jaw_drop = 1
 
 
 def _left_template() -> dict[str, tuple[float, float]]:
@@ -274,26 +284,39 @@ def mean_model3d(layout: Layout) -> np.ndarray:
     return np.column_stack([xy, z])
 
 
-def _jaw_weights(layout: Layout) -> np.ndarray:
-    """How much each point rides on the jaw ``(N,)`` in [0, 1] (jaw drop rotates it that much)."""
+def _jaw_weights(layout: Layout, neutral: np.ndarray, *, wide: bool = False) -> np.ndarray:
+    """How much each point rides on the jaw ``(N,)`` in [0, 1] (jaw drop rotates it that much).
+
+    ``wide``: the weights of the wide-opening phase, spread further from the lower lip so the
+    skin between moving and still points stretches instead of folding: more on the mouth corners,
+    nasolabial lines and cheeks, less on the lip-corner folds, and the upper lip line following
+    the corners by ``|x / half mouth width| ** 1.5`` (the open mouth's oval). ``neutral`` ``(N, 3)`` mm.
+    """
+    corner, naso, cheek, lipfold = (0.7, (0.4, 0.7), 0.2, 0.85) if wide else (0.5, (0.2, 0.4), 0.1, 1.0)
+    half_w = max(abs(neutral[layout.index("mouth_outer_0"), 0]), 1.0)
     names = layout.point_names
     jaw = np.zeros(len(names))
     for i, n in enumerate(names):
         if n.startswith("contour_"):
             k = int(n.split("_")[1])
             jaw[i] = float(np.clip((min(k, 16 - k) - 1.5) / 3.0, 0.0, 1.0))
-        elif n in ("chin", "lipfold_l", "lipfold_r") or n.startswith("teeth_lower"):
+        elif n == "chin" or n.startswith("teeth_lower"):
             jaw[i] = 1.0
-        elif n.startswith("mouth_outer_"):
-            k = int(n.split("_")[2])
-            jaw[i] = 1.0 if 9 <= k <= 15 else (0.5 if k in (0, 8) else 0.0)
-        elif n.startswith("mouth_inner_"):
-            k = int(n.split("_")[2])
-            jaw[i] = 1.0 if 6 <= k <= 9 else (0.5 if k in (0, 5) else 0.0)
+        elif n in ("lipfold_l", "lipfold_r"):
+            jaw[i] = lipfold
+        elif n.startswith("mouth_"):
+            k = int(n.rsplit("_", 1)[1])
+            lower, corners = ((9, 15), (0, 8)) if n.startswith("mouth_outer") else ((6, 9), (0, 5))
+            if lower[0] <= k <= lower[1]:
+                jaw[i] = 1.0
+            elif k in corners:
+                jaw[i] = corner
+            elif wide:
+                jaw[i] = corner * min(abs(neutral[i, 0]) / half_w, 1.0) ** 1.5
         elif n.startswith("nasolabial_"):
-            jaw[i] = {"0": 0.0, "1": 0.2, "2": 0.4}[n[-1]]
+            jaw[i] = {"0": 0.0, "1": naso[0], "2": naso[1]}[n[-1]]
         elif n.startswith("cheek_"):
-            jaw[i] = 0.1
+            jaw[i] = cheek
     return jaw
 
 
@@ -392,13 +415,24 @@ def expression_points3d(neutral: np.ndarray, controls: np.ndarray, layout: Layou
         d[idx[f"lipfold_{s}"]] += (0.0, -1.5 * c["chin_raise"], 0.0)
     d[idx["nose_base"]] += (0.0, -0.8 * c["upper_lip_raise"], 0.0)
     out = neutral + d
-    # jaw drop: rotate the jaw-borne points about the jaw axis, weighted by membership
-    angle = np.deg2rad(JAW_MAX_DEG * c["jaw_drop"])
+    # jaw drop: rotate the jaw-borne points about the jaw axes, weighted by membership
+    angle = np.deg2rad(JAW_MAX_DEG * min(c["jaw_drop"], JAW_HINGE_END))
     if angle > 0:
-        w = _jaw_weights(layout)
-        rel = out - JAW_PIVOT
-        ca, sa = np.cos(angle * w), np.sin(angle * w)
-        y = ca * rel[:, 1] - sa * rel[:, 2]
-        z = sa * rel[:, 1] + ca * rel[:, 2]
-        out = np.column_stack([out[:, 0], y + JAW_PIVOT[1], z + JAW_PIVOT[2]])
+        out = _rotate_x(out, JAW_PIVOT, angle * _jaw_weights(layout, neutral))
+    if c["jaw_drop"] > JAW_HINGE_END:
+        wide = (c["jaw_drop"] - JAW_HINGE_END) / (1.0 - JAW_HINGE_END)
+        out = _rotate_x(out, JAW_WIDE_PIVOT, np.deg2rad(JAW_WIDE_DEG * wide) * _jaw_weights(layout, neutral, wide=True))
+        for k in range(1, 5):
+            i = idx[f"mouth_inner_{k}"]
+            out[i, 1] -= JAW_WIDE_UPPER_LIP_MM * wide * (1.0 - abs(neutral[i, 0]) / half_w)
     return out
+
+
+def _rotate_x(points: np.ndarray, pivot: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """Rotate ``points`` ``(N, 3)`` mm about the x-parallel axis through ``pivot`` by ``angle``
+    ``(N,)`` radians each (positive: a point in front of the axis moves down, +y)."""
+    rel = points - pivot
+    ca, sa = np.cos(angle), np.sin(angle)
+    y = ca * rel[:, 1] - sa * rel[:, 2]
+    z = sa * rel[:, 1] + ca * rel[:, 2]
+    return np.column_stack([points[:, 0], y + pivot[1], z + pivot[2]])

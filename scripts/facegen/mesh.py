@@ -71,7 +71,7 @@ def _slit_labels(uv: np.ndarray, feat: np.ndarray, layout: Layout) -> np.ndarray
     Returns ``(P, 3)`` in {-1, 0, 1}: -1 above the slit's centre line, +1 below, 0 away from it.
     """
     out = np.zeros((len(uv), 3), dtype=np.int8)
-    slits = [(_outline(layout, "mouth_inner", 10), 0, 5, 3.0, 14.0)]
+    slits = [(_outline(layout, "mouth_inner", 10), 0, 5, 6.0, 24.0)]  # wide openings: no upper-lip pull below the lower lip
     for s in "lr":
         slits.append((_outline(layout, f"eye_{s}", 12), 0, 6, 2.0, 12.0))
     for k, (ring, a, b, margin, reach) in enumerate(slits):

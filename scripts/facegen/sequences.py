@@ -9,22 +9,66 @@ from .face import CONTROLS
 
 CONTROL_INDEX = {n: i for i, n in enumerate(CONTROLS)}
 
-# expression "recipes" the captured sets are drawn around: (control, low, high)
+# expression "recipes" the captured sets are drawn around: (control, low, high). They reach what
+# real performers do: mouth openings to about half the outer-eye-corner distance (jaw_drop 1),
+# broad and open smiles, brows fully raised and lowered.
 RECIPES: tuple[tuple[tuple[str, float, float], ...], ...] = (
-    (("smile", 0.5, 1.0),),
-    (("smile", 0.4, 0.9), ("jaw_drop", 0.3, 0.7)),
-    (("inner_brow_raise", 0.5, 1.0), ("outer_brow_raise", 0.4, 1.0)),
-    (("inner_brow_raise", 0.6, 1.0), ("outer_brow_raise", 0.5, 1.0), ("jaw_drop", 0.5, 1.0)),
-    (("brow_lower", 0.5, 1.0), ("squint", 0.2, 0.6)),
+    (("smile", 0.6, 1.0),),
+    (("jaw_drop", 0.9, 1.0),),
+    (("smile", 0.5, 1.0), ("jaw_drop", 0.3, 0.8)),
+    (("inner_brow_raise", 0.6, 1.0), ("outer_brow_raise", 0.5, 1.0)),
+    (("inner_brow_raise", 0.6, 1.0), ("outer_brow_raise", 0.5, 1.0), ("jaw_drop", 0.6, 1.0)),
+    (("brow_lower", 0.6, 1.0), ("squint", 0.2, 0.6)),
     (("brow_lower", 0.5, 1.0), ("lip_corner_depress", 0.4, 1.0), ("chin_raise", 0.2, 0.7)),
     (("lip_pucker", 0.5, 1.0),),
     (("lip_stretch", 0.5, 1.0), ("brow_lower", 0.0, 0.5)),
-    (("jaw_drop", 0.4, 1.0),),
     (("upper_lip_raise", 0.5, 1.0), ("brow_lower", 0.2, 0.6)),
     (("lip_corner_depress", 0.5, 1.0), ("inner_brow_raise", 0.3, 0.8)),
     (("squint", 0.5, 1.0), ("smile", 0.3, 0.7)),
-    (("lid_close", 0.6, 1.0),),
+    (("lid_close", 0.7, 1.0), ("brow_lower", 0.7, 1.0), ("lip_stretch", 0.3, 0.7)),  # wince: big enough to be an example
     (("chin_raise", 0.5, 1.0), ("lip_pucker", 0.0, 0.4)),
+    (("jaw_drop", 0.2, 0.6), ("lip_stretch", 0.0, 0.3)),
+    (("smile", 0.8, 1.0), ("upper_lip_raise", 0.4, 0.9), ("jaw_drop", 0.2, 0.5)),
+)
+
+# standard image (Sec. 5.2: mouth open so the teeth texture exists) and teeth examples (Sec. 8):
+# small, speech-sized, wide (inner lips half the outer-eye-corner distance apart) and a broad open smile
+STANDARD: dict[str, float] = {"jaw_drop": 0.55, "upper_lip_raise": 0.35}
+TEETH: tuple[dict[str, float], ...] = (
+    {"jaw_drop": 0.4, "smile": 0.5},
+    {"jaw_drop": 0.75, "upper_lip_raise": 0.3},
+    {"jaw_drop": 1.0, "lip_stretch": 0.3},
+    {"jaw_drop": 0.65, "smile": 1.0, "upper_lip_raise": 0.5},
+)
+
+# The combinatorial set: examples that each move one facial region, held-out expressions that
+# combine regions (the case where per-subregion synthesis beats one global convex combination).
+REGION_MOVES: dict[str, dict[str, float]] = {
+    "brows_raised": {"inner_brow_raise": 1.0, "outer_brow_raise": 1.0},
+    "brows_lowered": {"brow_lower": 1.0},
+    "lids_closed": {"lid_close": 1.0},
+    "squint": {"squint": 1.0},
+    "smile": {"smile": 1.0},
+    "mouth_open": {"jaw_drop": 1.0},
+    "pucker": {"lip_pucker": 1.0},
+    "corners_down": {"lip_corner_depress": 1.0},
+    "upper_lip_raised": {"upper_lip_raise": 1.0},
+    "lips_stretched": {"lip_stretch": 1.0},
+    "chin_raised": {"chin_raise": 1.0},
+}
+COMBO_HELDOUT: tuple[tuple[str, ...], ...] = (
+    ("brows_raised", "smile"),
+    ("brows_raised", "mouth_open"),
+    ("brows_raised", "pucker"),
+    ("brows_raised", "lids_closed"),
+    ("brows_lowered", "smile"),
+    ("brows_lowered", "mouth_open"),
+    ("brows_lowered", "corners_down"),
+    ("brows_lowered", "squint", "pucker"),
+    ("lids_closed", "smile"),
+    ("lids_closed", "mouth_open"),
+    ("squint", "corners_down"),
+    ("brows_raised", "squint", "lips_stretched"),
 )
 
 
@@ -36,16 +80,28 @@ def controls_of(**values: float) -> np.ndarray:
     return c
 
 
-def captured_controls(rng: np.random.Generator, count: int) -> np.ndarray:
+def captured_controls(rng: np.random.Generator, count: int, *, jaw_max: float = 1.0) -> np.ndarray:
     """``(count, C)`` expressions "of whatever the subject can make" (Sec. 14): each follows a
-    recipe (cycled, so all are covered) with random strengths plus a little of other controls."""
+    recipe (cycled, so all are covered) with random strengths plus a little of other controls.
+    ``jaw_max`` scales every ``jaw_drop`` (the same draws): a subject who never opens wide."""
     out = np.zeros((count, len(CONTROLS)))
     for k in range(count):
         for name, lo, hi in RECIPES[k % len(RECIPES)]:
             out[k, CONTROL_INDEX[name]] = rng.uniform(lo, hi)
         extra = rng.integers(len(CONTROLS))
         out[k, extra] = max(out[k, extra], rng.uniform(0.0, 0.3))
+    out[:, CONTROL_INDEX["jaw_drop"]] *= jaw_max
     return out
+
+
+def combo_controls() -> tuple[np.ndarray, list[str], int]:
+    """The combinatorial set: controls ``(K, C)``, names (moves joined by ``+``) and the number of
+    leading rows that are examples (one region each, :data:`REGION_MOVES`); the rest are the
+    held-out combinations of :data:`COMBO_HELDOUT`."""
+    names = list(REGION_MOVES) + ["+".join(moves) for moves in COMBO_HELDOUT]
+    rows = [controls_of(**REGION_MOVES[n]) for n in REGION_MOVES]
+    rows += [sum(controls_of(**REGION_MOVES[m]) for m in moves) for moves in COMBO_HELDOUT]
+    return np.clip(np.stack(rows), 0.0, 1.0), names, len(REGION_MOVES)
 
 
 def farthest_point_selection(vectors: np.ndarray, count: int) -> np.ndarray:

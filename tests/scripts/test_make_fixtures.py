@@ -218,3 +218,82 @@ def test_mesh_barely_folds_under_single_controls():
             e1, e2 = v[tri[:, 1]] - v[tri[:, 0]], v[tri[:, 2]] - v[tri[:, 0]]
             area = 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
             assert -area[(area < 0) & inner].sum() < 5.0, (seed, name)
+
+
+def _opening(points: np.ndarray, layout) -> np.ndarray:
+    """Inner-lip gap (mean of the two middle pairs) over the outer-eye-corner distance, ``(...)``."""
+    i = layout.index
+    gap = points[..., [i("mouth_inner_7"), i("mouth_inner_8")], 1].mean(-1) - points[..., [i("mouth_inner_2"), i("mouth_inner_3")], 1].mean(-1)
+    return gap / np.linalg.norm(points[..., i("eye_l_6"), :] - points[..., i("eye_r_6"), :], axis=-1)
+
+
+def test_jaw_drop_is_the_hinge_then_the_wide_rotation():
+    """Chin and lower lip (fully jaw-borne) against scipy's rotations about the two documented axes."""
+    from scipy.spatial.transform import Rotation
+
+    from scripts.facegen import face as F
+
+    layout = load_layout("zhang134")
+    neutral = F.neutral_points3d(F.make_identity(3, layout), layout)
+    rows = [layout.index(n) for n in ("chin", "mouth_inner_7", "teeth_lower_1")]
+
+    def about(points, pivot, deg):
+        return Rotation.from_euler("x", deg, degrees=True).apply(points - pivot) + pivot
+
+    for jaw in (0.3, 0.5, 0.8, 1.0):
+        got = F.expression_points3d(neutral, controls_of(jaw_drop=jaw), layout)[rows]
+        want = about(neutral[rows], F.JAW_PIVOT, F.JAW_MAX_DEG * min(jaw, F.JAW_HINGE_END))
+        if jaw > F.JAW_HINGE_END:
+            want = about(want, F.JAW_WIDE_PIVOT, F.JAW_WIDE_DEG * (jaw - F.JAW_HINGE_END) / (1 - F.JAW_HINGE_END))
+        np.testing.assert_allclose(got, want, atol=1e-9)
+    wide = F.expression_points3d(neutral, controls_of(jaw_drop=1.0), layout)
+    assert wide[layout.index("chin"), 1] - neutral[layout.index("chin"), 1] > 25.0  # the chin swings down
+
+
+def test_wide_jaw_drop_opens_the_mouth_to_half_the_eye_distance():
+    layout = load_layout("zhang134")
+    for seed in (2, 4, 6):
+        opening = [_opening(render_identity(seed, {"jaw_drop": j}, supersample=1)["points"], layout) for j in (0.0, 0.25, 0.5, 0.75, 1.0)]
+        assert np.all(np.diff(opening) > 0.02) and abs(opening[0]) < 0.02
+        assert 0.44 < opening[-1] < 0.56, (seed, opening)
+
+
+@pytest.mark.skipif(not (REPO / "fixtures" / "packs" / "target" / "truth.npz").exists(), reason="fixtures not generated")
+def test_committed_target_pack_covers_what_performers_do():
+    """Mouth openings to about half the outer-eye-corner distance in the captured geometries, the
+    examples and the teeth examples; brows raised and lowered, broad smiles, closed lids among the examples."""
+    layout = load_layout("zhang134")
+    pack = load_pack(REPO / "fixtures" / "packs" / "target")
+    with np.load(REPO / "fixtures" / "packs" / "target" / "truth.npz") as z:
+        controls = dict(zip(z["control_names"], z["captured_controls"][z["example_index"]].T))
+    assert _opening(pack.captured_points, layout).max() > 0.45
+    assert _opening(np.stack([e.points for e in pack.examples]), layout).max() > 0.45
+    teeth = _opening(np.stack([e.points for e in pack.teeth_examples]), layout)
+    assert teeth.max() > 0.45 and teeth.min() < 0.1
+    for name in ("inner_brow_raise", "brow_lower", "smile", "jaw_drop", "lid_close"):
+        assert controls[name].max() > 0.8, name
+
+
+def test_combo_pack_moves_one_region_per_example_and_combines_them_held_out(tmp_path):
+    from scripts.facegen.sequences import COMBO_HELDOUT, REGION_MOVES
+    from scripts.make_fixtures import make_part
+
+    make_part(tmp_path, "pack:combo", seed=5, spec=TINY)
+    root = tmp_path / "packs" / "combo"
+    pack = load_pack(root)
+    layout = pack.layout
+    with np.load(root / "truth.npz") as z:
+        t = {k: z[k] for k in z.files}
+    names = list(t["captured_names"])
+    assert [e.name for e in pack.examples] == list(REGION_MOVES) == [names[k] for k in t["example_index"]]
+    assert [names[k] for k in t["heldout_index"]] == ["+".join(m) for m in COMBO_HELDOUT]
+    assert all((root / p).is_file() for p in t["heldout_image"])
+    for k in t["heldout_index"]:
+        moves = names[k].split("+")
+        np.testing.assert_allclose(t["captured_controls"][k], sum(controls_of(**REGION_MOVES[m]) for m in moves))
+    # raised brows with a smile: the brows are those of the brows example, the lip line that of the smile
+    both = t["captured_points"][names.index("brows_raised+smile")]
+    brows = [i for i, n in enumerate(layout.point_names) if n.startswith("brow_")]
+    lips = [i for i, n in enumerate(layout.point_names) if n.startswith("mouth_outer_")]
+    np.testing.assert_allclose(both[brows], t["captured_points"][names.index("brows_raised")][brows], atol=1e-9)
+    np.testing.assert_allclose(both[lips], t["captured_points"][names.index("smile")][lips], atol=1e-9)

@@ -61,17 +61,22 @@ def truth_of(truth: dict, names: np.ndarray, key: str = "points") -> np.ndarray:
 
 
 EYES_NOSE = ["eye_l_0", "eye_r_0", "eye_l_6", "eye_r_6", "nose_tip", "nose_ala_l", "nose_ala_r", "nose_base"]
-# measured 0.420, 1.597 (2D only) and 0.276, 0.986 (with the performer pack's face model)
+# measured 0.422, 1.696 (2D only) and 0.277, 0.983 (with the performer pack's face model)
 TRACK_MEAN_PX = {("calm", "2d_only"): 0.45, ("live", "2d_only"): 1.75,
                  ("calm", "face_model"): 0.30, ("live", "face_model"): 1.02}
 # smoothed / raw frame-to-frame change of the tracking error of the face-model tracks, measured
-# 0.866 and 1.143: the tracker's errors are mostly slow drifts, not jitter, and on the live
+# 0.853 and 1.224: the tracker's errors are mostly slow drifts, not jitter, and on the live
 # clip's fast head motion the smoother's lag adds more than it removes (a bound, not a gain)
 JITTER_RATIO = {"calm": 0.95, "live": 1.25}
-# mean rotation error, deg, all from the smoothed tracks; measured calm 0.165, 0.322, 0.210 and
-# live 1.118, 1.693, 1.218 (rigid PnP, eyes + nose PnP, face model). Before smoothing kept the
-# first frame in place, PnP's model adapted to a shifted neutral gave 3.10 and 3.94 on live
-POSE_DEG = {("calm", "rigid"): 0.2, ("calm", "eyes_nose"): 0.36, ("calm", "face"): 0.25,
+# mean rotation error, deg, all from the smoothed tracks; measured calm 0.226, 0.322, 0.291 and
+# live 1.096, 1.725, 1.171 (rigid PnP, eyes + nose PnP, face model). Before smoothing kept the
+# first frame in place, PnP's model adapted to a shifted neutral gave 3.10 and 3.94 on live.
+# The calm figures are a few hundredths of a degree and move with sub-pixel changes of the
+# clip: before the generator's mouth mesh stopped pulling the chin skin with the upper lip
+# (needed for wide openings) they were 0.165, 0.322, 0.210, and with the same clip but other
+# performer packs (captured jaw openings scaled 0.5 / 0.6 / 1.0) rigid PnP gives 0.226 / 0.218 /
+# 0.277 and the face model 0.291 / 0.232 / 0.230
+POSE_DEG = {("calm", "rigid"): 0.27, ("calm", "eyes_nose"): 0.36, ("calm", "face"): 0.35,
             ("live", "rigid"): 1.3, ("live", "eyes_nose"): 1.85, ("live", "face"): 1.4}
 
 @pytest.mark.parametrize("tracker", ["2d_only", "face_model"])
