@@ -11,7 +11,7 @@ pack's pixels.
 Sec. 14 asks for example expressions "sufficiently different from each other while covering all
 captured expressions". That is the k-center problem; :func:`k_center` is the greedy 2-approximation
 (Gonzalez 1985): start from the neutral, repeatedly add the frame farthest from the chosen ones.
-After ``k`` picks the *coverage radius* — the largest distance of any usable frame to its nearest
+After ``k`` picks the *coverage radius* — the largest distance of any candidate frame to its nearest
 chosen one — is at most twice the optimum, and no two chosen frames are closer than it. The 30-40
 captured geometries of Sec. 10 continue the same sequence from the examples (so they include
 them).
@@ -159,7 +159,7 @@ class Selection:
     """The frames chosen for a pack (indices into the clip) and how they map into the pack's image.
 
     ``to_pack (T, 4)``: per frame the similarity frame -> pack image; ``example_radius_px`` /
-    ``captured_radius_px``: coverage radii of the examples / captured set over the usable frames
+    ``captured_radius_px``: coverage radii of the examples / captured set over the candidate frames
     (RMS point distance, pack px); ``warnings``: what the selection could not do as asked.
     """
 
@@ -179,18 +179,22 @@ def select_frames(xy: np.ndarray, keep: np.ndarray, *, layout: Layout, blendshap
                   blendshape_names: np.ndarray, matrix: np.ndarray, angles: np.ndarray,
                   teeth_fraction: np.ndarray, size: tuple[int, int], n_examples: int = 12,
                   n_captured: int = 35, n_teeth: int = 4, min_distinct_px: float = 1.0,
-                  frontal_deg: float = 8.0, min_teeth_open: float = 0.08,
+                  pose_deg: float = 10.0, min_teeth_open: float = 0.08,
                   min_teeth_fraction: float = 0.1) -> Selection:
     """Choose the pack's frames among the usable ones.
 
     - **neutral**: the least expressive usable frame
       (:func:`stages.geometry.rigid3d.choose_reference`: blendshape activity, head angle, lip gap);
-    - **examples**: :func:`k_center` over the aligned geometries from the neutral, ``n_examples``
-      in all, stopping early when no usable frame is ``min_distinct_px`` from the chosen ones;
+    - **candidates** for everything else: the usable frames whose yaw and pitch are within
+      ``pose_deg`` of the neutral's (roll is in the image plane: the similarity removes it). A 2D
+      similarity cannot undo a turn or a nod, and the geometry of a nodding head would otherwise
+      count as a distinct expression; all usable frames, with a warning, if fewer than 2 are;
+    - **examples**: :func:`k_center` over the aligned candidate geometries from the neutral,
+      ``n_examples`` in all, stopping early when no candidate is ``min_distinct_px`` from the
+      chosen ones;
     - **captured**: the same sequence continued to ``n_captured`` (examples included);
-    - **standard**: the widest mouth opening among the usable frames within ``frontal_deg`` of
-      frontal (all usable frames if none is);
-    - **teeth**: usable frames with the lips apart (``>= min_teeth_open`` eye distances) and teeth
+    - **standard**: the candidate with the widest mouth opening;
+    - **teeth**: candidates with the lips apart (``>= min_teeth_open`` eye distances) and teeth
       visible (``teeth_fraction >= min_teeth_fraction``), ``n_teeth`` different openings by
       :func:`k_center` on the opening from the widest; the widest opening alone if none shows teeth.
 
@@ -215,13 +219,19 @@ def select_frames(xy: np.ndarray, keep: np.ndarray, *, layout: Layout, blendshap
     """
     xy = np.asarray(xy, np.float64)
     keep = np.asarray(keep, bool)
-    usable = np.flatnonzero(keep)
-    if usable.size < 2:
-        raise ValueError(f"{usable.size} usable frame(s); a pack needs at least 2")
+    angles = np.asarray(angles, np.float64)
+    if keep.sum() < 2:
+        raise ValueError(f"{int(keep.sum())} usable frame(s); a pack needs at least 2")
     warnings: list[str] = []
-    safe = np.where(keep[:, None, None], xy, xy[usable[0]])
+    safe = np.where(keep[:, None, None], xy, xy[np.flatnonzero(keep)[0]])
     mouth_open = expression_signals(safe, layout.point_names)["mouth_open"]
     neutral = choose_reference(blendshapes, blendshape_names, matrix, mouth_open, keep, search_frames=len(xy))
+    near = keep & (np.abs(angles[:, :2] - angles[neutral, :2]) <= pose_deg).all(axis=1)
+    if near.sum() < 2:
+        warnings.append(f"fewer than 2 usable frames within {pose_deg:g} degrees of the neutral's yaw and pitch; "
+                        f"all {int(keep.sum())} usable frames are candidates")
+        near = keep
+    usable = np.flatnonzero(near)
     columns = stable_columns(layout)
     to_neutral = align_to_reference(xy, keep, xy[neutral], columns)
     in_neutral = np.stack([apply_similarity(to_neutral[t], xy[t]) for t in usable])
@@ -234,29 +244,23 @@ def select_frames(xy: np.ndarray, keep: np.ndarray, *, layout: Layout, blendshap
     examples = order[:n_examples]
     if len(examples) < n_examples:
         warnings.append(f"only {len(examples)} distinct expressions (>= {min_distinct_px:g} px apart) among "
-                        f"{usable.size} usable frames; {n_examples} examples were asked")
+                        f"{usable.size} candidate frames; {n_examples} examples were asked")
     if len(examples) < 2:
         examples = [seed, int(np.argmax(np.linalg.norm(features - features[seed], axis=1)))]
         order = examples
         radii = [radii[0], 0.0]
     if len(order) < n_captured:
         warnings.append(f"{len(order)} captured geometries instead of {n_captured}: no more distinct expressions")
-
-    frontal = keep & (np.abs(angles) <= frontal_deg).all(axis=1)
-    pool = frontal if frontal.any() else keep
-    if not frontal.any():
-        warnings.append(f"no usable frame within {frontal_deg:g} degrees of frontal: the standard image is turned")
-    standard = int(np.flatnonzero(pool)[np.argmax(mouth_open[pool])])
-
-    shows_teeth = keep & (mouth_open >= min_teeth_open) & (np.asarray(teeth_fraction) >= min_teeth_fraction)
+    standard = int(usable[np.argmax(mouth_open[usable])])
+    shows_teeth = near & (mouth_open >= min_teeth_open) & (np.asarray(teeth_fraction) >= min_teeth_fraction)
     if shows_teeth.any():
         candidates = np.flatnonzero(shows_teeth)
         widest = int(np.argmax(mouth_open[candidates]))
         picked, _ = k_center(mouth_open[candidates, None], n_teeth, seeds=[widest], min_distance=0.0)
         teeth = [int(candidates[j]) for j in picked]
     else:
-        teeth = [int(usable[np.argmax(mouth_open[usable])])]
-        warnings.append(f"no usable frame shows teeth (lips >= {min_teeth_open:g} eye distances apart and >= "
+        teeth = [standard]
+        warnings.append(f"no candidate frame shows teeth (lips >= {min_teeth_open:g} eye distances apart and >= "
                         f"{min_teeth_fraction:.0%} teeth pixels); the widest opening is the only teeth example")
     return Selection(
         neutral=int(neutral), standard=standard,

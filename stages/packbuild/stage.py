@@ -124,7 +124,7 @@ class PackSelect(SequenceStage):
         Param("captured", int, 35, "captured geometries for PCA, examples included (paper: 30-40)", min=2),
         Param("teeth", int, 4, "teeth examples (different mouth openings)", min=1),
         Param("min_distinct_px", float, 1.0, "expressions closer than this (RMS, pack px) are not distinct", min=0.0),
-        Param("frontal_deg", float, 8.0, "the standard image's head angles within this, degrees", min=0.0),
+        Param("pose_deg", float, 10.0, "candidate frames' yaw and pitch within this of the neutral's, degrees", min=0.0),
         Param("min_teeth_open", float, 0.08, "least inner-lip gap of a teeth example, eye distances", min=0.0),
         Param("min_teeth_fraction", float, 0.1, "least share of light, grey pixels inside the inner lips", min=0.0, max=1.0),
         Param("layout", str, "zhang134", "layout name or YAML path", file=True),
@@ -150,7 +150,7 @@ class PackSelect(SequenceStage):
                 teeth_fraction=_field(filt, "teeth_fraction", stage=self.name, port="filter"),
                 size=(params["width"], params["height"]), n_examples=params["examples"],
                 n_captured=params["captured"], n_teeth=params["teeth"], min_distinct_px=params["min_distinct_px"],
-                frontal_deg=params["frontal_deg"], min_teeth_open=params["min_teeth_open"],
+                pose_deg=params["pose_deg"], min_teeth_open=params["min_teeth_open"],
                 min_teeth_fraction=params["min_teeth_fraction"],
             )
         except ValueError as exc:

@@ -36,7 +36,8 @@ def built(tmp_path_factory):
         pytest.skip("real-texture fixture missing")
     tmp = tmp_path_factory.mktemp("pack_build")
     registry = Registry(classes=[VideoDecode, FaceLandmarks, LayoutPoints, PackFilter, PackSelect, PackWrite])
-    pipeline = load_pipeline(REPO / "pack_build.yaml", registry)
+    # the clip sweeps the head (yaw +-20, pitch +-10 degrees) by design: every usable frame is a candidate
+    pipeline = load_pipeline(REPO / "pack_build.yaml", registry, overrides=["select.pose_deg=30"])
     runner = Runner(pipeline, bind_inputs(pipeline, clip=CLIP, named=[]),
                     Options(cache=CacheStore(tmp / "cache"), out=tmp / "out"))
     runner.run()

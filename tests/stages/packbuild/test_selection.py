@@ -108,12 +108,13 @@ def moving_clip(pack, repeats=3, noise_px=0.01, seed=0):
     return np.stack(xy)[order], np.array(cluster)[order]
 
 
-def select(pack, xy, cluster, **options):
+def select(pack, xy, cluster, angles=None, **options):
     T = len(xy)
     blendshapes = np.where(cluster[:, None] == 0, 0.0, 0.3).astype(np.float32) * np.ones((T, len(BLENDSHAPE_NAMES)))
     return select_frames(xy, np.ones(T, bool), layout=pack.layout, blendshapes=blendshapes,
                          blendshape_names=np.array(BLENDSHAPE_NAMES), matrix=np.tile(np.eye(4), (T, 1, 1)),
-                         angles=np.zeros((T, 3)), teeth_fraction=np.full(T, 0.5), size=(240, 320), **options)
+                         angles=np.zeros((T, 3)) if angles is None else angles, teeth_fraction=np.full(T, 0.5),
+                         size=(240, 320), **options)
 
 
 def test_select_frames_one_example_per_distinct_expression_whatever_the_head_motion(pack):
@@ -150,3 +151,15 @@ def test_select_frames_needs_two_usable_frames(pack):
                       blendshapes=np.zeros((len(xy), len(BLENDSHAPE_NAMES))), blendshape_names=np.array(BLENDSHAPE_NAMES),
                       matrix=np.tile(np.eye(4), (len(xy), 1, 1)), angles=np.zeros((len(xy), 3)),
                       teeth_fraction=np.zeros(len(xy)), size=(240, 320))
+
+
+def test_frames_turned_or_nodding_away_from_the_neutral_are_not_candidates(pack):
+    xy, cluster = moving_clip(pack)
+    angles = np.zeros((len(xy), 3))
+    angles[cluster == 3] = (0.0, 12.0, 0.0)   # nodding: pitch 12 degrees from the neutral's
+    angles[cluster == 5] = (-10.0, 0.0, 0.0)  # turned
+    angles[cluster == 7] = (0.0, 0.0, 25.0)   # rolled: in the image plane, the similarity undoes it
+    distinct = 1 + len(pack.examples)
+    chosen = select(pack, xy, cluster, angles=angles, n_examples=distinct, n_captured=distinct, pose_deg=8.0)
+    assert sorted(cluster[chosen.examples]) == [c for c in range(distinct) if c not in (3, 5)]
+    assert not set(chosen.captured) & set(np.flatnonzero((cluster == 3) | (cluster == 5)))
