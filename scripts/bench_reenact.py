@@ -1,0 +1,202 @@
+"""Self-reenactment on real faces, the protocol of the paper's Fig. 10 (`python scripts/bench.py reenact`).
+
+    python scripts/bench.py reenact [--json] [--work DIR] [--clip PATH ...] [--build-fraction 0.6]
+                                    [--stride 1] [--sheet PATH] [--pose-deg DEG]
+
+Per clip (``--clip``, repeatable; default every ``*.mp4`` of ``../shared/dev-clips/``):
+
+1. the landmark stages (``landmarks.mediapipe``, ``landmarks.layout``) on every frame;
+2. an actor pack from the first ``--build-fraction`` of the frames with the pack stages
+   (``pack.filter``, ``pack.select``, ``pack.write``, defaults but ``--pose-deg``), written to
+   ``<work>/reenact/<stem>/pack``;
+3. every ``--stride``-th frame of the rest with a face: its own layout points are aligned into the
+   pack's frame by the least-squares similarity of the stable points (eye corners, nose tip and
+   base) onto the pack neutral's, the frame itself by the same similarity; the synthesis model of
+   the pack renders that geometry (no tracking, no expression mapping: the geometry is the
+   frame's own) and the result is compared with the aligned real frame over the face (the
+   layout's subregions rasterized on the frame's aligned points).
+
+Methods: ``full`` (the paper's per-subregion synthesis), ``warponly`` (the neutral warped to the
+geometry), ``global`` (one convex combination over the face, Pighin et al.), ``nearest`` (the
+example nearest in geometry, warped). Rows per clip (suffix ``_<clip stem>``), the method as a
+suffix of the metric (none for ``full``): ``reenact_psnr_db`` and ``reenact_ssim`` over the face,
+``reenact_wrinkle_psnr_db`` over the forehead, glabella, eye zones (crow's feet) and cheeks
+(nasolabial folds); each the mean over the test frames. Also ``reenact_test_frames``,
+``reenact_examples`` and ``reenact_coverage_px`` (the examples' k-center radius). Over the clips:
+``reenact_margin_warponly_db_min`` and ``reenact_margin_global_db_min`` (full minus baseline face
+PSNR, the smallest over the clips). ``--sheet PATH`` writes a contact sheet (truth | full |
+warp-only | global at 3 test frames per clip).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+DEV_CLIPS = REPO.parent / "shared" / "dev-clips"
+BENCH = "reenact"
+METHODS = {"full": "", "warponly": "_warponly", "global": "_global", "nearest": "_nearest"}
+WRINKLE_SUBREGIONS = ("forehead", "glabella", "eyezone_l", "eyezone_r", "cheek_l", "cheek_r")
+BATCH = 8
+SHEET_FRAMES = 3
+
+
+def row(metric: str, value: float, unit: str) -> dict[str, Any]:
+    return {"bench": BENCH, "metric": metric, "value": float(value), "unit": unit}
+
+
+class Frames:
+    """Decoded frames ``(T, H, W, 3)`` uint8 as a :class:`runner.stage.FrameStream`."""
+
+    def __init__(self, frames: np.ndarray, fps: float) -> None:
+        from runner.stage import StreamInfo
+        self.frames = frames
+        self.info = StreamInfo(frames=len(frames), fps=fps, width=frames.shape[2], height=frames.shape[1])
+
+    def read(self, start: int, stop: int) -> np.ndarray:
+        return self.frames[np.clip(np.arange(start, stop), 0, len(self.frames) - 1)]
+
+    def chunks(self) -> Iterator[tuple[int, np.ndarray]]:
+        for start in range(0, len(self.frames), 16):
+            yield start, self.frames[start:start + 16]
+
+
+def decode(clip: Path) -> Frames:
+    import av
+    with av.open(str(clip)) as container:
+        stream = container.streams.video[0]
+        fps = float(stream.average_rate or 25)
+        frames = np.stack([f.to_ndarray(format="rgb24") for f in container.decode(stream)])
+    return Frames(frames, fps)
+
+
+def head(bundle: dict[str, np.ndarray], frames: int, total: int) -> dict[str, np.ndarray]:
+    """The first ``frames`` frames of a per-frame bundle (arrays whose first axis is ``total``)."""
+    return {k: (v[:frames] if np.ndim(v) and len(v) == total else v) for k, v in bundle.items()}
+
+
+def build_pack(clip: Frames, work: Path, build: int, select: dict[str, Any]) -> tuple[Path, dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Landmarks of the whole clip and a pack from its first ``build`` frames (``select``: parameters
+    of ``pack.select``); returns the pack folder, the ``points`` bundle (whole clip) and the
+    ``pack_selection`` bundle."""
+    from runner.stage import Context
+    from stages.landmarks.stage import FaceLandmarks, LayoutPoints
+    from stages.packbuild.stage import PackFilter, PackSelect, PackWrite
+    ctx = Context(device="cpu", files_dir=lambda port: work / port, log=logging.getLogger("bench.reenact"))
+    marks = FaceLandmarks().run({"frames": clip}, {}, ctx)["landmarks"]
+    points = LayoutPoints().run({"landmarks": marks}, {}, ctx)["points"]
+    T = clip.info.frames
+    part = {"frames": Frames(clip.frames[:build], clip.info.fps), "landmarks": head(marks, build, T),
+            "points": head(points, build, T)}
+    part["filter"] = PackFilter().run(part, {}, ctx)["filter"]
+    selection = PackSelect().run(part, select, ctx)["selection"]
+    if (work / "pack").exists():
+        import shutil
+        shutil.rmtree(work / "pack")
+    PackWrite().run({**part, "selection": selection}, {}, ctx)
+    return work / "pack", points, selection
+
+
+def evaluate(clip: Frames, points: dict[str, np.ndarray], pack_dir: Path, test: np.ndarray) -> tuple[dict[str, dict[str, list[float]]], list]:
+    """Per method, the face PSNR, SSIM and wrinkle PSNR of every test frame; and sheet tiles."""
+    import torch
+    from stages.actor_pack import load_pack
+    from stages.geometry.compensate import apply_similarity, fit_similarity
+    from stages.layout import subregion_mask
+    from stages.packbuild.selection import stable_columns
+    from stages.packbuild.writing import align_image
+    from stages.synthesis.build import build_synthesis_model
+    from stages.synthesis.metrics import masked_psnr, masked_ssim
+    from stages.synthesis.synthesize import Synthesizer
+    from stages.synthesis.warp import warp_images
+
+    pack = load_pack(pack_dir)
+    layout, size = pack.layout, pack.image_size
+    model = build_synthesis_model(pack)
+    synth = Synthesizer(model)
+    columns = stable_columns(layout)
+    wrinkle = [k for k, s in enumerate(layout.subregions) if s.name in WRINKLE_SUBREGIONS]
+    anchors = np.asarray(model["anchors"])
+    example_points = np.stack([e.points for e in pack.examples])
+    example_images = torch.from_numpy(np.stack([e.image for e in pack.examples])).permute(0, 3, 1, 2).float() / 255.0
+    scores: dict[str, dict[str, list[float]]] = {m: {"psnr": [], "ssim": [], "wrinkle": []} for m in METHODS}
+    tiles = []
+    sheet_at = set(test[np.linspace(0, len(test) - 1, SHEET_FRAMES).round().astype(int)].tolist())
+    xy = np.asarray(points["xy"], np.float64)
+    for start in range(0, len(test), BATCH):
+        frames = test[start:start + BATCH]
+        params = [fit_similarity(xy[t, columns], pack.neutral.points[columns]) for t in frames]
+        geometry = np.stack([apply_similarity(p, xy[t]) for p, t in zip(params, frames)])
+        truth = np.stack([align_image(clip.frames[t], p, size) for p, t in zip(params, frames)])
+        out = {m: synth.render(geometry, mode=m.replace("warponly", "warp-only"))[0] for m in ("full", "warponly", "global")}
+        nearest = np.argmin(np.sqrt(((geometry[:, None] - example_points[None]) ** 2).sum(-1).mean(-1)), axis=1)
+        src = np.concatenate([example_points[nearest], np.broadcast_to(anchors, (len(frames),) + anchors.shape)], 1)
+        dst = np.concatenate([geometry, np.broadcast_to(anchors, (len(frames),) + anchors.shape)], 1)
+        out["nearest"] = warp_images(example_images[nearest], torch.from_numpy(src), torch.from_numpy(dst), model["triangles"]).clamp(0, 1)
+        for k, t in enumerate(frames):
+            region = subregion_mask(layout, geometry[k], size)
+            face, wr = torch.from_numpy(region >= 0), torch.from_numpy(np.isin(region, wrinkle))
+            real = torch.from_numpy(truth[k]).permute(2, 0, 1).float() / 255.0
+            for m in METHODS:
+                img = out[m][k].float()
+                scores[m]["psnr"].append(masked_psnr(img, real, face))
+                scores[m]["ssim"].append(masked_ssim(img, real, face))
+                scores[m]["wrinkle"].append(masked_psnr(img, real, wr))
+            if int(t) in sheet_at:
+                as_u8 = lambda x: (x.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)  # noqa: E731
+                tiles += [(f"truth {t}", truth[k]), ("full", as_u8(out["full"][k])), ("warp-only", as_u8(out["warponly"][k])),
+                          ("global", as_u8(out["global"][k]))]
+    return scores, tiles
+
+
+def run(args: argparse.Namespace) -> list[dict[str, Any]]:
+    parser = argparse.ArgumentParser(prog="bench.py reenact")
+    parser.add_argument("--clip", type=Path, action="append", help="a real clip (repeatable)")
+    parser.add_argument("--build-fraction", type=float, default=0.6, help="share of the frames the pack is built from")
+    parser.add_argument("--stride", type=int, default=1, help="evaluate every n-th test frame")
+    parser.add_argument("--sheet", type=Path, help="write a contact sheet PNG (truth | full | warp-only | global)")
+    parser.add_argument("--pose-deg", type=float, help="pack.select's pose_deg (default: the stage's)")
+    extra = parser.parse_args(args.extra)
+    clips = extra.clip or sorted(DEV_CLIPS.glob("*.mp4"))
+    if not clips:
+        raise SystemExit(f"bench reenact: no clip given and none in {DEV_CLIPS}")
+    from stages.packbuild.writing import contact_sheet, write_png
+    rows: list[dict[str, Any]] = []
+    margins: dict[str, list[float]] = {"warponly": [], "global": []}
+    tiles = []
+    for clip_path in clips:
+        stem = clip_path.stem
+        work = Path(args.work) / "reenact" / stem
+        work.mkdir(parents=True, exist_ok=True)
+        clip = decode(clip_path)
+        build = int(round(extra.build_fraction * clip.info.frames))
+        select = {} if extra.pose_deg is None else {"pose_deg": extra.pose_deg}
+        pack_dir, points, selection = build_pack(clip, work, build, select)
+        print(f"bench reenact: {stem}: pack built from frames 0-{build - 1} in {pack_dir}", file=sys.stderr, flush=True)
+        valid = np.asarray(points["valid"], bool).all(axis=1)
+        test = np.flatnonzero(valid[build:])[:: max(1, extra.stride)] + build
+        scores, clip_tiles = evaluate(clip, points, pack_dir, test)
+        tiles += clip_tiles
+        for method, suffix in METHODS.items():
+            rows.append(row(f"reenact_psnr_db{suffix}_{stem}", np.mean(scores[method]["psnr"]), "dB"))
+            rows.append(row(f"reenact_ssim{suffix}_{stem}", np.mean(scores[method]["ssim"]), "1"))
+            rows.append(row(f"reenact_wrinkle_psnr_db{suffix}_{stem}", np.mean(scores[method]["wrinkle"]), "dB"))
+        full = np.mean(scores["full"]["psnr"])
+        for baseline in margins:
+            margins[baseline].append(full - np.mean(scores[baseline]["psnr"]))
+            rows.append(row(f"reenact_margin_{baseline}_db_{stem}", margins[baseline][-1], "dB"))
+        rows.append(row(f"reenact_test_frames_{stem}", len(test), "frames"))
+        rows.append(row(f"reenact_examples_{stem}", len(selection["examples"]), "examples"))
+        rows.append(row(f"reenact_coverage_px_{stem}", float(selection["example_radius_px"]), "px"))
+    for baseline, values in margins.items():
+        rows.append(row(f"reenact_margin_{baseline}_db_min", min(values), "dB"))
+    if extra.sheet is not None:
+        extra.sheet.parent.mkdir(parents=True, exist_ok=True)
+        write_png(extra.sheet, contact_sheet(tiles, columns=4, thumb_height=200))
+    return rows
