@@ -30,9 +30,10 @@ let playback = 0;             // generation of the in-between animation (a new d
 let playing = null;           // the in-between animation under way (a promise)
 let keyframes = [];           // [{time_s, points}]
 let idleWaiters = [];
+const actions = new Set();    // asynchronous button actions under way (load frame, save, export)
 
 // Measurements read by the tests and scripts/bench_editor.py.
-const stats = { updates: [], latencies: [], synthMs: [], synthCpuMs: [], propagateCpuMs: [], errors: 0 };
+const stats = { updates: [], latencies: [], synthMs: [], synthCpuMs: [], propagateCpuMs: [], played: 0, errors: 0 };
 window.editor = {
   stats,
   geometry: () => geometry,
@@ -47,8 +48,17 @@ async function idle() {
   for (;;) {
     if (inFlight || pending || drag) await new Promise((resolve) => idleWaiters.push(resolve));
     else if (playing) await playing;
+    else if (actions.size) await Promise.allSettled(Array.from(actions));
     else return;
   }
+}
+
+// Runs an asynchronous action of a button so that idle() waits for it.
+function track(action) {
+  return () => {
+    const promise = action().catch((e) => status(`${e}`)).finally(() => actions.delete(promise));
+    actions.add(promise);
+  };
 }
 
 function status(text) { $("status").textContent = text || ""; }
@@ -153,6 +163,7 @@ async function playInbetweens(from) {
   for (const bitmap of bitmaps) {
     if (generation !== playback || latestShown > meta.seq) return;
     show(bitmap);
+    stats.played += 1;
     await new Promise((resolve) => setTimeout(resolve, INBETWEEN_MS));
   }
   latestShown = Math.max(latestShown, meta.seq);
@@ -293,7 +304,7 @@ function listKeyframes() {
   updateButtons();
 }
 
-$("save-key").addEventListener("click", async () => {
+$("save-key").addEventListener("click", track(async () => {
   await settled();
   const time = Number($("key-time").value);
   if (!Number.isFinite(time) || time < 0) { status("keyframe time must be a number >= 0"); return; }
@@ -302,9 +313,9 @@ $("save-key").addEventListener("click", async () => {
   keyframes.sort((a, b) => a.time_s - b.time_s);
   $("key-time").value = (time + 1).toString();
   listKeyframes();
-});
+}));
 
-$("export").addEventListener("click", async () => {
+$("export").addEventListener("click", track(async () => {
   const body = { fps: Number($("fps").value), keyframes: keyframes.map(({ time_s, points }) => ({ time_s, points })) };
   const response = await api("api/export", body);
   if (!response.ok) { await failure(response); return; }
@@ -313,15 +324,15 @@ $("export").addEventListener("click", async () => {
   link.download = "keyframes.npz";
   link.click();
   setTimeout(() => URL.revokeObjectURL(link.href), 10000);
-});
+}));
 
-$("load-frame").addEventListener("click", async () => {
+$("load-frame").addEventListener("click", track(async () => {
   const response = await api(`api/frame?index=${encodeURIComponent($("frame-index").value)}`);
   if (!response.ok) { await failure(response); return; }
   const frame = await response.json();
   commit(snapshot());
   restore({ base: frame.points, pinned: new Map() });
-});
+}));
 
 // ---- start -------------------------------------------------------------------------------------
 (async () => {

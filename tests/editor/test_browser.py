@@ -73,8 +73,11 @@ def test_dragging_a_nose_wing_moves_the_nose_together_and_changes_the_image(page
     # is dragged; the nose wing does move (sneer, smile), and the nose moves with it.
     ala_l, ala_r = LAYOUT.index("nose_ala_l"), LAYOUT.index("nose_ala_r")
     before_xy, before_image = geometry(page), canvas_image(page)
+    played = page.evaluate("window.editor.stats.played")
     drag(page, ala_l, (0.0, -5.0))
     after_xy, after_image = geometry(page), canvas_image(page)
+    # On release the five in-betweens (Sec. 14.2) and the final frame were played.
+    assert page.evaluate("window.editor.stats.played") - played == 6
     np.testing.assert_allclose(after_xy[ala_l] - before_xy[ala_l], [0.0, -5.0], atol=0.51)
     moved = after_xy - before_xy
     together = [ala_r] + [LAYOUT.index(n) for n in ("nose_alar_crease_l", "nose_alar_crease_r", "nose_base")]
