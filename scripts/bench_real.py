@@ -15,7 +15,8 @@ Two kinds of input:
   deviation of the target's over the performer's), ``real_brow_follow_r`` /
   ``real_brow_amp_ratio`` (brow height above the eye line), ``real_target_jitter_px`` and
   ``real_landmark_jitter_px`` (mean |second difference| over frames and points of the target
-  geometry and of the performer's landmarks, px of each), ``real_image_mouth_follow_r`` /
+  geometry and of the performer's landmarks, px of each; ``_eye`` rows: the same over each face's
+  eye distance, comparable across the two faces), ``real_image_mouth_follow_r`` /
   ``real_image_mouth_amp_ratio`` (the landmarker run on the rendered output frames, what a viewer
   sees), ``real_pose_agree_r_{yaw,pitch,roll}`` (the pipeline's head rotation relative to its
   reference frame vs the landmarker's facial transformation matrix, relative to the same frame),
@@ -105,8 +106,14 @@ def landmark_layout_points(frames: list[np.ndarray]) -> tuple[np.ndarray, np.nda
             np.stack([m.matrix for m in meshes]))
 
 
+#: MediaPipe's face frame (x right, y up, z towards the camera) to the camera frame used here and
+#: by OpenCV (x right, y down, z away): R_camera = FLIP R_mediapipe FLIP.
+FLIP = np.diag([1.0, -1.0, -1.0])
+
+
 def relative_ypr(R: np.ndarray, reference: int) -> np.ndarray:
-    """``(T, 3, 3)`` rotations -> ``(T, 3)`` yaw, pitch, roll (deg) of ``R[t] R[ref]^T``."""
+    """``(T, 3, 3)`` rotations (camera frame) -> ``(T, 3)`` yaw, pitch, roll (deg) of
+    ``R[t] R[ref]^T``."""
     from stages.geometry.rigid3d import euler_yaw_pitch_roll
 
     R = R / np.cbrt(np.linalg.det(R))[:, None, None]
@@ -150,14 +157,17 @@ def clip_rows(clip: Path, work: Path) -> list[dict[str, Any]]:
         r, ratio = follow(performer[signal], target[signal], valid)
         rows += [row(f"real_{short}_follow_r_{stem}", r, "r"), row(f"real_{short}_amp_ratio_{stem}", ratio, "ratio")]
     rows += [row(f"real_target_jitter_px_{stem}", jitter(target_xy), "px"),
-             row(f"real_landmark_jitter_px_{stem}", jitter(performer_xy[valid]), "px")]
+             row(f"real_landmark_jitter_px_{stem}", jitter(performer_xy[valid]), "px"),
+             row(f"real_target_jitter_eye_{stem}", jitter(target_xy) / np.nanmedian(target["eye_distance_px"]), "eye"),
+             row(f"real_landmark_jitter_eye_{stem}",
+                 jitter(performer_xy[valid]) / np.nanmedian(performer["eye_distance_px"][valid]), "eye")]
     rendered, found, _ = landmark_layout_points(read_frames(work / "out" / "video" / "result.mp4"))
     seen = expression_signals(rendered, names)
     r, ratio = follow(performer["mouth_open"], seen["mouth_open"], valid & found)
     rows += [row(f"real_image_mouth_follow_r_{stem}", r, "r"), row(f"real_image_mouth_amp_ratio_{stem}", ratio, "ratio")]
     _, _, matrix = landmark_layout_points(read_frames(clip))
     reference = int(data["pose_neutral_frame"])
-    ours, theirs = relative_ypr(data["pose_R"], reference), relative_ypr(matrix[:, :3, :3], reference)
+    ours, theirs = relative_ypr(data["pose_R"], reference), relative_ypr(FLIP @ matrix[:, :3, :3] @ FLIP, reference)
     for k, axis in enumerate(("yaw", "pitch", "roll")):
         r, _ = follow(theirs[:, k], ours[:, k], valid)
         rows.append(row(f"real_pose_agree_r_{axis}_{stem}", r, "r"))
