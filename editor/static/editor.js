@@ -18,8 +18,8 @@ const $ = (id) => document.getElementById(id);
 let layout = null;            // /api/describe
 let edit = { base: null, pinned: new Map() };
 let geometry = null;          // the geometry of the image shown, [[x, y] * N]
-const history = [];           // edits before, for undo
-const future = [];            // edits undone, for redo
+const undoStack = [];         // edits before, for undo
+const redoStack = [];         // edits undone, for redo
 let seq = 0;                  // sequence number of our image requests (the server drops older ones)
 let latestShown = -1;         // sequence number of the image on screen
 const MAX_IN_FLIGHT = 2;      // render requests under way at once (the server has two renderer threads)
@@ -105,7 +105,7 @@ function wakeIdle() {
   waiters.forEach((resolve) => resolve());
 }
 
-// ---- rendering while dragging: one request in flight, only the newest edit waits -------------
+// ---- rendering while dragging: at most MAX_IN_FLIGHT requests, only the newest edit waits ----
 function requestRender(time) {
   const body = {
     client: CLIENT, seq: ++seq, base: edit.base,
@@ -214,8 +214,8 @@ function nearest([x, y]) {
 const snapshot = () => ({ base: edit.base, pinned: new Map(edit.pinned) });
 
 function commit(before) {
-  history.push(before);
-  future.length = 0;
+  undoStack.push(before);
+  redoStack.length = 0;
   updateButtons();
 }
 
@@ -269,8 +269,8 @@ function restore(target) {
   updateButtons();
 }
 
-$("undo").addEventListener("click", () => { if (history.length) { future.push(snapshot()); restore(history.pop()); } });
-$("redo").addEventListener("click", () => { if (future.length) { history.push(snapshot()); restore(future.pop()); } });
+$("undo").addEventListener("click", () => { if (undoStack.length) { redoStack.push(snapshot()); restore(undoStack.pop()); } });
+$("redo").addEventListener("click", () => { if (redoStack.length) { undoStack.push(snapshot()); restore(redoStack.pop()); } });
 $("reset").addEventListener("click", () => {
   const before = snapshot();
   commit(before);
@@ -284,8 +284,8 @@ document.addEventListener("keydown", (event) => {
 $("show-subregions").addEventListener("change", drawOverlay);
 
 function updateButtons() {
-  $("undo").disabled = history.length === 0;
-  $("redo").disabled = future.length === 0;
+  $("undo").disabled = undoStack.length === 0;
+  $("redo").disabled = redoStack.length === 0;
   $("export").disabled = keyframes.length === 0;
 }
 
