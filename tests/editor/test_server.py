@@ -148,3 +148,11 @@ def test_binding_a_remote_address_needs_an_explicit_option():
     result = subprocess.run([sys.executable, "-m", "editor.cli", "--pack", str(PACK), "--host", "0.0.0.0"],
                             cwd=REPO, capture_output=True, text=True, timeout=60)
     assert result.returncode == 2 and "--allow-remote" in result.stderr
+
+
+def test_an_allowed_remote_address_is_warned_about(tmp_path):
+    # A folder without pack.yaml: the command warns, then stops before building anything.
+    result = subprocess.run([sys.executable, "-m", "editor.cli", "--pack", str(tmp_path), "--host", "0.0.0.0", "--allow-remote"],
+                            cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert "WARNING: binding 0.0.0.0" in result.stderr
+    assert result.returncode == 2 and "no pack.yaml" in result.stderr
