@@ -4,7 +4,7 @@ The editor (``python -m editor.cli``) serves the 600x800 demo target with 15 exa
 target of ``make_fixtures.py --demo``, only its target pack rendered under ``--work``, with
 held-out expressions added as examples up to 15). Debian's Chromium, driven by playwright,
 drags the lower lip's centre round a small ellipse for ``--seconds``, one pointer move every
-``--move-ms``; the page keeps one request in flight and sends only the newest geometry. The page
+``--move-ms``; the page keeps at most two requests in flight and sends only the newest geometry. The page
 records, per image drawn, the time since the pointer event whose geometry it shows.
 
 * ``editor_update_fps``: images drawn per second while dragging;
