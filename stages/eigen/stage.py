@@ -48,7 +48,8 @@ class TrainEigenfeatures(SequenceStage):
         Param("seed", int, 0, "random seed of sampling=rich"),
         Param("q", int, 16, "eigenfeatures per feature", min=1),
         Param("margin", float, 0.25, "room around each feature's points, fraction of its box", min=0.0),
-        Param("blur_px", float, 0.0, "Gaussian blur of each patch before PCA, patch px (0: off)", min=0.0),
+        Param("blur_px", float, 1.0, "Gaussian blur of each patch before PCA, patch px (0: off; 1 measured better "
+              "than 0, docs/eigen.md)", min=0.0),
         Param("normalize", bool, False, "each patch to zero mean and unit standard deviation"),
         Param("supersample", int, 2, "antialiasing of the training renders (the fixture clips: 2)", min=1, max=4),
     )
