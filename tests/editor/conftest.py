@@ -1,5 +1,5 @@
-"""The editor as a user starts it (``python -m editor.cli``) on the bundled 240x320 target pack,
-and Debian's Chromium driven by playwright for the browser tests."""
+"""The editor as a user starts it (``python -m editor.cli``) on the bundled 240x320 target pack
+(the ``browser`` fixture is the session's, in ``tests/conftest.py``)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from editor.browser import CHROMIUM, chromium
 from editor.cli import spawn
 
 REPO = Path(__file__).resolve().parents[2]
@@ -56,14 +55,3 @@ def editor_server(performance):
     editor = start_editor(PACK, "--performance", str(performance))
     yield editor
     stop_editor(editor)
-
-
-@pytest.fixture(scope="session")
-def browser():
-    """Chromium via playwright; skipped when it is absent, unless under CI, where that fails."""
-    if not CHROMIUM.is_file():
-        if os.environ.get("CI"):
-            pytest.fail(f"{CHROMIUM} is missing under CI: run .ci/install-browser first")
-        pytest.skip(f"{CHROMIUM} is missing (run .ci/install-browser); the browser tests need Debian's Chromium")
-    with chromium() as browser:
-        yield browser

@@ -8,19 +8,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-CHROMIUM = "/usr/bin/chromium"
-ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+from editor.browser import chromium
+
 VIEWPORT = {"width": 1200, "height": 1000}
-
-
-def chromium() -> str | None:
-    """The Chromium executable, or None when it is not installed."""
-    return CHROMIUM if Path(CHROMIUM).exists() else shutil.which("chromium")
 
 
 @dataclass
@@ -34,26 +27,23 @@ class Visit:
     images: list[tuple[int, int]] = field(default_factory=list)
 
 
-def visit(page_path: Path, *, screenshot: Path | None = None) -> Visit:
-    """Load ``page_path`` (file URL), wait until loaded, record a :class:`Visit`; optionally save a
-    PNG screenshot of the viewport (the top of the page)."""
-    from playwright.sync_api import sync_playwright
-
+def visit(browser, page_path: Path, *, screenshot: Path | None = None) -> Visit:
+    """Load ``page_path`` (file URL) in a new page of the playwright ``browser``, wait until
+    loaded, record a :class:`Visit`; optionally save a PNG screenshot of the viewport (the top of
+    the page)."""
     seen = Visit()
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=chromium(), args=ARGS)
-        try:
-            page = browser.new_page(viewport=VIEWPORT)
-            page.on("console", lambda m: seen.console_errors.append(m.text) if m.type == "error" else None)
-            page.on("pageerror", lambda e: seen.page_errors.append(str(e)))
-            page.on("request", lambda r: seen.requests.append(r.url))
-            page.goto(page_path.resolve().as_uri(), wait_until="load")
-            seen.images = [tuple(size) for size in page.eval_on_selector_all(
-                "img", "els => els.map(e => [e.naturalWidth, e.naturalHeight])")]
-            if screenshot is not None:
-                page.screenshot(path=str(screenshot), type="png")
-        finally:
-            browser.close()
+    page = browser.new_page(viewport=VIEWPORT)
+    try:
+        page.on("console", lambda m: seen.console_errors.append(m.text) if m.type == "error" else None)
+        page.on("pageerror", lambda e: seen.page_errors.append(str(e)))
+        page.on("request", lambda r: seen.requests.append(r.url))
+        page.goto(page_path.resolve().as_uri(), wait_until="load")
+        seen.images = [tuple(size) for size in page.eval_on_selector_all(
+            "img", "els => els.map(e => [e.naturalWidth, e.naturalHeight])")]
+        if screenshot is not None:
+            page.screenshot(path=str(screenshot), type="png")
+    finally:
+        page.close()
     return seen
 
 
@@ -62,7 +52,8 @@ def main() -> None:
     parser.add_argument("page", type=Path)
     parser.add_argument("--screenshot", type=Path)
     args = parser.parse_args()
-    seen = visit(args.page, screenshot=args.screenshot)
+    with chromium() as browser:
+        seen = visit(browser, args.page, screenshot=args.screenshot)
     seen.requests = [url[:80] for url in seen.requests]
     print(json.dumps(asdict(seen), indent=1))
 

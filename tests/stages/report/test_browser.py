@@ -1,37 +1,20 @@
 """The report page in headless Chromium: loads with no console or page error, requests nothing
 outside its folder, and every image decodes (naturalWidth > 0).
 
-Needs Debian's ``chromium`` and the ``playwright`` package (never ``playwright install``). Without
-them the test is skipped, unless ``CI`` is set: then it fails.
+Needs Debian's ``chromium`` (the session's ``browser`` fixture, ``tests/conftest.py``: skipped
+without it, unless ``CI`` is set: then it fails).
 """
 
-import importlib.util
-import os
 from pathlib import Path
 
-import pytest
-
-from tests.stages.report.browser import chromium, visit
+from tests.stages.report.browser import visit
 from tests.stages.report.test_stage import PARAMS, embedded, stage_inputs, write
 
-MISSING = [what for what, absent in (("the chromium executable", chromium() is None),
-                                     ("the playwright package", importlib.util.find_spec("playwright") is None))
-           if absent]
 
-
-@pytest.fixture(autouse=True)
-def browser_available():
-    if MISSING:
-        reason = f"{' and '.join(MISSING)} not installed (.ci/install-browser installs chromium)"
-        if os.environ.get("CI"):
-            pytest.fail(f"CI is set but {reason}")
-        pytest.skip(reason)
-
-
-def test_page_loads_cleanly_in_chromium(tmp_path: Path):
+def test_page_loads_cleanly_in_chromium(browser, tmp_path: Path):
     page = write(stage_inputs(), tmp_path)
     shot = tmp_path / "top.png"
-    seen = visit(page, screenshot=shot)
+    seen = visit(browser, page, screenshot=shot)
     assert seen.console_errors == [] and seen.page_errors == []
     folder = page.parent.resolve().as_uri() + "/"
     outside = [url for url in seen.requests if not (url.startswith(folder) or url.startswith("data:"))]
