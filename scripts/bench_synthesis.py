@@ -237,23 +237,13 @@ def run(args: argparse.Namespace) -> list[dict]:
 
 
 def demo_pack(work: Path) -> Path:
-    """The paper-sized (600x800) target pack of ``make_fixtures.py --demo``, generated once under ``work``.
-
-    Only the target pack is rendered (about 30 s), with the demo settings and the same identity
-    and seed as ``make_fixtures.py --demo``; every held-out expression has an image.
-    """
+    """The paper-sized (600x800) target pack of ``make_fixtures.py --demo``, generated once under
+    ``work`` (only the target pack, the same identity and seed as ``make_fixtures.py --demo``)."""
     folder = work / "synthesis_demo" / "packs" / "target"
     if not (folder / "pack.yaml").is_file():
-        from scripts.facegen.render import make_camera, make_face
-        from scripts.make_fixtures import DEMO, pack_pose, write_pack
-        from stages.layout import load_layout
+        from scripts.make_fixtures import DEMO, make_part
 
-        seed = 1  # make_fixtures' default: performer = seed, target = seed + 1
-        camera = make_camera(DEMO.target_size)
-        R, t = pack_pose(camera)
-        face = make_face(seed + 1, load_layout("zhang134"))
-        rng = np.random.default_rng(np.random.SeedSequence([seed + 1, 1]))
-        write_pack(folder, face, camera, R, t, DEMO, name="target", rng=rng)
+        make_part(work / "synthesis_demo", "pack:target", seed=1, spec=DEMO)
     return folder
 
 
