@@ -77,8 +77,10 @@ def decode(clip: Path) -> Frames:
 
 
 def head(bundle: dict[str, np.ndarray], frames: int, total: int) -> dict[str, np.ndarray]:
-    """The first ``frames`` frames of a per-frame bundle (arrays whose first axis is ``total``)."""
-    return {k: (v[:frames] if np.ndim(v) and len(v) == total else v) for k, v in bundle.items()}
+    """The first ``frames`` frames of a per-frame bundle (numeric arrays whose first axis is
+    ``total``; names and scalars pass whole)."""
+    return {k: (v[:frames] if np.ndim(v) and len(v) == total and np.asarray(v).dtype.kind != "U" else v)
+            for k, v in bundle.items()}
 
 
 def build_pack(clip: Frames, work: Path, build: int, select: dict[str, Any]) -> tuple[Path, dict[str, np.ndarray], dict[str, np.ndarray]]:
