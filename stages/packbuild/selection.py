@@ -1,12 +1,16 @@
 """Which usable frames become the pack's neutral, standard, examples, teeth examples and captured
 geometries (paper Sec. 5.2, 6, 8, 10, 14).
 
-Geometries are compared in one frame: every frame's layout points are mapped by the least-squares
-2D similarity (eq. 8-9, :func:`stages.geometry.compensate.fit_similarity`) of its stable points
-(eye corners, nose tip and base: :data:`stages.geometry.mapping.NORMALIZATION_POINTS`) onto the
-neutral's, then by one more similarity that puts the neutral upright and centred in the pack's
-image and the clip's faces inside it (:func:`canvas_similarity`). Distances between geometries are RMS point distances in the
-pack's pixels.
+Every frame's layout points are mapped into the pack's image by the least-squares 2D similarity
+(eq. 8-9, :func:`stages.geometry.compensate.fit_similarity`) of its stable points (eye corners,
+nose tip and base: :data:`stages.geometry.mapping.NORMALIZATION_POINTS`) onto the neutral's, then
+by one more similarity that puts the neutral upright and the clip's faces centred in the pack's
+image (:func:`canvas_similarity`); images and points are written that way. Geometries are
+*compared* with the head's rotation removed in 3D where the points carry the landmarker's depth:
+:func:`stages.geometry.rigid3d.compensate_rigid3d` (3D similarity of the skull's points to the
+neutral's) gives each frame's displacements in the neutral's frame, so a nod or a turn within the
+pose bound does not read as an expression; without depth the 2D-aligned points are compared.
+Distances are RMS point distances in the pack's pixels.
 
 Sec. 14 asks for example expressions "sufficiently different from each other while covering all
 captured expressions". That is the k-center problem; :func:`k_center` is the greedy 2-approximation
@@ -25,7 +29,7 @@ import numpy as np
 
 from stages.geometry.compensate import apply_similarity, fit_similarity
 from stages.geometry.mapping import NORMALIZATION_POINTS
-from stages.geometry.rigid3d import choose_reference
+from stages.geometry.rigid3d import RIGID_POINTS, choose_reference, compensate_rigid3d
 from stages.geometry.signals import EYE_OUTER, expression_signals
 from stages.layout import Layout
 
@@ -180,7 +184,7 @@ def select_frames(xy: np.ndarray, keep: np.ndarray, *, layout: Layout, blendshap
                   teeth_fraction: np.ndarray, size: tuple[int, int], n_examples: int = 12,
                   n_captured: int = 35, n_teeth: int = 4, min_distinct_px: float = 1.0,
                   pose_deg: float = 10.0, min_teeth_open: float = 0.08,
-                  min_teeth_fraction: float = 0.1) -> Selection:
+                  min_teeth_fraction: float = 0.1, depth: np.ndarray | None = None) -> Selection:
     """Choose the pack's frames among the usable ones.
 
     - **neutral**: the least expressive usable frame
@@ -211,6 +215,9 @@ def select_frames(xy: np.ndarray, keep: np.ndarray, *, layout: Layout, blendshap
     teeth_fraction : (T,) float
     size : (W, H)
         The pack's image size, px.
+    depth : (T, N) float, optional
+        The points' depth from the landmarker, px (``landmarks.layout``'s ``z``): geometries are
+        compared with the head rotation removed in 3D (module docstring).
 
     Raises
     ------
@@ -237,6 +244,11 @@ def select_frames(xy: np.ndarray, keep: np.ndarray, *, layout: Layout, blendshap
     in_neutral = np.stack([apply_similarity(to_neutral[t], xy[t]) for t in usable])
     canvas = canvas_similarity(xy[neutral], in_neutral, layout, size)
     to_pack = compose_similarity(canvas, to_neutral)
+    if depth is not None:
+        xyz = np.concatenate([np.where(keep[:, None, None], xy, 0.0), np.nan_to_num(np.asarray(depth, np.float64))[..., None]], -1)
+        d = compensate_rigid3d(xyz, np.broadcast_to(keep[:, None], xy.shape[:2]), neutral,
+                               np.array(layout.indices(RIGID_POINTS)))["d"]
+        in_neutral = xy[neutral] + d[usable]
     features = apply_similarity(canvas, in_neutral).reshape(len(usable), -1)
     features /= np.sqrt(layout.n_points)  # Euclidean distance = RMS point distance, px
     seed = int(np.searchsorted(usable, neutral))

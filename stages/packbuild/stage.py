@@ -104,7 +104,8 @@ class PackFilter(SequenceStage):
 
 class PackSelect(SequenceStage):
     """``pack.select``: neutral, standard, examples (greedy k-center), teeth examples and captured
-    geometries (:func:`stages.packbuild.selection.select_frames`).
+    geometries (:func:`stages.packbuild.selection.select_frames`; the ``points`` input's ``z``, when
+    present, lets the geometries be compared with the head rotation removed in 3D).
 
     Output bundle ``pack_selection``: ``neutral ()``, ``standard ()``, ``examples (k,)``,
     ``teeth (m,)``, ``captured (K,)`` frame indices (int64); ``to_pack (T, 4)`` per frame the
@@ -113,7 +114,7 @@ class PackSelect(SequenceStage):
     """
 
     name = "pack.select"
-    version = "1"
+    version = "2"
     doc = "choose a pack's neutral, standard, examples (greedy k-center), teeth examples and captured geometries"
     inputs = {"points": "points", "landmarks": "landmarks", "filter": "frame_filter"}
     outputs = {"selection": "pack_selection"}
@@ -151,7 +152,7 @@ class PackSelect(SequenceStage):
                 size=(params["width"], params["height"]), n_examples=params["examples"],
                 n_captured=params["captured"], n_teeth=params["teeth"], min_distinct_px=params["min_distinct_px"],
                 pose_deg=params["pose_deg"], min_teeth_open=params["min_teeth_open"],
-                min_teeth_fraction=params["min_teeth_fraction"],
+                min_teeth_fraction=params["min_teeth_fraction"], depth=inputs["points"].get("z"),
             )
         except ValueError as exc:
             raise StageError(f"{self.name}: {exc}") from None

@@ -6,6 +6,7 @@ import itertools
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from stages.actor_pack import load_pack
 from stages.geometry.compensate import apply_similarity
@@ -163,3 +164,30 @@ def test_frames_turned_or_nodding_away_from_the_neutral_are_not_candidates(pack)
     chosen = select(pack, xy, cluster, angles=angles, n_examples=distinct, n_captured=distinct, pose_deg=8.0)
     assert sorted(cluster[chosen.examples]) == [c for c in range(distinct) if c not in (3, 5)]
     assert not set(chosen.captured) & set(np.flatnonzero((cluster == 3) | (cluster == 5)))
+
+
+def test_with_depth_a_nod_or_a_turn_is_not_an_expression(pack):
+    """Each expression seen under head rotations up to 12 degrees (orthographic, depth from the generic
+    model): with the depth the geometries are compared with the rotation removed in 3D, and every frame
+    is a repeat of a chosen expression; without it the rotation reads as expression."""
+    rng = np.random.default_rng(3)
+    layout = pack.layout
+    mm = np.linalg.norm(pack.model3d[layout.index("eye_l_6")] - pack.model3d[layout.index("eye_r_6")])
+    px = np.linalg.norm(pack.neutral.points[layout.index("eye_l_6")] - pack.neutral.points[layout.index("eye_r_6")])
+    z = pack.model3d[:, 2] * px / mm
+    shapes = [pack.neutral.points] + [e.points for e in pack.examples]
+    xy, depth, cluster = [], [], []
+    for c, shape in enumerate(shapes):
+        centre = shape.mean(0)
+        for _ in range(3):
+            R = Rotation.from_euler("YX", rng.uniform(-12, 12, 2), degrees=True).as_matrix()
+            xyz = np.column_stack([shape - centre, z]) @ R.T
+            xy.append(xyz[:, :2] + centre + rng.uniform(-20, 20, 2))
+            depth.append(xyz[:, 2])
+            cluster.append(c)
+    xy, depth, cluster = np.stack(xy), np.stack(depth), np.array(cluster)
+    distinct = len(shapes)
+    flat = select(pack, xy, cluster, n_examples=distinct, n_captured=distinct)
+    solid = select(pack, xy, cluster, n_examples=distinct, n_captured=distinct, depth=depth)
+    assert sorted(cluster[solid.examples]) == list(range(distinct))
+    assert solid.example_radius_px < 0.3 * flat.example_radius_px, (solid.example_radius_px, flat.example_radius_px)
