@@ -16,7 +16,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 # Features (paper: "the eyes, eyebrows, and the mouth"), by layout point-name prefix. Each eye is
@@ -136,6 +135,8 @@ def cut_patches(image: np.ndarray, similarity: np.ndarray, windows: tuple[Featur
     valid : (p,) bool
         Whether each feature's patch is inside the image.
     """
+    import cv2  # here: loading a pipeline must not import OpenCV
+
     gray = luminance(image)
     H, W = gray.shape
     patches, valid = [], np.zeros(len(windows), dtype=bool)
@@ -162,6 +163,8 @@ def patch_vectors(image: np.ndarray, similarity: np.ndarray, windows: tuple[Feat
     standard deviation (shading that changes with the head's rotation). Returns ``p`` vectors
     ``(h w,)`` float32 and ``valid (p,)`` bool; a masked patch stays all zeros.
     """
+    import cv2  # here: loading a pipeline must not import OpenCV
+
     patches, valid = cut_patches(image, similarity, windows, min_inside=min_inside)
     vectors = []
     for P, ok in zip(patches, valid):

@@ -26,7 +26,6 @@ from __future__ import annotations
 from typing import Any, Mapping
 
 import numpy as np
-from scipy.ndimage import convolve1d
 
 from runner.stage import Context, Param, SequenceStage, StageError
 
@@ -75,6 +74,8 @@ def gaussian_smooth(
     valid_out : (T, ...) bool
         ``valid | support >= min_support``, the shape of ``valid``.
     """
+    from scipy.ndimage import convolve1d  # here: loading a pipeline must not import scipy
+
     values = np.asarray(values, dtype=np.float64)
     mask = np.ones(values.shape[:1], bool) if valid is None else np.asarray(valid, bool)
     if values.shape[: mask.ndim] != mask.shape:
