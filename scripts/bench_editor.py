@@ -42,6 +42,7 @@ sys.path.insert(0, str(ROOT))
 
 from editor.browser import chromium  # noqa: E402
 from editor.cli import spawn  # noqa: E402
+from stages.layout import read_yaml  # noqa: E402
 
 EXAMPLES = 15
 
@@ -59,7 +60,7 @@ def bench_pack(work: Path) -> Path:
     tmp = folder.with_name("target.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     shutil.copytree(source, tmp)
-    manifest = yaml.safe_load((tmp / "pack.yaml").read_text(encoding="utf-8"))
+    manifest = read_yaml(tmp / "pack.yaml", what="actor pack", noun="manifest")
     with np.load(tmp / "truth.npz", allow_pickle=False) as truth:
         index, images, points, names = truth["heldout_index"], truth["heldout_image"], truth["captured_points"], truth["point_names"]
     extra = [(k, str(image)) for k, image in zip(index, images) if image][: max(EXAMPLES - len(manifest["examples"]), 0)]

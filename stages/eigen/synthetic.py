@@ -19,12 +19,11 @@ from types import ModuleType
 from typing import Callable, Iterable, Iterator
 
 import numpy as np
-import yaml
 
 from stages.eigen.model import EigenModel, fit_eigen_model, fit_geometry_map
 from stages.eigen.patches import feature_windows
 from stages.geometry.compensate import fit_similarity
-from stages.layout import load_layout
+from stages.layout import load_layout, read_yaml
 
 CHECKOUT = Path(__file__).resolve().parents[2]  # holds scripts/facegen in a source checkout
 
@@ -80,7 +79,7 @@ class PerformerRig:
 def performer_rig(pack_dir: Path) -> PerformerRig:
     """The face model of a fixture pack's performer (``pack.yaml: generator.identity_seed`` and
     the pose and camera of ``generator.truth``); ValueError naming the field for other packs."""
-    manifest = yaml.safe_load((Path(pack_dir) / "pack.yaml").read_text())
+    manifest = read_yaml(Path(pack_dir) / "pack.yaml", what="actor pack", noun="manifest")
     gen = manifest.get("generator") if isinstance(manifest, dict) else None
     if not isinstance(gen, dict) or "identity_seed" not in gen or "truth" not in gen:
         raise ValueError(f"{pack_dir}/pack.yaml: field 'generator': expected the generator's identity_seed and truth "

@@ -85,7 +85,6 @@ def test_generated_truth_is_self_consistent(tiny_set):
         _check_clip_truth(tiny_set / "clips" / f"{kind}_truth.npz")
 
 
-@pytest.mark.skipif(not _truth_sets(), reason="fixtures not generated")
 def test_committed_truth_is_self_consistent():
     for path in _truth_sets():
         _check_clip_truth(path)
@@ -190,7 +189,6 @@ def test_teeth_visible_only_with_open_mouth():
     assert opened["visible"][teeth].all()
 
 
-@pytest.mark.skipif(not (REPO / "fixtures" / "packs" / "target" / "truth.npz").exists(), reason="fixtures not generated")
 def test_render_command_reproduces_the_committed_target_pack():
     pack = load_pack(REPO / "fixtures" / "packs" / "target")
     with np.load(REPO / "fixtures" / "packs" / "target" / "truth.npz") as z:
@@ -258,7 +256,6 @@ def test_wide_jaw_drop_opens_the_mouth_to_half_the_eye_distance():
         assert 0.44 < opening[-1] < 0.56, (seed, opening)
 
 
-@pytest.mark.skipif(not (REPO / "fixtures" / "packs" / "target" / "truth.npz").exists(), reason="fixtures not generated")
 def test_committed_target_pack_covers_what_performers_do():
     """Mouth openings to about half the outer-eye-corner distance in the captured geometries, the
     examples and the teeth examples; brows raised and lowered, broad smiles, closed lids among the examples."""

@@ -23,8 +23,6 @@ from stages.layout import load_layout
 from tests.stages.geometry.synthetic import MemoryStream, context
 
 ROOT = Path(os.environ.get("EXPRESSION_FIXTURES", Path(__file__).resolve().parents[3] / "fixtures"))
-pytestmark = pytest.mark.skipif(not (ROOT / "clips" / "live_truth.npz").is_file(),
-                                reason=f"fixture clips not generated under {ROOT} (make fixtures)")
 
 
 def decode(path: Path) -> np.ndarray:

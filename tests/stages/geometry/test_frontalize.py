@@ -23,8 +23,6 @@ from tests.stages.geometry.synthetic import context
 
 CAMERA = default_intrinsics((640, 480))  # f = 640 px
 FIXTURES = Path(os.environ.get("EXPRESSION_FIXTURES", Path(__file__).resolve().parents[3] / "fixtures"))
-needs_fixtures = pytest.mark.skipif(not (FIXTURES / "clips" / "live_truth.npz").is_file(),
-                                    reason=f"fixture clips not generated under {FIXTURES} (make fixtures)")
 
 
 def head_points(n: int, *, seed: int) -> np.ndarray:
@@ -186,7 +184,6 @@ def truth_bundle(clip: str) -> tuple[dict, dict]:
     return truth, points
 
 
-@needs_fixtures
 @pytest.mark.parametrize("clip, most_px", [("calm", 0.15), ("live", 1.2)])
 def test_fixture_true_points_and_pose_approach_the_ideal_compensation(tmp_path, clip, most_px):
     """True 2D points and true pose: the frontalized points against ``expression_points`` (the
@@ -207,7 +204,6 @@ def test_fixture_true_points_and_pose_approach_the_ideal_compensation(tmp_path, 
     assert error_3d < 0.4 * error_2d
 
 
-@needs_fixtures
 def test_fixture_live_with_pnp_pose_beats_similarity_by_far(tmp_path):
     """The stage chain pose.pnp -> compensate.pose3d on the true points of the live clip (+-25 deg
     yaw): compensated geometry error measured 0.80 px against 4.28 px for compensate.similarity."""

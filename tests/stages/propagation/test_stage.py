@@ -95,7 +95,6 @@ def test_stage_classes_declare_a_valid_contract():
 PACK = Path(__file__).resolve().parents[3] / "fixtures" / "packs" / "target"
 
 
-@pytest.mark.skipif(not (PACK / "pack.yaml").is_file(), reason="fixture pack not generated")
 def test_train_and_propagate_on_the_fixture_pack(tmp_path):
     bundle = TrainHierarchicalPCA().run({"pack": PACK}, {"n_components": 8, "variance_kept": 1.0}, context(tmp_path))[
         "pca_model"

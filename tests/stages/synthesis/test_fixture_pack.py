@@ -17,7 +17,6 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float(10 * np.log10(1.0 / np.mean((a - b) ** 2)))
 
 
-@pytest.mark.skipif(not (PACK / "pack.yaml").is_file(), reason="fixture pack not generated (make fixtures)")
 def test_own_examples_come_back():
     pack = load_pack(PACK)
     synth = Synthesizer(build_synthesis_model(pack))

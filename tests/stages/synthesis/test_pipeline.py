@@ -58,7 +58,6 @@ stages:
 """
 
 
-@pytest.mark.skipif(not (PACK / "pack.yaml").is_file(), reason="fixture pack not generated (make fixtures)")
 def test_runner_pipeline_matches_direct_synthesis(tmp_path: Path):
     path = tmp_path / "p.yaml"
     path.write_text(textwrap.dedent(PIPELINE).replace("PACK", str(PACK)))
