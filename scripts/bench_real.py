@@ -34,7 +34,9 @@ Two kinds of input:
   group (the layout's level-1 feature point sets) ``real_track_err_px_<method>_<group>``;
   ``real_track_err_px`` is the default method's mean. ``real_pose_agree_r_{yaw,pitch,roll}``:
   the pipeline's rotation relative to its reference frame vs the true one, Pearson r over
-  frames; ``real_pose_err_deg``: mean absolute angle error.
+  frames; ``real_pose_err_deg``: mean absolute angle error. A contact sheet per clip goes to
+  ``<work>/real/realtex_<seed>/sheet.png`` (the README's copy: these clips are public-domain
+  material; frames of the dev clips are never committed).
 """
 
 from __future__ import annotations
@@ -212,6 +214,7 @@ def realtex_rows(work: Path, frames: int, seeds: list[int]) -> list[dict[str, An
         truth = np.load(truth_path)
         true_xy = layout_from_mesh(truth["points"], correspondence)
         run_pipeline(clip, folder)
+        contact_sheet(folder / "out" / "preview" / "preview.mp4", folder / "sheet.png")
         data = np.load(folder / "out" / "data" / "data.npz")
         errors["landmarker"].append(np.linalg.norm(data["tracked_xy"] - true_xy, axis=-1))
         errors["default"].append(np.linalg.norm(data["smoothed_xy"] - true_xy, axis=-1))
