@@ -23,7 +23,7 @@ class WriteReport(SequenceStage):
     """``write.report``: ``index.html`` under the ``report`` files output (see the module doc)."""
 
     name = "write.report"
-    version = "1"
+    version = "2"
     doc = "an HTML page to judge the run: contact sheet, expression/pose/tracking curves, coefficients, warnings"
     inputs = {
         "performer": "frames", "result": "frames", "target": "points", "tracked": "points", "pose": "pose",
@@ -37,9 +37,13 @@ class WriteReport(SequenceStage):
               min=0, max=200),
         Param("thumb_height", int, 180, "contact-sheet image height, px", min=16, max=2160),
         Param("title", str, "Expression mapping: run report", "the page's heading"),
+        Param("enabled", bool, True, "write the page; false turns the report off (out/<stage>/ then holds only "
+              "its manifest, and nothing is read or drawn)"),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
+        if not params.get("enabled", True):
+            return {"report": None}
         frames = inputs["performer"].info.frames
         if inputs["result"].info.frames != frames:
             raise StageError(f"{self.name}: input 'result' has {inputs['result'].info.frames} frames, "

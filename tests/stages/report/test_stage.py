@@ -135,3 +135,8 @@ def test_warp_only_and_missing_signal_points_are_said(tmp_path: Path):
     assert "expression" not in data
     assert "warp-only" in "\n".join(data["warnings"])
     assert "Not available: expression signals need one of [&#x27;brow_l_0&#x27;" in page.read_text()
+
+
+def test_enabled_false_writes_nothing(tmp_path: Path):
+    WriteReport().run(stage_inputs(), {**PARAMS, "enabled": False}, files_context(tmp_path))
+    assert not (tmp_path / "report" / "index.html").exists()
