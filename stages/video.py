@@ -42,16 +42,22 @@ def _reason(exc: BaseException) -> str:
 
 
 def _to_rgb(frame: av.VideoFrame, path: Path) -> np.ndarray:
+    """The frame as RGB ``(H, W, 3)`` uint8, upright: a display matrix (a phone's portrait clip
+    stores landscape pixels and a rotation) is applied as FFmpeg's players do, by quarter turns
+    (``frame.rotation`` is counterclockwise in degrees)."""
     import av
     try:
-        return frame.to_ndarray(format="rgb24")
+        rgb = frame.to_ndarray(format="rgb24")
     except (av.FFmpegError, OSError, ValueError) as exc:
         raise StageError(f"{path}: unsupported pixel format {frame.format.name} ({_reason(exc)})") from None
+    turns = round((frame.rotation or 0) / 90) % 4
+    return np.ascontiguousarray(np.rot90(rgb, k=turns)) if turns else rgb
 
 
 def probe(path: Path) -> StreamInfo:
     """Frame count (counted by demuxing, not from header metadata), rate and size of the first
-    video stream of ``path``; decodes the first frame to check the pixel format converts.
+    video stream of ``path`` (upright, after its display rotation); decodes the first frame to
+    check the pixel format converts.
 
     The pipeline's time fields are ``frame / fps`` (a constant rate). A clip whose frame
     durations differ by more than a tenth of the mean one (variable frame rate) is still
@@ -73,9 +79,9 @@ def probe(path: Path) -> StreamInfo:
             raise StageError(f"{path}: contains no video frames")
         if not rate:
             raise StageError(f"{path}: the video stream has no frame rate")
-        _to_rgb(first, path)
+        height, width = _to_rgb(first, path).shape[:2]  # upright: a display rotation swaps them
         _warn_if_variable_rate(path, stamps, stream.time_base, float(rate))
-        return StreamInfo(frames=count, fps=float(rate), width=first.width, height=first.height)
+        return StreamInfo(frames=count, fps=float(rate), width=width, height=height)
 
 
 def _warn_if_variable_rate(path: Path, pts: list[int | None], time_base: Fraction | None, fps: float) -> None:

@@ -201,3 +201,33 @@ def test_variable_frame_rate_is_one_warning_line(tmp_path, caplog):
         assert probe(variable).frames == 8
     assert len(caplog.records) == 1
     assert str(variable) in caplog.text and "variable frame rate" in caplog.text and "constant" in caplog.text
+
+
+def _with_display_rotation(path: Path, out: Path, a: int, b: int, c: int, d: int) -> Path:
+    """A copy of an mp4 whose track header (``tkhd``) carries the rotation matrix
+    ``[[a, b], [c, d]]`` (as a phone writes for a portrait clip: landscape pixels plus a
+    display matrix)."""
+    import struct
+
+    data = bytearray(path.read_bytes())
+    at = data.find(b"tkhd")
+    version = data[at + 4]
+    matrix = at + 8 + (20 if version == 0 else 32) + 16  # times, track id, duration; reserved, layer, ...
+    assert struct.unpack(">9i", data[matrix:matrix + 36])[:5] == (65536, 0, 0, 0, 65536)  # identity before
+    data[matrix:matrix + 36] = struct.pack(">9i", a << 16, b << 16, 0, c << 16, d << 16, 0, 0, 0, 1 << 30)
+    out.write_bytes(bytes(data))
+    return out
+
+
+@pytest.mark.parametrize("matrix, turns", [((0, 1, -1, 0), -1), ((0, -1, 1, 0), 1), ((-1, 0, 0, -1), 2)])
+def test_phone_display_rotation_is_applied(tmp_path, matrix, turns):
+    """A display matrix in the track header (a phone's portrait clip) turns the decoded frames
+    upright, as players show them; the stream's size is the upright one."""
+    plain = write_clip(tmp_path / "plain.mp4", frames=5, width=64, height=48, crf=0)
+    rotated = _with_display_rotation(plain, tmp_path / "rotated.mp4", *matrix)
+    stage = VideoDecode()
+    info = stage.stream_info({"video": rotated}, {})
+    upright = np.rot90(_decode_all(plain), k=turns, axes=(1, 2))
+    assert (info.height, info.width) == upright.shape[1:3]
+    frames = VideoDecode().process(0, 5, {"video": rotated}, {}, None)["frames"]
+    np.testing.assert_array_equal(frames, upright)
