@@ -5,11 +5,13 @@ Every frame's layout points are mapped into the pack's image by the least-square
 (eq. 8-9, :func:`stages.geometry.compensate.fit_similarity`) of its stable points (eye corners,
 nose tip and base: :data:`stages.geometry.mapping.NORMALIZATION_POINTS`) onto the neutral's, then
 by one more similarity that puts the neutral upright and the clip's faces centred in the pack's
-image (:func:`canvas_similarity`); images and points are written that way. Geometries are
-*compared* with the head's rotation removed in 3D where the points carry the landmarker's depth:
-:func:`stages.geometry.rigid3d.compensate_rigid3d` (3D similarity of the skull's points to the
-neutral's) gives each frame's displacements in the neutral's frame, so a nod or a turn within the
-pose bound does not read as an expression; without depth the 2D-aligned points are compared.
+image (:func:`canvas_similarity`); images and points are written that way, and by default the
+geometries are compared so. Given the landmarker's depth they are compared with the head's
+rotation removed in 3D instead: :func:`stages.geometry.rigid3d.compensate_rigid3d` (3D similarity
+of the skull's points to the neutral's) gives each frame's displacements in the neutral's frame,
+so a nod or a turn within the pose bound does not read as an expression. (Measured on real clips,
+docs/packbuild.md: the 2D comparison reenacts better, since the synthesis itself works on 2D
+geometry and examples spread over it, nods included, cover the test frames' geometries better.)
 Distances are RMS point distances in the pack's pixels.
 
 Sec. 14 asks for example expressions "sufficiently different from each other while covering all

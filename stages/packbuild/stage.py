@@ -104,8 +104,8 @@ class PackFilter(SequenceStage):
 
 class PackSelect(SequenceStage):
     """``pack.select``: neutral, standard, examples (greedy k-center), teeth examples and captured
-    geometries (:func:`stages.packbuild.selection.select_frames`; the ``points`` input's ``z``, when
-    present, lets the geometries be compared with the head rotation removed in 3D).
+    geometries (:func:`stages.packbuild.selection.select_frames`; with ``compare_3d`` the geometries
+    are compared with the head rotation removed in 3D, from the ``points`` input's ``z``).
 
     Output bundle ``pack_selection``: ``neutral ()``, ``standard ()``, ``examples (k,)``,
     ``teeth (m,)``, ``captured (K,)`` frame indices (int64); ``to_pack (T, 4)`` per frame the
@@ -128,8 +128,14 @@ class PackSelect(SequenceStage):
         Param("pose_deg", float, 10.0, "candidate frames' yaw and pitch within this of the neutral's, degrees", min=0.0),
         Param("min_teeth_open", float, 0.08, "least inner-lip gap of a teeth example, eye distances", min=0.0),
         Param("min_teeth_fraction", float, 0.1, "least share of light, grey pixels inside the inner lips", min=0.0, max=1.0),
+        Param("compare_3d", bool, False, "compare expressions with the head rotation removed in 3D (the points' z)"),
         Param("layout", str, "zhang134", "layout name or YAML path", file=True),
     )
+
+    def _depth(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> np.ndarray | None:
+        if not params["compare_3d"]:
+            return None
+        return _field(inputs["points"], "z", stage=self.name, port="points").astype(np.float64)
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         params = _params(self, params)
@@ -152,7 +158,7 @@ class PackSelect(SequenceStage):
                 size=(params["width"], params["height"]), n_examples=params["examples"],
                 n_captured=params["captured"], n_teeth=params["teeth"], min_distinct_px=params["min_distinct_px"],
                 pose_deg=params["pose_deg"], min_teeth_open=params["min_teeth_open"],
-                min_teeth_fraction=params["min_teeth_fraction"], depth=inputs["points"].get("z"),
+                min_teeth_fraction=params["min_teeth_fraction"], depth=self._depth(inputs, params),
             )
         except ValueError as exc:
             raise StageError(f"{self.name}: {exc}") from None

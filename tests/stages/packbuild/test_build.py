@@ -91,3 +91,19 @@ def test_no_usable_frame_names_each_filter_and_its_count(built):
     ctx = Context(device="cpu", files_dir=lambda port: None, log=logging.getLogger("test"))
     with pytest.raises(StageError, match=r"pack\.filter: 0 of 48 frames passed the filters .*rejected: head_pose 48"):
         PackFilter().run(inputs, {"max_yaw": 0.0}, ctx)
+
+
+def test_compare_3d_reads_the_points_depth(built):
+    _, runner = built
+    points = runner.values[("points", "points")].get()
+    inputs = {"points": points, "landmarks": runner.values[("landmarks", "landmarks")].get(),
+              "filter": runner.values[("filter", "filter")].get()}
+    ctx = Context(device="cpu", files_dir=lambda port: None, log=logging.getLogger("test"))
+    params = {"pose_deg": 30.0, "compare_3d": True}
+    chosen = PackSelect().run(inputs, params, ctx)["selection"]
+    flat = runner.values[("select", "selection")].get()
+    assert chosen["neutral"] == flat["neutral"] and len(chosen["examples"]) == 12
+    assert chosen["examples"].tolist() != flat["examples"].tolist()
+    no_depth = {**inputs, "points": {k: v for k, v in points.items() if k != "z"}}
+    with pytest.raises(StageError, match="pack.select: input 'points': missing key 'z'"):
+        PackSelect().run(no_depth, params, ctx)
