@@ -32,8 +32,6 @@ TOLERANCE_MEAN_PX = 6.0
 
 @pytest.fixture(scope="module")
 def built(tmp_path_factory):
-    if not CLIP.is_file():
-        pytest.skip("real-texture fixture missing")
     tmp = tmp_path_factory.mktemp("pack_build")
     registry = Registry(classes=[VideoDecode, FaceLandmarks, LayoutPoints, PackFilter, PackSelect, PackWrite])
     # the clip sweeps the head (yaw +-20, pitch +-10 degrees) by design: every usable frame is a candidate

@@ -22,8 +22,6 @@ LAYOUT = load_layout("zhang134")
 def clip():
     """The first FRAMES frames of astro.mp4 and their true layout points (N, 2) px."""
     import av
-    if not (REALFACE / "astro.mp4").is_file():
-        pytest.skip("real-texture fixture missing")
     with av.open(str(REALFACE / "astro.mp4")) as container:
         frames = np.stack([f.to_ndarray(format="rgb24") for _, f in zip(range(FRAMES), container.decode(video=0))])
     with np.load(REALFACE / "astro_truth.npz", allow_pickle=False) as truth:
