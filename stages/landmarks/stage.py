@@ -8,13 +8,23 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
-from stages.landmarks.correspondence import layout_from_mesh, load_correspondence
+from stages.landmarks.correspondence import Correspondence, layout_from_mesh, load_correspondence
 from stages.landmarks.landmarker import BLENDSHAPE_NAMES, N_MESH, SELECT_RULES, Landmarker
-from stages.layout import load_layout
+from stages.layout import Layout, load_layout
 
 
 def _params(stage: SequenceStage, params: Mapping[str, Any]) -> dict[str, Any]:
     return {p.name: p.default for p in stage.params} | dict(params)
+
+
+def layout_and_correspondence(stage: str, params: Mapping[str, Any]) -> tuple[Layout, Correspondence]:
+    """The layout and mesh correspondence named by a stage's ``layout`` and ``correspondence``
+    parameters; a bad correspondence is a :class:`StageError` naming the stage and parameter."""
+    layout = load_layout(params["layout"])
+    try:
+        return layout, load_correspondence(params["correspondence"], layout=layout)
+    except ValueError as exc:
+        raise StageError(f"{stage}: parameter 'correspondence': {exc}") from None
 
 
 class FaceLandmarks(SequenceStage):
@@ -126,11 +136,7 @@ class LayoutPoints(SequenceStage):
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         params = _params(self, params)
-        layout = load_layout(params["layout"])
-        try:
-            correspondence = load_correspondence(params["correspondence"], layout=layout)
-        except ValueError as exc:
-            raise StageError(f"{self.name}: parameter 'correspondence': {exc}") from None
+        layout, correspondence = layout_and_correspondence(self.name, params)
         bundle = inputs["landmarks"]
         for key in ("xy", "valid"):
             if key not in bundle:

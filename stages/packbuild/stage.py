@@ -9,7 +9,7 @@ import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
 from stages.geometry.pose import default_intrinsics
-from stages.landmarks.correspondence import load_correspondence
+from stages.landmarks.stage import layout_and_correspondence
 from stages.layout import load_layout
 from stages.packbuild.filters import CAUSES, KEEP, cause_counts, classify_frames, head_angles, measure_frames
 from stages.packbuild.selection import Selection, select_frames
@@ -216,11 +216,7 @@ class PackWrite(SequenceStage):
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         from stages.actor_pack import load_pack
         params = _params(self, params)
-        layout = load_layout(params["layout"])
-        try:
-            correspondence = load_correspondence(params["correspondence"], layout=layout)
-        except ValueError as exc:
-            raise StageError(f"{self.name}: parameter 'correspondence': {exc}") from None
+        layout, correspondence = layout_and_correspondence(self.name, params)
         stream = inputs["frames"]
         xy, _ = _points(inputs, stage=self.name, frames=stream.info.frames)
         chosen, size = selection_from_bundle(inputs["selection"])
