@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -76,6 +77,8 @@ def run(pipeline: Path, clip: Path | None, named: tuple[str, ...], out: Path, dr
         if log_file is not None:
             log_file.write(json.dumps({"time": time.time(), **event}) + "\n")
             log_file.flush()
+        if _INTERRUPTED.is_set() and event.get("event") != "run_end":
+            raise KeyboardInterrupt  # the signal's own exception was lost (see _interrupt)
 
     options = Options(cache=CacheStore(cache_dir or default_cache_dir()), device=resolved, jobs=jobs,
                       force=frozenset(force), until=until, dry_run=dry_run, out=out,
@@ -195,13 +198,25 @@ def cache_clear(cache_dir: Path | None) -> int:
     return EXIT_OK
 
 
+_INTERRUPTED = threading.Event()
+
+
 def _interrupt(signum: int, frame: object) -> None:
+    """SIGINT / SIGTERM: interrupt the run. The flag is kept because the KeyboardInterrupt raised
+    here can be swallowed when the signal lands inside a C callback (a codec's); the run then stops
+    at its next event (a chunk, a stage), still exit 130."""
+    _INTERRUPTED.set()
     raise KeyboardInterrupt
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Console-script entry point: maps errors to exit codes, one line each, no traceback."""
+    """Console-script entry point: maps errors to exit codes, one line each, no traceback.
+
+    SIGINT and SIGTERM both interrupt the run (exit 130, the cache left resumable). SIGINT is set
+    explicitly: a process started in the background of a non-interactive shell inherits it
+    ignored, and Python then keeps ignoring it."""
     signal.signal(signal.SIGTERM, _interrupt)
+    signal.signal(signal.SIGINT, _interrupt)
     try:
         code = cli.main(args=argv, prog_name="runner", standalone_mode=False)
     except click.ClickException as exc:
