@@ -71,6 +71,7 @@ def run(pipeline: Path, clip: Path | None, named: tuple[str, ...], out: Path, dr
 
         if not torch.cuda.is_available():
             raise click.UsageError("--device cuda: CUDA is not available on this machine")
+    _INTERRUPTED.clear()
     log_file = open(log_json, "w", encoding="utf-8") if log_json else None
 
     def log(event: dict) -> None:
