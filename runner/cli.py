@@ -210,6 +210,13 @@ def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
+def _unraisable(args: object) -> None:
+    """A KeyboardInterrupt swallowed in a callback (an import lock's, a codec's) is not reported
+    as "Exception ignored": :data:`_INTERRUPTED` carries it to the next event."""
+    if not issubclass(args.exc_type, KeyboardInterrupt):
+        sys.__unraisablehook__(args)
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point: maps errors to exit codes, one line each, no traceback.
 
@@ -218,6 +225,7 @@ def main(argv: list[str] | None = None) -> None:
     ignored, and Python then keeps ignoring it."""
     signal.signal(signal.SIGTERM, _interrupt)
     signal.signal(signal.SIGINT, _interrupt)
+    sys.unraisablehook = _unraisable
     try:
         code = cli.main(args=argv, prog_name="runner", standalone_mode=False)
     except click.ClickException as exc:
