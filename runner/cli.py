@@ -5,6 +5,7 @@ Exit codes: 0 ok, 1 a stage failed, 2 usage or configuration error, 130 interrup
 
 from __future__ import annotations
 
+import contextlib
 import json
 import signal
 import sys
@@ -109,6 +110,39 @@ def run(pipeline: Path, clip: Path | None, named: tuple[str, ...], out: Path, dr
     if not dry_run:
         click.echo(f"done in {seconds:.2f} s; outputs in {out}/")
     return EXIT_OK
+
+
+@cli.command()
+@click.argument("manifest", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--workers", type=click.IntRange(min=1), help="Jobs at once on the local Ray [default: the CPUs].")
+@click.option("--address", help="Join this Ray cluster (`auto`, HOST:PORT) instead of starting a local Ray.")
+@click.option("--retries", type=click.IntRange(min=0), default=2, show_default=True,
+              help="Retries of a job whose worker died or raised (a failed stage is not retried).")
+@click.option("--device", type=click.Choice(["cpu", "cuda", "auto"]), default="auto", show_default=True,
+              help="Where torch stages compute, resolved on each worker.")
+@click.option("--log-json", type=click.Path(dir_okay=False, path_type=Path),
+              help="Write one JSON event per line (every job's `runner run` events, with `job`) to this file.")
+@cache_dir_option
+def batch(manifest: Path, workers: int | None, address: str | None, retries: int, device: str,
+          log_json: Path | None, cache_dir: Path | None) -> int:
+    """Run the jobs of MANIFEST (shots.yaml, see docs/batch.md) on Ray, each as `runner run` would."""
+    from runner.batch_manifest import load_manifest
+
+    if workers is not None and address is not None:
+        raise click.UsageError("--workers is for the local Ray; a cluster's CPUs are its own (drop one)")
+    jobs = load_manifest(manifest, Registry.from_entry_points())
+    try:
+        from runner.batch import run_batch
+    except ImportError as exc:
+        raise click.UsageError(f"runner batch needs Ray ({exc}): pip install 'expression-mapping[batch]'") from None
+    with open(log_json, "w", encoding="utf-8") if log_json else contextlib.nullcontext() as log_file:
+        def log(event: dict) -> None:
+            if log_file is not None:
+                log_file.write(json.dumps(event) + "\n")
+                log_file.flush()
+
+        return run_batch(jobs, cache_dir=cache_dir or default_cache_dir(), device=device, workers=workers,
+                         address=address, retries=retries, log=log, echo=click.echo)
 
 
 @cli.command()

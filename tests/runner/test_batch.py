@@ -1,0 +1,289 @@
+"""`runner batch`: manifest validation (positioned errors), jobs on Ray with outputs
+byte-identical to `runner run`, a failing job reported while the others finish, a worker that
+dies retried, a batch killed at an observed event resumed; and the cache's locks holding across
+processes (what every worker relies on).
+
+One local Ray is started for the module (:func:`cluster`); the batches join it with
+``--address`` (Ray's start-up is slow), except one that starts its own local Ray as a user's
+``runner batch`` does. No Ray process is left running at the end (checked).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing
+import os
+import signal
+import subprocess
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from runner.cache import CacheStore
+from runner.stage import Context, Param, SequenceStage
+from tests.runner.helpers import DATA, REPO, TINY, cli_env, read_log, run_cli, runner_cmd, tree_bytes
+
+ray = pytest.importorskip("ray")
+
+GRAPH = DATA / "graph.yaml"
+PUBLISHED = ("write", "table")
+SLEEP_S = "0.3"  # per chunk of test.add on the module's Ray workers: a kill lands inside the work
+
+
+class CrashOnce(SequenceStage):
+    """Mean intensity per frame, like ``test.mean``; the first time (no ``marker`` file yet) it
+    creates the marker and kills its own process, as a worker lost to the OOM killer."""
+
+    name = "batchtest.crash_once"
+    version = "1"
+    inputs = {"frames": "frames"}
+    outputs = {"series": "series"}
+    params = (Param("marker", str, "", "file marking the first try"),)
+
+    def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
+        marker = Path(params["marker"])
+        if not marker.exists():
+            marker.write_text("crashed once")
+            os._exit(3)
+        means = [chunk.reshape(len(chunk), -1).mean(axis=1) for _, chunk in inputs["frames"].chunks()]
+        return {"series": {"mean": np.concatenate(means)}}
+
+
+def _ray_pids() -> set[int]:
+    """Processes of Ray on this machine (its daemons and ``ray::`` workers)."""
+    pids = set()
+    for proc in Path("/proc").iterdir():
+        try:
+            cmd = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if proc.name.isdigit() and ("ray::" in cmd or "/ray/" in cmd or "raylet" in cmd or "gcs_server" in cmd):
+            pids.add(int(proc.name))
+    return pids
+
+
+def _assert_gone(pids: set[int], timeout: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout
+    while pids & _ray_pids() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not pids & _ray_pids(), f"Ray processes left running: {sorted(pids & _ray_pids())}"
+
+
+@pytest.fixture(scope="module")
+def site(plugin_site: Path, tmp_path_factory: pytest.TempPathFactory) -> str:
+    """PYTHONPATH with the test stages and :class:`CrashOnce` registered."""
+    folder = tmp_path_factory.mktemp("batch_site")
+    info = folder / "runner_batch_test_plugins-0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: runner-batch-test-plugins\nVersion: 0\n")
+    (info / "entry_points.txt").write_text(
+        "[expression_mapping.stages]\nbatchtest.crash_once = tests.runner.test_batch:CrashOnce\n")
+    return os.pathsep.join([str(plugin_site), str(folder), str(REPO)])
+
+
+@pytest.fixture(scope="module")
+def cluster(site: str) -> str:
+    """The address of a local Ray (2 CPUs) shared by the module's batches; its workers see the
+    test stages and run test.add slowly."""
+    before = _ray_pids()
+    knobs = {"PYTHONPATH": site, "RUNNER_TEST_SLEEP": SLEEP_S}  # the workers' environment
+    saved = {name: os.environ.get(name) for name in knobs}
+    os.environ.update(knobs)
+    try:
+        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name)
+            else:
+                os.environ[name] = value
+    started = _ray_pids() - before
+    try:
+        yield ray.get_runtime_context().gcs_address
+    finally:
+        ray.shutdown()
+        _assert_gone(started)
+
+
+def _env(site: str, tmp_path: Path) -> dict[str, str]:
+    """A driver's environment: the test stages, a fresh cache, and the token authentication of
+    the module's Ray (``ray.init`` enables it for a local Ray; a driver joining one opts in)."""
+    return {**cli_env(Path(site.split(os.pathsep)[0]), tmp_path / "cache"), "PYTHONPATH": site,
+            "RAY_AUTH_MODE": "token"}
+
+
+def _manifest(folder: Path, jobs: dict[str, dict[str, Any]], *, pipeline: Path = GRAPH) -> Path:
+    path = folder / "shots.yaml"
+    path.write_text(json.dumps({"defaults": {"pipeline": str(pipeline)}, "jobs": jobs}, indent=1))
+    return path
+
+
+TWO_JOBS = {"plus10": {"clip": str(TINY)}, "plus20": {"clip": str(TINY), "set": ["add.value=20"]}}
+
+
+@pytest.fixture(scope="module")
+def alone(site: str, tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[str, bytes]]:
+    """Outputs of each of :data:`TWO_JOBS` run alone by `runner run` (a cache of its own)."""
+    work = tmp_path_factory.mktemp("alone")
+    outputs = {}
+    for name, job in TWO_JOBS.items():
+        sets = [a for text in job.get("set", []) for a in ("--set", text)]
+        done = run_cli("run", GRAPH, "--in", job["clip"], *sets, "--out", work / name / "out",
+                       env=_env(site, work / name), cwd=work)
+        assert done.returncode == 0, done.stderr
+        outputs[name] = tree_bytes(work / name / "out")
+    assert outputs["plus10"] != outputs["plus20"]
+    return outputs
+
+
+def test_manifest_errors_are_positioned_and_nothing_runs(site, tmp_path):
+    (tmp_path / "user" / "write").mkdir(parents=True)  # a user's folder where a stage publishes
+    path = tmp_path / "shots.yaml"
+    path.write_text(f"""defaults:
+  pipeline: {GRAPH}
+  colour: blue
+jobs:
+  ok: {{clip: {TINY}}}
+  typo:
+    clip: {TINY}
+    set: [add.value=ten, nosuch.param=1]
+  missing: {{clip: nowhere.mp4}}
+  same_out: {{clip: {TINY}, out: out/ok}}
+  user: {{clip: {TINY}, out: user}}
+  wrong: {{clip: [1, 2], inputs: {{bogus: x}}}}
+""")
+    done = run_cli("batch", path, env=_env(site, tmp_path), cwd=tmp_path)
+    assert done.returncode == 2, done.stderr
+    text = path.read_text().splitlines()
+
+    def at(needle: str) -> str:  # file:line:column of the first line holding needle (1-based)
+        row = next(i for i, line in enumerate(text) if needle in line)
+        return f"error: {path}:{row + 1}:{text[row].index(needle) + 1}"
+
+    lines = done.stderr.strip().splitlines()
+    assert lines == [
+        f"{at('colour')}: defaults.colour: unknown key (expected one of: pipeline, target, inputs, set)",
+        f"{at('add.value=ten')}: jobs.typo.set: add.value: wrong type: expected int, got 'ten'",
+        f"{at('nosuch')}: jobs.typo.set: nosuch.param: unknown stage 'nosuch' in this pipeline",
+        f"{at('nowhere.mp4')}: jobs.missing.clip: {tmp_path / 'nowhere.mp4'}: no such file",
+        f"{at('out/ok')}: jobs.same_out.out: same output folder as job 'ok': {tmp_path / 'out' / 'ok'}",
+        f"{at('user}')}: jobs.user.out: {tmp_path / 'user' / 'write'}: exists without a manifest.json of runner; "
+        "it would be replaced by the outputs of stage 'write' (move it away or choose another --out)",
+        f"{at('[1, 2]')}: jobs.wrong.clip: wrong type: expected a path string, got [1, 2]",
+        f"{at('{bogus')}: jobs.wrong.inputs: unknown pipeline input 'bogus' of {GRAPH} (declared: clip)",
+    ]
+    assert not (tmp_path / "out").exists() and not (tmp_path / "cache").exists()
+
+
+def test_batch_outputs_are_byte_identical_to_runner_run(site, cluster, alone, tmp_path):
+    path = _manifest(tmp_path, TWO_JOBS)
+    log = tmp_path / "log.jsonl"
+    done = run_cli("batch", path, "--address", cluster, "--log-json", log, env=_env(site, tmp_path), cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    for name in TWO_JOBS:
+        assert tree_bytes(tmp_path / "out" / name) == alone[name]
+    events = read_log(log)
+    assert [e["event"] for e in events][0] == "batch_start" and events[-1] == {**events[-1], "exit_code": 0, "done": 2}
+    chunks = [e for e in events if e.get("event") == "chunk" and e["job"] == "plus20" and e["stage"] == "add"]
+    assert [(e["chunk"], e["chunks"]) for e in chunks] == [(k, 6) for k in range(1, 7)]
+    lines = done.stdout.splitlines()
+    for name in TWO_JOBS:
+        assert f"[{name}] queued" in lines and f"[{name}] running add chunk 1 of 6" in lines
+        assert any(line.startswith(f"[{name}] done in ") for line in lines)
+    assert lines[-1].startswith("2 jobs: 2 done, 0 cached, 0 failed in ")
+    # Run again: every job is cached.
+    again = run_cli("batch", path, "--address", cluster, env=_env(site, tmp_path), cwd=tmp_path)
+    assert again.returncode == 0 and again.stdout.splitlines()[-1].startswith("2 jobs: 0 done, 2 cached, 0 failed")
+
+
+def test_batch_killed_at_an_observed_event_resumes(site, cluster, alone, tmp_path):
+    path = _manifest(tmp_path, TWO_JOBS)
+    killed_log, resumed_log = tmp_path / "killed.jsonl", tmp_path / "resumed.jsonl"
+    proc = subprocess.Popen(runner_cmd("batch", path, "--address", cluster, "--log-json", killed_log),
+                            env=_env(site, tmp_path), cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 90
+        while not (killed_log.exists() and any(e.get("event") == "chunk" and e["stage"] == "add" and e["chunk"] == 2
+                                               for e in read_log(killed_log))):
+            assert proc.poll() is None and time.monotonic() < deadline, "the kill point was not reached"
+            time.sleep(0.05)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    assert not any(e.get("event") == "batch_end" for e in read_log(killed_log))
+    done = run_cli("batch", path, "--address", cluster, "--log-json", resumed_log, env=_env(site, tmp_path),
+                   cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    for name in TWO_JOBS:
+        assert tree_bytes(tmp_path / "out" / name) == alone[name]
+    # What the killed batch stored was not computed again.
+    resumed = read_log(resumed_log)
+    assert any(e.get("event") == "chunk" and e["stage"] == "add" and e["status"] == "cached" for e in resumed)
+
+
+def test_dead_worker_is_retried_and_a_failing_job_is_reported(site, cluster, tmp_path):
+    pipeline = tmp_path / "crash.yaml"
+    pipeline.write_text(f"""inputs: {{clip: {{type: video}}}}
+stages:
+  decode: {{uses: video.decode, inputs: {{video: clip}}}}
+  mean: {{uses: batchtest.crash_once, params: {{marker: {tmp_path / 'marker'}}}, inputs: {{frames: decode.frames}}}}
+  table: {{uses: test.table, inputs: {{series: mean.series}}}}
+""")
+    (tmp_path / "bad.mp4").write_bytes(b"not a video" * 100)
+    path = _manifest(tmp_path, {"crashes_once": {"clip": str(TINY)}, "bad": {"clip": str(tmp_path / "bad.mp4")}},
+                     pipeline=pipeline)
+    log = tmp_path / "log.jsonl"
+    done = run_cli("batch", path, "--address", cluster, "--log-json", log, env=_env(site, tmp_path), cwd=tmp_path)
+    assert done.returncode == 1, done.stderr
+    starts = [e for e in read_log(log) if e.get("event") == "job_start" and e["job"] == "crashes_once"]
+    assert len(starts) == 2 and (tmp_path / "out" / "crashes_once" / "table" / "series.json").is_file()
+    rows = {line.split()[0]: line for line in done.stdout.splitlines()[-4:-1]}
+    assert rows["crashes_once"].split()[1] == "done"
+    assert rows["bad"].split()[1] == "failed" and f"stage 'decode' (video.decode): {tmp_path / 'bad.mp4'}" in rows["bad"]
+    assert done.stdout.splitlines()[-1].startswith("2 jobs: 1 done, 0 cached, 1 failed")
+
+
+def test_local_ray_started_by_the_command_is_shut_down(site, alone, tmp_path):
+    """Without --address the command starts its own Ray (--workers CPUs) and leaves nothing
+    running."""
+    before = _ray_pids()
+    path = _manifest(tmp_path, {"plus10": TWO_JOBS["plus10"]})
+    done = run_cli("batch", path, "--workers", "1", env=_env(site, tmp_path), cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert tree_bytes(tmp_path / "out" / "plus10") == alone["plus10"]
+    _assert_gone(_ray_pids() - before)
+
+
+def _count_under_lock(root: str, times: int) -> None:
+    store = CacheStore(Path(root))
+    counter = Path(root) / "counter"
+    for _ in range(times):
+        with store.locked("k" * 64):
+            value = int(counter.read_text())
+            time.sleep(0.001)
+            counter.write_text(str(value + 1))
+        with store.writing("e" * 64) as tmp:
+            (tmp / "data.json").write_text(json.dumps(os.getpid()))
+            store.commit("e" * 64, tmp, {"stage": "test"})
+
+
+def test_cache_lock_and_commit_hold_across_processes(tmp_path):
+    """Two processes on one cache: the entry lock excludes (no lost increment of a counter
+    read-modified-written under it) and concurrent commits of one key leave one whole entry."""
+    (tmp_path / "counter").write_text("0")
+    context = multiprocessing.get_context("spawn")
+    procs = [context.Process(target=_count_under_lock, args=(str(tmp_path), 40)) for _ in range(2)]
+    for proc in procs:
+        proc.start()
+    for proc in procs:
+        proc.join(60)
+        assert proc.exitcode == 0
+    assert (tmp_path / "counter").read_text() == "80"
+    entries = list(CacheStore(tmp_path).iter_entries())
+    assert len(entries) == 1 and json.loads((entries[0].path / "data.json").read_text()) == entries[0].record["pid"]
+    assert not list((tmp_path / "locks").glob("*.lock")) and not list((tmp_path / "tmp").iterdir())
