@@ -16,7 +16,7 @@ the tracked subset (``_truth.npz``):
   ideal mapping ``target_points``; ``chain_neutral_err_px_<clip>``: the target's neutral left
   as it is (the do-nothing baseline).
 - with the tracker (default): ``<c>_tracked_chain_err_px_<clip>_none``: the same chain from
-  the pipeline's tracked points (``track.correlation`` with the performer pack ->
+  the pipeline's tracked points (the ``track.correlation`` stage with the performer pack's bundles ->
   ``smooth.gaussian``) and its pose (``pose.pnp`` with ``model: face``);
   ``compensate3d_tracked_chain_err_px_<clip>_none_eyes_nose``: with pose.pnp given the four eye
   corners and four nose points instead of the rigid set (the hairline tracks worst under yaw).
@@ -36,7 +36,8 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from runner.stage import Context
+from runner.stage import Context, StreamInfo
+from runner.streams import ComputedStream, chunk_ranges
 from stages.actor_pack import load_pack
 from stages.geometry.compensate import SimilarityCompensate, compensate
 from stages.geometry.frontalize import PoseCompensate, adapt_to_reference, frontalize
@@ -44,11 +45,14 @@ from stages.geometry.mapping import MODES as MAP_MODES
 from stages.geometry.mapping import ExpressionMap
 from stages.geometry.pose import PnPPose
 from stages.geometry.subset import named_columns
+from stages.geometry.track import CorrelationTrack
+from stages.pack.bundles import camera_from_bundle, layout_from_bundle, model3d_from_bundle, pack_to_bundles
 from stages.propagation.stage import HierarchicalPropagation, TrainHierarchicalPCA
 
 AREA = "geometry"
 CLIPS = ("calm", "live")
 PIPELINE_POSE = {"model": "face"}  # pose.pnp's parameters in pipeline.yaml
+Bundles = Mapping[str, Mapping[str, np.ndarray]]  # pack.load's outputs by port
 EYES_NOSE = ["eye_l_0", "eye_r_0", "eye_l_6", "eye_r_6", "nose_tip", "nose_ala_l", "nose_ala_r", "nose_base"]
 
 
@@ -63,40 +67,50 @@ def truth_points(truth: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
             "names": truth["point_names"][tracked], "fps": truth["fps"], "size": truth["size"]}
 
 
-def tracker_points(clip: Path, init: Path, performer: Path, ctx: Context) -> dict[str, np.ndarray]:
-    """The tracker's points of a clip as the pipeline makes them: NCC tracking with the performer
-    pack's face model (as ``track.correlation`` given the pack) from the first-frame CSV, then the
-    ``smooth.gaussian`` stage with its defaults; a ``points`` bundle."""
+def ports(pack: Bundles, *names: str) -> Bundles:
+    """The bundles of ``pack.load``'s outputs ``names``, as a stage's inputs."""
+    return {name: pack[name] for name in names}
+
+
+def tracker_points(clip: Path, init: Path, performer: Bundles, ctx: Context) -> dict[str, np.ndarray]:
+    """The tracker's points of a clip as the pipeline makes them: the ``track.correlation``
+    stage with its defaults given the performer pack's bundles (pipeline_paper.yaml) and the
+    first-frame CSV, then the ``smooth.gaussian`` stage with its defaults; a ``points`` bundle."""
     from scripts.bench_geometry import decode
-    from stages.geometry.face_model import pack_face_model
     from stages.geometry.smooth import GaussianSmooth
-    from stages.geometry.track import read_first_frame_points, track_points
 
-    names, start, _ = read_first_frame_points(init)
-    pack = load_pack(performer)
-    rigid = named_columns(np.array(names), tuple(pack.layout.point_names[i] for i in pack.layout.rigid))
-    frames = decode(clip)
-    tracks = track_points(iter(frames), start, method="ncc",
-                          face_model=pack_face_model(pack, names, start, rigid, pack.intrinsics))
-    height, width = frames[0].shape[:2]
-    points = {"xy": tracks.xy, "valid": tracks.valid, "names": np.array(names), "size": np.array([width, height])}
-    return GaussianSmooth().run({"points": points}, {}, ctx)["points"]
+    frames = np.stack(decode(clip))
+    height, width = frames.shape[1:3]
+    ranges = chunk_ranges(len(frames), 16)
+    stream = ComputedStream(StreamInfo(len(frames), 25.0, width, height), ranges,  # fps: no row reads it
+                            lambda index: frames[ranges[index][0]:ranges[index][1]])
+    inputs = {"frames": stream, "init": init, **ports(performer, "model3d", "geometry", "camera")}
+    tracked = CorrelationTrack().run(inputs, {}, ctx)["points"]
+    return GaussianSmooth().run({"points": tracked}, {}, ctx)["points"]
 
 
-def pose_compensate(points: Mapping[str, np.ndarray], pose: Mapping[str, np.ndarray], performer: Path,
+def pose(points: Mapping[str, np.ndarray], performer: Bundles, ctx: Context,
+         params: Mapping[str, Any] | None = None) -> dict[str, np.ndarray]:
+    """The ``pose.pnp`` stage's pose with ``params`` (its defaults when None)."""
+    inputs = {"points": points, **ports(performer, "layout", "model3d", "camera", "geometry")}
+    return PnPPose().run(inputs, dict(params or {}), ctx)["pose"]
+
+
+def pose_compensate(points: Mapping[str, np.ndarray], pose: Mapping[str, np.ndarray], performer: Bundles,
                     ctx: Context) -> dict[str, np.ndarray]:
     """The ``compensate.pose3d`` stage's displacements."""
-    return PoseCompensate().run({"points": points, "pose": pose, "pack": performer}, {}, ctx)["displacements"]
+    inputs = {"points": points, "pose": pose, **ports(performer, "model3d")}
+    return PoseCompensate().run(inputs, {}, ctx)["displacements"]
 
 
-def compensations(points: Mapping[str, np.ndarray], performer: Path, ctx: Context,
+def compensations(points: Mapping[str, np.ndarray], performer: Bundles, ctx: Context,
                   truth: Mapping[str, np.ndarray] | None = None, pose_params: Mapping[str, Any] | None = None
                   ) -> dict[str, dict[str, np.ndarray]]:
     """Displacement bundles of ``compensate2d``, ``compensate3d`` (the ``pose.pnp`` stage with
     ``pose_params``) and, given the truth, ``compensate3d_truepose``."""
-    pose = PnPPose().run({"points": points, "pack": performer}, dict(pose_params or {}), ctx)["pose"]
+    solved = pose(points, performer, ctx, pose_params)
     out = {"compensate2d": SimilarityCompensate().run({"points": points}, {}, ctx)["displacements"],
-           "compensate3d": pose_compensate(points, pose, performer, ctx)}
+           "compensate3d": pose_compensate(points, solved, performer, ctx)}
     if truth is not None:
         true_pose = {"R": truth["R"], "tvec": truth["tvec"], "rvec": truth["rvec"],
                      "valid": np.ones(len(truth["R"]), bool), "camera": truth["intrinsics"]}
@@ -104,10 +118,11 @@ def compensations(points: Mapping[str, np.ndarray], performer: Path, ctx: Contex
     return out
 
 
-def chain_error(displacements: Mapping[str, np.ndarray], target: Path, pca_model: Any, ideal: np.ndarray,
+def chain_error(displacements: Mapping[str, np.ndarray], target: Bundles, pca_model: Any, ideal: np.ndarray,
                 mode: str, ctx: Context) -> float:
     """Mean px distance over all points of map.expression -> propagate.hierarchical to ``ideal (T, N, 2)``."""
-    mapped = ExpressionMap().run({"displacements": displacements, "pack": target}, {"mode": mode}, ctx)["points"]
+    inputs = {"displacements": displacements, **ports(target, "layout", "geometry")}
+    mapped = ExpressionMap().run(inputs, {"mode": mode}, ctx)["points"]
     result = HierarchicalPropagation().run({"pca_model": pca_model, "points": mapped},
                                            {"stop_progress_px": 1e-3, "max_iterations": 200}, ctx)["points"]
     return float(np.linalg.norm(result["xy"] - ideal, axis=-1).mean())
@@ -123,14 +138,14 @@ def fps(work: Callable[[], Any], n_frames: int, *, repeats: int = 20) -> float:
     return n_frames / best
 
 
-def speeds(points: Mapping[str, np.ndarray], performer: Path, ctx: Context) -> tuple[float, float]:
+def speeds(points: Mapping[str, np.ndarray], performer: Bundles, ctx: Context) -> tuple[float, float]:
     """Frames per second of the 3D compensation (adaptation + frontalization) and of the 2D one."""
-    pose = PnPPose().run({"points": points, "pack": performer}, {}, ctx)["pose"]
-    pack = load_pack(performer)
+    solved = pose(points, performer, ctx)
+    layout = layout_from_bundle(performer["layout"])
     xy, valid, names = points["xy"], points["valid"], [str(n) for n in points["names"]]
-    generic = pack.model3d[[pack.layout.index(n) for n in names]]
-    rigid = named_columns(np.array(names), tuple(pack.layout.point_names[i] for i in pack.layout.rigid))
-    R, t, camera = pose["R"], pose["tvec"], pack.intrinsics
+    generic = model3d_from_bundle(performer["model3d"], names)
+    rigid = named_columns(np.array(names), tuple(layout.point_names[i] for i in layout.rigid))
+    R, t, camera = solved["R"], solved["tvec"], camera_from_bundle(performer["camera"])
 
     def run_3d() -> None:
         frontalize(xy, adapt_to_reference(generic, xy[0], R[0], t[0], camera), R, t, camera)
@@ -141,9 +156,11 @@ def speeds(points: Mapping[str, np.ndarray], performer: Path, ctx: Context) -> t
 def bench_rows(fixtures: Path = Path("fixtures"), *, tracker: bool = True) -> list[dict[str, Any]]:
     """The rows listed in the module docstring, for the fixture set under ``fixtures``."""
     ctx = Context(device="cpu", files_dir=lambda port: Path("/nonexistent"))
-    performer, target = fixtures / "packs" / "performer", fixtures / "packs" / "target"
-    pca_model = TrainHierarchicalPCA().run({"pack": target}, {"n_components": 8, "variance_kept": 1.0}, ctx)["pca_model"]
-    target_neutral = load_pack(target).neutral.points
+    performer = pack_to_bundles(load_pack(fixtures / "packs" / "performer"))
+    target = pack_to_bundles(load_pack(fixtures / "packs" / "target"))
+    pca_model = TrainHierarchicalPCA().run(ports(target, "layout", "geometry"), {"n_components": 8, "variance_kept": 1.0},
+                                           ctx)["pca_model"]
+    target_neutral = target["geometry"]["neutral"]
     rows = []
     for clip in CLIPS:
         truth = dict(np.load(fixtures / "clips" / f"{clip}_truth.npz", allow_pickle=False))
@@ -165,8 +182,7 @@ def bench_rows(fixtures: Path = Path("fixtures"), *, tracker: bool = True) -> li
             for name, bundle in compensations(tracked, performer, ctx, pose_params=PIPELINE_POSE).items():
                 rows.append(row(f"{name}_tracked_chain_err_px_{clip}_none",
                                 chain_error(bundle, target, pca_model, truth["target_points"], "none", ctx), "px"))
-            pose = PnPPose().run({"points": tracked, "pack": performer}, {"points": EYES_NOSE}, ctx)["pose"]
-            bundle = pose_compensate(tracked, pose, performer, ctx)
+            bundle = pose_compensate(tracked, pose(tracked, performer, ctx, {"points": EYES_NOSE}), performer, ctx)
             rows.append(row(f"compensate3d_tracked_chain_err_px_{clip}_none_eyes_nose",
                             chain_error(bundle, target, pca_model, truth["target_points"], "none", ctx), "px"))
         if clip == "live":

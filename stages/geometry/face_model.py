@@ -23,12 +23,14 @@ its pose is the head pose that ``pose.pnp`` then recovers from the rigid points.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Mapping, Sequence
 
 import numpy as np
 
+from stages.actor_pack import ActorPack
 from stages.geometry.compensate import fit_similarity
 from stages.geometry.frontalize import adapt_to_reference, frontal_translation
+from stages.pack.bundles import geometry_from_bundle, geometry_to_bundle, model3d_from_bundle, model3d_to_bundle
 
 
 @dataclass(frozen=True)
@@ -104,13 +106,23 @@ def build_face_model(generic: np.ndarray, first_xy: np.ndarray, rigid: np.ndarra
     return FaceModel(neutral, basis, singular[:m] / np.sqrt(len(delta)), t0, np.asarray(camera, dtype=np.float64))
 
 
-def pack_face_model(pack: Any, names: list[str], first_xy: np.ndarray, rigid: np.ndarray, camera: np.ndarray, *,
-                    components: int = 8) -> FaceModel:
-    """:func:`build_face_model` of the points ``names`` from an actor pack (its generic model,
-    neutral and captured geometries at those points)."""
-    rows = [pack.layout.index(str(n)) for n in names]
-    return build_face_model(pack.model3d[rows], first_xy, rigid, camera, pack.neutral.points[rows],
-                            pack.captured_points[:, rows], components=components)
+def bundle_face_model(model3d: Mapping[str, np.ndarray], geometry: Mapping[str, np.ndarray], names: Sequence[str],
+                      first_xy: np.ndarray, rigid: np.ndarray, camera: np.ndarray, *, components: int = 8) -> FaceModel:
+    """:func:`build_face_model` of the points ``names`` from ``pack.load``'s ``pack_model3d`` and
+    ``pack_geometry`` bundles (the generic model, the neutral and the captured geometries at those
+    points); ValueError naming a point the pack does not have."""
+    generic = model3d_from_bundle(model3d, names)
+    pack = geometry_from_bundle(geometry)
+    rows = pack.rows(names)
+    return build_face_model(generic, first_xy, rigid, camera, pack.neutral[rows], pack.captured[:, rows],
+                            components=components)
+
+
+def pack_face_model(pack: ActorPack, names: Sequence[str], first_xy: np.ndarray, rigid: np.ndarray,
+                    camera: np.ndarray, *, components: int = 8) -> FaceModel:
+    """:func:`bundle_face_model` of a loaded actor pack (scripts use the library directly)."""
+    return bundle_face_model(model3d_to_bundle(pack), geometry_to_bundle(pack), names, first_xy, rigid, camera,
+                             components=components)
 
 
 @dataclass

@@ -50,7 +50,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import Context, SequenceStage, StageError
-from stages.actor_pack import load_pack
+from stages.pack.bundles import model3d_from_bundle
 
 
 def lift_to_head(xy: np.ndarray, model: np.ndarray, R: np.ndarray, t: np.ndarray,
@@ -185,21 +185,20 @@ class PoseCompensate(SequenceStage):
     """
 
     name = "compensate.pose3d"
-    version = "2"
+    version = "3"
     doc = "3D motion compensation: points lifted with the generic model and the pose, re-projected at frame 0's pose"
-    inputs = {"points": "points", "pose": "pose", "pack": "dir"}
+    inputs = {"points": "points", "pose": "pose", "model3d": "pack_model3d"}
     outputs = {"displacements": "displacements"}
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         points, pose = inputs["points"], inputs["pose"]
-        pack = load_pack(inputs["pack"])
         names = np.asarray(points["names"])
         xy = np.asarray(points["xy"], dtype=np.float64)
         valid = np.asarray(points["valid"], bool)
-        missing = [str(n) for n in names if str(n) not in pack.layout.point_names]
-        if missing:
-            raise StageError(f"{self.name}: points {missing} are not in the performer pack's layout "
-                             f"{pack.layout.name} (no 3D model point)")
+        try:
+            generic = model3d_from_bundle(inputs["model3d"], names)
+        except ValueError as exc:
+            raise StageError(f"{self.name}: input 'model3d': {exc} (no 3D model point)") from None
         if len(pose["R"]) != len(xy):
             raise StageError(f"{self.name}: the pose has {len(pose['R'])} frames, the points {len(xy)}")
         pose_valid = np.asarray(pose["valid"], bool)
@@ -210,7 +209,6 @@ class PoseCompensate(SequenceStage):
         if "camera" not in pose:
             raise StageError(f"{self.name}: the pose bundle carries no 'camera' (connect pose.pnp's output)")
         camera = np.asarray(pose["camera"], dtype=np.float64)
-        generic = pack.model3d[[pack.layout.index(str(n)) for n in names]]
         model = adapt_to_reference(generic, xy[0], R[0], t[0], camera)
         frontal, ok = frontalize(xy, model, R, t, camera, reference=0)
         good = valid & valid[:1] & ok & pose_valid[:, None]

@@ -46,9 +46,9 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
-from stages.actor_pack import load_pack
 from stages.geometry.compensate import fit_similarity
 from stages.geometry.subset import named_columns, rigid_columns
+from stages.pack.bundles import layout_and_geometry
 
 MODES = ("eyes_nose", "similarity", "region", "none")
 RANGE_LIMITS = ("soft", "none")
@@ -240,9 +240,9 @@ class ExpressionMap(SequenceStage):
     """
 
     name = "map.expression"
-    version = "2"
+    version = "3"
     doc = "performer displacements onto the target's neutral (Sec. 11): size-normalized, range-limited, lips apart"
-    inputs = {"displacements": "displacements", "pack": "dir"}
+    inputs = {"displacements": "displacements", "layout": "layout", "geometry": "pack_geometry"}
     outputs = {"points": "points"}
     params = (
         Param("mode", str, "eyes_nose", "displacement normalization (eyes_nose | similarity | region | none)",
@@ -250,7 +250,8 @@ class ExpressionMap(SequenceStage):
         Param("range_limit", str, "soft", "saturate displacements beyond the pack's captured range (soft | none)",
               choices=RANGE_LIMITS),
         Param("range_margin", float, 0.05,
-              "how far beyond the captured range a displacement may go, fraction of the target's eye distance"),
+              "how far beyond the captured range a displacement may go, fraction of the target's eye distance",
+              min=0.0),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
@@ -259,10 +260,10 @@ class ExpressionMap(SequenceStage):
         if "neutral" not in bundle:
             raise StageError(f"{self.name}: the displacements carry no 'neutral' (the performer's neutral geometry)")
         margin = float(params["range_margin"])
-        if not margin >= 0:
-            raise StageError(f"{self.name}: parameter range_margin must be >= 0, got {margin}")
-        pack = load_pack(inputs["pack"])
-        layout = pack.layout
+        try:
+            layout, geometry = layout_and_geometry(inputs["layout"], inputs["geometry"])
+        except ValueError as exc:
+            raise StageError(f"{self.name}: {exc}") from None
         names = np.asarray(bundle["names"])
         try:
             rows = [layout.index(str(n)) for n in names]
@@ -273,7 +274,7 @@ class ExpressionMap(SequenceStage):
             named_columns(names, tuple(layout.point_names[i] for i in fps.points))
             for fps in layout.feature_point_sets if fps.level == 1
         ]
-        neutral_all = np.asarray(pack.neutral.points, dtype=np.float64)
+        neutral_all = geometry.neutral
         target = neutral_all[rows]
         transforms = displacement_transforms(np.asarray(bundle["neutral"], dtype=np.float64), target, reference,
                                              mode=params["mode"], regions=regions)
@@ -281,11 +282,8 @@ class ExpressionMap(SequenceStage):
         displacement = map_expression(np.asarray(bundle["d"], dtype=np.float64), target, transforms) - target[None]
         n_frames = len(displacement)
         outside = np.zeros(valid_in.shape, bool)  # (T, n): beyond the captured range by more than the margin
-        captured = getattr(pack, "captured_points", None)
-        if params["range_limit"] == "soft" and captured is None:
-            ctx.log.warning(f"{self.name}: the pack carries no captured geometries; range limit off")
-        elif params["range_limit"] == "soft":
-            lo, hi = captured_range(captured, neutral_all)
+        if params["range_limit"] == "soft":
+            lo, hi = captured_range(geometry.captured, neutral_all)
             displacement, outside = limit_displacements(displacement, valid_in, lo[rows], hi[rows],
                                                         margin=margin * eye_distance(neutral_all, layout.point_names))
         limited = outside.any(axis=1)

@@ -24,11 +24,11 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
-from stages.actor_pack import load_pack
-from stages.geometry.face_model import FaceModel, fit_face_model, pack_face_model
+from stages.geometry.face_model import FaceModel, bundle_face_model, fit_face_model
 from stages.geometry.frontalize import adapt_to_reference, frontal_translation
 from stages.geometry.smooth import gaussian_smooth
 from stages.geometry.subset import named_columns, rigid_columns
+from stages.pack.bundles import camera_from_bundle, layout_from_bundle, model3d_from_bundle
 
 
 def default_intrinsics(size: tuple[int, int]) -> np.ndarray:
@@ -225,17 +225,19 @@ class PnPPose(SequenceStage):
     """``pose.pnp``: the performer's head pose per frame (Sec. 12.1)."""
 
     name = "pose.pnp"
-    version = "3"
+    version = "4"
     doc = "3D head pose per frame by PnP from the rigid points and the pack's generic 3D model (eq. 10)"
-    inputs = {"points": "points", "pack": "dir"}
+    inputs = {"points": "points", "layout": "layout", "model3d": "pack_model3d", "camera": "camera",
+              "geometry": "pack_geometry"}
+    optional_inputs = frozenset({"camera", "geometry"})
     outputs = {"pose": "pose"}
     params = (
-        Param("intrinsics", str, "pack", "camera matrix: the pack's, or the default from the image size "
-              "(f = max(W, H), principal point at the centre)", choices=("pack", "image")),
+        Param("intrinsics", str, "pack", "camera matrix: the pack's (input 'camera'), or the default from the image "
+              "size (f = max(W, H), principal point at the centre)", choices=("pack", "image")),
         Param("focal_px", float, 0.0, "if > 0, focal length in px with the principal point at the image centre"),
         Param("model", str, "rigid", "rigid: PnP on the rigid points with the generic model (Sec. 12.1); face: fit "
-              "the face model (generic shape plus the pack's captured expressions) to all tracked points",
-              choices=("rigid", "face")),
+              "the face model (generic shape plus the pack's captured expressions, input 'geometry') to all "
+              "tracked points", choices=("rigid", "face")),
         Param("components", int, 8, "face model: expression components (PCA of the pack's captured geometries)"),
         Param("points", list, [], "rigid model: names of the points used for PnP; empty: the layout's rigid points "
               "(hairline and inner eye corners, Sec. 12.1)"),
@@ -248,23 +250,34 @@ class PnPPose(SequenceStage):
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         params = {p.name: p.default for p in self.params} | dict(params)
         points = inputs["points"]
-        pack = load_pack(inputs["pack"])
+        try:
+            layout = layout_from_bundle(inputs["layout"])
+        except ValueError as exc:
+            raise StageError(f"{self.name}: input 'layout': {exc}") from None
         min_points = max(int(params["min_points"]), 4)
         if params["points"]:
-            columns = self.named(np.asarray(points["names"]), params["points"], pack.layout)
+            columns = self.named(np.asarray(points["names"]), params["points"], layout)
         else:
-            columns = rigid_columns(np.asarray(points["names"]), pack.layout, at_least=min_points, stage=self.name)
-        camera = self.camera(points, pack, params)
+            columns = rigid_columns(np.asarray(points["names"]), layout, at_least=min_points, stage=self.name)
+        camera = self.camera(points, inputs, params)
         if params["model"] == "face":
+            if inputs.get("geometry") is None:
+                raise StageError(f"{self.name}: model=face needs the input 'geometry' (pack.load's geometry)")
             if not np.asarray(points["valid"][0]).all():
                 raise StageError(f"{self.name}: model=face needs every tracked point valid in the first frame")
-            model = pack_face_model(pack, list(points["names"]), points["xy"][0], columns, camera,
-                                    components=int(params["components"]))
+            try:
+                model = bundle_face_model(inputs["model3d"], inputs["geometry"], [str(n) for n in points["names"]],
+                                          points["xy"][0], columns, camera, components=int(params["components"]))
+            except ValueError as exc:
+                raise StageError(f"{self.name}: {exc}") from None
             pose = estimate_face_poses(points["xy"], points["valid"], model,
                                        smooth_sigma=float(params["smooth_sigma"]))
             return {"pose": {**pose, "camera": camera}}
         names = [str(points["names"][c]) for c in columns]
-        model = pack.model3d[[pack.layout.index(n) for n in names]]
+        try:
+            model = model3d_from_bundle(inputs["model3d"], names)
+        except ValueError as exc:
+            raise StageError(f"{self.name}: input 'model3d': {exc}") from None
         pose = estimate_poses(points["xy"][:, columns], points["valid"][:, columns], model, camera,
                               min_points=min_points, smooth_sigma=float(params["smooth_sigma"]),
                               adapt=bool(params["adapt_model"]))
@@ -277,16 +290,18 @@ class PnPPose(SequenceStage):
             raise StageError(f"{self.name}: parameter points names {missing} that are not tracked points of the layout")
         return named_columns(names, tuple(wanted))
 
-    def camera(self, points: Mapping[str, np.ndarray], pack: Any, params: Mapping[str, Any]) -> np.ndarray:
+    def camera(self, points: Mapping[str, np.ndarray], inputs: Mapping[str, Any], params: Mapping[str, Any]
+               ) -> np.ndarray:
         """The intrinsic matrix chosen by the ``intrinsics`` and ``focal_px`` parameters."""
         focal = float(params["focal_px"])
         if params["intrinsics"] == "pack" and focal <= 0:
+            if inputs.get("camera") is None:
+                raise StageError(f"{self.name}: intrinsics=pack needs the input 'camera' (pack.load's camera)")
             size = tuple(int(v) for v in points["size"]) if "size" in points else None
-            if size is not None and size != tuple(pack.image_size):
-                raise StageError(
-                    f"{pack.path}: intrinsics are for {pack.image_size[0]}x{pack.image_size[1]} images, the clip's "
-                    f"frames are {size[0]}x{size[1]}; use a pack from this camera or intrinsics=image (and focal_px)")
-            return np.asarray(pack.intrinsics, dtype=np.float64)
+            try:
+                return camera_from_bundle(inputs["camera"], size=size)
+            except ValueError as exc:
+                raise StageError(f"{self.name}: input 'camera': {exc} or intrinsics=image (and focal_px)") from None
         if "size" not in points:
             raise StageError(f"{self.name}: the points carry no image size; use intrinsics=pack")
         camera = default_intrinsics(tuple(int(v) for v in points["size"]))

@@ -33,12 +33,13 @@ import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
 from stages.geometry.compensate import apply_similarity, fit_similarity
-from stages.actor_pack import load_pack
-from stages.geometry.face_model import FaceModel, fit_face_model, pack_face_model
+from stages.geometry.face_model import FaceModel, bundle_face_model, fit_face_model
 from stages.geometry.subset import rigid_columns
 from stages.layout import load_layout
+from stages.pack.bundles import camera_from_bundle
 
 METHODS = ("ncc", "csrt", "kcf", "mosse", "lk")
+FACE_MODEL_INPUTS = ("model3d", "geometry", "camera")  # pack.load's bundles of the performer pack
 
 
 @dataclass
@@ -638,16 +639,18 @@ class CorrelationTrack(SequenceStage):
 
     ``init`` is the first-frame points file of the tracked points (a ``file`` pipeline input:
     ``name,x,y`` CSV or JSON), read by :func:`read_first_frame_points` and checked against the
-    layout's tracked subset and the frame size. ``pack`` (optional, the performer's actor pack)
-    gives the ``ncc`` tracker its face model (:func:`stages.geometry.face_model.pack_face_model`: the pack's generic 3D
-    model, captured expressions and intrinsics, which must be for the clip's frame size).
+    layout's tracked subset and the frame size. ``model3d``, ``geometry`` and ``camera`` (optional,
+    together: ``pack.load``'s bundles of the performer's actor pack) give the ``ncc`` tracker its
+    face model (:func:`stages.geometry.face_model.bundle_face_model`: the pack's generic 3D model,
+    captured expressions and intrinsics, which must be for the clip's frame size).
     """
 
     name = "track.correlation"
-    version = "4"
+    version = "5"
     doc = "track the layout's tracked subset through a clip (NCC, or CSRT/KCF/MOSSE/LK)"
-    inputs = {"frames": "frames", "init": "file", "pack": "dir"}
-    optional_inputs = frozenset({"pack"})
+    inputs = {"frames": "frames", "init": "file", "model3d": "pack_model3d", "geometry": "pack_geometry",
+              "camera": "camera"}
+    optional_inputs = frozenset(FACE_MODEL_INPUTS)
     outputs = {"points": "points"}
     params = (
         Param("layout", str, "zhang134", "layout name or YAML path; its `tracked` subset is followed", file=True),
@@ -694,8 +697,12 @@ class CorrelationTrack(SequenceStage):
         init = order_by_layout(path, names, xy, expected, (info.width, info.height), frame_size)
         options = {p.name: params[p.name] for p in self.params
                    if p.name not in ("layout", "method", "model_components")}
-        if "pack" in inputs and params["method"] == "ncc":
-            options["face_model"] = self.face_model(inputs["pack"], expected, init, (info.width, info.height),
+        given = [port for port in FACE_MODEL_INPUTS if inputs.get(port) is not None]
+        if given and len(given) < len(FACE_MODEL_INPUTS):
+            raise StageError(f"{self.name}: the face model needs the inputs {', '.join(FACE_MODEL_INPUTS)} together "
+                             f"(pack.load's outputs), got only {', '.join(given)}")
+        if given and params["method"] == "ncc":
+            options["face_model"] = self.face_model(inputs, layout, init, (info.width, info.height),
                                                     params["model_components"])
         tracks = track_points(iter_frames(stream), init, method=params["method"],
                               progress=ctx.progress, **options)
@@ -710,17 +717,16 @@ class CorrelationTrack(SequenceStage):
             }
         }
 
-    def face_model(self, pack_dir: Any, names: tuple[str, ...], init: np.ndarray, size: tuple[int, int],
+    def face_model(self, inputs: Mapping[str, Any], layout: Any, init: np.ndarray, size: tuple[int, int],
                    components: int) -> FaceModel:
-        """The tracked points' face model from the performer pack (:func:`pack_face_model`)."""
-        pack = load_pack(pack_dir)
-        if tuple(pack.image_size) != tuple(size):
-            raise StageError(f"{pack.path}: intrinsics are for {pack.image_size[0]}x{pack.image_size[1]} images, "
-                             f"the clip's frames are {size[0]}x{size[1]}; use a pack from this camera")
+        """The tracked points' face model from the performer pack's bundles (:func:`bundle_face_model`)."""
         if components < 1:
             raise StageError(f"{self.name}: model_components must be at least 1, got {components}")
-        missing = [n for n in names if n not in pack.layout.point_names]
-        if missing:
-            raise StageError(f"{pack.path}: the pack's layout has no points {missing[:5]} of the tracked subset")
-        rigid = rigid_columns(np.array(names), pack.layout, at_least=4, stage=self.name)
-        return pack_face_model(pack, list(names), init, rigid, pack.intrinsics, components=components)
+        names = [layout.point_names[i] for i in layout.tracked]
+        rigid = rigid_columns(np.array(names), layout, at_least=4, stage=self.name)
+        try:
+            camera = camera_from_bundle(inputs["camera"], size=size)
+            return bundle_face_model(inputs["model3d"], inputs["geometry"], names, init, rigid, camera,
+                                     components=components)
+        except ValueError as exc:
+            raise StageError(f"{self.name}: {exc}") from None

@@ -7,18 +7,19 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
-from stages.actor_pack import load_pack
+from stages.pack.bundles import layout_and_geometry
 from stages.propagation.hierarchical_pca import HierarchicalPCA, fit_hierarchical_pca
 from stages.propagation.propagate import motion_propagation
 
 
 class TrainHierarchicalPCA(SequenceStage):
-    """Offline: hierarchical PCA of an actor pack's captured geometries (Sec. 10, 14)."""
+    """Offline: hierarchical PCA of an actor pack's captured geometries (Sec. 10, 14), from
+    ``pack.load``'s ``layout`` and ``geometry`` (neither reads the pack's images)."""
 
     name = "propagate.train"
-    version = "1"
+    version = "2"
     doc = "hierarchical PCA (1 + 4 + 16 feature point sets) of the pack's captured geometries"
-    inputs = {"pack": "dir"}
+    inputs = {"layout": "layout", "geometry": "pack_geometry"}
     outputs = {"pca_model": "pca_model"}
     params = (
         Param("n_components", int, 8, "most principal components kept per feature point set (paper: 5-10)"),
@@ -26,14 +27,17 @@ class TrainHierarchicalPCA(SequenceStage):
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
-        pack = load_pack(inputs["pack"])
+        try:
+            layout, geometry = layout_and_geometry(inputs["layout"], inputs["geometry"])
+        except ValueError as exc:
+            raise StageError(f"{self.name}: {exc}") from None
         model = fit_hierarchical_pca(
-            pack.neutral.points,
-            pack.captured_points,
-            pack.layout.feature_point_sets,
+            geometry.neutral,
+            geometry.captured,
+            layout.feature_point_sets,
             n_components=int(params["n_components"]),
             variance_kept=float(params["variance_kept"]),
-            point_names=pack.layout.point_names,
+            point_names=layout.point_names,
         )
         ctx.log.info(
             "hierarchical PCA: %d sets, components kept %s",

@@ -44,8 +44,9 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
-from stages.actor_pack import ActorPack, load_pack
+from stages.actor_pack import ActorPack
 from stages.layout import Layout, subregion_mask
+from stages.pack.bundles import images_from_bundle, layout_from_bundle
 from stages.synthesis.warp import border_anchors, triangulate, warp_images
 
 __all__ = ["blend_weight_map", "subregion_weights", "order_triangles", "align_to_standard", "build_synthesis_model", "BuildSynthesis"]
@@ -246,23 +247,28 @@ def build_synthesis_model(
 
 
 class BuildSynthesis(SequenceStage):
-    """``synthesis.build``: align an actor pack's examples, rasterize subregions, make the weight map."""
+    """``synthesis.build``: align an actor pack's examples, rasterize subregions, make the weight map.
+
+    Takes ``pack.load``'s ``layout`` and ``images`` (:class:`stages.pack.bundles.PackImages`
+    stands in for the :class:`ActorPack` of :func:`build_synthesis_model`)."""
 
     name = "synthesis.build"
-    version = "2"
+    version = "3"
     doc = "offline: align examples and teeth examples to the standard image, subregion mask, blend weight map"
-    inputs = {"pack": "dir"}
+    inputs = {"layout": "layout", "images": "pack_images"}
     outputs = {"model": "synthesis_model"}
     params = (
-        Param("band_px", float, 10.0, "full width of the fade-in/fade-out band along subregion boundaries, px (Sec. 7)"),
-        Param("anchors_per_side", int, 4, "border anchor points per image side for the triangulation warp"),
-        Param("anchor_margin", float, 0.25, "anchor rectangle outside the image, fraction of the larger side"),
+        Param("band_px", float, 10.0, "full width of the fade-in/fade-out band along subregion boundaries, px (Sec. 7)",
+              min=0.0),
+        Param("anchors_per_side", int, 4, "border anchor points per image side for the triangulation warp", min=1),
+        Param("anchor_margin", float, 0.25, "anchor rectangle outside the image, fraction of the larger side", min=0.0),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
-        if params["band_px"] < 0:
-            raise StageError(f"synthesis.build: parameter 'band_px' must be >= 0, got {params['band_px']}")
-        pack = load_pack(inputs["pack"])
+        try:
+            pack = images_from_bundle(inputs["images"], layout_from_bundle(inputs["layout"]))
+        except ValueError as exc:
+            raise StageError(f"{self.name}: {exc}") from None
         model = build_synthesis_model(
             pack,
             band_px=params["band_px"],

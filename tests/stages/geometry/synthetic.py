@@ -54,3 +54,23 @@ def moving_clip(n_frames: int, *, size: tuple[int, int] = (160, 120), seed: int 
 def apply(transforms: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Points ``xy (N, 2)`` of frame 0 carried through ``transforms (T, 2, 3)`` -> ``(T, N, 2)``."""
     return np.einsum("tij,nj->tni", transforms[:, :, :2], xy) + transforms[:, None, :, 2]
+
+
+def pack_inputs(layout, *, model3d: np.ndarray | None = None, camera: np.ndarray | None = None,
+                size: tuple[int, int] = (640, 480), neutral: np.ndarray | None = None,
+                captured: np.ndarray | None = None) -> dict:
+    """``pack.load``'s ``layout``, ``model3d``, ``camera`` and ``geometry`` bundles of a made-up
+    pack of ``layout`` (zeros where an array is not given; ``captured`` defaults to the neutral
+    +- 1000 px, a range nothing leaves)."""
+    from stages.pack.bundles import layout_to_bundle
+
+    n = layout.n_points
+    names = np.array(layout.point_names)
+    neutral = np.zeros((n, 2)) if neutral is None else neutral
+    captured = neutral[None] + np.array([-1000.0, 1000.0])[:, None, None] if captured is None else captured
+    return {
+        "layout": layout_to_bundle(layout),
+        "model3d": {"names": names, "xyz": np.zeros((n, 3)) if model3d is None else model3d},
+        "camera": {"intrinsics": np.eye(3) if camera is None else camera, "size": np.array(size)},
+        "geometry": {"names": names, "neutral": neutral, "captured": captured, "size": np.array(size)},
+    }

@@ -20,6 +20,7 @@ from stages.geometry.pose import PnPPose
 from stages.geometry.smooth import GaussianSmooth
 from stages.geometry.track import CorrelationTrack
 from stages.layout import load_layout
+from stages.pack.bundles import pack_to_bundles
 from tests.stages.geometry.synthetic import MemoryStream, context
 
 ROOT = Path(os.environ.get("EXPRESSION_FIXTURES", Path(__file__).resolve().parents[3] / "fixtures"))
@@ -37,18 +38,20 @@ def clip(request):
     ctx = context(Path("/nonexistent"))
     frames = MemoryStream(decode(ROOT / "clips" / f"{kind}.mp4"), chunk=16)
     truth = dict(np.load(ROOT / "clips" / f"{kind}_truth.npz", allow_pickle=False))
-    pack = ROOT / "packs" / "performer"
+    pack = pack_to_bundles(load_pack(ROOT / "packs" / "performer"))
+    face_model = {port: pack[port] for port in ("model3d", "geometry", "camera")}
+    pose_inputs = {port: pack[port] for port in ("layout", "model3d", "camera", "geometry")}
     init = ROOT / "clips" / f"{kind}_track0.csv"
     tracked = {
         "2d_only": CorrelationTrack().run({"frames": frames, "init": init}, {}, ctx)["points"],
-        "face_model": CorrelationTrack().run({"frames": frames, "init": init, "pack": pack}, {}, ctx)["points"],
+        "face_model": CorrelationTrack().run({"frames": frames, "init": init, **face_model}, {}, ctx)["points"],
     }
     smoothed = GaussianSmooth().run({"points": tracked["face_model"]}, {}, ctx)["points"]
     compensated = SimilarityCompensate().run({"points": smoothed}, {}, ctx)
     pose = {
-        "rigid": PnPPose().run({"points": smoothed, "pack": pack}, {}, ctx)["pose"],
-        "eyes_nose": PnPPose().run({"points": smoothed, "pack": pack}, {"points": EYES_NOSE}, ctx)["pose"],
-        "face": PnPPose().run({"points": smoothed, "pack": pack}, {"model": "face"}, ctx)["pose"],
+        "rigid": PnPPose().run({"points": smoothed, **pose_inputs}, {}, ctx)["pose"],
+        "eyes_nose": PnPPose().run({"points": smoothed, **pose_inputs}, {"points": EYES_NOSE}, ctx)["pose"],
+        "face": PnPPose().run({"points": smoothed, **pose_inputs}, {"model": "face"}, ctx)["pose"],
     }
     return kind, truth, tracked, smoothed, compensated, pose
 
@@ -145,11 +148,12 @@ def test_mapping_onto_the_target_pack():
     smoothed = GaussianSmooth().run({"points": tracked}, {}, ctx)["points"]
     exact = dict(smoothed, xy=truth_of(truth, smoothed["names"]), valid=np.ones_like(smoothed["valid"]))
     columns = list(truth["tracked"])
+    target = pack_to_bundles(load_pack(ROOT / "packs" / "target"))
     errors = {}
     for label, points in (("tracked", smoothed), ("exact", exact)):
         displacements = SimilarityCompensate().run({"points": points}, {}, ctx)["displacements"]
-        mapped = ExpressionMap().run({"displacements": displacements, "pack": ROOT / "packs" / "target"}, {},
-                                     ctx)["points"]
+        mapped = ExpressionMap().run({"displacements": displacements, "layout": target["layout"],
+                                      "geometry": target["geometry"]}, {}, ctx)["points"]
         errors[label] = np.linalg.norm(mapped["xy"][:, columns] - truth["target_points"][:, columns], axis=2).mean()
         assert mapped["valid"][:, columns].mean() > 0.95
     neutral_only = np.linalg.norm(mapped["xy"][:1, columns] - truth["target_points"][:, columns], axis=2).mean()
@@ -164,6 +168,12 @@ def test_tracker_refuses_a_pack_for_another_frame_size():
     from runner.stage import StageError
 
     frames = MemoryStream(decode(ROOT / "clips" / "live.mp4")[:3], chunk=16)
-    inputs = {"frames": frames, "init": ROOT / "clips" / "live_track0.csv", "pack": ROOT / "packs" / "target"}
+    target = pack_to_bundles(load_pack(ROOT / "packs" / "target"))
+    inputs = {"frames": frames, "init": ROOT / "clips" / "live_track0.csv",
+              **{port: target[port] for port in ("model3d", "geometry", "camera")}}
     with pytest.raises(StageError, match="intrinsics are for 240x320 images, the clip's frames are 320x240"):
+        CorrelationTrack().run(inputs, {}, context(Path("/nonexistent")))
+    del inputs["camera"]
+    with pytest.raises(StageError, match="needs the inputs model3d, geometry, camera together .* got only model3d, "
+                                         "geometry"):
         CorrelationTrack().run(inputs, {}, context(Path("/nonexistent")))

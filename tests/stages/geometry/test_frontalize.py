@@ -4,22 +4,22 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from types import SimpleNamespace
 
 import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-import stages.geometry.frontalize
 from runner.registry import check_stage_class
 from runner.stage import StageError
 from stages.geometry.compensate import SimilarityCompensate, compensate
 from stages.geometry.frontalize import PoseCompensate, adapt_to_reference, frontalize
 from stages.geometry.mapping import ExpressionMap
 from stages.geometry.pose import PnPPose, adapt_model, default_intrinsics, estimate_poses
+from stages.actor_pack import load_pack
 from stages.layout import load_layout
-from tests.stages.geometry.synthetic import context
+from stages.pack.bundles import pack_to_bundles
+from tests.stages.geometry.synthetic import context, pack_inputs
 
 CAMERA = default_intrinsics((640, 480))  # f = 640 px
 FIXTURES = Path(os.environ.get("EXPRESSION_FIXTURES", Path(__file__).resolve().parents[3] / "fixtures"))
@@ -115,20 +115,19 @@ def test_adaptation_is_pose_pnp_adapt_model_for_a_frontal_neutral():
     np.testing.assert_allclose(ours, adapt_model(generic, image[0], CAMERA), atol=1e-5)
 
 
-def fake_pack(monkeypatch, shape: np.ndarray, names: np.ndarray) -> None:
+def fake_pack(shape: np.ndarray, names: np.ndarray) -> dict:
+    """``pack.load``'s bundles of a pack whose generic model is ``shape`` at the points ``names``."""
     layout = load_layout("zhang134")
     model3d = np.zeros((layout.n_points, 3))
     model3d[[layout.index(str(n)) for n in names]] = shape
-    pack = SimpleNamespace(path=Path("fake_pack"), layout=layout, model3d=model3d, intrinsics=CAMERA, image_size=(640, 480))
-    monkeypatch.setattr(stages.geometry.frontalize, "load_pack", lambda path: pack)
-    monkeypatch.setattr(stages.geometry.pose, "load_pack", lambda path: pack)
+    return pack_inputs(layout, model3d=model3d, camera=CAMERA)
 
 
-def test_stage_bundle_matches_compensate_similarity_and_flags_unsolved_frames(tmp_path, monkeypatch):
+def test_stage_bundle_matches_compensate_similarity_and_flags_unsolved_frames(tmp_path):
     layout = load_layout("zhang134")
     names = np.array([layout.point_names[i] for i in layout.tracked])
     shape, truth3d, R, t, image = deformed_sequence(n_points=len(names), amplitude_mm=1.0, seed=7)
-    fake_pack(monkeypatch, shape, names)
+    pack = fake_pack(shape, names)
     valid = np.ones(image.shape[:2], bool)
     valid[4, 3] = False
     valid[0, 5] = False  # no neutral position: invalid throughout
@@ -138,7 +137,7 @@ def test_stage_bundle_matches_compensate_similarity_and_flags_unsolved_frames(tm
     pose["valid"][6] = False
     ctx = context(tmp_path)
     check_stage_class(PoseCompensate)
-    out = PoseCompensate().run({"points": points, "pose": pose, "pack": tmp_path}, {}, ctx)["displacements"]
+    out = PoseCompensate().run({"points": points, "pose": pose, "model3d": pack["model3d"]}, {}, ctx)["displacements"]
     reference = SimilarityCompensate().run({"points": points}, {}, ctx)["displacements"]
     assert set(out) == set(reference)
     np.testing.assert_array_equal(out["neutral"], image[0])
@@ -152,27 +151,27 @@ def test_stage_bundle_matches_compensate_similarity_and_flags_unsolved_frames(tm
     good = out["valid"]
     np.testing.assert_allclose(out["d"][good], (frontal - image[:1])[good], atol=1e-6)
     # map.expression takes it as it takes compensate.similarity's bundle
-    target = SimpleNamespace(layout=layout, neutral=SimpleNamespace(points=np.zeros((layout.n_points, 2)) + 100))
-    monkeypatch.setattr(stages.geometry.mapping, "load_pack", lambda path: target)
-    mapped = ExpressionMap().run({"displacements": out, "pack": tmp_path}, {"mode": "none"}, ctx)["points"]
+    target = pack_inputs(layout, neutral=np.zeros((layout.n_points, 2)) + 100)
+    mapped = ExpressionMap().run({"displacements": out, "layout": target["layout"], "geometry": target["geometry"]},
+                                 {"mode": "none"}, ctx)["points"]
     assert mapped["xy"].shape == (len(R), layout.n_points, 2)
 
 
-def test_stage_errors_name_the_problem(tmp_path, monkeypatch):
+def test_stage_errors_name_the_problem(tmp_path):
     layout = load_layout("zhang134")
     names = np.array([layout.point_names[i] for i in layout.tracked])
     shape, _, R, t, image = deformed_sequence(n_frames=3, n_points=len(names), amplitude_mm=0.0)
-    fake_pack(monkeypatch, shape, names)
+    pack = fake_pack(shape, names)
     points = {"xy": image, "valid": np.ones(image.shape[:2], bool), "names": names}
     pose = {"R": R, "tvec": t, "valid": np.array([False, True, True])}
     with pytest.raises(StageError, match="frame 0"):
-        PoseCompensate().run({"points": points, "pose": pose, "pack": tmp_path}, {}, context(tmp_path))
+        PoseCompensate().run({"points": points, "pose": pose, "model3d": pack["model3d"]}, {}, context(tmp_path))
     pose["valid"][0] = True
     odd = points | {"names": np.concatenate([names[:-1], ["not_a_point"]])}
     with pytest.raises(StageError, match="not_a_point"):
-        PoseCompensate().run({"points": odd, "pose": pose, "pack": tmp_path}, {}, context(tmp_path))
+        PoseCompensate().run({"points": odd, "pose": pose, "model3d": pack["model3d"]}, {}, context(tmp_path))
     with pytest.raises(StageError, match="frames"):
-        PoseCompensate().run({"points": points, "pose": {k: v[:2] for k, v in pose.items()}, "pack": tmp_path},
+        PoseCompensate().run({"points": points, "pose": {k: v[:2] for k, v in pose.items()}, "model3d": pack["model3d"]},
                              {}, context(tmp_path))
 
 
@@ -193,9 +192,9 @@ def test_fixture_true_points_and_pose_approach_the_ideal_compensation(tmp_path, 
     pose = {"R": truth["R"], "tvec": truth["tvec"], "rvec": truth["rvec"], "valid": np.ones(len(truth["R"]), bool),
             "camera": truth["intrinsics"]}
     ctx = context(tmp_path)
-    pack = FIXTURES / "packs" / "performer"
+    pack = pack_to_bundles(load_pack(FIXTURES / "packs" / "performer"))
     ideal = truth["expression_points"][:, truth["tracked"]]
-    ours = PoseCompensate().run({"points": points, "pose": pose, "pack": pack}, {}, ctx)["displacements"]
+    ours = PoseCompensate().run({"points": points, "pose": pose, "model3d": pack["model3d"]}, {}, ctx)["displacements"]
     flat = SimilarityCompensate().run({"points": points}, {}, ctx)["displacements"]
     error_3d = np.linalg.norm(ours["d"] + ours["neutral"] - ideal, axis=-1).mean()
     error_2d = np.linalg.norm(flat["d"] + flat["neutral"] - ideal, axis=-1).mean()
@@ -209,9 +208,10 @@ def test_fixture_live_with_pnp_pose_beats_similarity_by_far(tmp_path):
     yaw): compensated geometry error measured 0.80 px against 4.28 px for compensate.similarity."""
     truth, points = truth_bundle("live")
     ctx = context(tmp_path)
-    pack = FIXTURES / "packs" / "performer"
-    pose = PnPPose().run({"points": points, "pack": pack}, {}, ctx)["pose"]
-    ours = PoseCompensate().run({"points": points, "pose": pose, "pack": pack}, {}, ctx)["displacements"]
+    pack = pack_to_bundles(load_pack(FIXTURES / "packs" / "performer"))
+    pose = PnPPose().run({"points": points, **{port: pack[port] for port in ("layout", "model3d", "camera")}}, {},
+                         ctx)["pose"]
+    ours = PoseCompensate().run({"points": points, "pose": pose, "model3d": pack["model3d"]}, {}, ctx)["displacements"]
     ideal = truth["expression_points"][:, truth["tracked"]]
     error = np.linalg.norm(ours["d"] + ours["neutral"] - ideal, axis=-1).mean()
     assert error < 1.0

@@ -3,12 +3,9 @@ the eye corners and nose, limited to the pack's captured range, inner lips kept 
 
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import numpy as np
 import pytest
 
-import stages.geometry.mapping
 from runner.stage import StageError
 from stages.geometry.compensate import apply_similarity
 from stages.geometry.mapping import (
@@ -16,7 +13,7 @@ from stages.geometry.mapping import (
     separate_lips, soft_limit,
 )
 from stages.layout import load_layout
-from tests.stages.geometry.synthetic import context
+from tests.stages.geometry.synthetic import context, pack_inputs
 
 
 def rotation(angle: float) -> np.ndarray:
@@ -54,18 +51,18 @@ def test_region_mode_uses_each_region_size():
     np.testing.assert_allclose(transforms[8], global_scale, atol=1e-12)  # too small a region: global
 
 
-def test_stage_maps_onto_the_pack_neutral(tmp_path, monkeypatch):
+def test_stage_maps_onto_the_pack_neutral(tmp_path):
     layout = load_layout("zhang134")
     rng = np.random.default_rng(2)
     target_all = rng.uniform(40, 200, (layout.n_points, 2))
-    fake_pack(monkeypatch, layout, target_all)
+    pack = fake_pack(layout, target_all)
     names = np.array([layout.point_names[i] for i in layout.tracked])
     target = target_all[list(layout.tracked)]
     performer = apply_similarity(np.array([1.5, 0.0, 10.0, 5.0]), target)
     d = rng.normal(0, 3.0, (4, len(names), 2))
     bundle = {"d": d, "valid": np.ones((4, len(names)), bool), "names": names, "neutral": performer}
     bundle["valid"][2, 5] = False
-    out = ExpressionMap().run({"displacements": bundle, "pack": tmp_path}, {}, context(tmp_path))["points"]
+    out = ExpressionMap().run({"displacements": bundle, **pack}, {}, context(tmp_path))["points"]
     tracked = list(layout.tracked)
     assert out["xy"].shape == (4, layout.n_points, 2) and list(out["names"]) == list(layout.point_names)
     np.testing.assert_allclose(out["xy"][:, tracked], target + d / 1.5, atol=1e-9)
@@ -73,21 +70,19 @@ def test_stage_maps_onto_the_pack_neutral(tmp_path, monkeypatch):
     np.testing.assert_array_equal(out["xy"][:, others], np.broadcast_to(target_all[others], (4, len(others), 2)))
     assert out["valid"][:, tracked].sum() == 4 * len(tracked) - 1 and not out["valid"][:, others].any()
     assert not out["valid"][2, tracked[5]]
-    region = ExpressionMap().run({"displacements": bundle, "pack": tmp_path}, {"mode": "region"},
+    region = ExpressionMap().run({"displacements": bundle, **pack}, {"mode": "region"},
                                  context(tmp_path))["points"]
     np.testing.assert_allclose(region["xy"][:, tracked], target + d / 1.5, atol=1e-9)  # one scale for all here
     del bundle["neutral"]
     with pytest.raises(StageError, match="neutral"):
-        ExpressionMap().run({"displacements": bundle, "pack": tmp_path}, {}, context(tmp_path))
+        ExpressionMap().run({"displacements": bundle, **pack}, {}, context(tmp_path))
 
 
-def fake_pack(monkeypatch, layout, neutral: np.ndarray, captured: np.ndarray | None = None) -> None:
-    """``load_pack`` answers a pack with this neutral and these captured geometries (default: the
-    neutral +- 1000 px, a range nothing leaves)."""
-    if captured is None:
-        captured = neutral[None] + np.array([-1000.0, 1000.0])[:, None, None]
-    pack = SimpleNamespace(layout=layout, neutral=SimpleNamespace(points=neutral), captured_points=captured)
-    monkeypatch.setattr(stages.geometry.mapping, "load_pack", lambda path: pack)
+def fake_pack(layout, neutral: np.ndarray, captured: np.ndarray | None = None) -> dict:
+    """The ``layout`` and ``geometry`` inputs of a pack with this neutral and these captured
+    geometries (:func:`pack_inputs`)."""
+    bundles = pack_inputs(layout, neutral=neutral, captured=captured)
+    return {port: bundles[port] for port in ("layout", "geometry")}
 
 
 def face(layout) -> np.ndarray:
@@ -104,12 +99,12 @@ def face(layout) -> np.ndarray:
     return xy
 
 
-def test_eyes_nose_mode_ignores_a_low_stand_in_hairline(tmp_path, monkeypatch):
+def test_eyes_nose_mode_ignores_a_low_stand_in_hairline(tmp_path):
     """The performer is the target at 1/1.5 the size, but its hairline points sit 20 px lower (a
     landmark mesh's stand-in): the rigid fit inflates the motion, the eye-and-nose fit does not."""
     layout = load_layout("zhang134")
     target_all = face(layout)
-    fake_pack(monkeypatch, layout, target_all)
+    pack = fake_pack(layout, target_all)
     names = np.array([layout.point_names[i] for i in layout.tracked])
     target = target_all[list(layout.tracked)]
     performer = apply_similarity(np.array([1 / 1.5, 0.0, 40.0, 30.0]), target)
@@ -117,7 +112,7 @@ def test_eyes_nose_mode_ignores_a_low_stand_in_hairline(tmp_path, monkeypatch):
     d = np.random.default_rng(3).normal(0, 3.0, (3, len(names), 2))
     bundle = {"d": d, "valid": np.ones((3, len(names)), bool), "names": names, "neutral": performer}
     tracked = list(layout.tracked)
-    mapped = {mode: ExpressionMap().run({"displacements": bundle, "pack": tmp_path},
+    mapped = {mode: ExpressionMap().run({"displacements": bundle, **pack},
                                         {"mode": mode, "range_limit": "none"}, context(tmp_path))["points"]
               for mode in ("eyes_nose", "similarity")}
     lips = [list(names).index(n) for n in ("mouth_inner_2", "mouth_inner_7")]
@@ -131,7 +126,7 @@ def test_eyes_nose_mode_ignores_a_low_stand_in_hairline(tmp_path, monkeypatch):
     bundle["d"], bundle["neutral"] = d[:, : len(bundle["names"])], performer[: len(bundle["names"])]
     bundle["valid"] = bundle["valid"][:, : len(bundle["names"])]
     with pytest.raises(StageError, match="eyes_nose needs at least 2"):
-        ExpressionMap().run({"displacements": bundle, "pack": tmp_path}, {}, context(tmp_path))
+        ExpressionMap().run({"displacements": bundle, **pack}, {}, context(tmp_path))
 
 
 def test_soft_limit_by_hand():
@@ -150,7 +145,7 @@ def test_soft_limit_by_hand():
     np.testing.assert_array_equal(high, [[3.0, 2.0], [0.0, 0.5]])
 
 
-def test_stage_range_limit_against_a_hand_computed_case(tmp_path, monkeypatch):
+def test_stage_range_limit_against_a_hand_computed_case(tmp_path):
     """The chin's captured vertical displacements span [-1, 4] px; the eye distance is 100 px, so a
     margin of 0.05 is 5 px: 2 px stays, 12 px becomes 4 + 5 tanh(8 / 5), -10 px -1 - 5 tanh(9 / 5)."""
     layout = load_layout("zhang134")
@@ -160,26 +155,26 @@ def test_stage_range_limit_against_a_hand_computed_case(tmp_path, monkeypatch):
     captured = np.repeat(neutral[None], 3, axis=0)
     captured[0, chin, 1] += 4.0
     captured[1, chin, 1] -= 1.0
-    fake_pack(monkeypatch, layout, neutral, captured)
+    pack = fake_pack(layout, neutral, captured)
     names = np.array(["eye_l_0", "eye_r_0", "chin"])
     d = np.zeros((4, 3, 2))
     d[:, 2, 1] = [2.0, 12.0, -10.0, 8.0]  # 8 px: 4 beyond the range, inside the margin
     bundle = {"d": d, "valid": np.ones((4, 3), bool), "names": names,
               "neutral": neutral[[layout.index(n) for n in names]]}
-    out = ExpressionMap().run({"displacements": bundle, "pack": tmp_path}, {"mode": "none"},
+    out = ExpressionMap().run({"displacements": bundle, **pack}, {"mode": "none"},
                               context(tmp_path))["points"]
     expected = [2.0, 4.0 + 5.0 * np.tanh(8 / 5), -1.0 - 5.0 * np.tanh(9 / 5), 4.0 + 5.0 * np.tanh(4 / 5)]
     np.testing.assert_allclose(out["xy"][:, chin, 1] - neutral[chin, 1], expected, rtol=1e-12)
     np.testing.assert_array_equal(out["range_limited"], [False, True, True, False])
-    off = ExpressionMap().run({"displacements": bundle, "pack": tmp_path}, {"mode": "none", "range_limit": "none"},
+    off = ExpressionMap().run({"displacements": bundle, **pack}, {"mode": "none", "range_limit": "none"},
                               context(tmp_path))["points"]
     np.testing.assert_allclose(off["xy"][:, chin, 1] - neutral[chin, 1], d[:, 2, 1])
     assert not off["range_limited"].any()
-    with pytest.raises(StageError, match="range_margin"):
-        ExpressionMap().run({"displacements": bundle, "pack": tmp_path}, {"range_margin": -0.1}, context(tmp_path))
+    margin = next(p for p in ExpressionMap.params if p.name == "range_margin")
+    assert "out of range" in margin.problem(-0.1) and margin.problem(0.0) is None
 
 
-def test_lips_of_a_performer_with_an_open_neutral_never_cross(tmp_path, monkeypatch):
+def test_lips_of_a_performer_with_an_open_neutral_never_cross(tmp_path):
     """The performer's neutral frame has the mouth 6 px open; closing it fully (upper lip 4 px
     down, lower 2 px up) would push the target's touching lips 6 px through each other: the guard
     stops them where they touch on the target's neutral (its own 0.4 px overlap), each moved 3 px
@@ -188,7 +183,7 @@ def test_lips_of_a_performer_with_an_open_neutral_never_cross(tmp_path, monkeypa
     neutral = face(layout)
     upper, lower = layout.index("mouth_inner_3"), layout.index("mouth_inner_7")
     neutral[lower, 1] -= 0.4  # the target's neutral lips overlap a little (annotation)
-    fake_pack(monkeypatch, layout, neutral)
+    pack = fake_pack(layout, neutral)
     names = np.array([layout.point_names[i] for i in layout.tracked] + ["mouth_inner_3"])
     rows = [layout.index(n) for n in names]
     d = np.zeros((3, len(names), 2))
@@ -196,14 +191,14 @@ def test_lips_of_a_performer_with_an_open_neutral_never_cross(tmp_path, monkeypa
     d[1, up, 1], d[1, low, 1] = 4.0, -2.0  # closes: crosses by 6 px
     d[2, up, 1], d[2, low, 1] = -2.0, 2.0  # opens: untouched
     bundle = {"d": d, "valid": np.ones((3, len(names)), bool), "names": names, "neutral": neutral[rows]}
-    out = ExpressionMap().run({"displacements": bundle, "pack": tmp_path}, {}, context(tmp_path))["points"]
+    out = ExpressionMap().run({"displacements": bundle, **pack}, {}, context(tmp_path))["points"]
     gap = out["xy"][:, lower, 1] - out["xy"][:, upper, 1]
     np.testing.assert_allclose(gap, [-0.4, -0.4, 3.6], atol=1e-12)
     np.testing.assert_allclose(out["xy"][1, [upper, lower], 1] - neutral[[upper, lower], 1], [1.0, 1.0], atol=1e-12)
     np.testing.assert_array_equal(out["lips_clamped"], [False, True, False])
     np.testing.assert_allclose(out["xy"][0, rows], neutral[rows], atol=1e-12)  # neutral maps to itself
     bundle["valid"][1, low] = False  # an invalid partner: no guard, no count
-    out = ExpressionMap().run({"displacements": bundle, "pack": tmp_path}, {}, context(tmp_path))["points"]
+    out = ExpressionMap().run({"displacements": bundle, **pack}, {}, context(tmp_path))["points"]
     assert not out["lips_clamped"].any()
 
 
@@ -223,10 +218,10 @@ def test_separate_lips_keeps_every_pair_apart():
     np.testing.assert_array_equal(out[~crossed], xy[~crossed])
 
 
-def test_the_log_names_the_points_limited_most(tmp_path, monkeypatch, caplog):
+def test_the_log_names_the_points_limited_most(tmp_path, caplog):
     layout = load_layout("zhang134")
     neutral = face(layout)
-    fake_pack(monkeypatch, layout, neutral, np.repeat(neutral[None], 2, axis=0))  # nothing moves in the pack
+    pack = fake_pack(layout, neutral, np.repeat(neutral[None], 2, axis=0))  # nothing moves in the pack
     names = np.array(["eye_l_0", "eye_r_0", "chin", "nose_tip"])
     d = np.zeros((5, 4, 2))
     d[1:, 2, 1] = 9.0  # chin: 4 frames 9 px beyond its (empty) range, margin 5 px
@@ -235,7 +230,7 @@ def test_the_log_names_the_points_limited_most(tmp_path, monkeypatch, caplog):
     bundle = {"d": d, "valid": np.ones((5, 4), bool), "names": names,
               "neutral": neutral[[layout.index(n) for n in names]]}
     with caplog.at_level("INFO"):
-        out = ExpressionMap().run({"displacements": bundle, "pack": tmp_path}, {"mode": "none"},
+        out = ExpressionMap().run({"displacements": bundle, **pack}, {"mode": "none"},
                                   context(tmp_path))["points"]
     np.testing.assert_array_equal(out["range_limited"], [False, True, True, True, True])
     assert "in 4 of 5 frames (soft limit), most often (frames): chin 4, nose_tip 1;" in caplog.text

@@ -2,18 +2,15 @@
 
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-import stages.geometry.pose
 from runner.stage import StageError
 from stages.geometry.pose import PnPPose, default_intrinsics, estimate_poses
 from stages.layout import load_layout
-from tests.stages.geometry.synthetic import context
+from tests.stages.geometry.synthetic import context, pack_inputs
 
 CAMERA = default_intrinsics((640, 480))
 # hairline arc and inner eye corners of a generic head, mm (x right, y down, z away from camera)
@@ -94,12 +91,12 @@ def test_temporal_smoothing_reduces_jitter():
     assert angle_deg(smooth["rvec"], rvec).mean() < 0.8 * angle_deg(raw["rvec"], rvec).mean()
 
 
-def test_stage_uses_the_pack_model_and_intrinsics(tmp_path, monkeypatch):
+def test_stage_uses_the_pack_model_and_intrinsics(tmp_path):
     layout = load_layout("zhang134")
     model3d = np.zeros((layout.n_points, 3))
     model3d[list(layout.rigid)] = MODEL
-    pack = SimpleNamespace(path=tmp_path, layout=layout, model3d=model3d, intrinsics=CAMERA, image_size=(640, 480))
-    monkeypatch.setattr(stages.geometry.pose, "load_pack", lambda path: pack)
+    bundles = pack_inputs(layout, model3d=model3d, camera=CAMERA, size=(640, 480))
+    pack = {port: bundles[port] for port in ("layout", "model3d", "camera")}
     rvec, tvec, image = sequence(8, noise_px=0.0)
     names = np.array([layout.point_names[i] for i in layout.tracked])
     xy = np.full((8, len(names), 2), 50.0)
@@ -107,20 +104,25 @@ def test_stage_uses_the_pack_model_and_intrinsics(tmp_path, monkeypatch):
         xy[:, list(names).index(layout.point_names[i])] = image[:, k]
     points = {"xy": xy, "valid": np.ones(xy.shape[:2], bool), "names": names, "size": np.array([640, 480])}
     exact = {"adapt_model": False}
-    out = PnPPose().run({"points": points, "pack": tmp_path}, exact, context(tmp_path))["pose"]
+    out = PnPPose().run({"points": points, **pack}, exact, context(tmp_path))["pose"]
     assert angle_deg(out["rvec"], rvec).max() < 1e-5
     assert set(out) == {"rvec", "tvec", "R", "reproj_err_px", "valid", "camera"}
     np.testing.assert_array_equal(out["camera"], CAMERA)
     # the image-size default has the same camera here: same answer
-    same = PnPPose().run({"points": points, "pack": tmp_path}, exact | {"intrinsics": "image"}, context(tmp_path))["pose"]
+    same = PnPPose().run({"points": points, **pack}, exact | {"intrinsics": "image"}, context(tmp_path))["pose"]
     np.testing.assert_allclose(same["rvec"], out["rvec"], atol=1e-9)
-    wider = PnPPose().run({"points": points, "pack": tmp_path}, exact | {"focal_px": 900.0}, context(tmp_path))["pose"]
+    wider = PnPPose().run({"points": points, **pack}, exact | {"focal_px": 900.0}, context(tmp_path))["pose"]
     assert np.abs(wider["tvec"][:, 2] - tvec[:, 2]).min() > 50
-    relative = PnPPose().run({"points": points, "pack": tmp_path}, {}, context(tmp_path))["pose"]  # adapted
+    relative = PnPPose().run({"points": points, **pack}, {}, context(tmp_path))["pose"]  # adapted
     np.testing.assert_allclose(relative["R"][0], np.eye(3), atol=1e-6)
     # the pack's camera belongs to 640x480 images: a clip of another size is refused
     with pytest.raises(StageError, match="intrinsics are for 640x480 images, the clip's frames are 320x240"):
-        PnPPose().run({"points": points | {"size": np.array([320, 240])}, "pack": tmp_path}, exact, context(tmp_path))
+        PnPPose().run({"points": points | {"size": np.array([320, 240])}, **pack}, exact, context(tmp_path))
+    # what a parameter needs of pack.load's bundles and is not connected is named
+    with pytest.raises(StageError, match="intrinsics=pack needs the input 'camera'"):
+        PnPPose().run({"points": points, **pack, "camera": None}, exact, context(tmp_path))
+    with pytest.raises(StageError, match="model=face needs the input 'geometry'"):
+        PnPPose().run({"points": points, **pack}, {"model": "face"}, context(tmp_path))
 
 
 def test_adapting_a_generic_model_to_the_frontal_first_frame():
@@ -136,12 +138,11 @@ def test_adapting_a_generic_model_to_the_frontal_first_frame():
     assert angle_deg(adapted["rvec"], rvec).max() < 1.0
 
 
-def test_stage_points_parameter_names_unknown_points(tmp_path, monkeypatch):
+def test_stage_points_parameter_names_unknown_points(tmp_path):
     layout = load_layout("zhang134")
-    pack = SimpleNamespace(path=tmp_path, layout=layout, model3d=np.zeros((layout.n_points, 3)), intrinsics=CAMERA,
-                           image_size=(640, 480))
-    monkeypatch.setattr(stages.geometry.pose, "load_pack", lambda path: pack)
+    bundles = pack_inputs(layout, camera=CAMERA, size=(640, 480))
+    pack = {port: bundles[port] for port in ("layout", "model3d", "camera")}
     names = np.array([layout.point_names[i] for i in layout.tracked])
     points = {"xy": np.zeros((2, len(names), 2)), "valid": np.ones((2, len(names)), bool), "names": names}
     with pytest.raises(StageError, match="forehead_9"):
-        PnPPose().run({"points": points, "pack": tmp_path}, {"points": ["eye_l_0", "forehead_9"]}, context(tmp_path))
+        PnPPose().run({"points": points, **pack}, {"points": ["eye_l_0", "forehead_9"]}, context(tmp_path))

@@ -1,6 +1,5 @@
-"""Stage wrappers: propagate.train on a stand-in for load_pack's pack, propagate.hierarchical on bundles."""
+"""Stage wrappers: propagate.train on pack.load's layout and geometry bundles, propagate.hierarchical on bundles."""
 
-import types
 from pathlib import Path
 
 import numpy as np
@@ -8,9 +7,11 @@ import pytest
 
 from runner.registry import check_stage_class
 from runner.stage import Context, StageError
+from stages.actor_pack import load_pack
+from stages.layout import FeaturePointSet, Layout, Subregion
+from stages.pack.bundles import layout_to_bundle, pack_to_bundles
 from stages.propagation.hierarchical_pca import HierarchicalPCA, fit_hierarchical_pca
 from stages.propagation.propagate import motion_propagation
-from stages.propagation import stage as stage_module
 from stages.propagation.stage import HierarchicalPropagation, TrainHierarchicalPCA
 from tests.stages.propagation.toy_face import N_POINTS, expressions, low_rank_modes, toy_hierarchy, toy_neutral
 
@@ -29,20 +30,27 @@ def model() -> HierarchicalPCA:
     return fit_hierarchical_pca(toy_neutral(), captured, toy_hierarchy(), n_components=6, point_names=NAMES)
 
 
-def test_train_reads_the_pack_and_returns_a_model_bundle(tmp_path, monkeypatch):
+def toy_layout() -> Layout:
+    """A layout over the toy face: its hierarchy, one subregion, four rigid and three tracked points."""
+    sets = tuple(FeaturePointSet(s.name, s.level, s.points) for s in toy_hierarchy())
+    return Layout(name="toy", point_names=NAMES, subregions=(Subregion("face", (0, 1, 2), ()),), no_blend=(),
+                  feature_point_sets=sets, rigid=(0, 1, 2, 3), tracked=(0, 1, 2))
+
+
+def test_train_reads_layout_and_geometry_and_returns_a_model_bundle(tmp_path):
     captured = toy_neutral() + expressions(low_rank_modes(6, seed=71), 35, seed=72)
-    layout = types.SimpleNamespace(feature_point_sets=toy_hierarchy(), point_names=NAMES)
-    pack = types.SimpleNamespace(
-        neutral=types.SimpleNamespace(points=toy_neutral()), captured_points=captured, layout=layout
-    )
-    seen = []
-    monkeypatch.setattr(stage_module, "load_pack", lambda path: seen.append(path) or pack)
-    out = TrainHierarchicalPCA().run({"pack": tmp_path}, {"n_components": 6, "variance_kept": 1.0}, context(tmp_path))
-    assert seen == [tmp_path]
+    layout = layout_to_bundle(toy_layout())
+    geometry = {"names": np.array(NAMES), "neutral": toy_neutral(), "captured": captured, "size": np.array([64, 64])}
+    params = {"n_components": 6, "variance_kept": 1.0}
+    check_stage_class(TrainHierarchicalPCA)
+    out = TrainHierarchicalPCA().run({"layout": layout, "geometry": geometry}, params, context(tmp_path))
     bundle = out["pca_model"]
     assert all(isinstance(v, np.ndarray) and v.dtype != object for v in bundle.values())
     expected = fit_hierarchical_pca(toy_neutral(), captured, toy_hierarchy(), n_components=6, point_names=NAMES)
     np.testing.assert_array_equal(bundle["components"], expected.to_bundle()["components"])
+    with pytest.raises(StageError, match="propagate.train: pack_geometry bundle: key 'names'"):
+        TrainHierarchicalPCA().run({"layout": layout, "geometry": geometry | {"names": np.array(NAMES[::-1])}},
+                                   params, context(tmp_path))
 
 
 def test_points_and_displacements_inputs_agree(model, tmp_path):
@@ -96,9 +104,9 @@ PACK = Path(__file__).resolve().parents[3] / "fixtures" / "packs" / "target"
 
 
 def test_train_and_propagate_on_the_fixture_pack(tmp_path):
-    bundle = TrainHierarchicalPCA().run({"pack": PACK}, {"n_components": 8, "variance_kept": 1.0}, context(tmp_path))[
-        "pca_model"
-    ]
+    pack = pack_to_bundles(load_pack(PACK))
+    bundle = TrainHierarchicalPCA().run({"layout": pack["layout"], "geometry": pack["geometry"]},
+                                        {"n_components": 8, "variance_kept": 1.0}, context(tmp_path))["pca_model"]
     model = HierarchicalPCA.from_bundle(bundle)
     assert sorted(model.levels.tolist()) == [0] + [1] * 4 + [2] * 16
     with np.load(PACK / "captured.npz", allow_pickle=False) as npz:

@@ -13,6 +13,7 @@ from runner.execute import Options, Runner
 from runner.registry import Registry
 from runner.stage import Context, SequenceStage
 from stages.actor_pack import load_pack
+from stages.pack.stage import LoadPack
 from stages.synthesis.build import BuildSynthesis
 from stages.synthesis.coefficients import NameCoefficients
 from stages.synthesis.synthesize import Synthesize, Synthesizer
@@ -50,7 +51,8 @@ chunk_frames: 2
 inputs:
   target: {type: dir, default: PACK}
 stages:
-  build: {uses: synthesis.build, inputs: {pack: target}}
+  pack: {uses: pack.load, inputs: {pack: target}}
+  build: {uses: synthesis.build, inputs: {layout: pack.layout, images: pack.images}}
   geometry: {uses: t.pack_points, inputs: {pack: target}}
   synth: {uses: synthesis.synthesize, inputs: {model: build.model, points: geometry.points}}
   coeffs: {uses: synthesis.coefficients, inputs: {model: build.model, coeffs: synth.coeffs}}
@@ -61,7 +63,7 @@ stages:
 def test_runner_pipeline_matches_direct_synthesis(tmp_path: Path):
     path = tmp_path / "p.yaml"
     path.write_text(textwrap.dedent(PIPELINE).replace("PACK", str(PACK)))
-    registry = Registry(classes=[BuildSynthesis, NameCoefficients, Synthesize, PackGeometry, Gather])
+    registry = Registry(classes=[LoadPack, BuildSynthesis, NameCoefficients, Synthesize, PackGeometry, Gather])
     pipeline = load_pipeline(path, registry)
     runner = Runner(pipeline, bind_inputs(pipeline, clip=None, named=[]), Options(cache=CacheStore(tmp_path / "cache")))
     runner.run()

@@ -1,0 +1,1 @@
+"""An actor pack as data in the graph: ``pack.load`` and the bundles it outputs (docs/pack_bundles.md)."""
