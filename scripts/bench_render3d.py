@@ -1,0 +1,221 @@
+"""3D benchmark: Sec. 9 mesh synthesis and Sec. 14.1 rendering against the fixture generator's truth.
+
+The target pack (default ``fixtures/packs/target``) has a ``truth.npz``: the generator's identity,
+the 3D points of every captured expression and the pack camera. Everything is measured on the
+held-out expressions (captured, not examples), each given by its TRUE 2D geometry, as the 2D
+synthesis benchmark does.
+
+Geometry (pack camera frame, mm, mean over the skin points and the held-out expressions):
+
+* ``mesh3d_vertex_err_mm``: the Sec. 9 synthesis (per-subregion QP on the 3D examples, vertex
+  blending) against the true 3D points;
+* ``mesh3d_vertex_err_mm_lifted``: the 2D geometry lifted at the model's depths (no QP);
+* ``mesh3d_depth_err_mm_neutral``: the model's neutral (the depth source alone);
+* ``mesh3d_vertex_err_mm_centred``: the Sec. 9 error after removing each expression's mean
+  offset (shape error without the global depth offset of the generic model's scale).
+
+Rendering — ``--frames`` frames (default 12), each a held-out expression at a head pose with yaw
+spread over [-25, 25] degrees (pitch and roll up to 6 and 4 degrees). The TRUE pose is given to
+both outputs (the rows measure the 3D model and the renderer, not pose estimation). The texture
+of both is the 2D pipeline's synthesized expression image (``Synthesizer``, frontal, no head
+motion):
+
+* ``render3d_psnr_db``: the 3D render (Sec. 9 mesh moved by the pose, MSAA 4x, alpha composited
+  over the generator's background) against the generator's own render of the target at that pose
+  and expression, sRGB PSNR over the true face region (the hull of the projected true points),
+  over the frames with |yaw| > 10 degrees; ``render3d_psnr_db_2d``: the 2D output (the same
+  synthesized image moved by the eq. 8 similarity fitted to the true rigid points, as the 2D
+  pipeline carries head motion) on the same frames and pixels; ``_all`` suffixes: all frames.
+
+Speed (2 CPU threads, llvmpipe without a GPU; the load average is printed):
+
+* ``mesh3d_fps``: frames/s of the Sec. 9 synthesis (lift, QP for all subregions, blending),
+  100 frames per call;
+* ``render3d_fps``: frames/s of rendering at 600x800 (MSAA 4x, colour and depth passes, read
+  back); ``render3d_fps_facegen``: the generator's numpy/OpenCV renderer at the same size in
+  the same run (baseline), ``render3d_speedup`` their ratio.
+
+A contact sheet (truth | 3D render | 2D output) goes to ``<work>/render3d/render3d_bench_sheet.png``.
+
+    python scripts/bench.py render3d --json [--pack fixtures/packs/target] [--frames 12]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from scripts.facegen.render import Camera, _background, make_face, render, rotation  # noqa: E402
+from stages.actor_pack import load_pack  # noqa: E402
+from stages.geometry.compensate import fit_similarity  # noqa: E402
+from stages.mesh3d.model import build_target_model, lift  # noqa: E402
+from stages.mesh3d.synthesis import synthesize_3d  # noqa: E402
+from stages.render3d.frame import render_textured, scaled_intrinsics, to_display  # noqa: E402
+from stages.render3d.head import apply_head  # noqa: E402
+from stages.render3d.raster import MeshRenderer  # noqa: E402
+from stages.color import linear_to_srgb, srgb_to_linear  # noqa: E402
+from stages.synthesis.build import build_synthesis_model  # noqa: E402
+from stages.synthesis.synthesize import Synthesizer  # noqa: E402
+
+SPEED_SIZE = (600, 800)
+YAW_THRESHOLD_DEG = 10.0
+
+
+def row(metric: str, value: float, unit: str) -> dict:
+    return {"bench": "render3d", "metric": metric, "value": float(value), "unit": unit}
+
+
+def poses(n: int, seed: int = 3) -> np.ndarray:
+    """``(n, 3)`` (yaw, pitch, roll) degrees: yaw spread over [-25, 25], small pitch and roll."""
+    rng = np.random.default_rng(seed)
+    yaw = np.linspace(-25.0, 25.0, n)
+    return np.column_stack([yaw, rng.uniform(-6, 6, n), rng.uniform(-4, 4, n)])
+
+
+def face_hull(points: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """(H, W) bool: the convex hull of projected points (N, 2) px."""
+    mask = np.zeros((size[1], size[0]), np.uint8)
+    cv2.fillConvexPoly(mask, np.round(cv2.convexHull(points.astype(np.float32))[:, 0] * 16).astype(np.int32), 1, cv2.LINE_8, 4)
+    return mask.astype(bool)
+
+
+def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
+    """PSNR (dB) of two (H, W, 3) images in [0, 1] over ``mask`` (H, W)."""
+    mse = float(np.mean((a[mask].astype(np.float64) - b[mask]) ** 2))
+    return float("inf") if mse == 0 else -10.0 * np.log10(mse)
+
+
+def geometry_rows(model, truth: dict, skin: np.ndarray) -> tuple[list[dict], np.ndarray]:
+    """Vertex errors of the held-out expressions; returns the rows and the Sec. 9 vertices."""
+    R, t = truth["R"], truth["t"]
+    held = truth["heldout_index"]
+    true3d = truth["captured_points3d"][held] @ R.T + t
+    lifted = lift(truth["captured_points"][held], model.depth, model.camera)
+    sec9, _ = synthesize_3d(model.examples, lifted, model.members)
+    neutral = truth["neutral_points3d"] @ R.T + t
+
+    def err(x: np.ndarray, y: np.ndarray) -> float:
+        return float(np.linalg.norm((x - y)[..., skin, :], axis=-1).mean())
+
+    offset = (sec9 - true3d)[:, skin].mean(1, keepdims=True)
+    rows = [
+        row("mesh3d_vertex_err_mm", err(sec9, true3d), "mm"),
+        row("mesh3d_vertex_err_mm_lifted", err(lifted, true3d), "mm"),
+        row("mesh3d_depth_err_mm_neutral", err(model.neutral, neutral), "mm"),
+        row("mesh3d_vertex_err_mm_centred", err(sec9 - offset, true3d), "mm"),
+    ]
+    return rows, sec9
+
+
+def run(args: argparse.Namespace) -> list[dict]:
+    parser = argparse.ArgumentParser(prog="bench.py render3d")
+    parser.add_argument("--pack", type=Path, default=ROOT / "fixtures/packs/target")
+    parser.add_argument("--frames", type=int, default=12)
+    opts = parser.parse_args(args.extra)
+    pack = load_pack(opts.pack)
+    truth = dict(np.load(opts.pack / "truth.npz", allow_pickle=False))
+    model = build_target_model(pack)
+    skin = np.array([not n.startswith("teeth_") for n in model.names])
+    rows, sec9 = geometry_rows(model, truth, skin)
+
+    face = make_face(int(truth["identity_seed"]), pack.layout)
+    size = pack.image_size
+    camera = Camera(np.asarray(truth["intrinsics"]), size)
+    synth = Synthesizer(build_synthesis_model(pack))
+    held = truth["heldout_index"]
+    R0, t0 = truth["R"], truth["t"]
+    renderer = MeshRenderer(size, samples=4)
+    bg = _background(size)
+    rigid = list(pack.layout.rigid)
+    scores: dict[str, list[float]] = {"3d": [], "2d": []}
+    yaws, sheet = [], []
+    for k, (yaw, pitch, roll) in enumerate(poses(opts.frames)):
+        j = k % len(held)
+        p3 = truth["captured_points3d"][held[j]]
+        R = rotation(yaw, pitch, roll) @ R0
+        true_img = render(face, p3, R, t0, camera, supersample=2).image.astype(np.float32) / 255.0
+        true_pts = ((p3 @ R.T + t0) @ camera.A.T)
+        true_pts = true_pts[:, :2] / true_pts[:, 2:3]
+        mask = face_hull(true_pts[skin], size)
+        g2 = truth["captured_points"][held[j]]
+        rgb, alpha, _ = synth.render(g2[None])
+        texture = rgb[0].permute(1, 2, 0).numpy()
+        matte = alpha[0, 0].numpy()
+        # 3D: X' = R R0^T (X - t0) + t0 (the true head motion about the head origin)
+        Rm = R @ R0.T
+        v = apply_head(sec9[j], Rm, t0 - Rm @ t0)
+        rgba, _ = render_textured(renderer, v, model.triangles, g2, texture, model.camera, mask=matte)
+        over = rgba[..., :3] + (1.0 - rgba[..., 3:]) * srgb_to_linear(bg)
+        out3d = np.clip(linear_to_srgb(over), 0, 1)
+        # 2D: the synthesized image moved by the eq. 8 similarity of the rigid points
+        a, b, tx, ty = fit_similarity(g2[rigid], true_pts[rigid])
+        M = np.array([[a, -b, tx], [b, a, ty]])
+        out2d = cv2.warpAffine(texture, M, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        scores["3d"].append(psnr(out3d, true_img, mask))
+        scores["2d"].append(psnr(out2d, true_img, mask))
+        yaws.append(yaw)
+        if len(sheet) < 4 and abs(yaw) > YAW_THRESHOLD_DEG:
+            sheet.append(np.hstack([true_img, out3d, out2d]))
+    renderer.release()
+    big = np.abs(np.array(yaws)) > YAW_THRESHOLD_DEG
+    for key, suffix in (("3d", ""), ("2d", "_2d")):
+        s = np.array(scores[key])
+        rows.append(row(f"render3d_psnr_db{suffix}", s[big].mean(), "dB"))
+        rows.append(row(f"render3d_psnr_db{suffix}_all", s.mean(), "dB"))
+    if sheet:
+        folder = args.work / "render3d"
+        folder.mkdir(parents=True, exist_ok=True)
+        img = np.clip(np.vstack(sheet) * 255 + 0.5, 0, 255).astype(np.uint8)
+        cv2.imwrite(str(folder / "render3d_bench_sheet.png"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+    rows += speed_rows(model, sec9, truth, face, camera, pack)
+    return rows
+
+
+def speed_rows(model, sec9: np.ndarray, truth: dict, face, camera: Camera, pack) -> list[dict]:
+    """Frames/s of the Sec. 9 synthesis and of rendering at 600x800 (with the facegen baseline)."""
+    import torch
+
+    torch.set_num_threads(2)
+    load = os.getloadavg()[0]
+    held = truth["heldout_index"]
+    g2 = np.resize(truth["captured_points"][held], (100,) + truth["captured_points"].shape[1:])
+    synthesize_3d(model.examples, lift(g2[:4], model.depth, model.camera), model.members)  # warm-up
+    t = time.perf_counter()
+    synthesize_3d(model.examples, lift(g2, model.depth, model.camera), model.members)
+    mesh_fps = len(g2) / (time.perf_counter() - t)
+    scale = SPEED_SIZE[0] / pack.image_size[0]
+    A = scaled_intrinsics(model.camera, scale)
+    texture = cv2.resize(pack.standard.image, SPEED_SIZE, interpolation=cv2.INTER_LINEAR).astype(np.float32) / 255.0
+    uv = truth["captured_points"][held[0]] * scale + 0.5 * scale - 0.5
+    renderer = MeshRenderer(SPEED_SIZE, samples=4)
+    render_textured(renderer, sec9[0], model.triangles, uv, texture, A)  # warm-up
+    n = 20
+    t = time.perf_counter()
+    for k in range(n):
+        render_textured(renderer, sec9[k % len(sec9)], model.triangles, uv, texture, A)
+    render_fps = n / (time.perf_counter() - t)
+    renderer.release()
+    big_camera = Camera(A, SPEED_SIZE)
+    p3 = truth["captured_points3d"][held[0]]
+    render(face, p3, truth["R"], truth["t"], big_camera, supersample=1)  # texture built once
+    m = 3
+    t = time.perf_counter()
+    for _ in range(m):
+        render(face, p3, truth["R"], truth["t"], big_camera, supersample=1)
+    base_fps = m / (time.perf_counter() - t)
+    return [
+        row("mesh3d_fps", mesh_fps, "frames/s"),
+        row("render3d_fps", render_fps, "frames/s"),
+        row("render3d_fps_facegen", base_fps, "frames/s"),
+        row("render3d_speedup", render_fps / base_fps, "x"),
+        row("loadavg_1min", load, ""),
+    ]

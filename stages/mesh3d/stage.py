@@ -1,0 +1,79 @@
+"""``mesh3d.synthesize``: the target's 3D expression per frame (Sec. 9).
+
+The target's 2D geometry per frame (motion propagation's output) is lifted to 3D at the target
+model's depths (:mod:`stages.mesh3d.model`), projected per subregion onto the convex hull of the
+3D examples and composited by vertex position (:mod:`stages.mesh3d.synthesis`).
+
+Output bundle ``mesh3d``:
+
+=================  ==================  =====================================================
+``vertices``       (T, N, 3) f8        Sec. 9 synthesis, pack camera frame, mm
+``lifted``         (T, N, 3) f8        the input geometry lifted to 3D (no QP), mm
+``uv``             (T, N, 2) f8        texture position of each vertex in the frame's synthesized
+                                       image (= the input 2D geometry), px
+``coeffs``         (T, S, M) f8        per-subregion coefficients (eq. 2-5)
+``triangles``      (F, 3) i4           counter-clockwise on screen
+``neutral``        (N, 3) f8           the lifted neutral, mm
+``pivot``          (3,) f8             head centre (mean of the neutral's skin vertices), mm
+``camera``         (3, 3) f8           pack intrinsics, px
+``size``           (2,) i8             pack image (W, H)
+``names``          (N,) str            layout point names
+``fps``            ()                  when the input has it
+=================  ==================  =====================================================
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import numpy as np
+
+from runner.stage import Context, SequenceStage, StageError
+from stages.actor_pack import load_pack
+from stages.mesh3d.model import build_target_model, lift
+from stages.mesh3d.synthesis import synthesize_3d
+
+
+class Mesh3DSynthesize(SequenceStage):
+    """``mesh3d.synthesize``: lift the target geometry to 3D and synthesize it from 3D examples."""
+
+    name = "mesh3d.synthesize"
+    version = "1"
+    doc = "Sec. 9: target 2D geometry per frame -> 3D expression mesh (per-subregion QP on 3n-vectors, vertex blending)"
+    inputs = {"pack": "dir", "points": "points"}
+    outputs = {"mesh": "mesh3d"}
+
+    def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
+        pack = load_pack(inputs["pack"])
+        try:
+            model = build_target_model(pack)
+        except ValueError as exc:
+            raise StageError(f"{self.name}: pack {pack.path}: model3d: {exc}") from None
+        bundle = inputs["points"]
+        if "xy" not in bundle:
+            raise StageError(f"{self.name}: input 'points' has no field 'xy'")
+        xy = np.asarray(bundle["xy"], np.float64)
+        N = len(model.names)
+        if xy.ndim != 3 or xy.shape[1:] != (N, 2):
+            raise StageError(f"{self.name}: input 'points' field 'xy' is {xy.shape}, the pack's layout needs (T, {N}, 2)")
+        if not np.isfinite(xy).all():
+            raise StageError(f"{self.name}: input 'points' field 'xy' has non-finite values")
+        lifted = lift(xy, model.depth, model.camera)
+        vertices, coeffs = synthesize_3d(model.examples, lifted, model.members, device=ctx.device)
+        ctx.progress(len(xy))
+        skin = np.unique(model.triangles)
+        out = {
+            "vertices": vertices,
+            "lifted": lifted,
+            "uv": xy,
+            "coeffs": coeffs,
+            "triangles": model.triangles,
+            "neutral": model.neutral,
+            "pivot": model.neutral[skin].mean(0),
+            "camera": model.camera,
+            "size": np.array(model.size, np.int64),
+            "names": model.names,
+        }
+        if "fps" in bundle:
+            out["fps"] = np.asarray(bundle["fps"])
+        return {"mesh": out}

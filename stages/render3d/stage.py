@@ -1,0 +1,160 @@
+"""Stages ``render3d.head`` (the performer's head pose on the target mesh) and ``render3d`` (Sec. 14.1).
+
+``render3d.head`` output bundle ``head3d``: ``R (T, 3, 3)``, ``t (T, 3)`` mm — the rigid motion
+``X' = R X + t`` of the target mesh in the target camera's frame (:mod:`stages.render3d.head`);
+``valid (T,)`` (frames without a valid pose keep the reference pose); ``ypr_deg (T, 3)`` when
+the pose has it; ``pivot (3,)`` mm.
+
+``render3d`` renders each frame's Sec. 9 mesh (``mesh3d.synthesize``), moved by the head motion
+and textured with the frame's synthesized image (``synthesis.synthesize`` without head motion:
+the expression in the target's own frame, whose feature points are the mesh's ``uv``). Outputs:
+``frames`` sRGB over black, ``mask`` alpha (MSAA coverage x the synthesized face mask),
+``depth`` camera depth in mm (``inf`` where empty), and ``exr``: ``frame.%06d.exr`` RGBA + Z
+(:mod:`stages.render3d.exr_depth`).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import numpy as np
+
+from runner.stage import Context, FrameStage, Param, SequenceStage, StageError, StreamInfo
+from stages.render3d.exr_depth import write_exr_depth
+from stages.render3d.frame import render_textured, scaled_intrinsics, to_display
+from stages.render3d.head import apply_head, head_motion_3d
+from stages.render3d.raster import MeshRenderer
+from stages.synthesis.synthesize import head_motion_frame
+from stages.writers.exr import exr_name, frame_attributes
+
+
+def _field(bundle: Mapping[str, np.ndarray], key: str, stage: str, port: str) -> np.ndarray:
+    if key not in bundle:
+        raise StageError(f"{stage}: input '{port}' has no field '{key}'")
+    return np.asarray(bundle[key])
+
+
+def _project(points: np.ndarray, A: np.ndarray) -> np.ndarray:
+    p = np.asarray(points, np.float64) @ np.asarray(A, np.float64).T
+    return p[..., :2] / p[..., 2:3]
+
+
+class HeadPose3D(SequenceStage):
+    """``render3d.head``: the performer's relative head pose as a rigid motion of the target mesh."""
+
+    name = "render3d.head"
+    version = "1"
+    doc = "Sec. 14.1: performer head pose (compensate.rigid3d) -> rigid motion of the target mesh, mm"
+    inputs = {"mesh": "mesh3d", "pose": "pose", "performer": "displacements"}
+    optional_inputs = frozenset({"performer"})
+    outputs = {"head": "head3d"}
+    params = (Param("translation_scale", float, 1.0, "multiplies the carried head translation (after the face-size ratio)", min=0.0),)
+
+    def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
+        mesh, pose = inputs["mesh"], inputs["pose"]
+        R = _field(pose, "R", self.name, "pose").astype(np.float64)
+        tvec = _field(pose, "tvec", self.name, "pose").astype(np.float64)
+        if "scale" not in pose:
+            raise StageError(f"{self.name}: input 'pose' has no field 'scale': connect compensate.rigid3d's pose (relative to the neutral frame)")
+        scale = np.asarray(pose["scale"], np.float64)
+        T = len(R)
+        valid = np.asarray(pose["valid"], bool) if "valid" in pose else np.ones(T, bool)
+        valid &= np.isfinite(R).all((1, 2)) & np.isfinite(tvec).all(1) & np.isfinite(scale) & (scale > 0)
+        R, tvec, scale = R.copy(), tvec.copy(), scale.copy()
+        R[~valid], tvec[~valid], scale[~valid] = np.eye(3), 0.0, 1.0
+        A = np.asarray(mesh["camera"], np.float64)
+        target_2d = _project(mesh["neutral"], A)
+        performer = inputs.get("performer")
+        if performer is not None:
+            for key in ("neutral", "names"):
+                _field(performer, key, self.name, "performer")
+            center, _, ratio = head_motion_frame(performer["neutral"], performer["names"], target_2d, mesh["names"])
+        else:
+            center, ratio = target_2d.mean(0), 1.0
+        try:
+            rotation, translation = head_motion_3d(
+                R, tvec, scale, source_center=center, pivot=mesh["pivot"], A=A, size_ratio=ratio * float(params["translation_scale"])
+            )
+        except ValueError as exc:
+            raise StageError(f"{self.name}: input 'pose': {exc}") from None
+        out = {"R": rotation, "t": translation, "valid": valid, "pivot": np.asarray(mesh["pivot"], np.float64)}
+        if "ypr_deg" in pose:
+            out["ypr_deg"] = np.asarray(pose["ypr_deg"], np.float64)
+        ctx.progress(T)
+        return {"head": out}
+
+
+class Render3D(FrameStage):
+    """``render3d``: the textured target mesh under the performer's head pose (Sec. 14.1)."""
+
+    name = "render3d"
+    version = "1"
+    doc = "Sec. 14.1: Sec. 9 mesh + synthesized texture under the head pose; z-buffer, MSAA, alpha, depth; EXR RGBA+Z"
+    inputs = {"texture": "frames", "mask": "frames", "mesh": "mesh3d", "head": "head3d"}
+    optional_inputs = frozenset({"mask", "head"})
+    outputs = {"frames": "frames", "mask": "frames", "depth": "frames", "exr": "files"}
+    params = (
+        Param("samples", int, 4, "MSAA samples per pixel (anti-aliased edges; 0 = none); at most the driver's", min=0, max=16),
+        Param("resolution_scale", float, 1.0, "output size = the pack image size times this", min=0.25, max=8.0),
+        Param("geometry", str, "synthesized", "synthesized: the Sec. 9 mesh; lifted: the 2D geometry lifted at the model depth",
+              choices=("synthesized", "lifted")),
+        Param("compression", str, "zip", "lossless EXR compression", choices=("zip", "zips", "piz", "rle", "none")),
+    )
+
+    def __init__(self) -> None:
+        self._renderer: tuple[tuple[int, int, int], MeshRenderer] | None = None
+
+    def _size(self, mesh: Mapping[str, np.ndarray], params: Mapping[str, Any]) -> tuple[int, int]:
+        W, H = (int(v) for v in mesh["size"])
+        s = float(params["resolution_scale"])
+        return max(round(W * s), 1), max(round(H * s), 1)
+
+    def stream_info(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> StreamInfo:
+        info = inputs["texture"].info
+        W, H = self._size(inputs["mesh"], params)
+        return StreamInfo(frames=info.frames, fps=info.fps, width=W, height=H)
+
+    def _get_renderer(self, size: tuple[int, int], samples: int) -> MeshRenderer:
+        key = (*size, samples)
+        if self._renderer is None or self._renderer[0] != key:
+            try:
+                self._renderer = (key, MeshRenderer(size, samples=samples))
+            except RuntimeError as exc:
+                raise StageError(f"{self.name}: {exc}") from None
+        return self._renderer[1]
+
+    def process(self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
+        mesh, head, stream = inputs["mesh"], inputs.get("head"), inputs["texture"]
+        key = "vertices" if params["geometry"] == "synthesized" else "lifted"
+        vertices = _field(mesh, key, self.name, "mesh")
+        if len(vertices) != stream.info.frames or (head is not None and len(head["R"]) != stream.info.frames):
+            raise StageError(f"{self.name}: inputs 'mesh'/'head' do not have the {stream.info.frames} frames of 'texture'")
+        textures = stream.read(start, stop)
+        masks = inputs["mask"].read(start, stop) if inputs.get("mask") is not None else None
+        size = self._size(mesh, params)
+        A = scaled_intrinsics(mesh["camera"], float(params["resolution_scale"]))
+        renderer = self._get_renderer(size, int(params["samples"]))
+        folder = ctx.files_dir("exr")
+        folder.mkdir(parents=True, exist_ok=True)
+        frames, alphas, depths = [], [], []
+        for i, frame in enumerate(range(start, stop)):
+            v = np.asarray(vertices[frame], np.float64)
+            attrs = frame_attributes(frame, fps=stream.info.fps)
+            if head is not None:
+                v = apply_head(v, np.asarray(head["R"][frame]), np.asarray(head["t"][frame]))
+                attrs["exmap:head_R"] = tuple(float(x) for x in np.asarray(head["R"][frame]).ravel())
+                attrs["exmap:head_t_mm"] = tuple(float(x) for x in np.asarray(head["t"][frame]))
+            rgba, depth = render_textured(renderer, v, mesh["triangles"], mesh["uv"][frame], textures[i], A,
+                                          mask=None if masks is None else masks[i])
+            write_exr_depth(folder / exr_name(frame), rgba, depth, attributes=attrs, compression=params["compression"])
+            rgb, alpha = to_display(rgba)
+            frames.append(rgb)
+            alphas.append(alpha)
+            depths.append(depth[..., None])
+        ctx.progress(stop - start)
+        return {
+            "frames": np.stack(frames).astype(np.float16),
+            "mask": np.stack(alphas).astype(np.float16),
+            "depth": np.stack(depths).astype(np.float32),
+            "exr": None,
+        }

@@ -1,0 +1,219 @@
+"""``write.usd``: the animated target mesh as a USD scene (usd-core), with its texture sequence.
+
+Files written (under ``out/<stage>/``):
+
+``scene.usda``
+    ``/Root`` (Xform; the stage is Y-up, ``metersPerUnit = 0.001``: units are mm;
+    ``timeCodesPerSecond`` = the clip's fps, time code = frame index) holding
+    ``/Root/Head`` (Xform, the head motion as a time-sampled ``xformOp:transform``),
+    ``/Root/Head/Face`` (Mesh: time-sampled ``points`` — the Sec. 9 vertices before head motion —,
+    fixed ``faceVertexCounts``/``faceVertexIndices``, time-sampled ``primvars:st`` (vertex
+    interpolation: each vertex's position in that frame's texture), bound to
+    ``/Root/Materials/Face`` (UsdPreviewSurface whose ``diffuseColor`` and ``opacity`` come from a
+    UsdUVTexture with a time-sampled ``inputs:file``, one PNG per frame)) and ``/Root/Camera``
+    (the target camera: intrinsics as focal length and apertures, at the origin looking down -Z).
+``textures/texture.%06d.png``
+    The synthesized expression image of each frame, RGBA (alpha = the synthesized face mask).
+``head_pose.csv``
+    Per frame: ``frame, time_s, valid, R00..R22, tx_mm, ty_mm, tz_mm`` (and ``yaw_deg, pitch_deg,
+    roll_deg`` when known): the rigid motion ``X' = R X + t`` of the mesh, target camera frame.
+
+Axes: the pipeline's camera frame (x right, y down, z away from the camera) is turned 180 degrees
+about x into USD's Y-up frame (``(x, y, z) -> (x, -y, -z)``); triangle order is reversed so that
+front faces wind counter-clockwise as seen from the camera (USD's ``rightHanded`` orientation).
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from runner.stage import Context, Param, SequenceStage, StageError
+from stages.color import to_uint8
+
+__all__ = ["FLIP", "write_usd_scene", "WriteUsd"]
+
+FLIP = np.diag([1.0, -1.0, -1.0])  # pipeline camera frame -> USD Y-up frame (a rotation by pi about x)
+TEXTURE_NAME = "textures/texture.{:06d}.png"
+
+
+def _matrix(R: np.ndarray, t: np.ndarray):
+    """USD row-vector 4x4 of ``X' = FLIP (R FLIP X + t)`` (the motion expressed in the USD frame)."""
+    from pxr import Gf
+
+    M = np.eye(4)
+    M[:3, :3] = (FLIP @ R @ FLIP).T
+    M[3, :3] = FLIP @ t
+    return Gf.Matrix4d(M.tolist())
+
+
+def write_usd_scene(
+    path: Path,
+    *,
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    uv: np.ndarray,
+    size: tuple[int, int],
+    camera: np.ndarray,
+    fps: float,
+    head_R: np.ndarray | None = None,
+    head_t: np.ndarray | None = None,
+    texture_files: list[str] | None = None,
+) -> None:
+    """Write the animated mesh as a USD layer (``.usda`` text or ``.usdc`` by the suffix).
+
+    Parameters
+    ----------
+    path : the layer file
+    vertices : (T, V, 3) float, mm, camera frame before head motion
+    triangles : (F, 3) int, counter-clockwise on screen (y down)
+    uv : (T, V, 2) float, texture px of each vertex per frame
+    size : (W, H) of the texture images, px
+    camera : (3, 3) intrinsics, px
+    fps : frames per second (time code = frame index)
+    head_R, head_t : (T, 3, 3), (T, 3) mm, optional head motion ``X' = R X + t``
+    texture_files : T paths relative to the layer, optional
+    """
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, Vt
+
+    vertices = np.asarray(vertices, np.float64)
+    T = len(vertices)
+    W, H = size
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 0.001)
+    stage.SetStartTimeCode(0)
+    stage.SetEndTimeCode(max(T - 1, 0))
+    stage.SetTimeCodesPerSecond(float(fps))
+    stage.SetFramesPerSecond(float(fps))
+    root = UsdGeom.Xform.Define(stage, "/Root")
+    stage.SetDefaultPrim(root.GetPrim())
+    head = UsdGeom.Xform.Define(stage, "/Root/Head")
+    op = head.AddTransformOp()
+    if head_R is not None and head_t is not None:
+        for f in range(T):
+            op.Set(_matrix(np.asarray(head_R[f], np.float64), np.asarray(head_t[f], np.float64)), Usd.TimeCode(f))
+    else:
+        op.Set(Gf.Matrix4d(1.0))
+    mesh = UsdGeom.Mesh.Define(stage, "/Root/Head/Face")
+    tri = np.asarray(triangles, np.int64)[:, [0, 2, 1]]
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(tri)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray(tri.ravel().tolist()))
+    mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    points = mesh.CreatePointsAttr()
+    st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex)
+    uv = np.asarray(uv, np.float64)
+    st_all = np.stack([(uv[..., 0] + 0.5) / W, 1.0 - (uv[..., 1] + 0.5) / H], axis=-1)
+    for f in range(T):
+        points.Set(Vt.Vec3fArray.FromNumpy((vertices[f] @ FLIP).astype(np.float32)), Usd.TimeCode(f))
+        st.Set(Vt.Vec2fArray.FromNumpy(st_all[f].astype(np.float32)), Usd.TimeCode(f))
+    lo, hi = (vertices @ FLIP).min((0, 1)), (vertices @ FLIP).max((0, 1))
+    mesh.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*lo.tolist()), Gf.Vec3f(*hi.tolist())]))
+    if texture_files is not None:
+        material = UsdShade.Material.Define(stage, "/Root/Materials/Face")
+        shader = UsdShade.Shader.Define(stage, "/Root/Materials/Face/Surface")
+        shader.CreateIdAttr("UsdPreviewSurface")
+        reader = UsdShade.Shader.Define(stage, "/Root/Materials/Face/st")
+        reader.CreateIdAttr("UsdPrimvarReader_float2")
+        reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set("st")
+        tex = UsdShade.Shader.Define(stage, "/Root/Materials/Face/Texture")
+        tex.CreateIdAttr("UsdUVTexture")
+        tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
+        file_in = tex.CreateInput("file", Sdf.ValueTypeNames.Asset)
+        for f, name in enumerate(texture_files):
+            file_in.Set(Sdf.AssetPath(name), Usd.TimeCode(f))
+        tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("sRGB")
+        rgb = tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+        alpha = tex.CreateOutput("a", Sdf.ValueTypeNames.Float)
+        shader.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(rgb)
+        shader.CreateInput("opacity", Sdf.ValueTypeNames.Float).ConnectToSource(alpha)
+        shader.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(0.8)
+        material.CreateSurfaceOutput().ConnectToSource(shader.ConnectableAPI(), "surface")
+        UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
+    A = np.asarray(camera, np.float64)
+    cam = UsdGeom.Camera.Define(stage, "/Root/Camera")
+    focal = 50.0  # mm; the apertures carry the field of view
+    cam.CreateFocalLengthAttr(focal)
+    cam.CreateHorizontalApertureAttr(float(W / A[0, 0] * focal))
+    cam.CreateVerticalApertureAttr(float(H / A[1, 1] * focal))
+    cam.CreateHorizontalApertureOffsetAttr(float(((W - 1) / 2.0 - A[0, 2]) / A[0, 0] * focal))
+    cam.CreateVerticalApertureOffsetAttr(float((A[1, 2] - (H - 1) / 2.0) / A[1, 1] * focal))
+    cam.CreateClippingRangeAttr(Gf.Vec2f(10.0, 100000.0))
+    stage.GetRootLayer().Save()
+
+
+def write_pose_csv(path: Path, head: Mapping[str, np.ndarray], *, fps: float) -> None:
+    """The per-frame head motion as CSV (columns in the module docstring)."""
+    R = np.asarray(head["R"], np.float64)
+    t = np.asarray(head["t"], np.float64)
+    valid = np.asarray(head.get("valid", np.ones(len(R), bool)), bool)
+    ypr = np.asarray(head["ypr_deg"], np.float64) if "ypr_deg" in head else None
+    header = ["frame", "time_s", "valid", *[f"R{i}{j}" for i in range(3) for j in range(3)], "tx_mm", "ty_mm", "tz_mm"]
+    header += ["yaw_deg", "pitch_deg", "roll_deg"] if ypr is not None else []
+    with path.open("w", newline="", encoding="utf-8") as fh:
+        out = csv.writer(fh)
+        out.writerow(header)
+        for f in range(len(R)):
+            row = [f, f"{f / fps:.6f}", int(valid[f]), *[f"{v:.9g}" for v in R[f].ravel()], *[f"{v:.6f}" for v in t[f]]]
+            row += [f"{v:.4f}" for v in ypr[f]] if ypr is not None else []
+            out.writerow(row)
+
+
+class WriteUsd(SequenceStage):
+    """``write.usd``: ``scene.usda`` (animated mesh, head xform, texture sequence, camera), textures, head pose CSV."""
+
+    name = "write.usd"
+    version = "1"
+    doc = "USD scene of the 3D expression: time-sampled mesh points and UVs, head xform, texture sequence; head_pose.csv"
+    inputs = {"mesh": "mesh3d", "head": "head3d", "texture": "frames", "mask": "frames"}
+    optional_inputs = frozenset({"head", "mask"})
+    outputs = {"usd": "files"}
+    params = (
+        Param("geometry", str, "synthesized", "synthesized: the Sec. 9 mesh; lifted: the 2D geometry lifted at the model depth",
+              choices=("synthesized", "lifted")),
+        Param("fps", float, 30.0, "frame rate when the mesh bundle carries none", min=1e-3),
+    )
+
+    def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
+        import cv2
+
+        mesh, head, stream = inputs["mesh"], inputs.get("head"), inputs["texture"]
+        key = "vertices" if params["geometry"] == "synthesized" else "lifted"
+        for field in (key, "triangles", "uv", "camera", "size"):
+            if field not in mesh:
+                raise StageError(f"{self.name}: input 'mesh' has no field '{field}'")
+        T = len(mesh[key])
+        if stream.info.frames != T or (head is not None and len(head["R"]) != T):
+            raise StageError(f"{self.name}: inputs 'texture'/'head' do not have the mesh's {T} frames")
+        fps = float(mesh["fps"]) if "fps" in mesh else float(params["fps"])
+        folder = ctx.files_dir("usd")
+        (folder / "textures").mkdir(parents=True, exist_ok=True)
+        names = []
+        for start, chunk in stream.chunks():
+            masks = inputs["mask"].read(start, start + len(chunk)) if inputs.get("mask") is not None else None
+            for i, image in enumerate(chunk):
+                rgba = np.concatenate([image, np.ones_like(image[..., :1]) if masks is None else masks[i]], axis=2)
+                name = TEXTURE_NAME.format(start + i)
+                if not cv2.imwrite(str(folder / name), cv2.cvtColor(to_uint8(np.asarray(rgba)), cv2.COLOR_RGBA2BGRA)):
+                    raise StageError(f"{self.name}: cannot write {folder / name}")
+                names.append(name)
+            ctx.progress(len(chunk))
+        write_usd_scene(
+            folder / "scene.usda",
+            vertices=np.asarray(mesh[key], np.float64),
+            triangles=np.asarray(mesh["triangles"]),
+            uv=np.asarray(mesh["uv"], np.float64),
+            size=tuple(int(v) for v in mesh["size"]),
+            camera=np.asarray(mesh["camera"], np.float64),
+            fps=fps,
+            head_R=None if head is None else np.asarray(head["R"]),
+            head_t=None if head is None else np.asarray(head["t"]),
+            texture_files=names,
+        )
+        if head is not None:
+            write_pose_csv(folder / "head_pose.csv", head, fps=fps)
+        return {"usd": None}

@@ -1,0 +1,90 @@
+"""mesh3d.synthesize -> render3d.head -> render3d and write.usd on the fixture pack, called directly."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from runner.stage import StageError
+from stages.mesh3d.stage import Mesh3DSynthesize
+from stages.render3d.stage import HeadPose3D, Render3D
+from stages.writers.usd import WriteUsd
+from tests.memory_stream import MemoryStream, files_context
+
+PACK = Path("fixtures/packs/target")
+
+
+@pytest.fixture(scope="module")
+def chain(tmp_path_factory):
+    from stages.actor_pack import load_pack
+
+    root = tmp_path_factory.mktemp("render3d")
+    ctx = files_context(root)
+    pack = load_pack(PACK)
+    xy = np.stack([pack.neutral.points, pack.standard.points])
+    mesh = Mesh3DSynthesize().run({"pack": PACK, "points": {"xy": xy, "fps": np.array(25.0)}}, {}, ctx)["mesh"]
+    R = np.stack([np.eye(3), Rotation.from_euler("y", 20, degrees=True).as_matrix()])
+    pose = {"R": R, "tvec": np.zeros((2, 3)), "scale": np.ones(2), "valid": np.ones(2, bool)}
+    head = HeadPose3D().run({"mesh": mesh, "pose": pose}, {"translation_scale": 1.0}, ctx)["head"]
+    images = np.stack([pack.neutral.image, pack.standard.image]).astype(np.float32) / 255.0
+    texture = MemoryStream(images.astype(np.float16), fps=25.0, chunk=1)
+    inputs = {"texture": texture, "mesh": mesh, "head": head}
+    params = {"samples": 4, "resolution_scale": 1.0, "geometry": "synthesized", "compression": "zip"}
+    out = Render3D().process(0, 2, inputs, params, ctx)
+    return root, pack, mesh, head, texture, out
+
+
+def test_mesh_bundle_shapes(chain):
+    _, pack, mesh, head, _, _ = chain
+    N = pack.layout.n_points
+    assert mesh["vertices"].shape == (2, N, 3) and mesh["uv"].shape == (2, N, 2)
+    assert mesh["coeffs"].shape[0] == 2 and np.allclose(mesh["coeffs"].sum(-1), 1.0)
+    np.testing.assert_allclose(head["t"][0], 0.0, atol=1e-9)
+
+
+def test_render_outputs_and_exr_depth_in_mm(chain):
+    import OpenImageIO as oiio
+
+    root, pack, mesh, _, _, out = chain
+    W, H = pack.image_size
+    assert out["frames"].shape == (2, H, W, 3) and out["mask"].shape == (2, H, W, 1) and out["depth"].shape == (2, H, W, 1)
+    exr = oiio.ImageInput.open(str(root / "exr" / "frame.000000.exr"))
+    spec = exr.spec()
+    assert spec.channelnames == ("R", "G", "B", "A", "Z")
+    assert spec.getattribute("exmap:depth_unit") == "mm"
+    pixels = exr.read_image("float")
+    exr.close()
+    np.testing.assert_array_equal(pixels[..., 4], out["depth"][0, ..., 0])
+    # at the reference pose, the depth under a mesh vertex is that vertex's camera z in mm
+    k = pack.layout.index("nose_bridge_1")
+    u, v = np.round(pack.neutral.points[k]).astype(int)
+    assert pixels[v, u, 4] == pytest.approx(mesh["vertices"][0, k, 2], abs=1.5)
+    assert 200.0 < pixels[v, u, 4] < 500.0  # the pack camera sees the face about 320 mm away
+    # the turned frame moves the face, frame 0 reproduces the texture inside the mesh
+    inside = out["mask"][0, ..., 0] > 0.999
+    err = np.abs(out["frames"][0].astype(np.float32) - pack.neutral.image / 255.0)[inside].mean()
+    assert err < 0.02
+    assert np.abs(out["mask"][1].astype(np.float32) - out["mask"][0]).mean() > 0.01
+
+
+def test_write_usd_stage(chain):
+    from pxr import Usd, UsdGeom
+
+    root, pack, mesh, head, texture, _ = chain
+    ctx = files_context(root)
+    WriteUsd().run({"mesh": mesh, "head": head, "texture": texture}, {"geometry": "synthesized", "fps": 30.0}, ctx)
+    stage = Usd.Stage.Open(str(root / "usd" / "scene.usda"))
+    points = UsdGeom.Mesh(stage.GetPrimAtPath("/Root/Head/Face")).GetPointsAttr()
+    assert points.GetTimeSamples() == [0.0, 1.0]
+    assert len(points.Get(1)) == pack.layout.n_points
+    assert stage.GetTimeCodesPerSecond() == 25.0
+    assert (root / "usd" / "textures" / "texture.000001.png").is_file()
+    assert (root / "usd" / "head_pose.csv").read_text().count("\n") == 3
+
+
+def test_head_needs_a_relative_pose(chain):
+    _, _, mesh, _, _, _ = chain
+    with pytest.raises(StageError, match="scale"):
+        HeadPose3D().run({"mesh": mesh, "pose": {"R": np.stack([np.eye(3)]), "tvec": np.zeros((1, 3))}}, {"translation_scale": 1.0},
+                         files_context(Path(".")))
