@@ -124,10 +124,12 @@ def test_tracker_weighs_each_match_by_its_running_distance_to_the_model():
     """NCCTracker.with_model: a point whose matches keep off the fitted model loses weight against
     it, one whose matches keep on it gains (up to 4x); the fused position is the closed form
     (q H m + mu p) / (q H + mu) with q from the running mean of squared distances."""
-    from stages.geometry.track import NCCTracker
+    from stages.geometry.ncc_tracker import NCCTracker
+    from stages.geometry.tracker_options import TrackerOptions
 
     model = model_with(2)
-    tracker = NCCTracker(face_model=model, model_prior=1.0, model_noise_px=3.0, model_noise_rate=0.2)
+    options = TrackerOptions(model_prior=1.0, model_noise_px=3.0, model_noise_rate=0.2)
+    tracker = NCCTracker(options, face_model=model)
     true_xy = model.project(np.eye(3), model.t0, np.zeros(2))
     tracker.start(np.zeros((480, 640), np.float32), true_xy)
     information = np.broadcast_to(0.5 * np.eye(2), (len(SHAPE), 2, 2)).copy()

@@ -9,8 +9,12 @@ import numpy as np
 import pytest
 
 from runner.stage import StageError
-from stages.geometry.track import (CorrelationTrack, NCCTracker, correlation_peaks, local_affines,
-                                   read_first_frame_points, sample_patches, track_points)
+from stages.geometry.correlation import correlation_peaks, local_affines, sample_patches
+from stages.geometry.first_frame_points import read_first_frame_points
+from stages.geometry.ncc_tracker import NCCTracker
+from stages.geometry.track import CorrelationTrack
+from stages.geometry.tracker_options import TrackerOptions
+from stages.geometry.tracking import track_points
 from stages.layout import load_layout
 from tests.stages.geometry.synthetic import MemoryStream, apply, context, moving_clip, texture
 
@@ -121,7 +125,7 @@ def test_sample_patches_match_cv2_warp_affine():
 
 
 def test_edge_template_takes_the_along_edge_position_from_its_neighbours():
-    tracker = NCCTracker(prior=0.03, prior_frac=1.5)
+    tracker = NCCTracker(TrackerOptions(prior=0.03, prior_frac=1.5))
     rng = np.random.default_rng(10)
     origin = rng.uniform(20, 100, (10, 2))
     tracker.start(np.zeros((120, 160), np.uint8), origin)
