@@ -8,9 +8,13 @@ points (the generator's point motion, least squares over the training parameters
 
 Analysis (:func:`analyze_frames`): patches through the frame's similarity, scores, ``mu = L
 lambda``, clipped to the parameters' range [0, 1]; a feature whose patch leaves the image is
-masked and ``L`` is solved without its rows (:func:`.estimator.solve_estimator`).
+masked and ``L`` is solved without its rows (:func:`.estimator.solve_estimator`). The similarity
+comes with the frames or is fitted from the frame's points (:func:`similarities_from_points`: the
+model's rigid points, neutral -> frame, as in training).
 Geometry (:func:`parameters_to_points`): ``x = x_0 + sum_k mu_k B_k`` in the neutral's frame,
-then the frame's similarity.
+then the frame's similarity. Parameters are clipped to the range the training sampled
+(``param_low``, ``param_high``: [0, 1] for the generator's controls, +-2 standard deviations for
+a pack's PCA parameters).
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ import numpy as np
 from stages.eigen.eigenfeatures import eigen_scores, fit_eigenfeatures
 from stages.eigen.estimator import normal_equations, solve_estimator
 from stages.eigen.patches import FeatureWindow, patch_vectors, similarity_apply
+from stages.geometry.compensate import fit_similarity
 
 ROTATION_ROWS = 3  # (r_x, r_y, r_z) = (pitch, yaw, roll) deg, first in lambda
 
@@ -35,6 +40,9 @@ class EigenModel:
     point_names: tuple[str, ...]
     param_names: tuple[str, ...]
     neutral: np.ndarray  # (N, 2) px, the frame the patches are cut in
+    rigid: tuple[int, ...]  # points the similarity neutral -> frame is fitted on
+    param_low: np.ndarray  # (C,) the sampled range, estimates are clipped to it
+    param_high: np.ndarray  # (C,)
     windows: tuple[FeatureWindow, ...]
     means: tuple[np.ndarray, ...]  # p x (n_j,) float32
     bases: tuple[np.ndarray, ...]  # p x (n_j, q) float32
@@ -89,7 +97,8 @@ class EigenModel:
             "feature_origin": np.array([w.origin for w in self.windows], dtype=np.float64),
             "feature_step": np.array([w.step for w in self.windows], dtype=np.float64),
             "feature_shape": np.array([w.shape for w in self.windows], dtype=np.int64),
-            "neutral": self.neutral,
+            "neutral": self.neutral, "rigid": np.array(self.rigid, dtype=np.int64),
+            "param_low": self.param_low, "param_high": self.param_high,
             "mean": np.concatenate(self.means),
             "basis": np.concatenate(self.bases),
             "gram": self.gram, "cross": self.cross, "rms": self.rms, "count": np.array(self.count),
@@ -102,7 +111,7 @@ class EigenModel:
     def from_bundle(cls, bundle: dict[str, np.ndarray]) -> "EigenModel":
         """Inverse of :meth:`to_bundle`; ValueError naming a missing or inconsistent key."""
         keys = ("point_names", "param_names", "feature_names", "feature_points", "feature_origin", "feature_step",
-                "feature_shape", "neutral", "mean", "basis", "gram", "cross", "rms", "count", "geometry_base",
+                "feature_shape", "neutral", "rigid", "param_low", "param_high", "mean", "basis", "gram", "cross", "rms", "count", "geometry_base",
                 "geometry_basis", "min_inside", "blur_px", "normalize")
         missing = [k for k in keys if k not in bundle]
         if missing:
@@ -120,7 +129,9 @@ class EigenModel:
                              f"got {mean.shape[0]} and {basis.shape[0]}")
         cuts = np.cumsum(sizes)[:-1]
         model = cls(tuple(str(n) for n in bundle["point_names"]), tuple(str(n) for n in bundle["param_names"]),
-                    np.asarray(bundle["neutral"], dtype=np.float64), windows, tuple(np.split(mean, cuts)),
+                    np.asarray(bundle["neutral"], dtype=np.float64), tuple(int(i) for i in bundle["rigid"]),
+                    np.asarray(bundle["param_low"], dtype=np.float64), np.asarray(bundle["param_high"], dtype=np.float64),
+                    windows, tuple(np.split(mean, cuts)),
                     tuple(np.split(basis, cuts)), np.asarray(bundle["gram"]), np.asarray(bundle["cross"]),
                     np.asarray(bundle["rms"]), int(bundle["count"]), np.asarray(bundle["geometry_base"]),
                     np.asarray(bundle["geometry_basis"]), float(bundle["min_inside"]), float(bundle["blur_px"]),
@@ -152,7 +163,8 @@ def fit_geometry_map(parameters: np.ndarray, points: np.ndarray) -> tuple[np.nda
 
 def fit_eigen_model(samples: Iterable[tuple[np.ndarray, np.ndarray]], angles: np.ndarray, parameters: np.ndarray, *,
                     windows: tuple[FeatureWindow, ...], neutral: np.ndarray, point_names: tuple[str, ...],
-                    param_names: tuple[str, ...], geometry: tuple[np.ndarray, np.ndarray], q: int,
+                    param_names: tuple[str, ...], rigid: tuple[int, ...], param_range: tuple[np.ndarray, np.ndarray],
+                    geometry: tuple[np.ndarray, np.ndarray], q: int,
                     blur_px: float = 0.0, normalize: bool = False, min_inside: float = 0.98) -> EigenModel:
     """Train the model from rendered samples.
 
@@ -167,6 +179,10 @@ def fit_eigen_model(samples: Iterable[tuple[np.ndarray, np.ndarray]], angles: np
         Animation parameters of each sample.
     windows, neutral, point_names, param_names
         Feature windows (:func:`.patches.feature_windows`), neutral ``(N, 2)`` px and names.
+    rigid : tuple of int
+        Points the similarities neutral -> frame are fitted on (the samples' and at run time).
+    param_range : (low (C,), high (C,))
+        The sampled range of the parameters; estimates are clipped to it.
     geometry : (base (N, 2), basis (C, N, 2))
         From :func:`fit_geometry_map`.
     q : int
@@ -190,7 +206,9 @@ def fit_eigen_model(samples: Iterable[tuple[np.ndarray, np.ndarray]], angles: np
     scores = [eigen_scores(d, mean, basis) for d, (mean, basis) in zip(D, fitted)]
     lam = np.stack([observation(angles[i], [s[i] for s in scores]) for i in range(len(angles))])
     gram, cross, rms = normal_equations(lam, parameters)
-    return EigenModel(tuple(point_names), tuple(param_names), np.asarray(neutral, dtype=np.float64), tuple(windows),
+    low, high = (np.broadcast_to(np.asarray(v, dtype=np.float64), (len(param_names),)).copy() for v in param_range)
+    return EigenModel(tuple(point_names), tuple(param_names), np.asarray(neutral, dtype=np.float64),
+                      tuple(int(i) for i in rigid), low, high, tuple(windows),
                       tuple(m for m, _ in fitted), tuple(b for _, b in fitted), gram, cross, rms, len(lam),
                       np.asarray(geometry[0], dtype=np.float64), np.asarray(geometry[1], dtype=np.float64),
                       float(min_inside), float(blur_px), bool(normalize))
@@ -222,7 +240,7 @@ def analyze_frames(model: EigenModel, frames: Iterable[np.ndarray], similarity: 
     Returns
     -------
     parameters : (T, C) float64
-        In [0, 1]; NaN where no feature could be read.
+        In the model's ``[param_low, param_high]``; NaN where no feature could be read.
     feature_valid : (T, p) bool
     """
     similarity = np.asarray(similarity, dtype=np.float64)
@@ -243,8 +261,31 @@ def analyze_frames(model: EigenModel, frames: Iterable[np.ndarray], similarity: 
         if key not in estimators:
             estimators[key] = model.estimator(ok, rotation=angles is not None, ridge=ridge)
         lam = observation(np.zeros(3) if angles is None else angles[t], scores)
-        params[t] = np.clip(estimators[key] @ lam[model.rows(ok, rotation=angles is not None)], 0.0, 1.0)
+        params[t] = np.clip(estimators[key] @ lam[model.rows(ok, rotation=angles is not None)], model.param_low,
+                            model.param_high)
     return params, feature_valid
+
+
+def similarities_from_points(model: EigenModel, xy: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Similarities ``(T, 4)`` mapping the model's neutral onto each frame's points (least squares
+    over the model's rigid points, eq. 8; the "known feature locations" of the paper) and which
+    frames have all of them ``(T,)`` bool.
+
+    Parameters
+    ----------
+    xy : (T, N, 2) float
+        The frame's layout points, px, in the model's point order.
+    valid : (T, N) bool
+    """
+    xy = np.asarray(xy, dtype=np.float64)
+    if xy.ndim != 3 or xy.shape[1:] != model.neutral.shape:
+        raise ValueError(f"expected points (T, {len(model.neutral)}, 2), got {xy.shape}")
+    rigid = list(model.rigid)
+    ok = np.asarray(valid, dtype=bool)[:, rigid].all(axis=1) & np.isfinite(xy[:, rigid]).all(axis=(1, 2))
+    sims = np.tile([1.0, 0.0, 0.0, 0.0], (len(xy), 1))
+    for t in np.flatnonzero(ok):
+        sims[t] = fit_similarity(model.neutral[rigid], xy[t, rigid])
+    return sims, ok
 
 
 def parameters_to_points(model: EigenModel, parameters: np.ndarray, similarity: np.ndarray | None = None) -> np.ndarray:

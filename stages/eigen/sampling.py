@@ -1,9 +1,10 @@
 """Samplings of the animation-parameter and head-rotation space for the training renders
 (Valente & Dugelay, "Early results on synthetic images").
 
-Animation parameters here are the face generator's expression controls (``scripts/facegen``,
-each in [0, 1], 0 = neutral); the paper's FAP values {-1, -0.5, 0, 0.5, 1} span each FAP's range,
-so on the controls' one-sided range they become {0, 0.25, 0.5, 0.75, 1}. Angles are degrees,
+The paper's FAP values {-1, -0.5, 0, 0.5, 1} span each FAP's range; a face model gives its own
+levels: the face generator's expression controls (``scripts/facegen``, each in [0, 1], 0 =
+neutral) take {0, 0.25, 0.5, 0.75, 1} (:data:`PAPER_LEVELS`), the PCA parameters of a pack's
+captured geometries {-2, -1, 0, 1, 2} standard deviations (:mod:`.packface`). Angles are degrees,
 columns (yaw, pitch, roll) = rotation about Y, X, Z.
 """
 
@@ -17,20 +18,21 @@ PAPER_LEVELS = (0.0, 0.25, 0.5, 0.75, 1.0)  # the paper's {-1, -0.5, 0, 0.5, 1} 
 PAPER_ANGLES_DEG = (-3.0, 0.0, 3.0)  # X and Y rotation
 
 
-def paper_sampling(n_params: int) -> tuple[np.ndarray, np.ndarray]:
-    """Each parameter alone over :data:`PAPER_LEVELS`, every expression under the 9 orientations
-    X, Y in :data:`PAPER_ANGLES_DEG` (roll 0). The neutral, shared by all parameters, once.
+def paper_sampling(n_params: int, *, levels: tuple[float, ...] = PAPER_LEVELS) -> tuple[np.ndarray, np.ndarray]:
+    """Each parameter alone over ``levels``, every expression under the 9 orientations X, Y in
+    :data:`PAPER_ANGLES_DEG` (roll 0). The neutral (all parameters 0), shared by all parameters,
+    once; ``levels`` must contain 0.
 
     Returns
     -------
     controls : (m, n_params) float64
     angles : (m, 3) float64
-        (yaw, pitch, roll) deg; ``m = (4 n_params + 1) * 9``.
+        (yaw, pitch, roll) deg; ``m = ((len(levels) - 1) n_params + 1) * 9``.
     """
-    if n_params < 1:
-        raise ValueError(f"expected n_params >= 1, got {n_params}")
+    if n_params < 1 or 0.0 not in levels:
+        raise ValueError(f"expected n_params >= 1 and levels containing 0, got {n_params} and {levels}")
     expressions = [np.zeros(n_params)]
-    for k, level in itertools.product(range(n_params), PAPER_LEVELS[1:]):
+    for k, level in itertools.product(range(n_params), [v for v in levels if v != 0.0]):
         c = np.zeros(n_params)
         c[k] = level
         expressions.append(c)
@@ -41,11 +43,12 @@ def paper_sampling(n_params: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def rich_sampling(n_params: int, count: int, *, seed: int = 0, active: float = 0.35,
+                  span: tuple[float, float] = (0.0, 1.0),
                   max_deg: tuple[float, float, float] = (25.0, 15.0, 10.0)) -> tuple[np.ndarray, np.ndarray]:
     """Random combinations of parameters under a wider range of head rotations.
 
-    Each parameter is active with probability ``active`` and then uniform in [0, 1]; angles are
-    uniform in ``[-max_deg, max_deg]`` per axis (yaw, pitch, roll).
+    Each parameter is active with probability ``active`` and then uniform in ``span`` (0
+    otherwise); angles are uniform in ``[-max_deg, max_deg]`` per axis (yaw, pitch, roll).
 
     Returns
     -------
@@ -57,7 +60,7 @@ def rich_sampling(n_params: int, count: int, *, seed: int = 0, active: float = 0
         raise ValueError(f"expected count >= 1 and 0 < active <= 1, got count={count}, active={active}")
     rng = np.random.default_rng(seed)
     on = rng.random((count, n_params)) < active
-    controls = np.where(on, rng.random((count, n_params)), 0.0)
+    controls = np.where(on, rng.uniform(span[0], span[1], (count, n_params)), 0.0)
     angles = rng.uniform(-1.0, 1.0, (count, 3)) * np.asarray(max_deg, dtype=np.float64)
     return controls, angles
 
@@ -72,3 +75,18 @@ def rotation_angles(R: np.ndarray) -> np.ndarray:
     pitch = np.arctan2(R[..., 2, 1], R[..., 2, 2])
     roll = np.arctan2(R[..., 1, 0], R[..., 0, 0])
     return np.degrees(np.stack([yaw, pitch, roll], axis=-1))
+
+
+def rotation_matrix(angles: np.ndarray) -> np.ndarray:
+    """``R = Rz(roll) Ry(yaw) Rx(pitch)`` ``(..., 3, 3)`` of (yaw, pitch, roll) deg ``(..., 3)``,
+    the inverse of :func:`rotation_angles` (camera frame: x right, y down, z away)."""
+    yaw, pitch, roll = np.moveaxis(np.radians(np.asarray(angles, dtype=np.float64)), -1, 0)
+    c, s = np.cos, np.sin
+    one, zero = np.ones_like(yaw), np.zeros_like(yaw)
+    Rx = np.stack([np.stack([one, zero, zero], -1), np.stack([zero, c(pitch), -s(pitch)], -1),
+                   np.stack([zero, s(pitch), c(pitch)], -1)], -2)
+    Ry = np.stack([np.stack([c(yaw), zero, s(yaw)], -1), np.stack([zero, one, zero], -1),
+                   np.stack([-s(yaw), zero, c(yaw)], -1)], -2)
+    Rz = np.stack([np.stack([c(roll), -s(roll), zero], -1), np.stack([s(roll), c(roll), zero], -1),
+                   np.stack([zero, zero, one], -1)], -2)
+    return Rz @ Ry @ Rx

@@ -5,7 +5,9 @@
 (the geometry in the frame, placed by the frame's 2D similarity) and a ``displacements`` bundle
 in the neutral's frame (``d = x(mu) - x_neutral``: the expression without head motion, what the
 compensation stages make of tracked points), which ``map.expression`` takes as it takes
-``compensate.pose3d``'s (``pipeline_eigen.yaml``).
+``compensate.pose3d``'s (``pipeline_eigen.yaml``). With a real performer's pack the face model
+is the pack driven by the synthesis (:mod:`.packface`) and the frame's layout points give the
+similarity (``pipeline_eigen_real.yaml``).
 """
 
 from __future__ import annotations
@@ -16,34 +18,26 @@ from typing import Any, Iterator, Mapping
 import numpy as np
 
 from runner.stage import Context, FrameStream, Param, SequenceStage, StageError
-from stages.eigen.model import EigenModel, analyze_frames, parameters_to_points
-from stages.eigen.sampling import paper_sampling, rich_sampling, rotation_angles
-from stages.eigen.synthetic import performer_rig, train_on_renders
-
-
-def training_sampling(kind: str, n_params: int, *, samples: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Controls ``(m, C)`` and angles ``(m, 3)`` of ``kind``: ``paper`` (each parameter alone x 9
-    orientations) or ``rich`` (the paper's set plus ``samples`` random combinations under a wider
-    range of rotations)."""
-    controls, angles = paper_sampling(n_params)
-    if kind == "rich":
-        more_c, more_a = rich_sampling(n_params, samples, seed=seed)
-        controls, angles = np.concatenate([controls, more_c]), np.concatenate([angles, more_a])
-    return controls, angles
+from stages.eigen.model import EigenModel, analyze_frames, parameters_to_points, similarities_from_points
+from stages.eigen.sampling import rotation_angles
+from stages.eigen.training import face_model, train_on_renders
 
 
 class TrainEigenfeatures(SequenceStage):
     """Offline: render the performer's face model under sampled parameters and rotations, PCA of
-    each feature's patches, the estimator's normal equations and the parameter -> geometry map."""
+    each feature's patches, the estimator's normal equations and the parameter -> geometry map.
+    The face model: the fixture generator's face for a fixture pack (its 12 expression controls),
+    else the pack driven by the synthesis (the PCA of its captured geometries)."""
 
     name = "train.eigenfeatures"
-    version = "1"
+    version = "2"
     doc = "eigenfeatures (PCA of feature patches) and linear estimator from renders of the performer's face model"
     inputs = {"pack": "dir"}
     outputs = {"model": "eigen_model"}
     params = (
         Param("sampling", str, "rich", "paper: each parameter alone x {-3,0,3} deg X/Y; rich: plus random "
-              "combinations under +-25 yaw, +-15 pitch, +-10 roll (the live clip's range)", choices=("paper", "rich")),
+              "combinations under wider rotations (generator: +-25 yaw, +-15 pitch, +-10 roll, the live clip's "
+              "range; pack: +-15, +-10, +-10)", choices=("paper", "rich")),
         Param("samples", int, 500, "random combinations added by sampling=rich", min=1),
         Param("seed", int, 0, "random seed of sampling=rich"),
         Param("q", int, 16, "eigenfeatures per feature", min=1),
@@ -51,21 +45,26 @@ class TrainEigenfeatures(SequenceStage):
         Param("blur_px", float, 1.0, "Gaussian blur of each patch before PCA, patch px (0: off; 1 measured better "
               "than 0, docs/eigen.md)", min=0.0),
         Param("normalize", bool, False, "each patch to zero mean and unit standard deviation"),
-        Param("supersample", int, 2, "antialiasing of the training renders (the fixture clips: 2)", min=1, max=4),
+        Param("supersample", int, 2, "antialiasing of the generator's training renders (the fixture clips: 2)",
+              min=1, max=4),
+        Param("variance", float, 0.95, "pack face model: share of the captured geometries' variance its PCA "
+              "parameters reach", min=0.01, max=1.0),
+        Param("max_params", int, 8, "pack face model: most PCA parameters", min=1),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         try:
-            rig = performer_rig(Path(inputs["pack"]))
-            controls, angles = training_sampling(params["sampling"], len(rig.param_names),
-                                                 samples=int(params["samples"]), seed=int(params["seed"]))
-            model = train_on_renders(rig, controls, angles, q=int(params["q"]), margin=float(params["margin"]),
+            face = face_model(Path(inputs["pack"]), supersample=int(params["supersample"]),
+                              variance=float(params["variance"]), max_params=int(params["max_params"]))
+            controls, angles = face.sampling(params["sampling"], samples=int(params["samples"]),
+                                             seed=int(params["seed"]))
+            model = train_on_renders(face, controls, angles, q=int(params["q"]), margin=float(params["margin"]),
                                      blur_px=float(params["blur_px"]), normalize=bool(params["normalize"]),
-                                     supersample=int(params["supersample"]), progress=ctx.progress)
+                                     progress=ctx.progress)
         except ValueError as exc:
             raise StageError(f"{self.name}: {exc}") from exc
-        ctx.log.info("eigenfeatures: %d renders, patches %s, q=%d", len(controls),
-                     [w.shape for w in model.windows], model.q)
+        ctx.log.info("eigenfeatures: %d renders of %d parameters, patches %s, q=%d", len(controls),
+                     len(model.param_names), [w.shape for w in model.windows], model.q)
         return {"model": model.to_bundle()}
 
 
@@ -74,13 +73,17 @@ class AnalyzeEigenfeatures(SequenceStage):
     similarity, with the head rotation, give the animation parameters (mu = L lambda), and the
     parameters the geometry of all layout points: in the neutral's frame (``displacements``, no
     head motion) and in the frame through its similarity (``points``; a 2D model, so out-of-plane
-    rotation is not in it). Points of a feature whose patch left the image are flagged invalid."""
+    rotation is not in it). Points of a feature whose patch left the image are flagged invalid.
+    The similarity is the ``similarity`` input (neutral -> frame, the model's neutral being the
+    clip's, as with the fixture packs) or, given the frame's layout ``points``, fitted on the
+    model's rigid points from its neutral (a pack built from footage has its own frame)."""
 
     name = "analyze.eigenfeatures"
-    version = "1"
+    version = "2"
     doc = "animation parameters and all layout points from eigenfeature scores (Valente & Dugelay)"
-    inputs = {"frames": "frames", "similarity": "similarity", "pose": "pose", "model": "eigen_model"}
-    optional_inputs = frozenset({"pose", "model"})
+    inputs = {"frames": "frames", "similarity": "similarity", "points": "points", "pose": "pose",
+              "model": "eigen_model"}
+    optional_inputs = frozenset({"similarity", "points", "pose", "model"})
     outputs = {"points": "points", "displacements": "displacements", "parameters": "eigen_parameters"}
     params = (
         Param("model_file", str, "", "a trained model (.npz of train.eigenfeatures) instead of the model input",
@@ -92,16 +95,11 @@ class AnalyzeEigenfeatures(SequenceStage):
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         model = self.model(inputs, params)
-        sim = inputs["similarity"]
-        for key in ("params", "valid"):
-            if key not in sim:
-                raise StageError(f"{self.name}: input 'similarity' has no field '{key}'")
+        similarity, valid, sim = self.similarity(inputs, model)
         frames: FrameStream = inputs["frames"]
-        similarity = np.asarray(sim["params"], dtype=np.float64)
         T = len(similarity)
         if frames.info.frames != T:
-            raise StageError(f"{self.name}: input 'similarity' has {T} frames, input 'frames' {frames.info.frames}")
-        valid = np.asarray(sim["valid"], dtype=bool).copy()
+            raise StageError(f"{self.name}: the similarity has {T} frames, input 'frames' {frames.info.frames}")
         angles = None
         if params["rotation"]:
             pose = inputs.get("pose")
@@ -131,6 +129,30 @@ class AnalyzeEigenfeatures(SequenceStage):
                       "feature_valid": feature_valid,
                       "feature_names": np.array([w.name for w in model.windows], dtype=str)}
         return {"points": points, "displacements": displacements, "parameters": parameters}
+
+    def similarity(self, inputs: Mapping[str, Any], model: EigenModel) -> tuple[np.ndarray, np.ndarray, Mapping[str, Any]]:
+        """Similarities ``(T, 4)`` neutral -> frame, their validity ``(T,)`` and the bundle they came
+        from (for ``fps``, ``size``): the input ``similarity`` or fitted on the input ``points``."""
+        given = [port for port in ("similarity", "points") if inputs.get(port) is not None]
+        if len(given) != 1:
+            raise StageError(f"{self.name}: give exactly one of the inputs 'similarity' or 'points', got {given}")
+        port = given[0]
+        bundle = inputs[port]
+        keys = ("params", "valid") if port == "similarity" else ("xy", "valid", "names")
+        for key in keys:
+            if key not in bundle:
+                raise StageError(f"{self.name}: input '{port}' has no field '{key}'")
+        if port == "similarity":
+            return np.asarray(bundle["params"], dtype=np.float64), np.asarray(bundle["valid"], dtype=bool).copy(), bundle
+        names = [str(n) for n in bundle["names"]]
+        if names != list(model.point_names):
+            raise StageError(f"{self.name}: input 'points' field 'names': expected the model's {len(model.point_names)} "
+                             f"layout points in its order, got {len(names)} names")
+        try:
+            similarity, valid = similarities_from_points(model, bundle["xy"], bundle["valid"])
+        except ValueError as exc:
+            raise StageError(f"{self.name}: input 'points': {exc}") from exc
+        return similarity, valid, bundle
 
     def model(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> EigenModel:
         """The model from the input port or ``model_file`` (exactly one)."""

@@ -63,8 +63,23 @@ def test_model_file_and_errors(bundle, tmp_path):
                                    {**PARAMS, "rotation": False}, CTX)
 
 
-def test_training_needs_a_generator_pack(tmp_path):
+def test_training_on_a_broken_pack_names_the_field(tmp_path):
     (tmp_path / "pack.yaml").write_text("format: actor-pack/1\nname: real\nimage_size: [320, 240]\n")
     params = {p.name: p.default for p in TrainEigenfeatures.params}
-    with pytest.raises(StageError, match="generator"):
+    with pytest.raises(StageError, match="field 'layout'"):
         TrainEigenfeatures().run({"pack": tmp_path}, params, CTX)
+
+
+def test_similarity_from_points_matches_the_given_similarity(bundle):
+    frames, similarity, pose, _ = clip()
+    model_neutral = np.asarray(bundle["neutral"])
+    xy = np.stack([model_neutral * s[0] + s[2:] for s in similarity["params"]])  # a = s, b = 0
+    points = {"xy": xy, "valid": np.ones(xy.shape[:2], bool), "names": bundle["point_names"]}
+    given = AnalyzeEigenfeatures().run({"frames": frames, "similarity": similarity, "pose": pose, "model": bundle},
+                                       PARAMS, CTX)
+    fitted = AnalyzeEigenfeatures().run({"frames": frames, "points": points, "pose": pose, "model": bundle},
+                                        PARAMS, CTX)
+    np.testing.assert_allclose(fitted["parameters"]["params"], given["parameters"]["params"], atol=1e-6)
+    with pytest.raises(StageError, match="exactly one"):
+        AnalyzeEigenfeatures().run({"frames": frames, "similarity": similarity, "points": points, "model": bundle},
+                                   PARAMS, CTX)
