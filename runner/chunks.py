@@ -7,6 +7,13 @@ stored chunk hashes it against its entry's record the first time in a run; a dam
 reported and recomputed (:func:`runner.outputs.read_or_redo`). Frame chunks use the run through
 :class:`RunServices` only: the run's :class:`runner.keys.Keys`, the cache store, progress
 reporting and ``--jobs``.
+
+Asking what a key or digest is and computing frames are separate calls: the ``known_*`` and
+:meth:`FrameChunks.stored` methods answer from what is already stored (looking entries up,
+never computing; None while an upstream stage still has to run: the dry run and the scheduler
+ask them), the others (:meth:`FrameChunks.key`, :meth:`FrameChunks.digests`,
+:meth:`FrameChunks.entry`) resolve what they need, computing missing chunks. Both go through
+one description of what a chunk's key reads (:meth:`FrameChunks.reads`).
 """
 
 from __future__ import annotations
@@ -66,13 +73,19 @@ class Value:
     info: StreamInfo | None = None
     _loaded: Any = field(default=None, repr=False)
 
-    def resolved_digest(self, *, compute: bool = True) -> str | None:
-        """The value's digest; for a frame stage's output, the digest of all its chunks, which
-        resolves them (computing the missing ones), or None if ``compute`` is False and some
-        chunk is not stored yet."""
+    def known_digest(self) -> str | None:
+        """The value's digest if it is known without computing anything; for a frame stage's
+        output, once every chunk is stored; None until its producer runs."""
         if self.chunks is None:
             return self.digest
-        return self.chunks.digest(self.port, compute=compute)
+        return self.chunks.known_digest(self.port)
+
+    def resolved_digest(self) -> str | None:
+        """The value's digest; for a frame stage's output, the digest of all its chunks, which
+        resolves them (computing the missing ones). None only for a value a dry run cannot know."""
+        if self.chunks is None:
+            return self.digest
+        return self.chunks.digest(self.port)
 
     def get(self) -> Any:
         if self.chunks is not None and self.type == "frames":
@@ -82,11 +95,31 @@ class Value:
         return self._loaded
 
 
-def input_digests(inputs: dict[str, Value], *, compute: bool = True) -> dict[str, str] | None:
-    """Digest per input port (resolving frame streams); None if ``compute`` is False and one is
-    not known without computing."""
-    digests = {port: v.resolved_digest(compute=compute) for port, v in inputs.items()}
-    return None if None in digests.values() else digests
+@dataclass(frozen=True)
+class Read:
+    """One upstream digest a chunk's key reads: the whole value at input ``port`` (``chunks``
+    None), or the digests of its frame chunks ``lo..hi`` (``chunks = (lo, hi)``)."""
+
+    port: str
+    value: Value
+    chunks: tuple[int, int] | None = None
+
+    def known(self) -> str | list[str] | None:
+        """The digest(s) if known without computing (see :meth:`Value.known_digest`), else None."""
+        if self.chunks is None:
+            return self.value.known_digest()
+        return self.value.chunks.known_digests(self.value.port, *self.chunks)
+
+    def resolved(self) -> str | list[str]:
+        """The digest(s), resolving (computing) what is missing."""
+        if self.chunks is None:
+            return self.value.resolved_digest()
+        return self.value.chunks.digests(self.value.port, *self.chunks)
+
+
+def input_digests(inputs: dict[str, Value]) -> dict[str, str]:
+    """Digest per input port, resolving frame streams."""
+    return {port: v.resolved_digest() for port, v in inputs.items()}
 
 
 class FrameChunks:
@@ -123,86 +156,114 @@ class FrameChunks:
 
     # -- keys and digests ------------------------------------------------------------------
 
-    def key(self, i: int, *, compute: bool = True) -> str | None:
-        """Cache key of chunk ``i``; None if ``compute`` is False and an input chunk it reads
-        is not stored yet."""
+    def reads(self, i: int) -> list[Read]:
+        """What chunk ``i``'s key reads upstream: every input that is not a frame stream whole;
+        of each frame stream, the chunks that frames ``[start - window, stop + window)`` touch
+        (clamped to the clip). A stage that defines its own stream shape may map output frames
+        to any input frames, so each of its chunks reads whole input streams."""
+        own_shape = defines_stream_info(self.node.cls)
+        start, stop = self.ranges[i]
+        size, window = self.run.keys.chunk_frames, self.node.cls.window
+        plain = [Read(port, v) for port, v in self.inputs.items() if v.type != "frames"]
+        streams = [Read(port, v) if own_shape else
+                   Read(port, v, (max(0, start - window) // size, (min(v.info.frames, stop + window) - 1) // size))
+                   for port, v in self.inputs.items() if v.type == "frames"]
+        return plain + streams
+
+    def _key_of(self, i: int, reads: list[Read], digests: list[str | list[str]]) -> str:
+        """Cache key of chunk ``i`` given the digests of what it reads."""
+        plain, used = {}, {}
+        for read, digest in zip(reads, digests):
+            if read.value.type != "frames":
+                plain[read.port] = digest
+            else:
+                used[read.port] = {"info": asdict(read.value.info), "stream" if read.chunks is None else "chunks": digest}
+        return cache_key({**self.run.keys.material(self.node, plain), "chunk": list(self.ranges[i]),
+                          "info": asdict(self.info), "chunk_inputs": used})
+
+    def key(self, i: int) -> str:
+        """Cache key of chunk ``i``, resolving the upstream chunks it reads."""
         if self.keys[i] is None:
-            plain = {p: v for p, v in self.inputs.items() if v.type != "frames"}
-            digests = input_digests(plain, compute=compute)
-            start, stop = self.ranges[i]
-            used = None if digests is None else self._chunk_inputs(start, stop, compute=compute)
-            if used is None:
-                return None
-            self.keys[i] = cache_key({**self.run.keys.material(self.node, digests), "chunk": [start, stop],
-                                      "info": asdict(self.info), "chunk_inputs": used})
+            reads = self.reads(i)
+            self.keys[i] = self._key_of(i, reads, [read.resolved() for read in reads])
         return self.keys[i]
 
-    def _chunk_inputs(self, start: int, stop: int, *, compute: bool) -> dict[str, Any] | None:
-        """Digests of the upstream frame chunks that frames ``[start - window, stop + window)``
-        touch (clamped to the clip), resolving them; None if ``compute`` is False and one is
-        not stored yet. A stage that defines its own stream shape may map output frames to any
-        input frames, so each of its chunks depends on whole input streams."""
-        own_shape = defines_stream_info(self.node.cls)
-        used = {}
-        for port, v in self.inputs.items():
-            if v.type != "frames":
-                continue
-            if own_shape:
-                digest = v.resolved_digest(compute=compute)
+    def known_key(self, i: int) -> str | None:
+        """Cache key of chunk ``i`` if what it reads is known without computing, else None."""
+        if self.keys[i] is None:
+            reads, digests = self.reads(i), []
+            for read in reads:
+                digest = read.known()
                 if digest is None:
                     return None
-                used[port] = {"info": asdict(v.info), "stream": digest}
-                continue
-            size, window = self.run.keys.chunk_frames, self.node.cls.window
-            lo = max(0, start - window) // size
-            hi = (min(v.info.frames, stop + window) - 1) // size
-            digests = v.chunks.digests(v.port, lo, hi, compute=compute)
-            if digests is None:
-                return None
-            used[port] = {"info": asdict(v.info), "chunks": digests}
-        return used
+                digests.append(digest)
+            self.keys[i] = self._key_of(i, reads, digests)
+        return self.keys[i]
 
-    def digests(self, port: str, lo: int, hi: int, *, compute: bool = True) -> list[str] | None:
-        """Digests of output ``port`` in chunks ``lo..hi`` (inclusive), resolving them; None if
-        ``compute`` is False and one is not stored yet."""
+    def _port_digest(self, port: str, chunk: Entry | str) -> str:
+        """Digest of output ``port`` in one chunk, from its entry (cached stage) or its key (an
+        uncached stage's chunks are identified by their key)."""
+        if isinstance(chunk, str):
+            return cache_key({"computed": chunk, "port": port})
+        return chunk.record["outputs"][port]["digest"]
+
+    def digests(self, port: str, lo: int, hi: int) -> list[str]:
+        """Digests of output ``port`` in chunks ``lo..hi`` (inclusive), resolving them."""
+        cached = self.node.cls.cached
+        return [self._port_digest(port, self.entry(i) if cached else self.key(i)) for i in range(lo, hi + 1)]
+
+    def known_digests(self, port: str, lo: int, hi: int) -> list[str] | None:
+        """Digests of output ``port`` in chunks ``lo..hi`` if each is stored (or, uncached, its
+        key is known), else None; computes nothing."""
         out = []
         for i in range(lo, hi + 1):
-            if not self.node.cls.cached:
-                key = self.key(i, compute=compute)
-                if key is None:
-                    return None
-                out.append(cache_key({"computed": key, "port": port}))
-                continue
-            entry = self.entry(i, compute=compute)
-            if entry is None:
+            chunk = self.stored(i) if self.node.cls.cached else self.known_key(i)
+            if chunk is None:
                 return None
-            out.append(entry.record["outputs"][port]["digest"])
+            out.append(self._port_digest(port, chunk))
         return out
 
-    def digest(self, port: str, *, compute: bool = True) -> str | None:
-        """Digest of the whole output ``port``: of its chunk digests and the stream shape."""
-        digests = self.digests(port, 0, len(self.ranges) - 1, compute=compute)
-        return None if digests is None else combine([*digests, json.dumps(asdict(self.info))])
+    def digest(self, port: str) -> str:
+        """Digest of the whole output ``port`` (its chunk digests and the stream shape), resolving
+        every chunk."""
+        return self._combine(self.digests(port, 0, len(self.ranges) - 1))
+
+    def known_digest(self, port: str) -> str | None:
+        """Digest of the whole output ``port`` if every chunk is stored, else None."""
+        digests = self.known_digests(port, 0, len(self.ranges) - 1)
+        return None if digests is None else self._combine(digests)
+
+    def _combine(self, digests: list[str]) -> str:
+        return combine([*digests, json.dumps(asdict(self.info))])
 
     # -- resolving -------------------------------------------------------------------------
 
-    def entry(self, i: int, *, compute: bool = True) -> Entry | None:
-        """The stored entry of chunk ``i`` (cached stages), computed and committed if missing;
-        None if ``compute`` is False (or in a dry run) and it is not stored."""
-        if self.entries[i] is not None:
-            return self.entries[i]
-        compute = compute and not self.run.keys.dry_run
-        with self._locks[i]:
-            if self.entries[i] is None:
-                key = self.key(i, compute=compute)
-                found = None if key is None or self.forced else self.run.keys.lookup(self.node, key)
-                if found is None and not compute:
-                    return None
-                ran = found is None
-                if ran:
-                    found, ran = self._compute(i, key)
-                self._resolved(i, found, ran)
-            return self.entries[i]
+    def stored(self, i: int) -> Entry | None:
+        """The entry of chunk ``i`` if it is stored (a cached stage, not forced): resolved
+        without computing anything; None if it is missing or its key is not known until an
+        upstream stage runs."""
+        if self.entries[i] is None and not self.forced:
+            with self._locks[i]:
+                key = self.known_key(i) if self.entries[i] is None else None
+                found = None if key is None else self.run.keys.lookup(self.node, key)
+                if found is not None:
+                    self._resolved(i, found, ran=False)
+        return self.entries[i]
+
+    def entry(self, i: int) -> Entry:
+        """The stored entry of chunk ``i`` (cached stages), computed and committed if missing."""
+        if self.entries[i] is None:
+            with self._locks[i]:
+                if self.entries[i] is None:
+                    if self.run.keys.dry_run:
+                        raise RuntimeError(f"a dry run computes nothing, yet chunk {i} of {self.node.name} was needed")
+                    key = self.key(i)
+                    found = None if self.forced else self.run.keys.lookup(self.node, key)
+                    ran = found is None
+                    if ran:
+                        found, ran = self._compute(i, key)
+                    self._resolved(i, found, ran)
+        return self.entries[i]
 
     def resolve_all(self) -> None:
         """Resolve every chunk now, ``--jobs`` at once."""

@@ -181,7 +181,7 @@ class Runner:
     def _unknown(self, node: StageNode) -> list[str | None]:
         """Dry run: the upstream stages whose outputs are not known (they will run)."""
         return [ref.stage for ref in node.inputs.values()
-                if self.values[(ref.stage, ref.port)].resolved_digest(compute=False) is None]
+                if self.values[(ref.stage, ref.port)].known_digest() is None]
 
     # -- sequence stages -------------------------------------------------------------------
 
@@ -201,7 +201,7 @@ class Runner:
             self._set_outputs(node, entry, inputs)
             return Report(node.name, node.uses, "cached", "cache hit")
         report = Report(node.name, node.uses, "cached")
-        pending = {port: v for port, v in inputs.items() if v.resolved_digest(compute=False) is None}
+        pending = {port: v for port, v in inputs.items() if v.known_digest() is None}
         streaming = bool(pending) and (forced or self._read_while_computed(node, pending))
         key = None if streaming else cache_key(self.keys.material(node, input_digests(inputs)))
         entry = None if forced or key is None else self.keys.lookup(node, key)
@@ -233,7 +233,7 @@ class Runner:
             if v.type != "frames":
                 continue
             count = len(v.chunks.ranges)
-            first = next((i for i in range(count) if v.chunks.digests(v.port, i, i, compute=False) is None), None)
+            first = next((i for i in range(count) if v.chunks.known_digests(v.port, i, i) is None), None)
             if first is not None and read.get(port, [])[first:first + 1] != v.chunks.digests(v.port, first, first):
                 return True
         return False
@@ -284,7 +284,7 @@ class Runner:
         if self.opts.dry_run:
             report = chunks.report
             count = len(chunks.ranges)
-            if sum(chunks.entry(i, compute=False) is not None for i in range(count)) == count:
+            if sum(chunks.stored(i) is not None for i in range(count)) == count:
                 report.reason = "cache hit"
                 return report
             self._set_unknown(node)
