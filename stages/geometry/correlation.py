@@ -11,7 +11,7 @@ import functools
 
 import numpy as np
 
-from stages.geometry.compensate import apply_similarity, fit_similarity
+from stages.geometry.similarity import apply_similarity, fit_similarity
 
 
 def to_gray(frame: np.ndarray) -> np.ndarray:

@@ -28,7 +28,8 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from stages.actor_pack import ActorPack
-from stages.geometry.compensate import fit_similarity
+from stages.geometry.camera import project, rotation_matrix, skew
+from stages.geometry.similarity import fit_similarity
 from stages.geometry.frontalize import adapt_to_reference, frontal_translation
 from stages.pack.bundles import geometry_from_bundle, geometry_to_bundle, model3d_from_bundle, model3d_to_bundle
 
@@ -61,8 +62,7 @@ class FaceModel:
     def project(self, R: np.ndarray, t: np.ndarray, c: np.ndarray) -> np.ndarray:
         """Image positions ``(N, 2)`` px of the model with coefficients ``c (M,)`` at pose ``R (3, 3)``,
         ``t (3,)`` mm (eq. 10)."""
-        camera_xyz = (self.neutral + self.basis @ c) @ R.T + t
-        return _perspective(camera_xyz, self.camera)
+        return project((self.neutral + self.basis @ c) @ R.T + t, self.camera)[0]
 
     def first_frame_fit(self) -> "FaceFit":
         """The fit of the first frame: frontal (``R = I``), ``t0``, neutral expression (``c = 0``)."""
@@ -167,11 +167,11 @@ def fit_face_model(model: FaceModel, observed: np.ndarray, information: np.ndarr
     for _ in range(iterations):
         rotated = (model.neutral + model.basis @ c) @ R.T                    # (N, 3) R X_i
         x, y, z = (rotated + t).T
-        residual = np.stack([fx * x / z + model.camera[0, 2], fy * y / z + model.camera[1, 2]], axis=1) - observed
+        residual = project(rotated + t, model.camera)[0] - observed
         d_proj = np.zeros((len(z), 2, 3))                                    # d pi / d camera_xyz
         d_proj[:, 0, 0], d_proj[:, 0, 2] = fx / z, -fx * x / z ** 2
         d_proj[:, 1, 1], d_proj[:, 1, 2] = fy / z, -fy * y / z ** 2
-        jac = np.concatenate([d_proj @ -_skew(rotated), d_proj,
+        jac = np.concatenate([d_proj @ -skew(rotated), d_proj,
                               d_proj @ (R[None] @ model.basis)], axis=2)     # (N, 2, 6 + M)
         length = np.sqrt(np.maximum(((information @ residual[:, :, None])[:, :, 0] * residual).sum(axis=1), 0.0))
         weight = np.minimum(1.0, huber_px / np.maximum(length, 1e-12))[:, None, None] * information
@@ -182,31 +182,7 @@ def fit_face_model(model: FaceModel, observed: np.ndarray, information: np.ndarr
         normal[6:, 6:] += np.diag(prior)
         gradient[6:] += prior * c
         step = np.linalg.solve(normal + 1e-9 * np.eye(6 + m), -gradient)
-        R = _rodrigues(step[:3]) @ R
+        R = rotation_matrix(step[:3]) @ R
         t = t + step[3:6]
         c = c + step[6:]
     return FaceFit(R, t, c, model.project(R, t, c))
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices ``(..., 3, 3)`` of vectors ``(..., 3)``."""
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
-
-
-def _rodrigues(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix ``exp([w]x)`` of a rotation vector ``w (3,)`` rad."""
-    angle = float(np.linalg.norm(w))
-    if angle < 1e-12:
-        return np.eye(3) + _skew(w)
-    k = _skew(w / angle)
-    return np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k)
-
-
-def _perspective(camera_xyz: np.ndarray, camera: np.ndarray) -> np.ndarray:
-    z = camera_xyz[..., 2]
-    return np.stack([camera[0, 0] * camera_xyz[..., 0] / z + camera[0, 2],
-                     camera[1, 1] * camera_xyz[..., 1] / z + camera[1, 2]], axis=-1)

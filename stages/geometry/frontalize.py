@@ -50,6 +50,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import Context, SequenceStage, StageError
+from stages.geometry.camera import project_pose
 from stages.pack.bundles import model3d_from_bundle
 
 
@@ -89,15 +90,6 @@ def lift_to_head(xy: np.ndarray, model: np.ndarray, R: np.ndarray, t: np.ndarray
     return head, depth > 0
 
 
-def project(points: np.ndarray, R: np.ndarray, t: np.ndarray, camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``pi(A (R X + t))`` of head points ``(..., N, 3)`` mm with one pose ``R (3, 3)``, ``t (3,)``:
-    pixels ``(..., N, 2)`` and ``(..., N)`` bool, True where the point is in front of the camera."""
-    image = (np.asarray(points, dtype=np.float64) @ R.T + t) @ np.asarray(camera, dtype=np.float64).T
-    depth = image[..., 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return image[..., :2] / depth[..., None], depth > 0
-
-
 def frontalize(xy: np.ndarray, model: np.ndarray, R: np.ndarray, t: np.ndarray, camera: np.ndarray, *,
                reference: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Tracked points with the head motion removed by the 3D pose (module docstring, steps 1-2).
@@ -126,7 +118,7 @@ def frontalize(xy: np.ndarray, model: np.ndarray, R: np.ndarray, t: np.ndarray, 
         The lift and the re-projection are both in front of the camera.
     """
     head, in_front = lift_to_head(xy, np.broadcast_to(model, np.shape(xy)[:-1] + (3,)), R, t, camera)
-    frontal, ahead = project(head, np.asarray(R[reference]), np.asarray(t[reference]), camera)
+    frontal, ahead = project_pose(head, np.asarray(R[reference]), np.asarray(t[reference]), camera)
     ok = in_front & ahead
     return np.where(ok[..., None], frontal, np.nan), ok
 
@@ -185,7 +177,7 @@ class PoseCompensate(SequenceStage):
     """
 
     name = "compensate.pose3d"
-    version = "3"
+    version = "4"
     doc = "3D motion compensation: points lifted with the generic model and the pose, re-projected at frame 0's pose"
     inputs = {"points": "points", "pose": "pose", "model3d": "pack_model3d"}
     outputs = {"displacements": "displacements"}

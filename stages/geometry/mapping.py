@@ -46,7 +46,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
-from stages.geometry.compensate import fit_similarity
+from stages.geometry.similarity import fit_similarity
 from stages.geometry.subset import named_columns, rigid_columns
 from stages.pack.bundles import layout_and_geometry
 

@@ -24,6 +24,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
+from stages.geometry.camera import project_pose, rotation_matrix, rotation_vector
 from stages.geometry.face_model import FaceModel, bundle_face_model, fit_face_model
 from stages.geometry.frontalize import adapt_to_reference, frontal_translation
 from stages.geometry.smooth import gaussian_smooth
@@ -43,9 +44,8 @@ def default_intrinsics(size: tuple[int, int]) -> np.ndarray:
 def reprojection_error(rvec: np.ndarray, tvec: np.ndarray, model: np.ndarray, image: np.ndarray,
                        camera: np.ndarray) -> float:
     """RMS distance in px between ``image (n, 2)`` and ``model (n, 3)`` projected with the pose."""
-    import cv2
-    projected, _ = cv2.projectPoints(model, rvec, tvec, camera, None)
-    return float(np.sqrt(np.mean(np.sum((projected.reshape(-1, 2) - image) ** 2, axis=1))))
+    projected = project_pose(model, rotation_matrix(rvec), tvec, camera)[0]
+    return float(np.sqrt(np.mean(np.sum((projected - image) ** 2, axis=1))))
 
 
 def adapt_model(model: np.ndarray, image: np.ndarray, camera: np.ndarray) -> np.ndarray:
@@ -92,7 +92,7 @@ def interpolate_poses(rvec: np.ndarray, tvec: np.ndarray, known: np.ndarray) -> 
 def smooth_poses(rvec: np.ndarray, tvec: np.ndarray, known: np.ndarray, *, sigma: float) -> tuple[np.ndarray, np.ndarray]:
     """Gaussian smoothing over time (:func:`gaussian_smooth`) of the known poses: quaternions made
     sign-continuous, smoothed and renormalized; translations smoothed. Shapes ``(T, 3)``."""
-    from scipy.spatial.transform import Rotation, Slerp
+    from scipy.spatial.transform import Rotation
     quat = Rotation.from_rotvec(rvec).as_quat()
     for t in range(1, len(quat)):
         if np.dot(quat[t], quat[t - 1]) < 0:
@@ -132,7 +132,6 @@ def estimate_poses(image: np.ndarray, valid: np.ndarray, model: np.ndarray, came
         points, NaN where none), ``valid (T,)`` (False where the pose was interpolated).
     """
     import cv2
-    from scipy.spatial.transform import Rotation, Slerp
     model = np.ascontiguousarray(model, dtype=np.float64)
     camera = np.asarray(camera, dtype=np.float64)
     n_frames = len(image)
@@ -169,7 +168,7 @@ def estimate_poses(image: np.ndarray, valid: np.ndarray, model: np.ndarray, came
         reprojection_error(rvec[t], tvec[t], model[valid[t]], image[t, valid[t]], camera) if valid[t].any() else np.nan
         for t in range(n_frames)
     ])
-    return {"rvec": rvec, "tvec": tvec, "R": Rotation.from_rotvec(rvec).as_matrix(),
+    return {"rvec": rvec, "tvec": tvec, "R": rotation_matrix(rvec),
             "reproj_err_px": error, "valid": solved}
 
 
@@ -199,8 +198,6 @@ def estimate_face_poses(image: np.ndarray, valid: np.ndarray, model: FaceModel, 
         As :func:`estimate_poses`; ``reproj_err_px`` is the RMS distance of the valid points to
         the fitted model.
     """
-    import cv2
-    from scipy.spatial.transform import Rotation, Slerp
     fit = model.first_frame_fit()
     n_frames = len(image)
     rvec, tvec = np.zeros((n_frames, 3)), np.zeros((n_frames, 3))
@@ -212,12 +209,12 @@ def estimate_face_poses(image: np.ndarray, valid: np.ndarray, model: FaceModel, 
         ok = valid[t]
         xy = np.where(ok[:, None], image[t], 0.0)
         fit = fit_face_model(model, xy, np.eye(2)[None] * ok[:, None, None], fit, iterations=iterations)
-        rvec[t], tvec[t] = cv2.Rodrigues(fit.R)[0].ravel(), fit.t
+        rvec[t], tvec[t] = rotation_vector(fit.R), fit.t
         error[t] = np.sqrt(np.mean(np.sum((fit.xy - xy)[ok] ** 2, axis=1)))
     if smooth_sigma > 0:
         rvec[solved], tvec[solved] = (x[solved] for x in smooth_poses(rvec, tvec, solved, sigma=smooth_sigma))
     rvec, tvec = interpolate_poses(rvec, tvec, solved)
-    return {"rvec": rvec, "tvec": tvec, "R": Rotation.from_rotvec(rvec).as_matrix(), "reproj_err_px": error,
+    return {"rvec": rvec, "tvec": tvec, "R": rotation_matrix(rvec), "reproj_err_px": error,
             "valid": solved}
 
 
@@ -225,7 +222,7 @@ class PnPPose(SequenceStage):
     """``pose.pnp``: the performer's head pose per frame (Sec. 12.1)."""
 
     name = "pose.pnp"
-    version = "4"
+    version = "5"
     doc = "3D head pose per frame by PnP from the rigid points and the pack's generic 3D model (eq. 10)"
     inputs = {"points": "points", "layout": "layout", "model3d": "pack_model3d", "camera": "camera",
               "geometry": "pack_geometry"}

@@ -29,6 +29,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
+from stages.geometry.camera import rotation_vector
 from stages.geometry.compensate import compensate as similarity_2d
 from stages.geometry.signals import expression_signals
 from stages.geometry.subset import named_columns
@@ -247,9 +248,8 @@ class CompensateRigid3D(SequenceStage):
         planar = similarity_2d(xy, valid, xy[reference], rigid)
         similarity = {"params": planar["params"], "residual_px": planar["residual_px"],
                       "valid": planar["frame_valid"] & frame_ok}
-        from scipy.spatial.transform import Rotation
 
-        pose = {"R": fit["R"], "rvec": Rotation.from_matrix(fit["R"]).as_rotvec(), "tvec": fit["t"],
+        pose = {"R": fit["R"], "rvec": rotation_vector(fit["R"]), "tvec": fit["t"],
                 "scale": fit["s"], "reproj_err_px": fit["residual_px"], "valid": frame_valid,
                 "ypr_deg": euler_yaw_pitch_roll(fit["R"]), "neutral_frame": np.array(reference)}
         return {"displacements": displacements, "similarity": similarity, "pose": pose}

@@ -63,7 +63,7 @@ class CorrelationTrack(SequenceStage):
     """
 
     name = "track.correlation"
-    version = "6"
+    version = "7"
     doc = "track the layout's tracked subset through a clip (NCC, or CSRT/KCF/MOSSE/LK)"
     inputs = {"frames": "frames", "init": "file", "model3d": "pack_model3d", "geometry": "pack_geometry",
               "camera": "camera"}

@@ -7,9 +7,8 @@ import numpy as np
 import pytest
 
 from runner.stage import StageError
-from stages.geometry.compensate import (
-    SimilarityCompensate, apply_similarity, compensate, fit_similarity, invert_similarity,
-)
+from stages.geometry.compensate import SimilarityCompensate, compensate
+from stages.geometry.similarity import apply_similarity, fit_similarity, invert_similarity
 from stages.layout import load_layout
 from tests.stages.geometry.synthetic import context
 

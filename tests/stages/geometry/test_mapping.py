@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from runner.stage import StageError
-from stages.geometry.compensate import apply_similarity
+from stages.geometry.similarity import apply_similarity
 from stages.geometry.mapping import (
     NORMALIZATION_POINTS, ExpressionMap, captured_range, displacement_transforms, eye_distance, map_expression,
     separate_lips, soft_limit,
