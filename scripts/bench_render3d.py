@@ -14,7 +14,7 @@ Geometry (pack camera frame, mm, mean over the skin points and the held-out expr
 * ``mesh3d_vertex_err_mm_centred``: the Sec. 9 error after removing each expression's mean
   offset (shape error without the global depth offset of the generic model's scale).
 
-Rendering — ``--frames`` frames (default 12), each a held-out expression at a head pose with yaw
+Rendering — ``--frames`` frames (default 16), each a held-out expression at a head pose with yaw
 spread over [-25, 25] degrees (pitch and roll up to 6 and 4 degrees). The TRUE pose is given to
 both outputs (the rows measure the 3D model and the renderer, not pose estimation). The texture
 of both is the 2D pipeline's synthesized expression image (``Synthesizer``, frontal, no head
@@ -37,7 +37,7 @@ Speed (2 CPU threads, llvmpipe without a GPU; the load average is printed):
 
 A contact sheet (truth | 3D render | 2D output) goes to ``<work>/render3d/render3d_bench_sheet.png``.
 
-    python scripts/bench.py render3d --json [--pack fixtures/packs/target] [--frames 12]
+    python scripts/bench.py render3d --json [--pack fixtures/packs/target] [--frames 16]
 """
 
 from __future__ import annotations
@@ -119,7 +119,7 @@ def geometry_rows(model, truth: dict, skin: np.ndarray) -> tuple[list[dict], np.
 def run(args: argparse.Namespace) -> list[dict]:
     parser = argparse.ArgumentParser(prog="bench.py render3d")
     parser.add_argument("--pack", type=Path, default=ROOT / "fixtures/packs/target")
-    parser.add_argument("--frames", type=int, default=12)
+    parser.add_argument("--frames", type=int, default=16)
     opts = parser.parse_args(args.extra)
     pack = load_pack(opts.pack)
     truth = dict(np.load(opts.pack / "truth.npz", allow_pickle=False))
@@ -219,3 +219,31 @@ def speed_rows(model, sec9: np.ndarray, truth: dict, face, camera: Camera, pack)
         row("render3d_speedup", render_fps / base_fps, "x"),
         row("loadavg_1min", load, ""),
     ]
+
+
+def contact_sheet(clip: Path, out: Path, png: Path, *, frames: tuple[int, ...] = (0, 12, 24, 36), height: int = 160) -> None:
+    """Rows of performer | 2D result | 3D render for a ``pipeline_3d.yaml`` run published under ``out``.
+
+    Reads the clip, ``out/video/result.mp4`` and ``out/video3d/result3d.mp4``; writes a small PNG.
+    """
+    import av
+
+    def decode(path: Path) -> list[np.ndarray]:
+        with av.open(str(path)) as container:
+            return [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
+
+    columns = [decode(clip), decode(out / "video" / "result.mp4"), decode(out / "video3d" / "result3d.mp4")]
+    rows = []
+    for f in frames:
+        cells = [cv2.resize(c[f], (round(c[f].shape[1] * height / c[f].shape[0]), height), interpolation=cv2.INTER_AREA) for c in columns]
+        rows.append(np.hstack(cells))
+    cv2.imwrite(str(png), cv2.cvtColor(np.vstack(rows), cv2.COLOR_RGB2BGR), [cv2.IMWRITE_PNG_COMPRESSION, 9])
+
+
+if __name__ == "__main__":
+    cli = argparse.ArgumentParser(description="contact sheet of a pipeline_3d.yaml run: performer | 2D result | 3D render")
+    cli.add_argument("clip", type=Path)
+    cli.add_argument("out", type=Path, help="the run's --out folder")
+    cli.add_argument("png", type=Path)
+    a = cli.parse_args()
+    contact_sheet(a.clip, a.out, a.png)

@@ -28,10 +28,23 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from runner.stage import Context, SequenceStage, StageError
+from runner.stage import Context, Param, SequenceStage, StageError
 from stages.actor_pack import load_pack
 from stages.mesh3d.model import build_target_model, lift
 from stages.mesh3d.synthesis import synthesize_3d
+
+
+#: The parameter of the stages that read a ``mesh3d`` bundle: which geometry they take.
+GEOMETRY = Param("geometry", str, "synthesized", "synthesized: the Sec. 9 mesh; lifted: the 2D geometry lifted at the model depth",
+                 choices=("synthesized", "lifted"))
+
+
+def mesh_vertices(mesh: Mapping[str, np.ndarray], geometry: str, *, stage: str) -> np.ndarray:
+    """``(T, N, 3)`` mm: the ``mesh3d`` bundle's vertices chosen by the :data:`GEOMETRY` parameter."""
+    key = "vertices" if geometry == "synthesized" else "lifted"
+    if key not in mesh:
+        raise StageError(f"{stage}: input 'mesh' has no field '{key}'")
+    return np.asarray(mesh[key], np.float64)
 
 
 class Mesh3DSynthesize(SequenceStage):

@@ -5,9 +5,10 @@ The performer's pose per frame is a weak-perspective 3D similarity relative to t
 t``, px; x right, y down, z away). On the target it becomes a rigid motion of the target mesh in
 the target camera's frame (mm):
 
-    X' = R (X - P) + P'
+    X' = R R_ref (X - P) + P'
 
-with the same rotation ``R`` about the target's pivot ``P`` (its head centre). The pivot moves as
+with the same rotation ``R`` (composed with ``R_ref``, the performer's own rotation at the
+reference frame when it is known, since the pack's target is frontal) about the target's pivot ``P`` (its head centre). The pivot moves as
 the performer's face centre does: the centre's image displacement ``delta = (s R c + t - c)_xy``
 (px, ``c`` the performer's face centre at depth 0) is scaled by the face-size ratio (target px /
 performer px) and added to the pivot's projection, and the pivot's depth becomes ``P_z / s`` (a
@@ -33,6 +34,7 @@ def head_motion_3d(
     pivot: np.ndarray,
     A: np.ndarray,
     size_ratio: float,
+    reference: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Rigid motion of the target mesh per frame from the performer's relative head pose.
 
@@ -52,12 +54,16 @@ def head_motion_3d(
         Target intrinsics, px.
     size_ratio : float
         Target face size / performer face size (px / px).
+    reference : (3, 3) float, optional
+        The performer's own head rotation at the reference frame (identity: the reference is
+        frontal); the mesh turns by ``R reference`` about ``P`` (the pack's target is frontal),
+        while ``P'`` follows the performer's relative motion.
 
     Returns
     -------
     rotation : (T, 3, 3) float64
     translation : (T, 3) float64, mm
-        ``X' = rotation X + translation`` (= ``R (X - P) + P'``).
+        ``X' = rotation X + translation`` (= ``R reference (X - P) + P'``).
     """
     R = np.asarray(R, np.float64)
     tvec = np.asarray(tvec, np.float64)
@@ -75,7 +81,8 @@ def head_motion_3d(
     p0 = A @ P
     u0 = p0[:2] / p0[2]
     P_new = lift((u0 + size_ratio * delta)[:, None, :], (P[2] / scale)[:, None], A)[:, 0]
-    return R.copy(), P_new - np.einsum("tij,j->ti", R, P)
+    rotation = R @ (np.eye(3) if reference is None else np.asarray(reference, np.float64))
+    return rotation, P_new - np.einsum("tij,j->ti", rotation, P)
 
 
 def apply_head(vertices: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:

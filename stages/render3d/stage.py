@@ -2,8 +2,9 @@
 
 ``render3d.head`` output bundle ``head3d``: ``R (T, 3, 3)``, ``t (T, 3)`` mm — the rigid motion
 ``X' = R X + t`` of the target mesh in the target camera's frame (:mod:`stages.render3d.head`);
-``valid (T,)`` (frames without a valid pose keep the reference pose); ``ypr_deg (T, 3)`` when
-the pose has it; ``pivot (3,)`` mm.
+``valid (T,)`` (frames without a valid pose keep the reference pose); ``ypr_deg (T, 3)`` of ``R``
+(``R = Ry Rx Rz``, degrees); ``pivot (3,)`` mm. With the ``landmarks`` input (and ``absolute``), the
+reference frame's own rotation is composed in: ``R = R_rel R_ref`` (the pack's target is frontal).
 
 ``render3d`` renders each frame's Sec. 9 mesh (``mesh3d.synthesize``), moved by the head motion
 and textured with the frame's synthesized image (``synthesis.synthesize`` without head motion:
@@ -20,6 +21,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import Context, FrameStage, Param, SequenceStage, StageError, StreamInfo
+from stages.geometry.rigid3d import euler_yaw_pitch_roll
+from stages.mesh3d.stage import GEOMETRY, mesh_vertices
 from stages.render3d.exr_depth import write_exr_depth
 from stages.render3d.frame import render_textured, scaled_intrinsics, to_display
 from stages.render3d.head import apply_head, head_motion_3d
@@ -39,16 +42,36 @@ def _project(points: np.ndarray, A: np.ndarray) -> np.ndarray:
     return p[..., :2] / p[..., 2:3]
 
 
+def reference_rotation(matrix: np.ndarray) -> np.ndarray:
+    """The landmarker's head rotation of one frame in the pipeline's camera axes, ``(3, 3)``.
+
+    MediaPipe's facial transformation matrix ``(4, 4)`` maps its canonical face (y up, z towards
+    the camera) into its camera frame (y up, z towards the viewer); both frames are turned by pi
+    about x into ours (y down, z away): ``F R F`` with ``F = diag(1, -1, -1)``. The scaled
+    rotation is made orthonormal (polar decomposition). A frontal face gives the identity.
+    """
+    F = np.diag([1.0, -1.0, -1.0])
+    u, _, vt = np.linalg.svd(np.asarray(matrix, np.float64)[:3, :3])
+    R = u @ vt
+    if np.linalg.det(R) < 0:
+        R = u @ np.diag([1.0, 1.0, -1.0]) @ vt
+    return F @ R @ F
+
+
 class HeadPose3D(SequenceStage):
     """``render3d.head``: the performer's relative head pose as a rigid motion of the target mesh."""
 
     name = "render3d.head"
-    version = "1"
+    version = "2"
     doc = "Sec. 14.1: performer head pose (compensate.rigid3d) -> rigid motion of the target mesh, mm"
-    inputs = {"mesh": "mesh3d", "pose": "pose", "performer": "displacements"}
-    optional_inputs = frozenset({"performer"})
+    inputs = {"mesh": "mesh3d", "pose": "pose", "performer": "displacements", "landmarks": "landmarks"}
+    optional_inputs = frozenset({"performer", "landmarks"})
     outputs = {"head": "head3d"}
-    params = (Param("translation_scale", float, 1.0, "multiplies the carried head translation (after the face-size ratio)", min=0.0),)
+    params = (
+        Param("translation_scale", float, 1.0, "multiplies the carried head translation (after the face-size ratio)", min=0.0),
+        Param("absolute", bool, True, "with 'landmarks': compose the reference frame's own head rotation (the landmarker's "
+              "matrix), so the frontal target turns as the performer does, not relative to a turned reference"),
+    )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         mesh, pose = inputs["mesh"], inputs["pose"]
@@ -62,6 +85,14 @@ class HeadPose3D(SequenceStage):
         valid &= np.isfinite(R).all((1, 2)) & np.isfinite(tvec).all(1) & np.isfinite(scale) & (scale > 0)
         R, tvec, scale = R.copy(), tvec.copy(), scale.copy()
         R[~valid], tvec[~valid], scale[~valid] = np.eye(3), 0.0, 1.0
+        marks = inputs.get("landmarks")
+        reference = np.eye(3)
+        if marks is not None and params["absolute"]:
+            frame = int(_field(pose, "neutral_frame", self.name, "pose"))
+            matrix = _field(marks, "matrix", self.name, "landmarks")
+            if not 0 <= frame < len(matrix):
+                raise StageError(f"{self.name}: the pose's neutral_frame {frame} is outside the {len(matrix)} frames of 'landmarks'")
+            reference = reference_rotation(matrix[frame])
         A = np.asarray(mesh["camera"], np.float64)
         target_2d = _project(mesh["neutral"], A)
         performer = inputs.get("performer")
@@ -73,13 +104,13 @@ class HeadPose3D(SequenceStage):
             center, ratio = target_2d.mean(0), 1.0
         try:
             rotation, translation = head_motion_3d(
-                R, tvec, scale, source_center=center, pivot=mesh["pivot"], A=A, size_ratio=ratio * float(params["translation_scale"])
+                R, tvec, scale, source_center=center, pivot=mesh["pivot"], A=A, size_ratio=ratio * float(params["translation_scale"]),
+                reference=reference,
             )
         except ValueError as exc:
             raise StageError(f"{self.name}: input 'pose': {exc}") from None
         out = {"R": rotation, "t": translation, "valid": valid, "pivot": np.asarray(mesh["pivot"], np.float64)}
-        if "ypr_deg" in pose:
-            out["ypr_deg"] = np.asarray(pose["ypr_deg"], np.float64)
+        out["ypr_deg"] = euler_yaw_pitch_roll(rotation)
         ctx.progress(T)
         return {"head": out}
 
@@ -96,8 +127,7 @@ class Render3D(FrameStage):
     params = (
         Param("samples", int, 4, "MSAA samples per pixel (anti-aliased edges; 0 = none); at most the driver's", min=0, max=16),
         Param("resolution_scale", float, 1.0, "output size = the pack image size times this", min=0.25, max=8.0),
-        Param("geometry", str, "synthesized", "synthesized: the Sec. 9 mesh; lifted: the 2D geometry lifted at the model depth",
-              choices=("synthesized", "lifted")),
+        GEOMETRY,
         Param("compression", str, "zip", "lossless EXR compression", choices=("zip", "zips", "piz", "rle", "none")),
     )
 
@@ -125,8 +155,7 @@ class Render3D(FrameStage):
 
     def process(self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         mesh, head, stream = inputs["mesh"], inputs.get("head"), inputs["texture"]
-        key = "vertices" if params["geometry"] == "synthesized" else "lifted"
-        vertices = _field(mesh, key, self.name, "mesh")
+        vertices = mesh_vertices(mesh, params["geometry"], stage=self.name)
         if len(vertices) != stream.info.frames or (head is not None and len(head["R"]) != stream.info.frames):
             raise StageError(f"{self.name}: inputs 'mesh'/'head' do not have the {stream.info.frames} frames of 'texture'")
         textures = stream.read(start, stop)

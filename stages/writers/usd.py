@@ -33,6 +33,7 @@ import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
 from stages.color import to_uint8
+from stages.mesh3d.stage import GEOMETRY, mesh_vertices
 
 __all__ = ["FLIP", "write_usd_scene", "WriteUsd"]
 
@@ -173,8 +174,7 @@ class WriteUsd(SequenceStage):
     optional_inputs = frozenset({"head", "mask"})
     outputs = {"usd": "files"}
     params = (
-        Param("geometry", str, "synthesized", "synthesized: the Sec. 9 mesh; lifted: the 2D geometry lifted at the model depth",
-              choices=("synthesized", "lifted")),
+        GEOMETRY,
         Param("fps", float, 30.0, "frame rate when the mesh bundle carries none", min=1e-3),
     )
 
@@ -182,11 +182,11 @@ class WriteUsd(SequenceStage):
         import cv2
 
         mesh, head, stream = inputs["mesh"], inputs.get("head"), inputs["texture"]
-        key = "vertices" if params["geometry"] == "synthesized" else "lifted"
-        for field in (key, "triangles", "uv", "camera", "size"):
+        vertices = mesh_vertices(mesh, params["geometry"], stage=self.name)
+        for field in ("triangles", "uv", "camera", "size"):
             if field not in mesh:
                 raise StageError(f"{self.name}: input 'mesh' has no field '{field}'")
-        T = len(mesh[key])
+        T = len(vertices)
         if stream.info.frames != T or (head is not None and len(head["R"]) != T):
             raise StageError(f"{self.name}: inputs 'texture'/'head' do not have the mesh's {T} frames")
         fps = float(mesh["fps"]) if "fps" in mesh else float(params["fps"])
@@ -204,7 +204,7 @@ class WriteUsd(SequenceStage):
             ctx.progress(len(chunk))
         write_usd_scene(
             folder / "scene.usda",
-            vertices=np.asarray(mesh[key], np.float64),
+            vertices=vertices,
             triangles=np.asarray(mesh["triangles"]),
             uv=np.asarray(mesh["uv"], np.float64),
             size=tuple(int(v) for v in mesh["size"]),
