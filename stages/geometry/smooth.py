@@ -125,7 +125,7 @@ class GaussianSmooth(SequenceStage):
     inputs = {"points": "points"}
     outputs = {"points": "points"}
     params = (
-        Param("sigma", float, 1.5, "kernel standard deviation in frames (0 = off)"),
+        Param("sigma", float, 1.5, "kernel standard deviation in frames (0 = off)", min=0.0),
         Param("truncate", float, 3.0, "kernel radius in sigmas"),
         Param("min_support", float, 0.5, "kernel mass of valid neighbours that makes an invalid frame valid"),
     )
@@ -133,13 +133,13 @@ class GaussianSmooth(SequenceStage):
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         params = {p.name: p.default for p in self.params} | dict(params)
         bundle = dict(inputs["points"])
-        sigma = float(params["sigma"])
-        if sigma < 0:
-            raise StageError(f"smooth.gaussian: parameter sigma must be >= 0, got {sigma}")
-        xy, valid = gaussian_smooth(
-            bundle["xy"], bundle["valid"], sigma=sigma, truncate=float(params["truncate"]),
-            min_support=float(params["min_support"]),
-        )
+        try:
+            xy, valid = gaussian_smooth(
+                bundle["xy"], bundle["valid"], sigma=float(params["sigma"]), truncate=float(params["truncate"]),
+                min_support=float(params["min_support"]),
+            )
+        except ValueError as exc:
+            raise StageError(f"{self.name}: {exc}") from None
         bundle.update(xy=xy, valid=valid)
         return {"points": bundle}
 

@@ -37,7 +37,6 @@ from typing import Mapping, Protocol, Sequence
 
 import numpy as np
 
-from runner.stage import StageError
 
 BUNDLE_KEYS = (
     "neutral",
@@ -137,10 +136,10 @@ class HierarchicalPCA:
 
     @classmethod
     def from_bundle(cls, bundle: Mapping[str, np.ndarray], *, source: str = "pca_model") -> "HierarchicalPCA":
-        """Read a ``pca_model`` bundle; a missing or inconsistent field raises StageError naming it."""
+        """Read a ``pca_model`` bundle; a missing or inconsistent field raises ValueError naming it."""
         missing = [k for k in BUNDLE_KEYS if k not in bundle]
         if missing:
-            raise StageError(f"{source}: missing field(s) {', '.join(missing)} (not a pca_model bundle)")
+            raise ValueError(f"{source}: missing field(s) {', '.join(missing)} (not a pca_model bundle)")
         neutral = np.asarray(bundle["neutral"], dtype=np.float64)
         offsets = np.asarray(bundle["set_offsets"], dtype=np.int64)
         set_points = np.asarray(bundle["set_points"], dtype=np.int64)
@@ -151,15 +150,15 @@ class HierarchicalPCA:
         explained = np.asarray(bundle["explained_variance"], dtype=np.float64)
         n_sets = levels.size
         if neutral.ndim != 2 or neutral.shape[1] != 2:
-            raise StageError(f"{source}: field 'neutral' must be (N, 2), got {neutral.shape}")
+            raise ValueError(f"{source}: field 'neutral' must be (N, 2), got {neutral.shape}")
         if offsets.shape != (n_sets + 1,) or offsets[0] != 0 or offsets[-1] != set_points.size:
-            raise StageError(f"{source}: field 'set_offsets' does not match 'set_levels'/'set_points'")
+            raise ValueError(f"{source}: field 'set_offsets' does not match 'set_levels'/'set_points'")
         if set_points.size and (set_points.min() < 0 or set_points.max() >= neutral.shape[0]):
-            raise StageError(f"{source}: field 'set_points' has indices outside 0..{neutral.shape[0] - 1}")
+            raise ValueError(f"{source}: field 'set_points' has indices outside 0..{neutral.shape[0] - 1}")
         if mean.shape != (set_points.size, 2) or components.shape[:2] != (set_points.size, 2):
-            raise StageError(f"{source}: fields 'mean'/'components' do not match 'set_points'")
+            raise ValueError(f"{source}: fields 'mean'/'components' do not match 'set_points'")
         if n_kept.shape != (n_sets,) or (n_kept > components.shape[2]).any():
-            raise StageError(f"{source}: field 'n_components' does not match 'components'")
+            raise ValueError(f"{source}: field 'n_components' does not match 'components'")
         spans = list(zip(offsets[:-1], offsets[1:]))
         return cls(
             neutral=neutral,
@@ -208,34 +207,40 @@ def fit_hierarchical_pca(
     Returns
     -------
     HierarchicalPCA
+
+    Raises
+    ------
+    ValueError
+        Shapes that disagree, fewer than 2 captured geometries, non-finite coordinates,
+        ``n_components < 1``, ``variance_kept`` outside (0, 1], a bad feature point set.
     """
     neutral = np.asarray(neutral, dtype=np.float64)
     captured = np.asarray(captured, dtype=np.float64)
     if neutral.ndim != 2 or neutral.shape[1] != 2:
-        raise StageError(f"neutral geometry must be (N, 2), got {neutral.shape}")
+        raise ValueError(f"neutral geometry must be (N, 2), got {neutral.shape}")
     n_points = neutral.shape[0]
     if captured.ndim != 3 or captured.shape[1:] != neutral.shape:
-        raise StageError(f"captured geometries must be (K, {n_points}, 2), got {captured.shape}")
+        raise ValueError(f"captured geometries must be (K, {n_points}, 2), got {captured.shape}")
     if captured.shape[0] < 2:
-        raise StageError(f"PCA needs at least 2 captured geometries, got {captured.shape[0]}")
+        raise ValueError(f"PCA needs at least 2 captured geometries, got {captured.shape[0]}")
     if not np.isfinite(captured).all() or not np.isfinite(neutral).all():
-        raise StageError("captured/neutral geometries contain NaN or infinite coordinates")
+        raise ValueError("captured/neutral geometries contain NaN or infinite coordinates")
     if n_components < 1:
-        raise StageError(f"n_components must be >= 1, got {n_components}")
+        raise ValueError(f"n_components must be >= 1, got {n_components}")
     if not 0.0 < variance_kept <= 1.0:
-        raise StageError(f"variance_kept must be in (0, 1], got {variance_kept}")
+        raise ValueError(f"variance_kept must be in (0, 1], got {variance_kept}")
     if not feature_point_sets:
-        raise StageError("the layout has no feature point sets")
+        raise ValueError("the layout has no feature point sets")
     names = tuple(point_names) if point_names is not None else ("",) * n_points
     if len(names) != n_points:
-        raise StageError(f"point_names has {len(names)} names for {n_points} points")
+        raise ValueError(f"point_names has {len(names)} names for {n_points} points")
 
     displacement = captured - neutral[None]
     points, means, components, explained = [], [], [], []
     for fps in feature_point_sets:
         idx = np.asarray(fps.points, dtype=np.int64)
         if idx.size == 0 or idx.min() < 0 or idx.max() >= n_points or np.unique(idx).size != idx.size:
-            raise StageError(f"feature point set '{fps.name}': indices must be distinct, in 0..{n_points - 1}")
+            raise ValueError(f"feature point set '{fps.name}': indices must be distinct, in 0..{n_points - 1}")
         x = displacement[:, idx].reshape(captured.shape[0], -1)
         mu = x.mean(axis=0)
         _, sing, vt = np.linalg.svd(x - mu, full_matrices=False)

@@ -43,7 +43,6 @@ from typing import Mapping
 
 import numpy as np
 
-from runner.stage import StageError
 from stages.propagation.hierarchical_pca import HierarchicalPCA
 
 _BLOCK = 16  # iterations of the basis run per block in the shared-mask batching
@@ -169,14 +168,14 @@ def motion_propagation(
     known = np.asarray(known, dtype=bool)
     n_points = model.n_points
     if displacements.ndim != 3 or displacements.shape[1:] != (n_points, 2):
-        raise StageError(f"displacements must be (T, {n_points}, 2), got {displacements.shape}")
+        raise ValueError(f"displacements must be (T, {n_points}, 2), got {displacements.shape}")
     if known.shape != displacements.shape[:2]:
-        raise StageError(f"mask must be {displacements.shape[:2]}, got {known.shape}")
+        raise ValueError(f"mask must be {displacements.shape[:2]}, got {known.shape}")
     if max_iterations < 1 or not stop_progress_px >= 0:
-        raise StageError("max_iterations must be >= 1 and stop_progress_px >= 0")
+        raise ValueError("max_iterations must be >= 1 and stop_progress_px >= 0")
     inputs = np.where(known[..., None], displacements, 0.0)
     if not np.isfinite(inputs).all():
-        raise StageError("input displacements contain NaN or infinite values at valid points")
+        raise ValueError("input displacements contain NaN or infinite values at valid points")
 
     n_frames = known.shape[0]
     result = PropagationResult(
@@ -393,19 +392,19 @@ def propagate_edit(
     """
     current = np.asarray(current_points, dtype=np.float64)
     if current.shape != model.neutral.shape:
-        raise StageError(f"current_points must be {model.neutral.shape}, got {current.shape}")
+        raise ValueError(f"current_points must be {model.neutral.shape}, got {current.shape}")
     target = current.copy()
     if isinstance(fixed, Mapping):
         mask = np.zeros(model.n_points, dtype=bool)
         for index, xy in fixed.items():
             if not 0 <= int(index) < model.n_points:
-                raise StageError(f"fixed point index {index} is outside 0..{model.n_points - 1}")
+                raise ValueError(f"fixed point index {index} is outside 0..{model.n_points - 1}")
             mask[int(index)] = True
             target[int(index)] = np.asarray(xy, dtype=np.float64)
     else:
         mask = np.asarray(fixed, dtype=bool)
         if mask.shape != (model.n_points,):
-            raise StageError(f"fixed mask must be ({model.n_points},), got {mask.shape}")
+            raise ValueError(f"fixed mask must be ({model.n_points},), got {mask.shape}")
     propagated = motion_propagation(
         model,
         (target - model.neutral)[None],

@@ -22,23 +22,24 @@ class TrainHierarchicalPCA(SequenceStage):
     inputs = {"layout": "layout", "geometry": "pack_geometry"}
     outputs = {"pca_model": "pca_model"}
     params = (
-        Param("n_components", int, 8, "most principal components kept per feature point set (paper: 5-10)"),
-        Param("variance_kept", float, 1.0, "also stop at this fraction of explained variance (1.0: off)"),
+        Param("n_components", int, 8, "most principal components kept per feature point set (paper: 5-10)", min=1),
+        Param("variance_kept", float, 1.0, "also stop at this fraction of explained variance, in (0, 1] (1.0: off)",
+              min=0.0, max=1.0),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         try:
             layout, geometry = layout_and_geometry(inputs["layout"], inputs["geometry"])
+            model = fit_hierarchical_pca(
+                geometry.neutral,
+                geometry.captured,
+                layout.feature_point_sets,
+                n_components=int(params["n_components"]),
+                variance_kept=float(params["variance_kept"]),
+                point_names=layout.point_names,
+            )
         except ValueError as exc:
             raise StageError(f"{self.name}: {exc}") from None
-        model = fit_hierarchical_pca(
-            geometry.neutral,
-            geometry.captured,
-            layout.feature_point_sets,
-            n_components=int(params["n_components"]),
-            variance_kept=float(params["variance_kept"]),
-            point_names=layout.point_names,
-        )
         ctx.log.info(
             "hierarchical PCA: %d sets, components kept %s",
             model.n_sets,
@@ -63,12 +64,16 @@ class HierarchicalPropagation(SequenceStage):
     optional_inputs = frozenset({"displacements", "points"})
     outputs = {"displacements": "displacements", "points": "points"}
     params = (
-        Param("stop_progress_px", float, 1e-3, "stop when the input points move less than this between iterations, px"),
-        Param("max_iterations", int, 200, "iteration cap per frame"),
+        Param("stop_progress_px", float, 1e-3, "stop when the input points move less than this between iterations, px",
+              min=0.0),
+        Param("max_iterations", int, 200, "iteration cap per frame", min=1),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
-        model = HierarchicalPCA.from_bundle(inputs["pca_model"])
+        try:
+            model = HierarchicalPCA.from_bundle(inputs["pca_model"], source=f"{self.name}: input 'pca_model'")
+        except ValueError as exc:
+            raise StageError(str(exc)) from None
         given = [port for port in ("displacements", "points") if inputs.get(port) is not None]
         if len(given) != 1:
             raise StageError("propagate.hierarchical: connect exactly one of the inputs 'displacements' or 'points'")
@@ -86,13 +91,16 @@ class HierarchicalPropagation(SequenceStage):
             )
         _check_names(model, bundle, port)
         displacements = values if port == "displacements" else values - model.neutral[None]
-        result = motion_propagation(
-            model,
-            displacements,
-            np.asarray(bundle["valid"], dtype=bool),
-            stop_progress_px=float(params["stop_progress_px"]),
-            max_iterations=int(params["max_iterations"]),
-        )
+        try:
+            result = motion_propagation(
+                model,
+                displacements,
+                np.asarray(bundle["valid"], dtype=bool),
+                stop_progress_px=float(params["stop_progress_px"]),
+                max_iterations=int(params["max_iterations"]),
+            )
+        except ValueError as exc:
+            raise StageError(f"{self.name}: input '{port}': {exc}") from None
         ctx.progress(values.shape[0])
         has_input = result.iterations > 0
         out = {

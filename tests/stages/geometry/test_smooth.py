@@ -118,6 +118,8 @@ def test_stage_keeps_bundle_keys(tmp_path):
     np.testing.assert_allclose(out["xy"], direct(bundle["xy"], bundle["valid"], 1.0, 3), atol=1e-9)
     with pytest.raises(StageError, match="sigma"):
         GaussianSmooth().run({"points": bundle}, {"sigma": -1.0}, context(tmp_path))
+    sigma = next(p for p in GaussianSmooth.params if p.name == "sigma")
+    assert "out of range" in sigma.problem(-1.0) and sigma.problem(0.0) is None  # refused when the graph loads
 
 
 def test_nan_in_an_invalid_sample_does_not_spread():

@@ -93,6 +93,22 @@ def test_bad_inputs_raise_stage_errors(model, tmp_path):
         stage.run({"pca_model": pca, "displacements": {**d, "d": np.zeros((2, 7, 2))}}, PARAMS, context(tmp_path))
     with pytest.raises(StageError, match="valid"):
         stage.run({"pca_model": pca, "points": {"xy": xy["xy"]}}, PARAMS, context(tmp_path))
+    broken = {k: v for k, v in pca.items() if k != "components"}
+    with pytest.raises(StageError, match="propagate.hierarchical: input 'pca_model': missing field.*components"):
+        stage.run({"pca_model": broken, "displacements": d}, PARAMS, context(tmp_path))
+    nan = {**d, "d": np.full((2, N_POINTS, 2), np.nan)}
+    with pytest.raises(StageError, match="propagate.hierarchical: input 'displacements': .*NaN"):
+        stage.run({"pca_model": pca, "displacements": nan}, PARAMS, context(tmp_path))
+
+
+def test_parameter_ranges_are_declared():
+    """Out-of-range values are refused when the graph is loaded (Param.problem), not in run()."""
+    declared = {(cls.name, p.name): p for cls in (TrainHierarchicalPCA, HierarchicalPropagation) for p in cls.params}
+    for key, bad, good in [(("propagate.hierarchical", "max_iterations"), 0, 1),
+                           (("propagate.hierarchical", "stop_progress_px"), -1e-3, 0.0),
+                           (("propagate.train", "n_components"), 0, 1),
+                           (("propagate.train", "variance_kept"), 1.5, 1.0)]:
+        assert "out of range" in declared[key].problem(bad) and declared[key].problem(good) is None, key
 
 
 def test_stage_classes_declare_a_valid_contract():
