@@ -50,23 +50,11 @@ class NCCTracker:
     """
 
     def __init__(self, options: TrackerOptions = DEFAULTS, *, face_model: FaceModel | None = None) -> None:
+        self.options = options
         self.face_model = face_model
-        self.model_prior = options.model_prior
-        self.model_ridge = options.model_ridge
-        self.model_noise_px = options.model_noise_px
-        self.model_noise_rate = options.model_noise_rate
-        self.anchor_score = options.anchor_score
-        self.prior = options.prior
-        side = options.template_px
-        self.side = side
-        self.window = (side + 2 * options.search_px, side + 2 * options.search_px)
-        self.min_score = options.min_score
-        self.min_psr = options.min_psr
-        self.min_contrast = options.min_contrast
-        self.warp_frac = options.warp_frac
-        self.prior_frac = options.prior_frac
-        self.lk_iterations = options.lk_iterations
-        grid = np.arange(side) - (side - 1) / 2.0
+        self.side = options.template_px
+        self.window = (self.side + 2 * options.search_px,) * 2
+        grid = np.arange(self.side) - (self.side - 1) / 2.0
         self.lk_weight = np.exp(-(grid[:, None] ** 2 + grid[None, :] ** 2) / (2.0 * options.lk_sigma_px ** 2))
 
     def start(self, frame: np.ndarray, xy: np.ndarray) -> None:
@@ -74,15 +62,15 @@ class NCCTracker:
         self.height, self.width = self.first.shape
         self.origin = xy.astype(np.float64).copy()
         spread = np.sqrt(((self.origin - self.origin.mean(axis=0)) ** 2).sum(axis=1).mean())
-        self.warp_sigma_px = max(self.warp_frac * spread, 1.0)
-        self.prior_sigma_px = max(self.prior_frac * spread, 1.0)
+        self.warp_sigma_px = max(self.options.warp_frac * spread, 1.0)
+        self.prior_sigma_px = max(self.options.prior_frac * spread, 1.0)
         self.last = self.origin.copy()
         self.velocity = np.zeros_like(self.last)
         self.trust = np.ones(len(xy))
         self.running = sample_patches(self.first, self.origin, self.side)
         if self.face_model is not None:
             self.fit = self.face_model.first_frame_fit()
-            self.noise = np.full(len(xy), self.model_noise_px ** 2)
+            self.noise = np.full(len(xy), self.options.model_noise_px ** 2)
 
     def templates(self, dst: np.ndarray, weight: np.ndarray) -> np.ndarray:
         """First-frame templates ``(N, S, S)`` warped by the local affines onto ``dst``."""
@@ -108,7 +96,7 @@ class NCCTracker:
         tz = tz.reshape(n, -1)
         xy = xy.copy()
         patch = sample_patches(image, xy, self.side)
-        for _ in range(self.lk_iterations):
+        for _ in range(self.options.lk_iterations):
             pz = patch.reshape(n, -1) - patch.mean(axis=(1, 2))[:, None]
             error = pz * (t_std / np.maximum(pz.std(axis=1), 1e-6))[:, None] - tz
             xy -= np.clip((inverse @ (steepest @ error[:, :, None]))[:, :, 0], -1.0, 1.0)
@@ -124,10 +112,10 @@ class NCCTracker:
         template pins it, ``e / (e + prior)`` with ``e`` the smaller eigenvalue of its ``H``). A
         template that pins one direction only, an edge, takes the other from its neighbours."""
         eigen = np.linalg.eigvalsh(information)[:, 0]
-        weight = ok * eigen / (eigen + self.prior)
+        weight = ok * eigen / (eigen + self.options.prior)
         _, around = local_affines(self.origin, found, weight, sigma_px=self.prior_sigma_px, exclude_self=True)
-        system = information + self.prior * np.eye(2)
-        rhs = (information @ found[:, :, None])[:, :, 0] + self.prior * around
+        system = information + self.options.prior * np.eye(2)
+        rhs = (information @ found[:, :, None])[:, :, 0] + self.options.prior * around
         return np.linalg.solve(system, rhs[:, :, None])[:, :, 0]
 
     def with_model(self, found: np.ndarray, information: np.ndarray, ok: np.ndarray) -> np.ndarray:
@@ -140,13 +128,13 @@ class NCCTracker:
         let a few steady points steer the pose: on held-out performer 11's live clip the pose
         error rose from 1.82 to 2.32 deg.)"""
         weight = information * ok[:, None, None]
-        self.fit = fit_face_model(self.face_model, found, weight, self.fit, ridge=self.model_ridge)
+        self.fit = fit_face_model(self.face_model, found, weight, self.fit, ridge=self.options.model_ridge)
         weight = weight * self.reliability()[:, None, None]
         residual = ((found - self.fit.xy) ** 2).sum(axis=1)
-        rate = self.model_noise_rate * ok
+        rate = self.options.model_noise_rate * ok
         self.noise = (1.0 - rate) * self.noise + rate * residual
-        system = weight + self.model_prior * np.eye(2)
-        rhs = (weight @ found[:, :, None])[:, :, 0] + self.model_prior * self.fit.xy
+        system = weight + self.options.model_prior * np.eye(2)
+        rhs = (weight @ found[:, :, None])[:, :, 0] + self.options.model_prior * self.fit.xy
         return np.linalg.solve(system, rhs[:, :, None])[:, :, 0]
 
     def reliability(self) -> np.ndarray:
@@ -158,7 +146,7 @@ class NCCTracker:
         (the hairline along its edge, lips whose look changes as the mouth opens) leans on the
         model instead: an adaptive estimate of each match's noise, as in an adaptive Kalman
         filter's measurement covariance."""
-        return np.minimum(self.model_noise_px ** 2 / np.maximum(self.noise, 1e-12), 4.0)
+        return np.minimum(self.options.model_noise_px ** 2 / np.maximum(self.noise, 1e-12), 4.0)
 
     def step(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         import cv2
@@ -172,7 +160,7 @@ class NCCTracker:
         for i, window in enumerate(windows):
             response[i] = cv2.matchTemplate(window, anchor[i], cv2.TM_CCOEFF_NORMED)
         score_a = response.reshape(len(centre), -1).max(axis=1)
-        use_anchor = score_a >= self.anchor_score
+        use_anchor = score_a >= self.options.anchor_score
         for i in np.flatnonzero(~use_anchor):
             response[i] = cv2.matchTemplate(windows[i], self.running[i], cv2.TM_CCOEFF_NORMED)
         offset, _, psr = correlation_peaks(response)
@@ -184,10 +172,11 @@ class NCCTracker:
         norms = np.linalg.norm(pz, axis=(1, 2)) * np.linalg.norm(tz, axis=(1, 2))
         score = (pz * tz).sum((1, 2)) / np.maximum(norms, 1e-9)
         half = self.side // 2
-        valid = (score >= self.min_score) & (psr >= self.min_psr) & (patch.std(axis=(1, 2)) >= self.min_contrast)
+        o = self.options
+        valid = (score >= o.min_score) & (psr >= o.min_psr) & (patch.std(axis=(1, 2)) >= o.min_contrast)
         if self.face_model is not None:
             found = self.with_model(found, information, valid)
-        elif self.prior > 0:  # score and running template stay those of the match itself
+        elif self.options.prior > 0:  # score and running template stay those of the match itself
             found = self.with_neighbours(found, information, valid)
         valid &= inside(found - half, self.width - 2 * half, self.height - 2 * half)
         self.running[valid] = patch[valid]
