@@ -12,7 +12,10 @@ Geometry (pack camera frame, mm, mean over the skin points and the held-out expr
 * ``mesh3d_vertex_err_mm_lifted``: the 2D geometry lifted at the model's depths (no QP);
 * ``mesh3d_depth_err_mm_neutral``: the model's neutral (the depth source alone);
 * ``mesh3d_vertex_err_mm_centred``: the Sec. 9 error after removing each expression's mean
-  offset (shape error without the global depth offset of the generic model's scale).
+  offset (shape error without the global depth offset of the generic model's scale);
+* the depth sources compared (:func:`depth_source_rows`): ``mesh3d_shape_err_mm_generic`` /
+  ``_mediapipe`` (neutral depth relief), ``mesh3d_expr_dz_err_mm_mediapipe`` next to
+  ``mesh3d_expr_dz_mm_true`` (examples' depth change from the neutral).
 
 Rendering — ``--frames`` frames (default 16), each a held-out expression at a head pose with yaw
 spread over [-25, 25] degrees (pitch and roll up to 6 and 4 degrees). The TRUE pose is given to
@@ -116,6 +119,43 @@ def geometry_rows(model, truth: dict, skin: np.ndarray) -> tuple[list[dict], np.
     return rows, sec9
 
 
+def depth_source_rows(pack, model, truth: dict, skin: np.ndarray) -> list[dict]:
+    """The depth sources compared: the posed generic model vs MediaPipe's mesh depth over the pack images.
+
+    ``mesh3d_shape_err_mm_generic`` / ``_mediapipe``: neutral depth relief (each centred on its
+    mean) against the truth; ``mesh3d_expr_dz_err_mm_mediapipe``: the examples' depth change from
+    the neutral by MediaPipe against the true change, next to ``mesh3d_expr_dz_mm_true`` (the error
+    of taking no change, as the model does). MediaPipe's relative depth (px of x) is scaled to mm
+    at the model's mean face depth.
+    """
+    from stages.landmarks.correspondence import layout_from_mesh, load_correspondence
+    from stages.landmarks.landmarker import Landmarker
+
+    corr = load_correspondence("zhang134_mediapipe", layout=pack.layout)
+    with Landmarker() as landmarker:
+        z = []
+        for image in [pack.neutral.image] + [e.image for e in pack.examples]:
+            landmarker.reset()
+            z.append(landmarker.detect(image).z)
+    mp = layout_from_mesh(np.stack(z)[..., None], corr)[..., 0] * model.depth[skin].mean() / model.camera[0, 0]
+    R, t = truth["R"], truth["t"]
+    neutral = (truth["neutral_points3d"] @ R.T + t)[:, 2]
+    names = list(truth["captured_names"])
+    examples = (truth["captured_points3d"][[names.index(str(n)) for n in model.example_names]] @ R.T + t)[..., 2]
+    true_dz = (examples - neutral)[:, skin]
+
+    def shape(z: np.ndarray) -> float:
+        a, b = z[skin] - z[skin].mean(), neutral[skin] - neutral[skin].mean()
+        return float(np.abs(a - b).mean())
+
+    return [
+        row("mesh3d_shape_err_mm_generic", shape(model.depth), "mm"),
+        row("mesh3d_shape_err_mm_mediapipe", shape(mp[0]), "mm"),
+        row("mesh3d_expr_dz_err_mm_mediapipe", float(np.abs((mp[1:] - mp[0])[:, skin] - true_dz).mean()), "mm"),
+        row("mesh3d_expr_dz_mm_true", float(np.abs(true_dz).mean()), "mm"),
+    ]
+
+
 def run(args: argparse.Namespace) -> list[dict]:
     parser = argparse.ArgumentParser(prog="bench.py render3d")
     parser.add_argument("--pack", type=Path, default=ROOT / "fixtures/packs/target")
@@ -126,6 +166,7 @@ def run(args: argparse.Namespace) -> list[dict]:
     model = build_target_model(pack)
     skin = np.array([not n.startswith("teeth_") for n in model.names])
     rows, sec9 = geometry_rows(model, truth, skin)
+    rows += depth_source_rows(pack, model, truth, skin)
 
     face = make_face(int(truth["identity_seed"]), pack.layout)
     size = pack.image_size
