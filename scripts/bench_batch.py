@@ -1,0 +1,91 @@
+"""Batch benchmarks: `python scripts/bench.py batch [--json] [--work DIR] [--clips DIR]`.
+
+Four fixture jobs (``fixtures/clips/calm.mp4`` and ``live.mp4``, 48 frames 320x240 each, each
+through ``pipeline.yaml`` and through ``pipeline_paper.yaml`` onto the bundled target; distinct
+output folders), every side with a fresh cache, every command a new process as a user runs it
+(start-up included):
+
+- ``batch_speedup_2workers``: the 4 jobs run one after another by ``runner run`` (one fresh
+  cache), over the same 4 jobs in one ``runner batch --workers 2`` (a local Ray started by the
+  command, one fresh cache), in the same bench run; target >= 1.6 on a 2-core machine.
+- ``batch_overhead_ratio``: one job (calm through pipeline.yaml) through ``runner batch
+  --workers 1`` over the same job through ``runner run``; target <= 1.15. The difference is
+  Ray's start-up and shut-down (a local Ray: its daemons and a worker process) and the driver.
+- ``batch_seq_s``, ``batch_2workers_s``, ``batch_one_job_s``, ``run_one_job_s``: the wall times
+  behind the ratios.
+
+Each timing is one run (a side takes minutes). The machine may be shared: every row carries
+``load``, ``/proc/loadavg``'s three averages when the bench started and when it ended.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def _jobs(clips: Path) -> dict[str, dict]:
+    """The four jobs as manifest entries (absolute paths)."""
+    jobs = {}
+    for clip in ("calm", "live"):
+        jobs[f"{clip}_landmarks"] = {"pipeline": str(REPO / "pipeline.yaml"), "clip": str(clips / f"{clip}.mp4")}
+        jobs[f"{clip}_paper"] = {"pipeline": str(REPO / "pipeline_paper.yaml"), "clip": str(clips / f"{clip}.mp4"),
+                                 "inputs": {"init": str(clips / f"{clip}_track0.csv")}}
+    return jobs
+
+
+def _run_args(job: dict, out: Path) -> list[str]:
+    """``runner run`` arguments of a manifest entry."""
+    named = [a for name, path in job.get("inputs", {}).items() for a in ("--input", f"{name}={path}")]
+    return ["run", job["pipeline"], "--in", job["clip"], *named, "--out", str(out)]
+
+
+def _timed(*commands: list[str], cache: Path) -> float:
+    """Wall seconds of ``runner`` commands run one after another in new processes, on a fresh
+    ``cache``; a command that fails stops the bench."""
+    shutil.rmtree(cache, ignore_errors=True)
+    started = time.perf_counter()
+    for args in commands:
+        done = subprocess.run([sys.executable, "-m", "runner.cli", *args, "--cache-dir", str(cache)],
+                              cwd=REPO, capture_output=True, text=True)
+        if done.returncode != 0:
+            raise RuntimeError(f"runner {' '.join(args)} failed ({done.returncode}): {done.stderr.strip()[-2000:]}")
+    return time.perf_counter() - started
+
+
+def _batch(jobs: dict[str, dict], folder: Path, workers: int) -> list[str]:
+    """``runner batch`` arguments for ``jobs``, their manifest written under ``folder``."""
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    manifest = folder / "shots.yaml"
+    manifest.write_text(json.dumps({"jobs": {name: {**job, "out": str(folder / "out" / name)}
+                                             for name, job in jobs.items()}}, indent=1))
+    return ["batch", str(manifest), "--workers", str(workers)]
+
+
+def run(args) -> list[dict]:
+    clips = Path(args.extra[args.extra.index("--clips") + 1]) if "--clips" in args.extra else REPO / "fixtures" / "clips"
+    work = Path(args.work).resolve() / "batch"
+    work.mkdir(parents=True, exist_ok=True)
+    jobs = _jobs(clips.resolve())
+    first = dict(list(jobs.items())[:1])
+    load_before = Path("/proc/loadavg").read_text().split()[:3]
+
+    run_one = _timed(_run_args(first[next(iter(first))], work / "run_out" / "one"), cache=work / "cache_run_one")
+    batch_one = _timed(_batch(first, work / "batch_one", 1), cache=work / "cache_batch_one")
+    seq = _timed(*[_run_args(job, work / "run_out" / name) for name, job in jobs.items()], cache=work / "cache_seq")
+    two = _timed(_batch(jobs, work / "batch_two", 2), cache=work / "cache_batch_two")
+
+    load = f"{' '.join(load_before)} -> {' '.join(Path('/proc/loadavg').read_text().split()[:3])}"
+    rows = [("batch_speedup_2workers", seq / two, "x"), ("batch_overhead_ratio", batch_one / run_one, "x"),
+            ("batch_seq_s", seq, "s"), ("batch_2workers_s", two, "s"), ("batch_one_job_s", batch_one, "s"),
+            ("run_one_job_s", run_one, "s")]
+    return [{"bench": "batch", "metric": m, "value": v, "unit": u, "load": load, "cpus": os.cpu_count()}
+            for m, v, u in rows]
