@@ -57,7 +57,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from scripts.facegen.render import Camera, _background, make_face, render, rotation  # noqa: E402
+from scripts.facegen.render import Camera, background, make_face, render, rotation  # noqa: E402
 from stages.actor_pack import load_pack  # noqa: E402
 from stages.geometry.compensate import fit_similarity  # noqa: E402
 from stages.mesh3d.model import build_target_model, lift  # noqa: E402
@@ -175,7 +175,7 @@ def run(args: argparse.Namespace) -> list[dict]:
     held = truth["heldout_index"]
     R0, t0 = truth["R"], truth["t"]
     renderer = MeshRenderer(size, samples=4)
-    bg = _background(size)
+    bg = background(size)
     rigid = list(pack.layout.rigid)
     scores: dict[str, list[float]] = {"3d": [], "2d": []}
     yaws, sheet = [], []

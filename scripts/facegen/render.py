@@ -105,6 +105,12 @@ def _background(size: tuple[int, int]) -> np.ndarray:
     return np.broadcast_to(top * (1 - ramp) + bottom * ramp, (h, w, 3)).copy()
 
 
+def background(size: tuple[int, int]) -> np.ndarray:
+    """The backdrop every render draws first: ``(H, W, 3)`` float32 sRGB in [0, 1], a vertical
+    grey-blue gradient, for ``size`` = (W, H) (for compositing other renders the same way)."""
+    return _background(size)
+
+
 def _fx(p: np.ndarray) -> np.ndarray:
     return np.round(np.asarray(p) * (1 << SHIFT)).astype(np.int32).reshape(-1, 1, 2)
 

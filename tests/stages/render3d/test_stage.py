@@ -88,3 +88,15 @@ def test_head_needs_a_relative_pose(chain):
     with pytest.raises(StageError, match="scale"):
         HeadPose3D().run({"mesh": mesh, "pose": {"R": np.stack([np.eye(3)]), "tvec": np.zeros((1, 3))}}, {"translation_scale": 1.0},
                          files_context(Path(".")))
+
+
+def test_resolution_scale_renders_the_same_picture_larger(chain, tmp_path):
+    import cv2
+
+    _, pack, mesh, head, texture, out = chain
+    params = {"samples": 4, "resolution_scale": 2.0, "geometry": "synthesized", "compression": "zip"}
+    big = Render3D().process(0, 1, {"texture": texture, "mesh": mesh, "head": head}, params, files_context(tmp_path))
+    W, H = pack.image_size
+    assert big["frames"].shape == (1, 2 * H, 2 * W, 3)
+    small = cv2.resize(big["mask"][0].astype(np.float32), (W, H), interpolation=cv2.INTER_AREA)
+    assert np.abs(small - out["mask"][0, ..., 0].astype(np.float32)).mean() < 0.01
