@@ -1,1 +1,1 @@
-"""An actor pack as data in the graph: ``pack.load`` and the bundles it outputs (docs/pack_bundles.md)."""
+"""An actor pack as data in the graph: ``pack.load`` and the bundles it outputs (docs/CONTRACTS.md, "Packs in the graph")."""
