@@ -64,3 +64,14 @@ def test_usd_scene_and_head_pose(out):
     with (out / "usd" / "head_pose.csv").open() as fh:
         rows = list(csv.DictReader(fh))
     assert len(rows) == T and {"yaw_deg", "tx_mm", "R22"} <= set(rows[0])
+
+
+def test_pipeline_3d_is_pipeline_yaml_plus_the_3d_stages():
+    import yaml
+
+    base = yaml.safe_load((REPO / "pipeline.yaml").read_text())
+    three = yaml.safe_load((REPO / "pipeline_3d.yaml").read_text())
+    assert three["inputs"] == base["inputs"]
+    for name, stage in base["stages"].items():
+        assert three["stages"].get(name) == stage, f"pipeline_3d.yaml's stage {name!r} differs from pipeline.yaml's"
+    assert {"texture", "mesh3d", "head3d", "render3d", "usd"} <= set(three["stages"]) - set(base["stages"])
