@@ -65,10 +65,14 @@ EYES_NOSE = ["eye_l_0", "eye_r_0", "eye_l_6", "eye_r_6", "nose_tip", "nose_ala_l
 # measured 0.422, 1.696 (2D only) and 0.277, 0.983 (with the performer pack's face model)
 TRACK_MEAN_PX = {("calm", "2d_only"): 0.45, ("live", "2d_only"): 1.75,
                  ("calm", "face_model"): 0.30, ("live", "face_model"): 1.02}
-# smoothed / raw frame-to-frame change of the tracking error of the face-model tracks, measured
-# 0.853 and 1.224: the tracker's errors are mostly slow drifts, not jitter, and on the live
-# clip's fast head motion the smoother's lag adds more than it removes (a bound, not a gain)
-JITTER_RATIO = {"calm": 0.95, "live": 1.25}
+# Jitter: the mean second difference of the tracking error (px/frame^2), a high-pass measure that
+# slow drift and the smoother's lag barely touch. Smoothed / raw, face-model tracks, measured 0.360
+# (calm) and 0.820 (live).
+JITTER_RATIO = {"calm": 0.45, "live": 0.9}
+# Lag: the mean first difference of the tracking error, smoothed / raw, measured 0.853 and 1.224:
+# on the live clip's fast head motion the smoother's lag adds more slow error than it removes (a
+# bound on the damage, not a gain).
+LAG_RATIO = {"calm": 0.95, "live": 1.25}
 # mean rotation error, deg, all from the smoothed tracks; measured calm 0.226, 0.322, 0.291 and
 # live 1.096, 1.725, 1.171 (rigid PnP, eyes + nose PnP, face model). Before smoothing kept the
 # first frame in place, PnP's model adapted to a shifted neutral gave 3.10 and 3.94 on live.
@@ -91,15 +95,23 @@ def test_tracking_error(clip, tracker):
     assert tracked["valid"][1:][visible[1:]].mean() > 0.9
 
 
+def error_change(xy: np.ndarray, gt: np.ndarray, order: int) -> float:
+    """Mean norm of the ``order``-th frame difference of the tracking error ``xy - gt``, px."""
+    return float(np.linalg.norm(np.diff(xy - gt, n=order, axis=0), axis=2).mean())
+
+
 def test_smoothing_reduces_jitter(clip):
     kind, truth, tracks, smoothed, *_ = clip
     tracked = tracks["face_model"]
     gt = truth_of(truth, tracked["names"])
+    assert error_change(smoothed["xy"], gt, 2) < JITTER_RATIO[kind] * error_change(tracked["xy"], gt, 2)
 
-    def jitter(xy):
-        return np.linalg.norm(np.diff(xy - gt, axis=0), axis=2).mean()
 
-    assert jitter(smoothed["xy"]) < JITTER_RATIO[kind] * jitter(tracked["xy"])
+def test_smoothing_lag_stays_bounded(clip):
+    kind, truth, tracks, smoothed, *_ = clip
+    tracked = tracks["face_model"]
+    gt = truth_of(truth, tracked["names"])
+    assert error_change(smoothed["xy"], gt, 1) < LAG_RATIO[kind] * error_change(tracked["xy"], gt, 1)
 
 
 @pytest.mark.parametrize("points", ["rigid", "eyes_nose", "face"])
