@@ -1,7 +1,8 @@
 """``expression-editor``: start the editor's local web server and print its URL.
 
     expression-editor --pack PACK [--performance RUN/data/data.npz] [--host 127.0.0.1]
-                      [--port 0] [--device cpu] [--jpeg-quality 85] [--allow-remote]
+                      [--port 0] [--device cpu] [--threads 1] [--jpeg-quality 90]
+                      [--preview-scale 0.5] [--allow-remote]
 
 The URL carries a random token made for this run; the server answers no request without it.
 It binds to 127.0.0.1 unless ``--host`` names another address, which also needs
@@ -46,7 +47,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--allow-remote", action="store_true", help="allow a --host that is not a loopback address")
     parser.add_argument("--device", default="cpu", help="torch device of the synthesis (cpu, cuda)")
     parser.add_argument("--threads", type=int, default=1, help="torch/OpenCV threads of the synthesis (default 1, see docs/editor.md)")
-    parser.add_argument("--jpeg-quality", type=int, default=85, choices=range(1, 101), metavar="1..100", help="quality of the images sent to the page")
+    parser.add_argument("--jpeg-quality", type=int, default=90, choices=range(1, 101), metavar="1..100",
+                        help="quality of the JPEG images sent to the page (while dragging, in-betweens); when the mouse stops the image is PNG")
+    parser.add_argument("--preview-scale", type=float, default=0.5,
+                        help="size of the images shown while dragging, fraction of the pack's image size, in (0, 1] (default 0.5, see docs/editor.md)")
     return parser.parse_args(argv)
 
 
@@ -54,7 +58,8 @@ async def serve(args: argparse.Namespace) -> None:
     from editor.engine import EditorEngine
     from editor.server import make_app
 
-    engine = EditorEngine(args.pack, device=args.device, jpeg_quality=args.jpeg_quality, performance=args.performance)
+    engine = EditorEngine(args.pack, device=args.device, jpeg_quality=args.jpeg_quality, preview_scale=args.preview_scale,
+                          performance=args.performance)
     token = secrets.token_urlsafe(24)
     runner = web.AppRunner(make_app(engine, token=token), access_log=None)
     await runner.setup()

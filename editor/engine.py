@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -16,6 +17,7 @@ import cv2
 import numpy as np
 import torch
 
+from editor.preview import PreviewSynthesizer
 from runner.stage import Context, SequenceStage, StageError
 from stages.actor_pack import load_pack
 from stages.layout import Layout
@@ -28,31 +30,54 @@ log = logging.getLogger("editor")
 
 
 def _run_default(stage: type[SequenceStage], pack: Path, *, device: str) -> dict[str, Any]:
-    """Run a pack stage with its default parameters, as a pipeline would."""
+    """Run a pack stage with its default parameters, as a pipeline would: a stage that takes the
+    pack folder gets it, one that takes ``pack.load``'s bundles gets them by port name."""
 
     def no_files(port: str) -> Path:
         raise StageError(f"{stage.name}: the editor gives no folder for files output '{port}'")
 
     ctx = Context(device=device, files_dir=no_files, log=log)
-    return stage().run({"pack": pack}, {p.name: p.default for p in stage.params}, ctx)
+    if set(stage.inputs) == {"pack"}:
+        inputs: dict[str, Any] = {"pack": pack}
+    else:
+        from stages.pack.stage import LoadPack
+        bundles = LoadPack().run({"pack": pack}, {}, ctx)
+        inputs = {port: bundles[port] for port in stage.inputs}
+    return stage().run(inputs, {p.name: p.default for p in stage.params}, ctx)
 
 
-def encode_jpeg(rgb: torch.Tensor, *, quality: int) -> list[bytes]:
-    """JPEG bytes of a batch of images.
+def to_uint8(rgb: torch.Tensor) -> np.ndarray:
+    """8-bit images of a batch of synthesized images.
 
     Parameters
     ----------
     rgb : (B, 3, H, W) float tensor, sRGB in [0, 1]
-    quality : int, 1..100 (OpenCV's ``IMWRITE_JPEG_QUALITY``)
+
+    Returns
+    -------
+    (B, H, W, 3) uint8, BGR (OpenCV's channel order), rounded to nearest.
     """
-    images = (rgb * 255.0 + 0.5).clamp(0, 255).to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
-    out = []
-    for image in images:
-        ok, buffer = cv2.imencode(".jpg", cv2.cvtColor(image, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, quality])
-        if not ok:
-            raise RuntimeError("cv2.imencode failed to encode a JPEG")
-        out.append(buffer.tobytes())
-    return out
+    return (rgb.flip(1) * 255.0 + 0.5).clamp_(0, 255).to(torch.uint8).permute(0, 2, 3, 1).contiguous().cpu().numpy()
+
+
+def encode(image: np.ndarray, *, mime: str, jpeg_quality: int = 90) -> bytes:
+    """Bytes of one image in a format browsers decode.
+
+    Parameters
+    ----------
+    image : (H, W, 3) uint8, BGR
+    mime : ``"image/jpeg"`` (quality ``jpeg_quality``, 1..100) or ``"image/png"`` (lossless,
+        zlib level 1: the fastest)
+    """
+    if mime == "image/jpeg":
+        ok, buffer = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
+    elif mime == "image/png":
+        ok, buffer = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    else:
+        raise ValueError(f"mime must be 'image/jpeg' or 'image/png', got {mime!r}")
+    if not ok:
+        raise RuntimeError(f"cv2.imencode failed to encode {mime}")
+    return buffer.tobytes()
 
 
 def read_performance(path: Path, layout: Layout) -> np.ndarray:
@@ -82,6 +107,26 @@ def read_performance(path: Path, layout: Layout) -> np.ndarray:
     return xy
 
 
+@dataclass(frozen=True)
+class Rendered:
+    """Encoded images with what making them cost.
+
+    Attributes
+    ----------
+    images : list of bytes, one per geometry
+    types : list of str, their MIME types (``image/jpeg`` or ``image/png``)
+    wall_s, cpu_s : float
+        Wall-clock and CPU seconds of the calling thread that synthesis and encoding took (the
+        CPU time is all of it with one torch thread, and hardly grows when other processes load
+        the machine).
+    """
+
+    images: list[bytes]
+    types: list[str]
+    wall_s: float
+    cpu_s: float
+
+
 class EditorEngine:
     """A target pack's models, ready to propagate edits and synthesize images.
 
@@ -92,30 +137,62 @@ class EditorEngine:
     device : str
         Torch device of the synthesis.
     jpeg_quality : int
-        Quality of the images sent to the page.
+        Quality of the JPEG images sent to the page (previews and in-betweens), 1..100.
+    preview_scale : float
+        Size of the images shown while dragging, as a fraction of the pack's image size, in
+        (0, 1] (see :meth:`preview`).
     performance : Path, optional
         A run's ``data.npz`` whose frames can be loaded and touched up.
     """
 
-    def __init__(self, pack: Path, *, device: str = "cpu", jpeg_quality: int = 85, performance: Path | None = None) -> None:
+    def __init__(
+        self,
+        pack: Path,
+        *,
+        device: str = "cpu",
+        jpeg_quality: int = 90,
+        preview_scale: float = 0.5,
+        performance: Path | None = None,
+    ) -> None:
+        if not 1 <= int(jpeg_quality) <= 100:
+            raise ValueError(f"jpeg_quality must be in 1..100, got {jpeg_quality}")
         self.layout: Layout = load_pack(pack).layout
         self.pca = HierarchicalPCA.from_bundle(_run_default(TrainHierarchicalPCA, pack, device=device)["pca_model"])
         self.model: Mapping[str, np.ndarray] = _run_default(BuildSynthesis, pack, device=device)["model"]
         self.synthesizer = Synthesizer(self.model, device=device)
         self.size = tuple(int(v) for v in self.model["size"])  # (W, H)
+        self.previewer = PreviewSynthesizer(self.synthesizer, self.model, scale=preview_scale)
         self.jpeg_quality = int(jpeg_quality)
         self.performance = None if performance is None else read_performance(performance, self.layout)
 
-    def render(self, points: np.ndarray) -> tuple[list[bytes], float, float]:
-        """JPEG images of geometries ``points (B, N, 2)`` px, with the wall-clock and the CPU
-        seconds of the calling thread that synthesis and JPEG encoding took (the CPU time is
-        all of it with one torch thread, and does not grow when other processes load the
-        machine)."""
+    def render(self, points: np.ndarray, *, lossless_last: bool = False) -> Rendered:
+        """The pipeline's synthesis (:meth:`stages.synthesis.synthesize.Synthesizer.render`,
+        full mode, default parameters) of geometries ``points (B, N, 2)`` px, at the pack's
+        size, as JPEG images; the last one PNG (lossless) with ``lossless_last``."""
         wall, cpu = time.perf_counter(), time.thread_time()
         with torch.inference_mode():  # no autograd bookkeeping on the QP's many small operations
             rgb, _, _ = self.synthesizer.render(points)
-            images = encode_jpeg(rgb, quality=self.jpeg_quality)
-        return images, time.perf_counter() - wall, time.thread_time() - cpu
+            images = to_uint8(rgb)
+        types = ["image/jpeg"] * len(images)
+        if lossless_last:
+            types[-1] = "image/png"
+        data = [encode(image, mime=mime, jpeg_quality=self.jpeg_quality) for image, mime in zip(images, types)]
+        return Rendered(data, types, time.perf_counter() - wall, time.thread_time() - cpu)
+
+    def preview(self, points: np.ndarray) -> Rendered:
+        """The image shown while dragging: the synthesis at ``preview_scale`` of the pack's size
+        (:class:`editor.preview.PreviewSynthesizer`), as one JPEG; with ``preview_scale`` 1 it is
+        :meth:`render`'s image.
+
+        Parameters
+        ----------
+        points : (N, 2) float, px, at the pack's size
+        """
+        wall, cpu = time.perf_counter(), time.thread_time()
+        with torch.inference_mode():
+            (image,) = to_uint8(self.previewer.render(points))
+        data = encode(image, mime="image/jpeg", jpeg_quality=self.jpeg_quality)
+        return Rendered([data], ["image/jpeg"], time.perf_counter() - wall, time.thread_time() - cpu)
 
     def description(self) -> dict[str, Any]:
         """What the page needs to draw and edit: image size, point names, the neutral, the

@@ -11,14 +11,20 @@ API (POST bodies are JSON)
 ``GET  /static/NAME``      its script and style
 ``GET  /api/describe``     size, point names, neutral, subregion outlines, performance frames
 ``GET  /api/frame?index=K`` frame K's geometry of the ``--performance`` data.npz
-``POST /api/render``       ``{client, seq, base, pinned}`` -> propagated geometry + its image
-``POST /api/inbetweens``   ``{client, seq, from, to}`` -> the five in-between images (Sec. 14.2)
+``POST /api/render``       ``{client, seq, base, pinned, preview}`` -> propagated geometry + its
+                           image: with ``preview: true`` (while dragging) a JPEG at the preview
+                           size (``EditorEngine.preview``), else the pipeline's synthesis at the
+                           pack's size, lossless (PNG)
+``POST /api/inbetweens``   ``{client, seq, from, to}`` -> the five in-between images (Sec. 14.2,
+                           JPEG) and the image of ``to`` (PNG)
 ``POST /api/export``       ``{fps, keyframes: [{time_s, points}]}`` -> the points file (.npz)
 
 Image answers are ``application/octet-stream``: a little-endian uint32 byte count, that many
-bytes of UTF-8 JSON (``points``, ``seq``, ``synth_ms`` and ``synth_cpu_ms``: wall-clock and
-CPU time of synthesis and encoding, ``propagate_cpu_ms``: CPU time of the propagation,
-``sizes``: the byte count of each image), then the JPEG images back to back. Stale work is dropped: a request whose ``seq`` is
+bytes of UTF-8 JSON (``points``, ``seq``, ``work_ms``: wall-clock time of propagation,
+synthesis and encoding, ``synth_ms`` and ``synth_cpu_ms``: wall-clock and CPU time of synthesis
+and encoding, ``propagate_cpu_ms``: CPU time of the propagation,
+``sizes``: the byte count of each image, ``types``: their MIME types), then the images back to
+back. Stale work is dropped: a request whose ``seq`` is
 older than the newest one seen from its ``client`` is answered 409 ``superseded`` without
 being computed, also when a newer one arrives while it waits for a renderer thread.
 Propagation and synthesis run on ``RENDER_THREADS`` threads (one torch thread each by default),
@@ -42,7 +48,7 @@ import numpy as np
 from aiohttp import web
 
 from editor import validate
-from editor.engine import EditorEngine
+from editor.engine import EditorEngine, Rendered
 from editor.geometry import edited_geometry, inbetweens, interpolate_keyframes
 from editor.points_file import points_file_bytes
 
@@ -108,33 +114,35 @@ def claim(app: web.Application, client: str, seq: int) -> bool:
     return True
 
 
-def image_answer(meta: dict[str, Any], images: list[bytes]) -> web.Response:
-    header = json.dumps({**meta, "sizes": [len(i) for i in images]}).encode()
-    body = b"".join([struct.pack("<I", len(header)), header, *images])
+def image_answer(meta: dict[str, Any], rendered: Rendered) -> web.Response:
+    header = json.dumps({**meta, "sizes": [len(i) for i in rendered.images], "types": rendered.types}).encode()
+    body = b"".join([struct.pack("<I", len(header)), header, *rendered.images])
     return web.Response(body=body, content_type="application/octet-stream")
 
 
-async def render_images(request: web.Request, client: str, seq: int, geometries: Callable[[], np.ndarray]) -> web.Response:
-    """Synthesize ``geometries() (B, N, 2)`` on a renderer thread, or answer 409 ``superseded``
-    when a newer request of ``client`` arrived before the work started. The last geometry is
-    sent with the images."""
+async def render_images(
+    request: web.Request, client: str, seq: int, geometries: Callable[[], np.ndarray], render: Callable[[np.ndarray], Rendered]
+) -> web.Response:
+    """Make ``geometries() (B, N, 2)`` and ``render`` them on a renderer thread, or answer 409
+    ``superseded`` when a newer request of ``client`` arrived before the work started. The last
+    geometry is sent with the images."""
     app = request.app
-    engine = app[ENGINE]
 
-    def job() -> tuple[np.ndarray, float, list[bytes], float, float] | None:
+    def job() -> tuple[np.ndarray, float, Rendered, float] | None:
         if app[NEWEST].get(client) != seq:
             return None
-        start = time.thread_time()
+        wall, start = time.perf_counter(), time.thread_time()
         points = geometries()
-        return (points, time.thread_time() - start, *engine.render(points))
+        propagate_cpu = time.thread_time() - start
+        return points, propagate_cpu, render(points), time.perf_counter() - wall
 
     done = await asyncio.get_running_loop().run_in_executor(app[EXECUTOR], job)
     if done is None:
         return json_error(409, "superseded")
-    points, propagate_cpu, images, wall, cpu = done
-    meta = {"seq": seq, "propagate_cpu_ms": propagate_cpu * 1e3, "synth_ms": wall * 1e3, "synth_cpu_ms": cpu * 1e3,
-            "points": points[-1].tolist()}
-    return image_answer(meta, images)
+    points, propagate_cpu, rendered, work = done
+    meta = {"seq": seq, "work_ms": work * 1e3, "propagate_cpu_ms": propagate_cpu * 1e3, "synth_ms": rendered.wall_s * 1e3,
+            "synth_cpu_ms": rendered.cpu_s * 1e3, "points": points[-1].tolist()}
+    return image_answer(meta, rendered)
 
 
 def _limit(engine: EditorEngine) -> float:
@@ -146,9 +154,13 @@ async def handle_render(request: web.Request) -> web.Response:
     body = await read_json(request)
     client, seq = validate.sequence_number(body)
     base, pinned = validate.render_request(body, n_points=engine.pca.n_points, limit=_limit(engine))
+    preview = validate.flag(body, "preview")
     if not claim(request.app, client, seq):
         return json_error(409, "superseded")
-    return await render_images(request, client, seq, lambda: edited_geometry(engine.pca, pinned, base=base)[None])
+    geometry = lambda: edited_geometry(engine.pca, pinned, base=base)[None]  # noqa: E731
+    if preview:
+        return await render_images(request, client, seq, geometry, lambda points: engine.preview(points[0]))
+    return await render_images(request, client, seq, geometry, lambda points: engine.render(points, lossless_last=True))
 
 
 async def handle_inbetweens(request: web.Request) -> web.Response:
@@ -158,7 +170,8 @@ async def handle_inbetweens(request: web.Request) -> web.Response:
     previous, current = validate.inbetween_request(body, n_points=engine.pca.n_points, limit=_limit(engine))
     if not claim(request.app, client, seq):
         return json_error(409, "superseded")
-    return await render_images(request, client, seq, lambda: np.concatenate([inbetweens(previous, current), current[None]]))
+    return await render_images(request, client, seq, lambda: np.concatenate([inbetweens(previous, current), current[None]]),
+                               lambda points: engine.render(points, lossless_last=True))
 
 
 async def handle_export(request: web.Request) -> web.Response:

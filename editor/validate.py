@@ -63,6 +63,16 @@ def sequence_number(body: Any) -> tuple[str, int]:
     return client, _integer(_field(body, "seq"), "field 'seq'", low=0, high=2**53)
 
 
+def flag(body: Any, name: str) -> bool:
+    """An optional boolean field (absent: False)."""
+    if not isinstance(body, dict):
+        raise ValueError(f"expected a JSON object, got {type(body).__name__}")
+    value = body.get(name, False)
+    if not isinstance(value, bool):
+        raise ValueError(f"field '{name}': expected true or false, got {value!r:.40}")
+    return value
+
+
 def render_request(body: Any, *, n_points: int, limit: float) -> tuple[np.ndarray | None, dict[int, np.ndarray]]:
     """``{"base": null | [[x, y] * N], "pinned": [[index, x, y], ...]}`` -> (base, pinned).
 

@@ -104,21 +104,15 @@ def drag_session(page, *, point: str, seconds: float, move_ms: float) -> dict:
         "synth_ms": [stats["synthMs"][k] for k in inside],
         "synth_cpu_ms": [stats["synthCpuMs"][k] for k in inside],
         "propagate_cpu_ms": [stats["propagateCpuMs"][k] for k in inside],
+        "wait_ms": [stats["waitMs"][k] for k in inside],
+        "decode_ms": [stats["decodeMs"][k] for k in inside],
         "errors": stats["errors"],
     }
 
 
-def run(args: argparse.Namespace) -> list[dict]:
-    parser = argparse.ArgumentParser(prog="bench.py editor")
-    parser.add_argument("--pack", type=Path, help="target pack (default: the 600x800 demo target with 15 examples, made under --work)")
-    parser.add_argument("--seconds", type=float, default=8.0, help="dragging time measured")
-    parser.add_argument("--move-ms", type=float, default=8.0, help="pause between pointer moves, ms")
-    parser.add_argument("--point", default="mouth_outer_12", help="the feature point dragged")
-    parser.add_argument("--threads", type=int, default=1, help="torch/OpenCV threads of the server (its --threads)")
-    parser.add_argument("--screenshot", type=Path, help="also save a screenshot of the editor (PNG, subregions shown)")
-    opts = parser.parse_args(getattr(args, "extra", []))
-    pack = opts.pack or bench_pack(Path(args.work))
-    process, url = spawn(pack, "--threads", str(opts.threads))
+def measure(pack: Path, opts: argparse.Namespace, *, preview_scale: float, screenshot: Path | None = None) -> dict:
+    """Serve ``pack`` with ``preview_scale``, drag in Chromium; the stats of the measured drag."""
+    process, url = spawn(pack, "--threads", str(opts.threads), "--preview-scale", str(preview_scale))
     try:
         with chromium() as browser:
             page = browser.new_page(viewport={"width": 1000, "height": 840})
@@ -128,23 +122,102 @@ def run(args: argparse.Namespace) -> list[dict]:
             page.click("#reset")
             page.evaluate("window.editor.idle()")
             result = drag_session(page, point=opts.point, seconds=opts.seconds, move_ms=opts.move_ms)
-            if opts.screenshot:
-                save_screenshot(page, opts.screenshot)
+            if screenshot:
+                save_screenshot(page, screenshot)
     finally:
         process.terminate()
         process.wait(timeout=30)
+    return result
+
+
+def run(args: argparse.Namespace) -> list[dict]:
+    parser = argparse.ArgumentParser(prog="bench.py editor")
+    parser.add_argument("--pack", type=Path, help="target pack (default: the 600x800 demo target with 15 examples, made under --work)")
+    parser.add_argument("--seconds", type=float, default=8.0, help="dragging time measured")
+    parser.add_argument("--move-ms", type=float, default=8.0, help="pause between pointer moves, ms")
+    parser.add_argument("--point", default="mouth_outer_12", help="the feature point dragged")
+    parser.add_argument("--threads", type=int, default=1, help="torch/OpenCV threads of the server (its --threads)")
+    parser.add_argument("--preview-scale", type=float, default=0.5, help="the server's --preview-scale (its default 0.5)")
+    parser.add_argument("--no-full", action="store_true", help="skip the second drag with full-size previews (--preview-scale 1)")
+    parser.add_argument("--screenshot", type=Path, help="also save a screenshot of the editor (PNG, subregions shown)")
+    parser.add_argument("--parts", action="store_true", help="only the CPU time of each part of an update, in this process (no browser)")
+    opts = parser.parse_args(getattr(args, "extra", []))
+    pack = opts.pack or bench_pack(Path(args.work))
     row = lambda metric, value, unit: {"bench": "editor", "metric": metric, "value": value, "unit": unit}  # noqa: E731
-    return [
-        row("editor_update_fps", result["fps"], "images/s"),
-        row("editor_latency_ms_p50", percentile(result["latencies"], 50), "ms"),
-        row("editor_latency_ms_p95", percentile(result["latencies"], 95), "ms"),
-        row("editor_synth_fps", 1000.0 / percentile(result["synth_ms"], 50), "images/s"),
-        row("editor_synth_cpu_ms_p50", percentile(result["synth_cpu_ms"], 50), "ms"),
-        row("editor_propagate_cpu_ms_p50", percentile(result["propagate_cpu_ms"], 50), "ms"),
-        row("editor_updates", len(result["latencies"]), "images"),
-        row("editor_errors", result["errors"], "responses"),
-        row("editor_load_avg", os.getloadavg()[0], "processes"),
-    ]
+    if opts.parts:
+        parts = profile_parts(pack, point=opts.point, preview_scale=opts.preview_scale)
+        return [row(f"editor_part_{name}_cpu_ms", value, "ms") for name, value in parts.items()] + [
+            row("editor_part_load_avg", os.getloadavg()[0], "processes")]
+    runs = [("editor", opts.preview_scale)] + ([] if opts.no_full else [("editor_full", 1.0)])
+    rows = []
+    for prefix, scale in runs:
+        result = measure(pack, opts, preview_scale=scale, screenshot=opts.screenshot if prefix == "editor" else None)
+        rows += [
+            row(f"{prefix}_update_fps", result["fps"], "images/s"),
+            row(f"{prefix}_latency_ms_p50", percentile(result["latencies"], 50), "ms"),
+            row(f"{prefix}_latency_ms_p95", percentile(result["latencies"], 95), "ms"),
+            row(f"{prefix}_synth_fps", 1000.0 / percentile(result["synth_ms"], 50), "images/s"),
+            row(f"{prefix}_synth_cpu_ms_p50", percentile(result["synth_cpu_ms"], 50), "ms"),
+            row(f"{prefix}_propagate_cpu_ms_p50", percentile(result["propagate_cpu_ms"], 50), "ms"),
+            row(f"{prefix}_wait_ms_p50", percentile(result["wait_ms"], 50), "ms"),
+            row(f"{prefix}_decode_ms_p50", percentile(result["decode_ms"], 50), "ms"),
+            row(f"{prefix}_updates", len(result["latencies"]), "images"),
+            row(f"{prefix}_errors", result["errors"], "responses"),
+            row(f"{prefix}_preview_scale", scale, "fraction"),
+            row(f"{prefix}_load_avg", os.getloadavg()[0], "processes"),
+        ]
+    return rows
+
+
+def profile_parts(pack: Path, *, point: str, preview_scale: float, repeats: int = 15) -> dict[str, float]:
+    """Median CPU time (ms, this thread, one torch thread) of each part of an update, over
+    geometries of ``point`` dragged round the benchmark's ellipse.
+
+    ``propagate``: motion propagation; ``qp``: the per-subregion QPs; ``composite_full`` /
+    ``composite_preview``: compositing at the full / preview size; ``synth_full`` /
+    ``synth_preview``: the whole synthesis (QP, compositing, warp); ``jpeg_full``,
+    ``png_full``, ``jpeg_preview``: 8-bit conversion and encoding. The warp is ``synth - qp -
+    composite``.
+    """
+    import cv2
+    import torch
+
+    from editor.engine import EditorEngine, encode, to_uint8
+    from editor.geometry import edited_geometry
+    from stages.synthesis.composite import composite
+
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    engine = EditorEngine(pack, preview_scale=preview_scale)
+    synth, previewer = engine.synthesizer, engine.previewer
+    index = engine.layout.point_names.index(point)
+    neutral = engine.pca.neutral
+    pinned = [{index: neutral[index] + [6.0 * np.sin(t), 10.0 * (1 - np.cos(t))]} for t in np.linspace(0, 2 * np.pi, repeats)]
+    points = [edited_geometry(engine.pca, p) for p in pinned]
+    coeffs = [synth.qp.coefficients(p[None])[0] for p in points]
+    full = [to_uint8(synth.render(p[None])[0])[0] for p in points[:2]]
+    small = [to_uint8(previewer.render(p))[0] for p in points[:2]]
+    jobs = {
+        "propagate": lambda k: edited_geometry(engine.pca, pinned[k]),
+        "qp": lambda k: synth.qp.coefficients(points[k][None]),
+        "composite_full": lambda k: composite(synth.compositor, coeffs[k]),
+        "composite_preview": lambda k: composite(previewer.compositor, coeffs[k]),
+        "synth_full": lambda k: synth.render(points[k][None]),
+        "synth_preview": lambda k: previewer.render(points[k]),
+        "jpeg_full": lambda k: encode(full[k % 2], mime="image/jpeg", jpeg_quality=engine.jpeg_quality),
+        "png_full": lambda k: encode(full[k % 2], mime="image/png"),
+        "jpeg_preview": lambda k: encode(small[k % 2], mime="image/jpeg", jpeg_quality=engine.jpeg_quality),
+    }
+    out = {}
+    with torch.inference_mode():
+        for name, job in jobs.items():
+            times = []
+            for k in range(repeats):
+                start = time.thread_time()
+                job(k)
+                times.append((time.thread_time() - start) * 1e3)
+            out[name] = float(np.median(times))
+    return out
 
 
 def save_screenshot(page, path: Path, *, max_bytes: int = 300_000) -> None:

@@ -8,6 +8,7 @@ const CLIENT = Array.from(crypto.getRandomValues(new Uint8Array(8)), (b) => b.to
 const PICK_RADIUS = 9;        // px on screen: how near a press must be to take a point
 const CLICK_SLOP = 2;         // px on screen a press may wander and still be a click (unpin)
 const INBETWEEN_MS = 70;      // display time of each in-between frame (Sec. 14.2)
+const STILL_MS = 150;         // a drag whose pointer rests this long gets the full image (not the preview)
 
 const imageCanvas = document.getElementById("image");
 const overlay = document.getElementById("overlay");
@@ -25,7 +26,7 @@ let latestShown = -1;         // sequence number of the image on screen
 const MAX_IN_FLIGHT = 2;      // render requests under way at once (the server has two renderer threads)
 let inFlight = 0;             // render requests under way
 let pending = null;           // the newest edit not yet sent: {body, time}
-let drag = null;              // {index, moved, before: edit, from: geometry}
+let drag = null;              // {index, moved, before: edit, from: geometry, still: timer}
 let playback = 0;             // generation of the in-between animation (a new drag stops it)
 let playing = null;           // the in-between animation under way (a promise)
 let keyframes = [];           // [{time_s, points}]
@@ -33,13 +34,20 @@ let idleWaiters = [];
 const actions = new Set();    // asynchronous button actions under way (load frame, save, export)
 
 // Measurements read by the tests and scripts/bench_editor.py.
-const stats = { updates: [], latencies: [], synthMs: [], synthCpuMs: [], propagateCpuMs: [], played: 0, errors: 0 };
+const stats = {
+  updates: [], latencies: [], widths: [], synthMs: [], synthCpuMs: [], propagateCpuMs: [],
+  waitMs: [],    // request sent -> answer received, less the server's work on it (queue, transfer)
+  decodeMs: [],  // answer received -> image decoded
+  played: 0, errors: 0,
+};
+let shown = null;             // the image on the canvas: {type, width, height} as sent
 window.editor = {
   stats,
   geometry: () => geometry,
   pinned: () => Array.from(edit.pinned.keys()),
   keyframes: () => keyframes,
   layout: () => layout,
+  shown: () => shown,
   idle,
 };
 
@@ -80,23 +88,29 @@ async function failure(response) {
   status(`${response.status}: ${message}`);
 }
 
-// An image answer: uint32 LE header length, JSON header, JPEG images back to back.
+// An image answer: uint32 LE header length, JSON header, images (meta.types) back to back.
 async function unpack(response) {
   const buffer = await response.arrayBuffer();
   const length = new DataView(buffer).getUint32(0, true);
   const meta = JSON.parse(new TextDecoder().decode(new Uint8Array(buffer, 4, length)));
   let offset = 4 + length;
-  const images = meta.sizes.map((size) => {
-    const blob = new Blob([new Uint8Array(buffer, offset, size)], { type: "image/jpeg" });
+  const images = meta.sizes.map((size, k) => {
+    const blob = new Blob([new Uint8Array(buffer, offset, size)], { type: meta.types[k] });
     offset += size;
     return blob;
   });
   return { meta, images };
 }
 
-async function decode(blobs) { return Promise.all(blobs.map((b) => createImageBitmap(b))); }
+async function decode(blobs) {
+  return Promise.all(blobs.map(async (b) => Object.assign(await createImageBitmap(b), { mime: b.type })));
+}
 
-function show(bitmap) { imageCtx.drawImage(bitmap, 0, 0); }
+// Previews come smaller than the canvas and are drawn scaled to it.
+function show(bitmap) {
+  imageCtx.drawImage(bitmap, 0, 0, imageCanvas.width, imageCanvas.height);
+  shown = { type: bitmap.mime, width: bitmap.width, height: bitmap.height };
+}
 
 function wakeIdle() {
   if (inFlight || pending || drag) return;
@@ -106,9 +120,10 @@ function wakeIdle() {
 }
 
 // ---- rendering while dragging: at most MAX_IN_FLIGHT requests, only the newest edit waits ----
-function requestRender(time) {
+// A preview (while dragging) is a smaller JPEG; otherwise the server sends the full image.
+function requestRender(time, preview = false) {
   const body = {
-    client: CLIENT, seq: ++seq, base: edit.base,
+    client: CLIENT, seq: ++seq, base: edit.base, preview,
     pinned: Array.from(edit.pinned, ([i, p]) => [i, p[0], p[1]]),
   };
   pending = { body, time };
@@ -121,11 +136,14 @@ async function pump() {
   pending = null;
   inFlight += 1;
   try {
+    const sent = performance.now();
     const response = await api("api/render", job.body);
     if (response.ok) {
       const { meta, images } = await unpack(response);
       if (meta.seq > latestShown) {           // an answer overtaken by a newer one is not shown
+        const received = performance.now();
         const [bitmap] = await decode(images);
+        const decoded = performance.now();
         if (meta.seq > latestShown) {
           latestShown = meta.seq;
           show(bitmap);
@@ -134,6 +152,9 @@ async function pump() {
           const now = performance.now();
           stats.updates.push(now);
           stats.latencies.push(now - job.time);
+          stats.widths.push(bitmap.width);
+          stats.waitMs.push(received - sent - meta.work_ms);
+          stats.decodeMs.push(decoded - received);
           stats.synthMs.push(meta.synth_ms);
           stats.synthCpuMs.push(meta.synth_cpu_ms);
           stats.propagateCpuMs.push(meta.propagate_cpu_ms);
@@ -236,12 +257,15 @@ overlay.addEventListener("pointermove", (event) => {
   edit.pinned.set(drag.index, xy);
   geometry = geometry.map((p, i) => (i === drag.index ? xy : p));
   drawOverlay();
-  requestRender(event.timeStamp);
+  requestRender(event.timeStamp, true);
+  clearTimeout(drag.still);
+  drag.still = setTimeout(() => { if (drag) requestRender(performance.now()); }, STILL_MS);
 });
 
 function endDrag(event) {
   if (!drag) return;
-  const { index, moved, before, from } = drag;
+  const { index, moved, before, from, still } = drag;
+  clearTimeout(still);
   drag = null;
   if (moved) {
     commit(before);

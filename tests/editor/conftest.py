@@ -8,6 +8,7 @@ import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -55,3 +56,41 @@ def editor_server(performance):
     editor = start_editor(PACK, "--performance", str(performance))
     yield editor
     stop_editor(editor)
+
+
+@pytest.fixture(scope="session")
+def pipeline():
+    """The target's synthesis model and hierarchical PCA as the pipeline's stages make them."""
+    from editor.engine import _run_default
+    from stages.propagation.hierarchical_pca import HierarchicalPCA
+    from stages.propagation.stage import TrainHierarchicalPCA
+    from stages.synthesis.build import BuildSynthesis
+
+    model = _run_default(BuildSynthesis, PACK, device="cpu")["model"]
+    pca = HierarchicalPCA.from_bundle(_run_default(TrainHierarchicalPCA, PACK, device="cpu")["pca_model"])
+    return model, pca
+
+
+def synthesize_stage(model, xy: np.ndarray) -> np.ndarray:
+    """``synthesis.synthesize`` (the frame stage, default parameters) of geometries (T, N, 2):
+    its half-float frames (T, H, W, 3) sRGB."""
+    from runner.stage import Context
+    from stages.synthesis.synthesize import Synthesize
+
+    stage = Synthesize()
+    ctx = Context(device="cpu", files_dir=lambda port: None)
+    params = {p.name: p.default for p in stage.params}
+    return stage.process(0, len(xy), {"model": model, "points": {"xy": xy}}, params, ctx)["frames"]
+
+
+def decode(image: bytes) -> np.ndarray:
+    """(H, W, 3) uint8 RGB of PNG or JPEG bytes."""
+    return cv2.cvtColor(cv2.imdecode(np.frombuffer(image, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+
+
+def assert_is_pipeline_image(image: np.ndarray, frame: np.ndarray) -> None:
+    """``image (H, W, 3)`` uint8 RGB is ``frame`` (the stage's half floats in [0, 1]) in 8 bits:
+    the half floats may round to the neighbouring level, rarely."""
+    assert image.shape == frame.shape
+    difference = np.abs(image.astype(np.float64) - np.round(frame.astype(np.float64) * 255.0))
+    assert difference.max() <= 1 and (difference > 0).mean() < 0.01, (difference.max(), (difference > 0).mean())

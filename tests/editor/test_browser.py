@@ -14,7 +14,7 @@ from runner.config import bind_inputs, load_pipeline
 from runner.execute import Options, Runner
 from runner.registry import ENTRY_POINT_GROUP, Registry
 from stages.layout import load_layout
-from tests.editor.conftest import PACK, REPO
+from tests.editor.conftest import PACK, REPO, assert_is_pipeline_image, synthesize_stage
 
 LAYOUT = load_layout("zhang134")
 NOSE = [i for i, n in enumerate(LAYOUT.point_names) if n.startswith("nose_")]
@@ -34,6 +34,15 @@ def canvas_image(page) -> np.ndarray:
     """The image canvas as (H, W, 3) uint8 RGB, read back from the page."""
     png = page.locator("#image").screenshot()
     return cv2.cvtColor(cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+
+
+def canvas_pixels(page) -> np.ndarray:
+    """The image canvas's pixels as (H, W, 3) uint8 RGB (without the overlay on top of it)."""
+    width, height = page.evaluate("window.editor.layout().size")
+    data = page.evaluate(
+        "(() => { const c = document.getElementById('image'); return Array.from(c.getContext('2d').getImageData(0, 0, c.width, c.height).data); })()"
+    )
+    return np.array(data, np.uint8).reshape(height, width, 4)[..., :3]
 
 
 def screen_position(page, xy) -> tuple[float, float]:
@@ -103,6 +112,17 @@ def test_dragging_the_lower_lip_opens_the_mouth(page):
     brows = [i for i, n in enumerate(LAYOUT.point_names) if n.startswith("brow_")]
     assert moved[LAYOUT.index("contour_8"), 1] > 1.0  # the chin follows (the jaw opens)
     assert np.abs(moved[brows, 1]).max() < 0.25 * moved[lower_lip, 1].mean()  # the brows hardly rise
+
+
+def test_previews_while_dragging_then_the_pipelines_image_when_the_mouse_stops(page, pipeline):
+    width, height = page.evaluate("window.editor.layout().size")
+    updates = len(page.evaluate("window.editor.stats.updates"))
+    drag(page, LAYOUT.index("mouth_outer_12"), (0.0, 8.0), steps=20)
+    widths = page.evaluate("window.editor.stats.widths")[updates:]
+    assert widths and set(widths) == {width // 2}  # the previews drawn while dragging
+    assert page.evaluate("window.editor.shown()") == {"type": "image/png", "width": width, "height": height}
+    frame = synthesize_stage(pipeline[0], geometry(page)[None])[0]
+    assert_is_pipeline_image(canvas_pixels(page), frame)
 
 
 def test_click_unpins_and_undo_redo_reset(page):

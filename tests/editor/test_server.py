@@ -16,7 +16,7 @@ import pytest
 
 from editor.server import MAX_BODY, TOKEN_HEADER
 from stages.actor_pack import load_pack
-from tests.editor.conftest import PACK, REPO
+from tests.editor.conftest import PACK, REPO, assert_is_pipeline_image, decode, synthesize_stage
 
 N = load_pack(PACK).layout.n_points
 
@@ -53,15 +53,32 @@ def render_body(pinned, *, base=None, client="tests"):
     return {"client": client, "seq": next(SEQ), "base": base, "pinned": pinned}
 
 
-def test_render_answers_the_propagated_geometry_and_a_jpeg(editor_server):
+def test_the_image_when_the_mouse_stops_is_the_pipelines_synthesis(editor_server, pipeline):
+    from stages.propagation.propagate import propagate_edit
+
+    model, pca = pipeline
     neutral = load_pack(PACK).neutral.points
-    status, headers, body = call(editor_server, "/api/render", render_body([[40, neutral[40][0], neutral[40][1] + 4.0]]))
+    pinned = {40: neutral[40] + [1.0, 4.0], 90: neutral[90] + [-2.0, 0.5]}
+    status, headers, body = call(editor_server, "/api/render", render_body([[i, *xy] for i, xy in pinned.items()]))
     assert status == 200 and headers["Content-Type"] == "application/octet-stream"
-    meta, (jpeg,) = unpack(body)
-    assert jpeg[:3] == b"\xff\xd8\xff"
+    meta, (png,) = unpack(body)
+    assert meta["types"] == ["image/png"] and png[:8] == b"\x89PNG\r\n\x1a\n"
     points = np.array(meta["points"])
-    assert points.shape == (N, 2)
-    np.testing.assert_allclose(points[40], neutral[40] + [0.0, 4.0])
+    np.testing.assert_allclose(points, propagate_edit(pca, neutral, pinned), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(points[40], neutral[40] + [1.0, 4.0])
+    assert_is_pipeline_image(decode(png), synthesize_stage(model, points[None])[0])
+
+
+def test_a_preview_is_a_jpeg_at_half_the_size(editor_server):
+    neutral = load_pack(PACK).neutral.points
+    body = dict(render_body([[40, neutral[40][0], neutral[40][1] + 4.0]]), preview=True)
+    status, _, answer = call(editor_server, "/api/render", body)
+    assert status == 200
+    meta, (jpeg,) = unpack(answer)
+    assert meta["types"] == ["image/jpeg"] and jpeg[:3] == b"\xff\xd8\xff"
+    W, H = load_pack(PACK).neutral.image.shape[1::-1]
+    assert decode(jpeg).shape == (H // 2, W // 2, 3)
+    np.testing.assert_allclose(np.array(meta["points"])[40], neutral[40] + [0.0, 4.0])
 
 
 @pytest.mark.parametrize(
@@ -76,6 +93,7 @@ def test_render_answers_the_propagated_geometry_and_a_jpeg(editor_server):
         ({"client": "t", "seq": -1, "base": None, "pinned": []}, "seq"),
         ({"client": "t", "base": None, "pinned": []}, "seq"),
         ([1, 2, 3], "JSON object"),
+        ({"client": "t", "seq": 1, "base": None, "pinned": [], "preview": "yes"}, "field 'preview'"),
     ],
 )
 def test_bad_render_bodies_are_400_json(editor_server, body, expected):
@@ -115,13 +133,14 @@ def test_a_request_older_than_the_newest_is_dropped(editor_server):
     assert status == 409 and json.loads(answer)["error"] == "superseded"
 
 
-def test_inbetweens_are_five_frames_and_the_current_one(editor_server):
+def test_inbetweens_are_five_frames_and_the_current_one_lossless(editor_server):
     neutral = load_pack(PACK).neutral.points
     current = neutral + [0.0, 1.5]
     status, _, body = call(editor_server, "/api/inbetweens", {"client": "tests", "seq": next(SEQ), "from": neutral.tolist(), "to": current.tolist()})
     assert status == 200
     meta, images = unpack(body)
-    assert len(images) == 6 and all(image[:3] == b"\xff\xd8\xff" for image in images)
+    assert len(images) == 6 and all(image[:3] == b"\xff\xd8\xff" for image in images[:5])
+    assert meta["types"] == ["image/jpeg"] * 5 + ["image/png"]
     np.testing.assert_allclose(meta["points"], current)
 
 

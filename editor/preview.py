@@ -1,0 +1,108 @@
+"""The smaller synthesis shown while a point is dragged (the full one is sent when the mouse stops).
+
+A preview of scale ``s`` runs the pipeline's synthesis (Sec. 6-8: the same per-subregion QP
+coefficients, eq. 2-5, compositing with the fade bands, eq. 6-7, and the final warp) on a
+synthesis model whose images and weight maps are reduced to ``(w, h) = round(s (W, H))``:
+compositing and warping cost about ``s^2`` of the full size's, and the JPEG is about ``s^2`` of
+the bytes for the browser to decode. Positions map between the sizes with pixel centres at
+integers (OpenCV): ``x' = (x + 0.5) w / W - 0.5``, ``y' = (y + 0.5) h / H - 0.5``.
+"""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+import cv2
+import numpy as np
+import torch
+
+from stages.synthesis.composite import Compositor, composite, prepare_compositor
+from stages.synthesis.synthesize import Synthesizer
+from stages.synthesis.warp import warp_images
+
+__all__ = ["preview_size", "to_preview", "reduced_model", "PreviewSynthesizer"]
+
+
+def preview_size(size: tuple[int, int], scale: float) -> tuple[int, int]:
+    """``(w, h)`` of a preview of ``size (W, H)`` at ``scale`` in (0, 1], at least 1 px each."""
+    if not 0 < scale <= 1:
+        raise ValueError(f"preview scale must be in (0, 1], got {scale}")
+    return tuple(max(1, round(v * scale)) for v in size)
+
+
+def to_preview(points: np.ndarray, size: tuple[int, int], small: tuple[int, int]) -> np.ndarray:
+    """Positions ``points (..., 2)`` px in an image of ``size (W, H)`` -> the same positions in
+    one of ``small (w, h)`` (pixel centres at integers)."""
+    scale = np.asarray(small, np.float64) / np.asarray(size, np.float64)
+    return (np.asarray(points, np.float64) + 0.5) * scale - 0.5
+
+
+def reduced_model(model: Mapping[str, np.ndarray], small: tuple[int, int]) -> dict[str, np.ndarray]:
+    """The compositing fields of a ``synthesis_model`` bundle at ``small (w, h)``.
+
+    Images (``examples``, ``teeth``, ``standard``) and the fade weight ``blend_r`` are
+    area-averaged; the subregion labels ``blend_i1``, ``blend_i2`` are sampled at the nearest
+    pixel. The other fields are the model's (point fields stay at the full size).
+    """
+    w, h = small
+
+    def area(image: np.ndarray) -> np.ndarray:
+        return cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
+
+    def nearest(labels: np.ndarray) -> np.ndarray:
+        return cv2.resize(labels.astype(np.int32), (w, h), interpolation=cv2.INTER_NEAREST).astype(labels.dtype)
+
+    reduced = dict(model)
+    for key in ("examples", "teeth"):
+        stack = np.asarray(model[key])
+        reduced[key] = np.stack([area(image) for image in stack]) if len(stack) else np.zeros((0, h, w, 3), np.uint8)
+    reduced["standard"] = area(np.asarray(model["standard"]))
+    reduced["blend_r"] = area(np.asarray(model["blend_r"], np.float32))
+    reduced["blend_i1"] = nearest(np.asarray(model["blend_i1"]))
+    reduced["blend_i2"] = nearest(np.asarray(model["blend_i2"]))
+    reduced["size"] = np.array([w, h], np.int64)
+    return reduced
+
+
+class PreviewSynthesizer:
+    """Synthesis of one geometry at a reduced size, sharing a :class:`Synthesizer`'s QPs.
+
+    Parameters
+    ----------
+    synthesizer : Synthesizer
+        The pipeline's synthesis of the model (its QPs, anchors and triangulation are used).
+    model : dict of arrays
+        The ``synthesis_model`` bundle ``synthesizer`` was made from.
+    scale : float
+        Preview size / full size, in (0, 1].
+    """
+
+    def __init__(self, synthesizer: Synthesizer, model: Mapping[str, np.ndarray], *, scale: float) -> None:
+        self.synthesizer = synthesizer
+        self.full_size = tuple(int(v) for v in model["size"])
+        self.size = preview_size(self.full_size, scale)
+        self.compositor: Compositor = (
+            synthesizer.compositor if self.size == self.full_size
+            else prepare_compositor(reduced_model(model, self.size), device=synthesizer.device)
+        )
+        standard = np.concatenate([model["standard_points"], synthesizer.anchors])
+        self.standard_points = torch.from_numpy(to_preview(standard, self.full_size, self.size)).to(synthesizer.device)
+
+    def render(self, points: np.ndarray) -> torch.Tensor:
+        """The preview of one geometry.
+
+        Parameters
+        ----------
+        points : (N, 2) float, px at the full size
+
+        Returns
+        -------
+        (1, 3, h, w) float32 sRGB in [0, 1].
+        """
+        synth = self.synthesizer
+        points = np.asarray(points, np.float64)
+        dst = to_preview(np.concatenate([points, synth.anchors]), self.full_size, self.size)
+        coeffs, _ = synth.qp.coefficients(points[None])
+        standard = composite(self.compositor, coeffs)[:, :3]
+        dst_t = torch.from_numpy(dst[None]).to(synth.device)
+        return warp_images(standard, self.standard_points[None], dst_t, synth.triangles, size=self.size).clamp(0, 1)
