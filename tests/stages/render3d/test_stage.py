@@ -100,3 +100,17 @@ def test_resolution_scale_renders_the_same_picture_larger(chain, tmp_path):
     assert big["frames"].shape == (1, 2 * H, 2 * W, 3)
     small = cv2.resize(big["mask"][0].astype(np.float32), (W, H), interpolation=cv2.INTER_AREA)
     assert np.abs(small - out["mask"][0, ..., 0].astype(np.float32)).mean() < 0.01
+
+
+def test_missing_egl_is_a_stage_error_naming_the_packages(chain, tmp_path, monkeypatch):
+    import stages.render3d.raster as raster
+
+    _, _, mesh, head, texture, _ = chain
+
+    def no_egl():
+        raise RuntimeError("no headless OpenGL context (EGL): test; install libegl1 libegl-mesa0 libgl1-mesa-dri (.ci/install-egl)")
+
+    monkeypatch.setattr(raster, "gl_context", no_egl)
+    params = {"samples": 4, "resolution_scale": 1.5, "geometry": "synthesized", "compression": "zip"}
+    with pytest.raises(StageError, match="install-egl"):
+        Render3D().process(0, 1, {"texture": texture, "mesh": mesh, "head": head}, params, files_context(tmp_path))
