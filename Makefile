@@ -3,7 +3,7 @@
 PY := .venv/bin/python
 VENV_STAMP := .venv/.installed-$(shell sha256sum pyproject.toml | cut -c1-12)
 
-.PHONY: run test browser bench fixtures clean
+.PHONY: run test browser egl bench fixtures clean
 
 $(VENV_STAMP): pyproject.toml
 	test -x $(PY) || python3 -m venv .venv
@@ -13,12 +13,16 @@ $(VENV_STAMP): pyproject.toml
 run: $(VENV_STAMP)
 	.venv/bin/runner run pipeline.yaml --in fixtures/clips/calm.mp4 --out out
 
-test: $(VENV_STAMP) browser
+test: $(VENV_STAMP) browser egl
 	$(PY) -m pytest -q tests
 
 # Debian's Chromium for the browser tests (editor, run report); a no-op once installed.
 browser:
 	bash .ci/install-browser
+
+# Mesa's headless EGL for the 3D renderer (stages/render3d); a no-op once installed.
+egl:
+	bash .ci/install-egl
 
 fixtures: $(VENV_STAMP)
 	$(PY) scripts/make_fixtures.py --out fixtures
