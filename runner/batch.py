@@ -182,8 +182,7 @@ def run_batch(jobs: list[Job], *, cache_dir: Path, device: str = "auto", workers
         task = ray.remote(num_cpus=1, max_retries=retries, retry_exceptions=True)(_job_task)
         pending = {}
         for job in jobs:
-            spec = {f.name: getattr(job, f.name) for f in dataclasses.fields(Job) if f.name != "where"}
-            pending[task.remote(spec, str(cache_dir), device, sink)] = job.name
+            pending[task.remote(dataclasses.asdict(job), str(cache_dir), device, sink)] = job.name
             _show(states[job.name], {"event": "job_queued"}, log, echo)
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1, timeout=WAIT_S)

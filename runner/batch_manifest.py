@@ -26,13 +26,14 @@ folder at a stage's name, and no two jobs may publish to the same folder. The YA
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import yaml
 
 from runner import safe_yaml
-from runner.config import NAME_RE, ConfigError, Issue, Pipeline, Where, _Reader, _where, bind_inputs, load_pipeline
+from runner.config import NAME_RE, ConfigError, Issue, Pipeline, Where, _Reader, bind_inputs, load_pipeline
 from runner.publish import conflicts
 from runner.registry import Registry
 
@@ -54,14 +55,6 @@ class Job:
     named: tuple[str, ...] = ()  # "NAME=PATH", as --input
     overrides: tuple[str, ...] = ()  # "stage.param=value", as --set
     out: str = ""
-    where: Where = field(default=Where(""), compare=False)
-
-    def command(self) -> list[str]:
-        """The equivalent ``runner run`` arguments (for messages and for comparing outputs)."""
-        args = ["run", self.pipeline, *(["--in", self.clip] if self.clip else [])]
-        for flag, values in (("--input", self.named), ("--set", self.overrides)):
-            args += [a for value in values for a in (flag, value)]
-        return [*args, "--out", self.out]
 
 
 @dataclass
@@ -146,13 +139,13 @@ def _read_fields(r: _Reader, node: yaml.Node, key: str, allowed: tuple[str, ...]
             if not isinstance(value, str) or not value:
                 r.error(vnode, fkey, f"wrong type: expected a path string, got {value!r}")
                 continue
-            value = str(base / value)
+            value = os.path.normpath(base / value)
         elif name == "inputs":
             if not isinstance(value, dict) or not all(isinstance(k, str) and isinstance(v, str) and v
                                                       for k, v in value.items()):
                 r.error(vnode, fkey, f"wrong type: expected a mapping of input name to path, got {value!r}")
                 continue
-            value = {k: str(base / v) for k, v in value.items()}
+            value = {k: os.path.normpath(base / v) for k, v in value.items()}
         elif name == "set":
             if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
                 r.error(vnode, fkey, f"wrong type: expected a list of 'stage.param=value' strings, got {value!r}")
@@ -187,13 +180,13 @@ def _job(r: _Reader, name: str, knode: yaml.Node, vnode: yaml.Node, own: _Fields
                  for fields in (defaults, own) for i, text in enumerate(fields.values.get("set", []))]
     clip = field_of("clip")
 
-    cache_key = (pipeline[0], tuple(text for text, _ in overrides))
-    if cache_key not in pipelines:
+    loaded_key = (pipeline[0], tuple(text for text, _ in overrides))
+    if loaded_key not in pipelines:
         try:
-            pipelines[cache_key] = load_pipeline(Path(pipeline[0]), registry, overrides=list(cache_key[1]))
+            pipelines[loaded_key] = load_pipeline(Path(pipeline[0]), registry, overrides=list(loaded_key[1]))
         except ConfigError as exc:
-            pipelines[cache_key] = exc
-    loaded = pipelines[cache_key]
+            pipelines[loaded_key] = exc
+    loaded = pipelines[loaded_key]
     if isinstance(loaded, ConfigError):
         for issue in loaded.issues:
             if issue.where.file == "--set":  # an override: positioned at the manifest's `set`
@@ -228,12 +221,11 @@ def _job(r: _Reader, name: str, knode: yaml.Node, vnode: yaml.Node, own: _Fields
             r.error(knode, f"{key}: {issue.key}", f"{issue.message.split(' (use ')[0]} (give it in the job or in `defaults`)")
         return None
 
-    out = Path(own.values["out"]) if "out" in own.values else base / "out" / name
+    out = Path(own.values["out"] if "out" in own.values else base / "out" / name)
     publishing = [n for n, node in loaded.stages.items() if "files" in node.cls.outputs.values()]
     for problem in conflicts(out, publishing):
         r.error(own.nodes.get("out", knode), f"{key}.out", problem)
     if len(r.issues) > count:
         return None
     return Job(name=name, pipeline=pipeline[0], clip=None if clip is None else clip[0],
-               named=tuple(f"{k}={v}" for k, (v, _) in named.items()), overrides=cache_key[1], out=str(out),
-               where=_where(r.path, knode))
+               named=tuple(f"{k}={v}" for k, (v, _) in named.items()), overrides=loaded_key[1], out=str(out))

@@ -5,7 +5,7 @@ processes (what every worker relies on).
 
 One local Ray is started for the module (:func:`cluster`); the batches join it with
 ``--address`` (Ray's start-up is slow), except one that starts its own local Ray as a user's
-``runner batch`` does. No Ray process is left running at the end (checked).
+``runner batch`` does. No Ray process of these tests is left running (checked).
 """
 
 from __future__ import annotations
@@ -31,7 +31,6 @@ from tests.runner.helpers import DATA, REPO, TINY, cli_env, read_log, run_cli, r
 ray = pytest.importorskip("ray")
 
 GRAPH = DATA / "graph.yaml"
-PUBLISHED = ("write", "table")
 SLEEP_S = "0.3"  # per chunk of test.add on the module's Ray workers: a kill lands inside the work
 
 
@@ -54,24 +53,27 @@ class CrashOnce(SequenceStage):
         return {"series": {"mean": np.concatenate(means)}}
 
 
-def _ray_pids() -> set[int]:
-    """Processes of Ray on this machine (its daemons and ``ray::`` workers)."""
+TAG = "RUNNER_BATCH_TEST_TAG"  # in the environment of the Ray processes a test starts
+
+
+def _tagged_pids(tag: str) -> set[int]:
+    """Processes whose environment holds ``TAG=tag``: the Ray processes (daemons and workers
+    inherit their starter's environment) of one test, whatever other sessions run."""
     pids = set()
     for proc in Path("/proc").iterdir():
         try:
-            cmd = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            if proc.name.isdigit() and f"{TAG}={tag}".encode() in (proc / "environ").read_bytes().split(b"\0"):
+                pids.add(int(proc.name))
         except OSError:
             continue
-        if proc.name.isdigit() and ("ray::" in cmd or "/ray/" in cmd or "raylet" in cmd or "gcs_server" in cmd):
-            pids.add(int(proc.name))
     return pids
 
 
-def _assert_gone(pids: set[int], timeout: float = 20.0) -> None:
+def _assert_gone(tag: str, timeout: float = 20.0) -> None:
     deadline = time.monotonic() + timeout
-    while pids & _ray_pids() and time.monotonic() < deadline:
+    while _tagged_pids(tag) and time.monotonic() < deadline:
         time.sleep(0.2)
-    assert not pids & _ray_pids(), f"Ray processes left running: {sorted(pids & _ray_pids())}"
+    assert not _tagged_pids(tag), f"Ray processes left running: {sorted(_tagged_pids(tag))}"
 
 
 @pytest.fixture(scope="module")
@@ -90,8 +92,8 @@ def site(plugin_site: Path, tmp_path_factory: pytest.TempPathFactory) -> str:
 def cluster(site: str) -> str:
     """The address of a local Ray (2 CPUs) shared by the module's batches; its workers see the
     test stages and run test.add slowly."""
-    before = _ray_pids()
-    knobs = {"PYTHONPATH": site, "RUNNER_TEST_SLEEP": SLEEP_S}  # the workers' environment
+    tag = f"cluster-{os.getpid()}"
+    knobs = {"PYTHONPATH": site, "RUNNER_TEST_SLEEP": SLEEP_S, TAG: tag}  # the workers' environment
     saved = {name: os.environ.get(name) for name in knobs}
     os.environ.update(knobs)
     try:
@@ -102,12 +104,12 @@ def cluster(site: str) -> str:
                 os.environ.pop(name)
             else:
                 os.environ[name] = value
-    started = _ray_pids() - before
+    assert _tagged_pids(tag) - {os.getpid()}, "the Ray processes are not found by their tag"
     try:
         yield ray.get_runtime_context().gcs_address
     finally:
         ray.shutdown()
-        _assert_gone(started)
+        _assert_gone(tag)
 
 
 def _env(site: str, tmp_path: Path) -> dict[str, str]:
@@ -222,11 +224,15 @@ def test_batch_killed_at_an_observed_event_resumes(site, cluster, alone, tmp_pat
     for name in TWO_JOBS:
         assert tree_bytes(tmp_path / "out" / name) == alone[name]
     # What the killed batch stored was not computed again.
-    resumed = read_log(resumed_log)
-    assert any(e.get("event") == "chunk" and e["stage"] == "add" and e["status"] == "cached" for e in resumed)
+    def ran(events: list[dict[str, Any]]) -> set[tuple[str, str, int]]:
+        return {(e["job"], e["stage"], e["start"]) for e in events if e.get("event") == "chunk" and e["status"] == "ran"}
+
+    before = ran(read_log(killed_log))
+    assert before and not before & ran(read_log(resumed_log))
 
 
-def test_dead_worker_is_retried_and_a_failing_job_is_reported(site, cluster, tmp_path):
+def test_dead_worker_is_retried_and_a_failing_job_is_reported(site, tmp_path):
+    """On a local Ray started by the command (no --address), shut down at the end."""
     pipeline = tmp_path / "crash.yaml"
     pipeline.write_text(f"""inputs: {{clip: {{type: video}}}}
 stages:
@@ -238,25 +244,17 @@ stages:
     path = _manifest(tmp_path, {"crashes_once": {"clip": str(TINY)}, "bad": {"clip": str(tmp_path / "bad.mp4")}},
                      pipeline=pipeline)
     log = tmp_path / "log.jsonl"
-    done = run_cli("batch", path, "--address", cluster, "--log-json", log, env=_env(site, tmp_path), cwd=tmp_path)
+    tag = f"local-{tmp_path.name}-{os.getpid()}"
+    done = run_cli("batch", path, "--workers", "2", "--log-json", log, env={**_env(site, tmp_path), TAG: tag},
+                   cwd=tmp_path)
     assert done.returncode == 1, done.stderr
+    _assert_gone(tag)
     starts = [e for e in read_log(log) if e.get("event") == "job_start" and e["job"] == "crashes_once"]
     assert len(starts) == 2 and (tmp_path / "out" / "crashes_once" / "table" / "series.json").is_file()
     rows = {line.split()[0]: line for line in done.stdout.splitlines()[-4:-1]}
     assert rows["crashes_once"].split()[1] == "done"
     assert rows["bad"].split()[1] == "failed" and f"stage 'decode' (video.decode): {tmp_path / 'bad.mp4'}" in rows["bad"]
     assert done.stdout.splitlines()[-1].startswith("2 jobs: 1 done, 0 cached, 1 failed")
-
-
-def test_local_ray_started_by_the_command_is_shut_down(site, alone, tmp_path):
-    """Without --address the command starts its own Ray (--workers CPUs) and leaves nothing
-    running."""
-    before = _ray_pids()
-    path = _manifest(tmp_path, {"plus10": TWO_JOBS["plus10"]})
-    done = run_cli("batch", path, "--workers", "1", env=_env(site, tmp_path), cwd=tmp_path)
-    assert done.returncode == 0, done.stderr
-    assert tree_bytes(tmp_path / "out" / "plus10") == alone["plus10"]
-    _assert_gone(_ray_pids() - before)
 
 
 def _count_under_lock(root: str, times: int) -> None:
