@@ -2,6 +2,7 @@
 
     python scripts/bench.py reenact [--json] [--work DIR] [--clip PATH ...] [--build-fraction 0.6]
                                     [--stride 1] [--sheet PATH] [--pose-deg DEG]
+                                    [--detail-power P] [--detail-sigma-px S] [--flow-max-px F]
 
 Per clip (``--clip``, repeatable; default every ``*.mp4`` of ``../shared/dev-clips/``):
 
@@ -21,7 +22,9 @@ geometry), ``global`` (one convex combination over the face, Pighin et al.), ``n
 example nearest in geometry, warped). Rows per clip (suffix ``_<clip stem>``), the method as a
 suffix of the metric (none for ``full``): ``reenact_psnr_db`` and ``reenact_ssim`` over the face,
 ``reenact_wrinkle_psnr_db`` over the forehead, glabella, eye zones (crow's feet) and cheeks
-(nasolabial folds); each the mean over the test frames. Also ``reenact_test_frames``,
+(nasolabial folds), each the mean over the test frames; ``reenact_subregion_psnr_db_<subregion>``
+over each layout subregion on the frame's points, the PSNR of the squared error pooled over the
+test frames (``stages.synthesis.metrics.pooled_psnr``). Also ``reenact_test_frames``,
 ``reenact_examples`` and ``reenact_coverage_px`` (the examples' k-center radius). Over the clips:
 ``reenact_margin_warponly_db_min`` and ``reenact_margin_global_db_min`` (full minus baseline face
 PSNR, the smallest over the clips). ``--sheet PATH`` writes a contact sheet (truth | full |
@@ -105,8 +108,11 @@ def build_pack(clip: Frames, work: Path, build: int, select: dict[str, Any]) -> 
     return work / "pack", points, selection
 
 
-def evaluate(clip: Frames, points: dict[str, np.ndarray], pack_dir: Path, test: np.ndarray) -> tuple[dict[str, dict[str, list[float]]], list]:
-    """Per method, the face PSNR, SSIM and wrinkle PSNR of every test frame; and sheet tiles."""
+def evaluate(
+    clip: Frames, points: dict[str, np.ndarray], pack_dir: Path, test: np.ndarray, **synthesis: float
+) -> tuple[dict[str, dict[str, list]], list]:
+    """Per method, the face PSNR, SSIM, wrinkle PSNR and subregion errors of every test frame;
+    and sheet tiles. ``synthesis``: keyword options of the ``Synthesizer`` (its defaults when absent)."""
     import torch
     from stages.actor_pack import load_pack
     from stages.geometry.compensate import apply_similarity, fit_similarity
@@ -114,20 +120,21 @@ def evaluate(clip: Frames, points: dict[str, np.ndarray], pack_dir: Path, test: 
     from stages.packbuild.selection import stable_columns
     from stages.packbuild.writing import align_image
     from stages.synthesis.build import build_synthesis_model
-    from stages.synthesis.metrics import masked_psnr, masked_ssim
+    from stages.synthesis.metrics import masked_psnr, masked_ssim, subregion_errors
     from stages.synthesis.synthesize import Synthesizer
     from stages.synthesis.warp import warp_images
 
     pack = load_pack(pack_dir)
     layout, size = pack.layout, pack.image_size
     model = build_synthesis_model(pack)
-    synth = Synthesizer(model)
+    synth = Synthesizer(model, **synthesis)
     columns = stable_columns(layout)
     wrinkle = [k for k, s in enumerate(layout.subregions) if s.name in WRINKLE_SUBREGIONS]
     anchors = np.asarray(model["anchors"])
     example_points = np.stack([e.points for e in pack.examples])
     example_images = torch.from_numpy(np.stack([e.image for e in pack.examples])).permute(0, 3, 1, 2).float() / 255.0
-    scores: dict[str, dict[str, list[float]]] = {m: {"psnr": [], "ssim": [], "wrinkle": []} for m in METHODS}
+    names = [s.name for s in layout.subregions]
+    scores: dict[str, dict[str, list]] = {m: {"psnr": [], "ssim": [], "wrinkle": [], "subregions": []} for m in METHODS}
     tiles = []
     sheet_at = set(test[np.linspace(0, len(test) - 1, SHEET_FRAMES).round().astype(int)].tolist())
     xy = np.asarray(points["xy"], np.float64)
@@ -150,6 +157,7 @@ def evaluate(clip: Frames, points: dict[str, np.ndarray], pack_dir: Path, test: 
                 scores[m]["psnr"].append(masked_psnr(img, real, face))
                 scores[m]["ssim"].append(masked_ssim(img, real, face))
                 scores[m]["wrinkle"].append(masked_psnr(img, real, wr))
+                scores[m]["subregions"].append(subregion_errors(img, real, region, names))
             if int(t) in sheet_at:
                 as_u8 = lambda x: (x.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)  # noqa: E731
                 tiles += [(f"truth {t}", truth[k]), ("full", as_u8(out["full"][k])), ("warp-only", as_u8(out["warponly"][k])),
@@ -164,11 +172,15 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     parser.add_argument("--stride", type=int, default=1, help="evaluate every n-th test frame")
     parser.add_argument("--sheet", type=Path, help="write a contact sheet PNG (truth | full | warp-only | global)")
     parser.add_argument("--pose-deg", type=float, help="pack.select's pose_deg (default: the stage's)")
+    parser.add_argument("--detail-power", type=float, help="band-pass blending power (default: the Synthesizer's)")
+    parser.add_argument("--detail-sigma-px", type=float, help="band-pass split, Gaussian sigma, px (default: the Synthesizer's)")
+    parser.add_argument("--flow-max-px", type=float, help="optical-flow refinement bound, px, 0: off (default: the Synthesizer's)")
     extra = parser.parse_args(args.extra)
     clips = extra.clip or sorted(DEV_CLIPS.glob("*.mp4"))
     if not clips:
         raise SystemExit(f"bench reenact: no clip given and none in {DEV_CLIPS}")
     from stages.packbuild.writing import contact_sheet, write_png
+    from stages.synthesis.metrics import pooled_psnr
     rows: list[dict[str, Any]] = []
     margins: dict[str, list[float]] = {"warponly": [], "global": []}
     tiles = []
@@ -183,12 +195,15 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
         print(f"bench reenact: {stem}: pack built from frames 0-{build - 1} in {pack_dir}", file=sys.stderr, flush=True)
         valid = np.asarray(points["valid"], bool).all(axis=1)
         test = np.flatnonzero(valid[build:])[:: max(1, extra.stride)] + build
-        scores, clip_tiles = evaluate(clip, points, pack_dir, test)
+        remedies = {k: getattr(extra, k) for k in ("detail_power", "detail_sigma_px", "flow_max_px") if getattr(extra, k) is not None}
+        scores, clip_tiles = evaluate(clip, points, pack_dir, test, **remedies)
         tiles += clip_tiles
         for method, suffix in METHODS.items():
             rows.append(row(f"reenact_psnr_db{suffix}_{stem}", np.mean(scores[method]["psnr"]), "dB"))
             rows.append(row(f"reenact_ssim{suffix}_{stem}", np.mean(scores[method]["ssim"]), "1"))
             rows.append(row(f"reenact_wrinkle_psnr_db{suffix}_{stem}", np.mean(scores[method]["wrinkle"]), "dB"))
+            for name, value in pooled_psnr(scores[method]["subregions"]).items():
+                rows.append(row(f"reenact_subregion_psnr_db_{name}{suffix}_{stem}", value, "dB"))
         full = np.mean(scores["full"]["psnr"])
         for baseline in margins:
             margins[baseline].append(full - np.mean(scores[baseline]["psnr"]))

@@ -37,6 +37,7 @@ class _Segment:
     start: int
     stop: int
     stack: torch.Tensor  # (n_cand, 3, stop - start): candidate images at these pixels times the weight
+    detail: torch.Tensor | None  # the same for the candidates' detail bands (band-pass blending), or None
 
 
 @dataclass
@@ -52,7 +53,9 @@ class Compositor:
 
     ``candidates[l]`` indexes the full image stack (``M`` examples, ``Mt`` teeth examples, the
     standard image); ``alpha`` (H*W,) is the face alpha ``1 - w_S``; ``images`` (E, 3, H*W),
-    ``r``, ``i1``, ``i2`` (H*W,) serve the direct path.
+    ``r``, ``i1``, ``i2`` (H*W,) serve the direct path. With band-pass blending
+    (``detail_power > 1``, :mod:`stages.synthesis.bandpass`) ``details`` (E, 3, H*W) holds the
+    images' detail bands and every segment its premultiplied ``detail`` stack; otherwise None.
     """
 
     size: tuple[int, int]
@@ -68,20 +71,33 @@ class Compositor:
     r: torch.Tensor
     i1: torch.Tensor
     i2: torch.Tensor
+    details: torch.Tensor | None
+    detail_power: float
 
 
-def prepare_compositor(model: dict[str, np.ndarray], *, device: str = "cpu") -> Compositor:
+def prepare_compositor(
+    model: dict[str, np.ndarray], *, device: str = "cpu", detail_power: float = 1.0, detail_sigma_px: float = 2.0
+) -> Compositor:
     """Move a ``synthesis_model`` bundle's images and weight map to ``device`` in compositing form.
 
-    Images become float32 sRGB in [0, 1].
+    Images become float32 sRGB in [0, 1]. ``detail_power`` > 1 turns on band-pass blending
+    (:mod:`stages.synthesis.bandpass`): the detail band ``I - G_sigma * I`` (``sigma`` =
+    ``detail_sigma_px``) is blended with the coefficients raised to that power and renormalised
+    (``inf``: the dominant example's detail alone); 1 is plain eq. 6.
     """
     import torch
+    from stages.synthesis.bandpass import detail_band
+    if not detail_power >= 1:
+        raise ValueError(f"detail_power must be >= 1, got {detail_power}")
     W, H = (int(v) for v in model["size"])
     teeth_flags = np.asarray(model["subregion_teeth"], bool)
     S = len(teeth_flags)
     M, Mt = len(model["examples"]), len(model["teeth"])
     stack = np.concatenate([model["examples"], model["teeth"], model["standard"][None]])
     images = torch.from_numpy(stack).to(device).reshape(len(stack), H * W, 3).permute(0, 2, 1).float().div(255.0).contiguous()
+    details = None
+    if detail_power > 1:
+        details = detail_band(images.view(len(stack), 3, H, W), sigma_px=detail_sigma_px).reshape(len(stack), 3, H * W)
     r = torch.from_numpy(np.asarray(model["blend_r"], np.float32)).to(device).flatten()
     i1 = torch.from_numpy(np.asarray(model["blend_i1"], np.int64)).to(device).flatten()
     i2 = torch.from_numpy(np.asarray(model["blend_i2"], np.int64)).to(device).flatten()
@@ -102,11 +118,13 @@ def prepare_compositor(model: dict[str, np.ndarray], *, device: str = "cpu") -> 
         candidates.append(cand)
         pix = torch.nonzero(i1 == label).flatten()
         primary_index[pix] = torch.arange(p_off, p_off + len(pix), device=device)
-        primary.append(_Segment(p_off, p_off + len(pix), images[cand][:, :, pix] * r[pix]))
+        primary.append(_Segment(p_off, p_off + len(pix), images[cand][:, :, pix] * r[pix],
+                                None if details is None else details[cand][:, :, pix] * r[pix]))
         p_off += len(pix)
         pix = torch.nonzero(banded & (i2 == label)).flatten()
         secondary_index[pix] = torch.arange(s_off, s_off + len(pix), device=device)
-        secondary.append(_Segment(s_off, s_off + len(pix), images[cand][:, :, pix] * (1 - r[pix])))
+        secondary.append(_Segment(s_off, s_off + len(pix), images[cand][:, :, pix] * (1 - r[pix]),
+                                  None if details is None else details[cand][:, :, pix] * (1 - r[pix])))
         s_off += len(pix)
     primary_template = torch.zeros(3, p_off, device=device)
     secondary_template = torch.zeros(3, s_off + 1, device=device)
@@ -115,7 +133,7 @@ def prepare_compositor(model: dict[str, np.ndarray], *, device: str = "cpu") -> 
     alpha = 1 - torch.where(i1 == S, r, torch.zeros_like(r)) - torch.where(banded & (i2 == S), 1 - r, torch.zeros_like(r))
     return Compositor(
         (W, H), candidates, primary, secondary, primary_index, secondary_index,
-        primary_template, secondary_template, alpha.clamp(0, 1), images, r, i1, i2,
+        primary_template, secondary_template, alpha.clamp(0, 1), images, r, i1, i2, details, float(detail_power),
     )
 
 
@@ -126,8 +144,15 @@ def _kept(c: list[float], min_coeff: float) -> list[tuple[int, float]]:
     return [(k, v / total) for k, v in keep]
 
 
-def _fill(buffer: torch.Tensor, segment: _Segment, terms: list[tuple[int, float]]) -> None:
-    """``buffer[:, segment] = sum_k c_k stack_k`` without gathering the stack."""
+def _detail_terms(terms: list[tuple[int, float]], power: float) -> list[tuple[int, float]]:
+    """(index, c^_k - c_k) of the kept terms: the detail-band correction of band-pass blending."""
+    from stages.synthesis.bandpass import sharpened
+    c = np.array([v for _, v in terms])
+    return [(k, float(w - v)) for (k, v), w in zip(terms, sharpened(c, power=power)) if w != v]
+
+
+def _fill(buffer: torch.Tensor, segment: _Segment, terms: list[tuple[int, float]], detail_terms: list[tuple[int, float]]) -> None:
+    """``buffer[:, segment] = sum_k c_k stack_k + sum_k d_k detail_k`` without gathering the stacks."""
     import torch
     if segment.stop == segment.start:
         return
@@ -136,6 +161,8 @@ def _fill(buffer: torch.Tensor, segment: _Segment, terms: list[tuple[int, float]
     torch.mul(segment.stack[k0], c0, out=view)
     for k, c in rest:
         view.add_(segment.stack[k], alpha=c)
+    for k, d in detail_terms:
+        view.add_(segment.detail[k], alpha=d)
 
 
 def composite(comp: Compositor, coeffs: torch.Tensor, *, min_coeff: float = 1e-3, direct: bool = False) -> torch.Tensor:
@@ -169,9 +196,19 @@ def composite(comp: Compositor, coeffs: torch.Tensor, *, min_coeff: float = 1e-3
             cand = comp.candidates[label]
             full[:, label, cand] = coeffs[:, label, : len(cand)].to(device=device, dtype=torch.float32)
         full[:, S, -1] = 1.0
+        if comp.details is not None:
+            from stages.synthesis.bandpass import sharpened
+            sharp = torch.zeros_like(full)
+            for label in range(S + 1):
+                cand = comp.candidates[label]
+                c = full[:, label, cand].double().cpu().numpy()
+                sharp[:, label, cand] = torch.from_numpy(sharpened(c, power=comp.detail_power)).to(full)
         for b in range(B):
             per_pixel = comp.r[:, None] * full[b, comp.i1] + (1 - comp.r)[:, None] * full[b, comp.i2]  # (H*W, E)
             out[b, :3] = torch.einsum("pe,ecp->cp", per_pixel, comp.images)
+            if comp.details is not None:
+                per_pixel = comp.r[:, None] * sharp[b, comp.i1] + (1 - comp.r)[:, None] * sharp[b, comp.i2] - per_pixel
+                out[b, :3] += torch.einsum("pe,ecp->cp", per_pixel, comp.details)
     else:
         table = coeffs.detach().to("cpu", torch.float64).tolist()
         primary = comp.primary_template.clone()
@@ -179,7 +216,8 @@ def composite(comp: Compositor, coeffs: torch.Tensor, *, min_coeff: float = 1e-3
         for b in range(B):
             for label in range(S):
                 terms = _kept(table[b][label][: len(comp.candidates[label])], min_coeff)
-                _fill(primary, comp.primary[label], terms)
-                _fill(secondary, comp.secondary[label], terms)
+                detail = [] if comp.details is None else _detail_terms(terms, comp.detail_power)
+                _fill(primary, comp.primary[label], terms, detail)
+                _fill(secondary, comp.secondary[label], terms, detail)
             torch.add(primary.index_select(1, comp.primary_index), secondary.index_select(1, comp.secondary_index), out=out[b, :3])
     return out.view(B, 4, H, W)

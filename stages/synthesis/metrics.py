@@ -8,8 +8,11 @@ and then over the mask.
 
 from __future__ import annotations
 
+from typing import Mapping, Sequence
 
-__all__ = ["masked_psnr", "ssim_map", "masked_ssim"]
+import numpy as np
+
+__all__ = ["masked_psnr", "ssim_map", "masked_ssim", "subregion_errors", "pooled_psnr"]
 
 
 def masked_psnr(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor, *, data_range: float = 1.0) -> float:
@@ -63,3 +66,49 @@ def ssim_map(a: torch.Tensor, b: torch.Tensor, *, data_range: float = 1.0, sigma
 def masked_ssim(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor, *, data_range: float = 1.0) -> float:
     """Mean SSIM over the pixels where ``mask`` (H, W) is true; ``a, b`` are (C, H, W)."""
     return float(ssim_map(a, b, data_range=data_range)[mask].mean())
+
+
+
+def subregion_errors(a: torch.Tensor, b: torch.Tensor, region: np.ndarray, names: Sequence[str]) -> dict[str, tuple[float, int]]:
+    """Squared error over each subregion's pixels, for PSNR pooled over images (:func:`pooled_psnr`).
+
+    Parameters
+    ----------
+    a, b : (C, H, W) tensors
+    region : (H, W) int array
+        Subregion index per pixel (``stages.layout.subregion_mask`` on the true geometry), negative
+        or ``>= len(names)`` outside every subregion.
+    names : sequence of str
+        Subregion names in index order.
+
+    Returns
+    -------
+    dict name -> (sum of squared differences, number of values summed) for the subregions that
+    cover at least one pixel.
+    """
+    import torch
+    region = np.asarray(region)
+    if region.shape != tuple(a.shape[-2:]):
+        raise ValueError(f"region must have the images' shape {tuple(a.shape[-2:])}, got {region.shape}")
+    out = {}
+    for k, name in enumerate(names):
+        mask = torch.from_numpy(region == k).to(a.device)
+        if mask.any():
+            diff = (a.double() - b.double())[:, mask]
+            out[str(name)] = (float((diff * diff).sum()), int(diff.numel()))
+    return out
+
+
+def pooled_psnr(errors: Sequence[Mapping[str, tuple[float, int]]], *, data_range: float = 1.0) -> dict[str, float]:
+    """Per name, the PSNR (dB) of the mean squared error pooled over all images that have it.
+
+    Pooling (rather than averaging per-image PSNR) keeps an image that reproduces a subregion
+    exactly (infinite or 100+ dB PSNR, e.g. a brow that no expression moved) from dominating the
+    mean. ``errors``: :func:`subregion_errors` of each image.
+    """
+    out = {}
+    for name in dict.fromkeys(n for e in errors for n in e):
+        sse = sum(e[name][0] for e in errors if name in e)
+        count = sum(e[name][1] for e in errors if name in e)
+        out[name] = float("inf") if sse == 0 else float(10.0 * np.log10(data_range**2 * count / sse))
+    return out

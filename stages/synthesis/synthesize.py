@@ -27,6 +27,9 @@ from stages.synthesis.warp import warp_images
 __all__ = ["MODES", "Synthesizer", "head_motion_points", "head_motion_frame", "Synthesize"]
 
 MODES = ("full", "warp-only", "global")
+DETAIL_POWER = 1.0  # band-pass blending defaults (docs/synthesis.md, "Fine texture")
+DETAIL_SIGMA_PX = 2.0
+FLOW_MAX_PX = 0.0  # optical-flow refinement of the examples' alignment (0: off)
 
 
 def head_motion_points(
@@ -100,13 +103,32 @@ class Synthesizer:
     model : dict of arrays
         A ``synthesis_model`` bundle (see :mod:`stages.synthesis.build`).
     device : str
+    detail_power, detail_sigma_px : float
+        Band-pass blending (Sec. 15 remedy, :mod:`stages.synthesis.bandpass`): the examples'
+        detail bands (finer than a Gaussian of ``detail_sigma_px``) are blended with the
+        coefficients raised to ``detail_power`` and renormalised; 1 is plain eq. 6.
+    flow_max_px : float
+        Refine the examples' alignment by optical flow (Sec. 15 remedy, :mod:`stages.synthesis.align`),
+        the flow clipped to this many px per component; 0 leaves the examples as built.
     """
 
-    def __init__(self, model: Mapping[str, np.ndarray], *, device: str = "cpu") -> None:
+    def __init__(
+        self,
+        model: Mapping[str, np.ndarray],
+        *,
+        device: str = "cpu",
+        detail_power: float = DETAIL_POWER,
+        detail_sigma_px: float = DETAIL_SIGMA_PX,
+        flow_max_px: float = FLOW_MAX_PX,
+    ) -> None:
         import torch
+        from stages.synthesis.align import refine_model
+        model = refine_model(model, max_px=flow_max_px)
         self.device = device
         self.qp = SubregionQP(model, device=device)
-        self.compositor: Compositor = prepare_compositor(dict(model), device=device)
+        self.compositor: Compositor = prepare_compositor(
+            dict(model), device=device, detail_power=detail_power, detail_sigma_px=detail_sigma_px
+        )
         self.size = tuple(int(v) for v in model["size"])
         self.anchors = np.asarray(model["anchors"], np.float64)
         self.triangles = np.asarray(model["triangles"])
@@ -179,7 +201,7 @@ class Synthesize(FrameStage):
     """``synthesis.synthesize``: target geometry per frame -> expression images (Sec. 6-8, 11)."""
 
     name = "synthesis.synthesize"
-    version = "3"
+    version = "4"
     doc = "per-subregion QP + compositing + blending + warp: target points per frame -> half-float sRGB frames, face mask, coefficients"
     inputs = {
         "model": "synthesis_model",
@@ -196,10 +218,12 @@ class Synthesize(FrameStage):
         Param("head_motion", bool, True, "carry the performer's 2D head motion (the similarity input) onto the output"),
         Param("head_motion_scale", float, 1.0, "multiplies the carried head translation (on top of the face-size ratio from 'performer')"),
         Param("fps", float, 30.0, "frame rate when the points bundle carries none"),
+        Param("detail_power", float, DETAIL_POWER, "band-pass blending: detail band weights are the coefficients to this power, renormalised (1 = plain eq. 6)"),
+        Param("detail_sigma_px", float, DETAIL_SIGMA_PX, "band-pass blending: Gaussian sigma separating the detail band, px"),
     )
 
     def __init__(self) -> None:
-        self._prepared: tuple[Mapping[str, np.ndarray], str, Synthesizer] | None = None
+        self._prepared: tuple[Mapping[str, np.ndarray], str, tuple[float, float], Synthesizer] | None = None
 
     def stream_info(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> StreamInfo:
         xy, bundle = target_geometry(inputs, stage=self.name)
@@ -207,11 +231,15 @@ class Synthesize(FrameStage):
         W, H = (int(v) for v in inputs["model"]["size"])
         return StreamInfo(frames=len(xy), fps=fps, width=W, height=H)
 
-    def _synthesizer(self, model: Mapping[str, np.ndarray], device: str) -> Synthesizer:
+    def _synthesizer(self, model: Mapping[str, np.ndarray], device: str, params: Mapping[str, Any]) -> Synthesizer:
         """The model prepared on ``device``, kept between chunks of the same run."""
-        if self._prepared is None or self._prepared[0] is not model or self._prepared[1] != device:
-            self._prepared = (model, device, Synthesizer(model, device=device))
-        return self._prepared[2]
+        detail = (float(params["detail_power"]), float(params["detail_sigma_px"]))
+        if self._prepared is None or self._prepared[0] is not model or self._prepared[1:3] != (device, detail):
+            if not detail[0] >= 1 or not detail[1] > 0:
+                raise StageError(f"{self.name}: parameters 'detail_power' must be >= 1 and 'detail_sigma_px' > 0, got {detail[0]} and {detail[1]}")
+            synth = Synthesizer(model, device=device, detail_power=detail[0], detail_sigma_px=detail[1])
+            self._prepared = (model, device, detail, synth)
+        return self._prepared[3]
 
     def process(self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         import torch
@@ -235,7 +263,7 @@ class Synthesize(FrameStage):
                     performer["neutral"], performer["names"], model["neutral_points"], model["point_names"]
                 )
                 scale *= ratio
-        synth = self._synthesizer(model, ctx.device)
+        synth = self._synthesizer(model, ctx.device, params)
         rgb, alpha, coeffs = synth.render(
             points,
             mode=params["mode"],

@@ -40,3 +40,22 @@ def test_masked_psnr():
     mask = np.zeros((10, 10), bool)
     mask[:5] = True
     assert abs(masked_psnr(torch.from_numpy(a), torch.from_numpy(b), torch.from_numpy(mask)) - 20.0) < 1e-9
+
+
+def test_subregion_errors_pool_over_images():
+    from stages.synthesis.metrics import pooled_psnr, subregion_errors
+    region = np.full((4, 6), -1)
+    region[:, :2] = 0
+    region[:, 4:] = 1  # subregion 2 ("c") covers no pixel
+    a = torch.zeros(3, 4, 6, dtype=torch.float64)
+    b1, b2 = a.clone(), a.clone()
+    b1[:, :, :2] = 0.1  # subregion a: MSE 0.01 in image 1, 0 in image 2 -> pooled 0.005
+    b1[:, :, 2:4] = 0.7  # outside every subregion: ignored
+    b2[:, :, 4:] = 0.01  # subregion b: exact in image 1, MSE 1e-4 in image 2
+    e1 = subregion_errors(a, b1, region, ["a", "b", "c"])
+    e2 = subregion_errors(a, b2, region, ["a", "b", "c"])
+    assert set(e1) == {"a", "b"} and e1["a"][1] == 3 * 8
+    pooled = pooled_psnr([e1, e2])
+    assert abs(pooled["a"] - 10 * np.log10(1 / 0.005)) < 1e-9
+    assert abs(pooled["b"] - 10 * np.log10(1 / 5e-5)) < 1e-9  # the exact image does not make it infinite
+    assert pooled_psnr([e1])["b"] == float("inf")
