@@ -11,7 +11,16 @@ records, per image drawn, the time since the pointer event whose geometry it sho
 * ``editor_latency_ms_p50``, ``editor_latency_ms_p95``: pointer event -> new image drawn on the
   canvas, ms;
 * ``editor_synth_fps``: the synthesis-only rate in the same run, 1000 / median server time per
-  image (synthesis and JPEG encoding, without propagation, transfer and decoding).
+  image (synthesis and JPEG encoding, without propagation, transfer and decoding);
+* ``editor_wait_ms_p50``: request sent -> answer received, less the server's work on it (the
+  wait for a renderer thread and the transfer); ``editor_decode_ms_p50``: answer received ->
+  image decoded in the page.
+
+The drag is measured twice: with the server's default previews (``--preview-scale``, 0.5) and,
+as the ``editor_full_*`` rows, with full-size previews (``--preview-scale 1``: the pipeline's
+image at the pack's size on every update, the baseline). ``--parts`` measures
+instead the CPU time of each part of an update in this process (``editor_part_*`` rows, see
+:func:`profile_parts`).
 
     python scripts/bench.py editor --json [--pack PACK] [--seconds 8] [--screenshot docs/img/editor.png]
 
@@ -176,7 +185,7 @@ def profile_parts(pack: Path, *, point: str, preview_scale: float, repeats: int 
     ``propagate``: motion propagation; ``qp``: the per-subregion QPs; ``composite_full`` /
     ``composite_preview``: compositing at the full / preview size; ``synth_full`` /
     ``synth_preview``: the whole synthesis (QP, compositing, warp); ``jpeg_full``,
-    ``png_full``, ``jpeg_preview``: 8-bit conversion and encoding. The warp is ``synth - qp -
+    ``png_full``, ``jpeg_preview``: encoding the 8-bit image. The warp is ``synth - qp -
     composite``.
     """
     import cv2

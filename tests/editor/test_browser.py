@@ -119,7 +119,9 @@ def test_previews_while_dragging_then_the_pipelines_image_when_the_mouse_stops(p
     updates = len(page.evaluate("window.editor.stats.updates"))
     drag(page, LAYOUT.index("mouth_outer_12"), (0.0, 8.0), steps=20)
     widths = page.evaluate("window.editor.stats.widths")[updates:]
-    assert widths and set(widths) == {width // 2}  # the previews drawn while dragging
+    # Previews were drawn while dragging (and the full image, were the pointer to rest 150 ms
+    # between two moves on a loaded machine).
+    assert width // 2 in widths and set(widths) <= {width // 2, width}
     assert page.evaluate("window.editor.shown()") == {"type": "image/png", "width": width, "height": height}
     frame = synthesize_stage(pipeline[0], geometry(page)[None])[0]
     assert_is_pipeline_image(canvas_pixels(page), frame)
