@@ -172,8 +172,8 @@ def run_batch(jobs: list[Job], *, cache_dir: Path, device: str = "auto", workers
         raise ValueError(f"workers is for a local Ray only, got workers={workers} with address={address!r}")
     cache_dir = Path(cache_dir).resolve()
     started = time.perf_counter()
-    ray.init(address=address, num_cpus=None if address else (workers or os.cpu_count()), include_dashboard=False,
-             log_to_driver=False, logging_level=logging.ERROR)
+    ray.init(address=address or "local", num_cpus=None if address else (workers or os.cpu_count()),
+             include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
     states: dict[str, _State] = {job.name: _State(job) for job in jobs}
     try:
         log({"event": "batch_start", "time": time.time(), "jobs": len(jobs), "address": address,

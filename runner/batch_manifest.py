@@ -194,24 +194,11 @@ def _job(r: _Reader, name: str, knode: yaml.Node, vnode: yaml.Node, own: _Fields
                 r.error(node, f"{key}.set", f"{issue.key}: {issue.message}")
             elif issue.where.file == str(pipeline[0]) and not issue.where.line:
                 r.error(pipeline[1], f"{key}.pipeline", issue.message)
-            else:
-                r.issues.append(issue)  # positioned in the pipeline file itself
+            elif issue not in r.issues:  # positioned in the pipeline file itself, said once
+                r.issues.append(issue)
         return None
 
-    videos = [i for i in loaded.inputs.values() if i.type == "video"]
-    if clip is not None and len(videos) != 1:
-        r.error(clip[1], f"{key}.clip", f"{pipeline[0]} has {len(videos)} video inputs; bind one with `inputs`")
-    for fname, (value, node) in named.items():
-        if fname not in loaded.inputs:
-            r.error(node, f"{key}.{'target' if fname == 'target' else 'inputs'}",
-                    f"unknown pipeline input {fname!r} of {pipeline[0]} (declared: {', '.join(loaded.inputs) or 'none'})")
-    for fname, (value, node) in [*([(videos[0].name, clip)] if clip is not None and len(videos) == 1 else []),
-                                 *named.items()]:
-        decl = loaded.inputs.get(fname)
-        is_dir = decl is not None and decl.type == "dir"
-        if decl is not None and not (Path(value).is_dir() if is_dir else Path(value).is_file()):
-            field_name = "clip" if node is (clip or (None, None))[1] else "target" if fname == "target" else "inputs"
-            r.error(node, f"{key}.{field_name}", f"{value}: no such {'folder' if is_dir else 'file'}")
+    _check_inputs(r, key, loaded, clip, named)
     if len(r.issues) > count:
         return None
     try:
@@ -229,3 +216,24 @@ def _job(r: _Reader, name: str, knode: yaml.Node, vnode: yaml.Node, own: _Fields
         return None
     return Job(name=name, pipeline=pipeline[0], clip=None if clip is None else clip[0],
                named=tuple(f"{k}={v}" for k, (v, _) in named.items()), overrides=loaded_key[1], out=str(out))
+
+
+def _check_inputs(r: _Reader, key: str, loaded: Pipeline, clip: tuple[str, yaml.Node] | None,
+                  named: dict[str, tuple[str, yaml.Node]]) -> None:
+    """Record an issue, at its manifest node, for each input of job ``key`` that the pipeline
+    does not declare or that does not exist (a file, or a folder for a ``dir`` input)."""
+    videos = [i.name for i in loaded.inputs.values() if i.type == "video"]
+    given = [("clip", name, clip) for name in videos[:1] if clip is not None]
+    if clip is not None and len(videos) != 1:
+        r.error(clip[1], f"{key}.clip", f"{loaded.path} has {len(videos)} video inputs; bind one with `inputs`")
+    for name, value in named.items():
+        field_name = "target" if name == "target" else "inputs"
+        if name not in loaded.inputs:
+            r.error(value[1], f"{key}.{field_name}", f"unknown pipeline input {name!r} of {loaded.path} "
+                                                     f"(declared: {', '.join(loaded.inputs) or 'none'})")
+        else:
+            given.append((field_name, name, value))
+    for field_name, name, (path, node) in given:
+        is_dir = loaded.inputs[name].type == "dir"
+        if not (Path(path).is_dir() if is_dir else Path(path).is_file()):
+            r.error(node, f"{key}.{field_name}", f"{path}: no such {'folder' if is_dir else 'file'}")

@@ -182,6 +182,29 @@ jobs:
     assert not (tmp_path / "out").exists() and not (tmp_path / "cache").exists()
 
 
+@pytest.mark.parametrize("text, expected", [
+    ("jobs: &a {x: 1}\nother: *a\n", ["{manifest}:2:8: yaml: alias *a is not allowed (aliases are refused)"]),
+    ("jobs: [\n", ["{manifest}:2:1: yaml: expected the node content, but found '<stream end>'"]),
+    ("defaults: {}\n", ["{manifest}:1:1: jobs: missing: a manifest needs a `jobs` mapping with at least one job"]),
+    # A pipeline with an error: said once, at its place in the pipeline, for the two jobs using it.
+    ("jobs:\n  a: {pipeline: broken.yaml}\n  b: {pipeline: broken.yaml}\n",
+     ["{broken}:3:13: stages.d.uses: unknown stage 'no.such' (see `runner stages`)"]),
+    # An input with no default and no value.
+    ("jobs:\n  a: {pipeline: noclip.yaml}\n", ["{manifest}:2:3: jobs.a: inputs.clip: missing input: no value given "
+                                               "(give it in the job or in `defaults`)"]),
+])
+def test_manifest_file_problems(site, tmp_path, text, expected):
+    (tmp_path / "broken.yaml").write_text("inputs: {clip: {type: video}}\nstages:\n  d: {uses: no.such}\n")
+    (tmp_path / "noclip.yaml").write_text("inputs: {clip: {type: video}}\n"
+                                          "stages:\n  d: {uses: video.decode, inputs: {video: clip}}\n")
+    path = tmp_path / "shots.yaml"
+    path.write_text(text)
+    done = run_cli("batch", path, env=_env(site, tmp_path), cwd=tmp_path)
+    assert done.returncode == 2
+    assert done.stderr.splitlines() == [
+        "error: " + line.format(manifest=path, broken=tmp_path / "broken.yaml") for line in expected]
+
+
 def test_batch_outputs_are_byte_identical_to_runner_run(site, cluster, alone, tmp_path):
     path = _manifest(tmp_path, TWO_JOBS)
     log = tmp_path / "log.jsonl"
