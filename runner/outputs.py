@@ -14,6 +14,8 @@ import contextlib
 import hashlib
 import io
 import math
+import os
+import shutil
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -195,21 +197,24 @@ def verify_files(entry: Entry, port: str) -> Path:
     return folder
 
 
-def copy_verified(source: Path, dest: Path, sha256: str) -> None:
-    """Copy ``source`` to ``dest``, hashing while copying; :class:`Damaged` (and ``dest``
-    removed) if the bytes differ from ``sha256``."""
-    h = hashlib.sha256()
+def link_verified(source: Path, dest: Path, sha256: str) -> None:
+    """Publish cache file ``source`` at ``dest`` after checking its bytes against ``sha256``:
+    as a hard link (the bytes are stored once), or as a copy where ``dest`` cannot link to it
+    (another filesystem). :class:`Damaged` if ``source`` is missing or its bytes differ.
+
+    A published file shares its bytes with the cache entry: a tool that rewrites it in place
+    changes the entry too, which its sha256 catches on the next read (the entry is recomputed).
+    """
     try:
-        with open(source, "rb") as src, open(dest, "wb") as out:
-            while block := src.read(1 << 20):
-                h.update(block)
-                out.write(block)
+        digest = file_digest(source)
     except FileNotFoundError:
         raise Damaged(source, "missing") from None
-    if h.hexdigest() != sha256:
-        dest.unlink(missing_ok=True)
+    if digest != sha256:
         raise Damaged(source, "sha256 differs from the one recorded when it was stored")
-
+    try:
+        os.link(source, dest)
+    except OSError:
+        shutil.copyfile(source, dest)
 
 
 def read_or_redo(read: Callable[[Entry], Any], entry: Entry, *, redo: Callable[[], Entry],

@@ -1,8 +1,9 @@
 """Publishing ``files`` outputs to ``--out/<stage>/``: whole or absent, verified, never over a
 user's files.
 
-A stage's folder is built as ``--out/.<stage>.<pid>.tmp``, each file copied from its cache entry
-while its sha256 is compared with the one the entry recorded, ``manifest.json`` (the file list
+A stage's folder is built as ``--out/.<stage>.<pid>.tmp``, each file hashed and compared with
+the sha256 its cache entry recorded, then hard-linked from the entry (copied where the two lie
+on different filesystems), ``manifest.json`` (the file list
 with sizes and sha256, and the entries' keys) written last; then the old folder is moved to
 ``.<stage>.<pid>.old``, the new one into place, and the old one deleted.
 
@@ -26,7 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from runner.cache import Entry, holder_is_stale
-from runner.outputs import Damaged, copy_verified, output_path
+from runner.outputs import Damaged, link_verified, output_path
 from runner.stage import StageError
 
 MANIFEST = "manifest.json"
@@ -166,7 +167,8 @@ class _DamagedEntry(Exception):
 
 
 def _copy(item: Published, tmp: Path) -> list[dict]:
-    """Copy every file of ``item`` into ``tmp``, verified; the manifest's file list."""
+    """Put every file of ``item`` into ``tmp``, verified, hard-linked to its cache entry where
+    the filesystem allows (:func:`runner.outputs.link_verified`); the manifest's file list."""
     listed = []
     for port in item.ports:
         target = tmp if len(item.ports) == 1 else tmp / port
@@ -178,7 +180,7 @@ def _copy(item: Published, tmp: Path) -> list[dict]:
                     raise StageError(f"{port}: two chunks wrote the same file {rel!r}")
                 dest.parent.mkdir(parents=True, exist_ok=True)
                 try:
-                    copy_verified(source / rel, dest, sha256)
+                    link_verified(source / rel, dest, sha256)
                 except Damaged as exc:
                     raise _DamagedEntry(index, exc) from None
                 listed.append({"path": dest.relative_to(tmp).as_posix(), "size": size, "sha256": sha256})

@@ -37,9 +37,10 @@ import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, ClassVar, Iterator, Mapping, Protocol
+from typing import TYPE_CHECKING, Any, Callable, ClassVar, Iterator, Mapping, Protocol
 
-import numpy as np
+if TYPE_CHECKING:  # annotations only: `runner --help` and `runner cache` start without numpy
+    import numpy as np
 
 RUNNER_TYPES = ("video", "file", "dir", "frames", "files")
 

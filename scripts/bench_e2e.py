@@ -1,11 +1,12 @@
 """End-to-end benchmark: the default pipeline on the 300-frame 640x480 demo clip.
 
-    python scripts/bench.py e2e [--json] [--work DIR] [--clip calm|live] [--ci]
+    python scripts/bench.py e2e [--json] [--work DIR] [--clip calm|live] [--ci] [--default]
 
 The demo fixture set (600x800 target pack, 640x480 performer clips) is generated under
 ``--work`` on first use. Each run starts from an empty cache and writes every output of
 ``pipeline_paper.yaml`` (EXR frames, result and preview mp4, per-frame data): the paper's tracker
-path, whose ground truth the demo clips carry.
+path, whose ground truth the demo clips carry. Each run's ``--log-json`` events (per stage: status
+and seconds) are kept next to its output folder (``e2e/full/out.log.jsonl``): where the time went.
 
 Metrics
 -------
@@ -14,7 +15,12 @@ Metrics
 - ``e2e_fps_warponly`` and ``e2e_speed_ratio``: the same pipeline with
   ``synthesize.mode=warp-only`` (traditional expression mapping, no details) measured in the same
   run, and the ratio ``e2e_fps / e2e_fps_warponly`` (the cost of expression details).
+- ``e2e_cache_mb``: size of the cache folder after the full run (MB, 10^6 bytes; a file
+  hard-linked twice counted once).
 - ``e2e_rerun_s``: wall time of a second, fully cached run.
+- with ``--default``: ``e2e_fps_default``, the repository's default ``pipeline.yaml`` (a face
+  landmarker on the performer instead of the paper's tracker) on the same clip and target pack,
+  from an empty cache, every output written.
 - ``e2e_target_err_px``: mean distance of the pipeline's target geometry (all points, per frame)
   to the ideal mapping ``target_points`` of the clip's ground truth; ``e2e_target_err_neutral_px``
   the same for the target's neutral left unchanged (a do-nothing baseline).
@@ -42,16 +48,19 @@ def row(metric: str, value: float, unit: str) -> dict[str, Any]:
     return {"bench": "e2e", "metric": metric, "value": value, "unit": unit}
 
 
-def run_pipeline(root: Path, clip: str, out: Path, cache: Path, *extra: str) -> float:
-    """Run ``pipeline_paper.yaml`` on ``root``'s fixture set; return the wall time in s."""
+def run_pipeline(root: Path, clip: str, out: Path, cache: Path, *extra: str, paper: bool = True) -> float:
+    """Run ``pipeline_paper.yaml`` (or, ``paper`` False, the default ``pipeline.yaml``) on
+    ``root``'s fixture set; return the wall time in s."""
+    tracker = ["--input", f"init={root / 'clips' / f'{clip}_track0.csv'}",
+               "--input", f"performer={root / 'packs' / 'performer'}"] if paper else []
     command = [
-        sys.executable, "-c", "from runner.cli import main; main()", "run", str(REPO / "pipeline_paper.yaml"),
-        "--in", str(root / "clips" / f"{clip}.mp4"),
-        "--input", f"init={root / 'clips' / f'{clip}_track0.csv'}",
-        "--input", f"performer={root / 'packs' / 'performer'}",
+        sys.executable, "-c", "from runner.cli import main; main()", "run",
+        str(REPO / ("pipeline_paper.yaml" if paper else "pipeline.yaml")),
+        "--in", str(root / "clips" / f"{clip}.mp4"), *tracker,
         "--input", f"target={root / 'packs' / 'target'}",
-        "--out", str(out), "--cache-dir", str(cache), *extra,
+        "--out", str(out), "--cache-dir", str(cache), "--log-json", str(out.parent / f"{out.name}.log.jsonl"), *extra,
     ]
+    out.parent.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ, PYTHONPATH=str(REPO))
     start = time.perf_counter()
     result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True)
@@ -65,6 +74,7 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     parser = argparse.ArgumentParser(prog="bench.py e2e")
     parser.add_argument("--clip", default="live", choices=("calm", "live"), help="demo clip to map")
     parser.add_argument("--ci", action="store_true", help="also the target geometry error on the CI clips")
+    parser.add_argument("--default", action="store_true", help="also frames/s of the default pipeline.yaml")
     options = parser.parse_args(args.extra)
     from scripts.bench_geometry import fixture_set
 
@@ -78,6 +88,8 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
         shutil.rmtree(work / mode, ignore_errors=True)
         timings[mode] = run_pipeline(root, options.clip, work / mode / "out", work / mode / "cache",
                                      "--set", f"synthesize.mode={mode}")
+        if mode == "full":
+            cache_mb = folder_bytes(work / mode / "cache") / 1e6
     rerun = run_pipeline(root, options.clip, work / "full" / "again", work / "full" / "cache", "--set", "synthesize.mode=full")
 
     fps, fps_warp = frames / timings["full"], frames / timings["warp-only"]
@@ -86,14 +98,29 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
         row("e2e_fps", fps, "frames/s"),
         row("e2e_fps_warponly", fps_warp, "frames/s"),
         row("e2e_speed_ratio", fps / fps_warp, "ratio"),
+        row("e2e_cache_mb", cache_mb, "MB"),
         row("e2e_rerun_s", rerun, "s"),
         *target_errors(root, options.clip, work / "full" / "out", ""),
     ]
+    if options.default:
+        shutil.rmtree(work / "default", ignore_errors=True)
+        seconds = run_pipeline(root, options.clip, work / "default" / "out", work / "default" / "cache", paper=False)
+        rows.append(row("e2e_fps_default", frames / seconds, "frames/s"))
     for clip in ("calm", "live") if options.ci else ():
         shutil.rmtree(work / f"ci_{clip}", ignore_errors=True)
         run_pipeline(REPO / "fixtures", clip, work / f"ci_{clip}" / "out", work / f"ci_{clip}" / "cache")
         rows += target_errors(REPO / "fixtures", clip, work / f"ci_{clip}" / "out", f"_ci_{clip}")
     return rows
+
+
+def folder_bytes(folder: Path) -> int:
+    """Bytes of the files under ``folder``, each inode counted once."""
+    sizes = {}
+    for path in folder.rglob("*"):
+        if path.is_file() and not path.is_symlink():
+            stat = path.stat()
+            sizes[(stat.st_dev, stat.st_ino)] = stat.st_size
+    return sum(sizes.values())
 
 
 def target_errors(root: Path, clip: str, out: Path, suffix: str) -> list[dict[str, Any]]:

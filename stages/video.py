@@ -18,6 +18,7 @@ import numpy as np
 
 from runner.stage import Context, FrameStage, Param, SequenceStage, StageError, StreamInfo
 from stages.color import to_uint8
+from stages.writers.lut import apply_elementwise
 
 CODECS = {"h264": ("libx264", "yuv420p", ".mp4"), "ffv1": ("ffv1", "bgr0", ".mkv")}
 
@@ -286,6 +287,6 @@ class WriteVideo(SequenceStage):
         with VideoWriter(path, fps=info.fps, width=info.width, height=info.height,
                          codec=params["codec"], crf=params["crf"]) as writer:
             for _, frames in stream.chunks():
-                writer.write(to_uint8(frames))
+                writer.write(apply_elementwise(to_uint8, frames))  # half floats by lookup
                 ctx.progress(len(frames))
         return {"video": None}

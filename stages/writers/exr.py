@@ -26,6 +26,7 @@ from runner.stage import Context, FrameStage, Param, StageError
 from stages.color import srgb_to_linear, to_unit_float
 from stages.writers.atomic import atomic_write
 from stages.writers.bundles import check_bundle
+from stages.writers.lut import apply_elementwise
 
 COMPRESSIONS = ("zip", "zips", "piz", "rle", "none")  # OpenEXR's lossless codecs
 FRAME_NAME = "frame.{:06d}.exr"  # 0-based frame index of the source clip
@@ -38,12 +39,19 @@ def exr_name(frame: int) -> str:
     return FRAME_NAME.format(frame)
 
 
+def srgb_decode(srgb: np.ndarray) -> np.ndarray:
+    """sRGB-encoded values (uint8 or float in [0, 1]) -> scene-linear float32, elementwise."""
+    return srgb_to_linear(to_unit_float(srgb).astype(np.float32, copy=False))
+
+
 def to_linear_rgba(srgb: np.ndarray, alpha: np.ndarray | None = None) -> np.ndarray:
     """sRGB frame and optional alpha -> premultiplied scene-linear RGBA.
 
     Parameters
     ----------
     srgb : (H, W, 3) float in [0, 1] (sRGB-encoded) or uint8
+        Half floats (the synthesized frames) are decoded by table lookup
+        (:func:`stages.writers.lut.apply_elementwise`: the same values).
     alpha : (H, W, 1) or (H, W) float in [0, 1], optional
         Coverage (the face mask). ``None`` means opaque.
 
@@ -52,12 +60,15 @@ def to_linear_rgba(srgb: np.ndarray, alpha: np.ndarray | None = None) -> np.ndar
     (H, W, 4) float32: ``(R, G, B) = srgb_to_linear(srgb) * alpha`` and ``A = alpha``
     (OpenEXR associated alpha).
     """
-    linear = srgb_to_linear(to_unit_float(srgb).astype(np.float32, copy=False))
+    linear = apply_elementwise(srgb_decode, srgb)
+    rgba = np.empty(linear.shape[:2] + (4,), np.float32)
     if alpha is None:
-        a = np.ones(linear.shape[:2] + (1,), np.float32)
+        rgba[:, :, :3], rgba[:, :, 3] = linear, 1.0
     else:
         a = np.asarray(alpha, np.float32).reshape(linear.shape[:2] + (1,))
-    return np.concatenate([linear * a, a], axis=2)
+        np.multiply(linear, a, out=rgba[:, :, :3])
+        rgba[:, :, 3:] = a
+    return rgba
 
 
 def frame_attributes(

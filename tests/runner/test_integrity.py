@@ -197,6 +197,20 @@ def test_damaged_cached_file_is_not_published(tmp_path):
     assert len(recorder.warnings) == 1 and "'table'" in recorder.warnings[0]
 
 
+def test_published_files_share_the_entry_bytes_and_a_rewrite_is_caught(tmp_path):
+    """Publishing hard-links the entry's file (its bytes stored once); a published file rewritten
+    in place changes the entry too, which its sha256 catches: recomputed and published again."""
+    run(tmp_path)
+    cached = entry_files(tmp_path, "table", "sums.json")[0]
+    published = tmp_path / "out" / "table" / "sums.json"
+    assert published.stat().st_ino == cached.stat().st_ino
+    published.write_text("[0]")
+    recorder = Recorder()
+    run(tmp_path, recorder=recorder)
+    assert published_sums(tmp_path) == EXPECTED
+    assert len(recorder.warnings) == 1 and "'table'" in recorder.warnings[0]
+
+
 # -- what is in a key -----------------------------------------------------------------------
 
 def test_input_file_suffix_is_in_the_key(tmp_path):
