@@ -1,8 +1,8 @@
 """The editor's models and renderer: a target pack's hierarchical PCA and synthesis model.
 
-Both models are made exactly as the pipeline makes them (``propagate.train`` and
-``synthesis.build`` run with their default parameters), so an edit renders as the pipeline
-renders the exported keyframes.
+Both models are made exactly as the pipeline makes them (``pack.load``'s bundles into
+``propagate.train`` and ``synthesis.build`` with their default parameters), so an edit renders as
+the pipeline renders the exported keyframes.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import cv2
 import numpy as np
@@ -20,6 +20,7 @@ import torch
 from editor.preview import PreviewSynthesizer
 from runner.stage import Context, SequenceStage, StageError
 from stages.actor_pack import load_pack
+from stages.pack.bundles import pack_to_bundles
 from stages.layout import Layout
 from stages.propagation.hierarchical_pca import HierarchicalPCA
 from stages.propagation.stage import TrainHierarchicalPCA
@@ -29,21 +30,23 @@ from stages.synthesis.synthesize import Synthesizer
 log = logging.getLogger("editor")
 
 
-def _run_default(stage: type[SequenceStage], pack: Path, *, device: str) -> dict[str, Any]:
-    """Run a pack stage with its default parameters, as a pipeline would: a stage that takes the
-    pack folder gets it, one that takes ``pack.load``'s bundles gets them by port name."""
+def pack_models(pack: Path, *, device: str = "cpu") -> tuple[Layout, HierarchicalPCA, dict[str, np.ndarray]]:
+    """A target pack's layout, hierarchical PCA and synthesis model, made as the pipeline makes
+    them: ``pack.load``'s bundles into ``propagate.train`` and ``synthesis.build``, each with
+    its default parameters."""
+    loaded = load_pack(pack)
+    bundles = pack_to_bundles(loaded)
 
-    def no_files(port: str) -> Path:
-        raise StageError(f"{stage.name}: the editor gives no folder for files output '{port}'")
+    def run(stage: type[SequenceStage]) -> dict[str, Any]:
+        def no_files(port: str) -> Path:
+            raise StageError(f"{stage.name}: the editor gives no folder for files output '{port}'")
 
-    ctx = Context(device=device, files_dir=no_files, log=log)
-    if set(stage.inputs) == {"pack"}:
-        inputs: dict[str, Any] = {"pack": pack}
-    else:
-        from stages.pack.stage import LoadPack
-        bundles = LoadPack().run({"pack": pack}, {}, ctx)
+        ctx = Context(device=device, files_dir=no_files, log=log)
         inputs = {port: bundles[port] for port in stage.inputs}
-    return stage().run(inputs, {p.name: p.default for p in stage.params}, ctx)
+        return stage().run(inputs, {p.name: p.default for p in stage.params}, ctx)
+
+    pca = HierarchicalPCA.from_bundle(run(TrainHierarchicalPCA)["pca_model"])
+    return loaded.layout, pca, run(BuildSynthesis)["model"]
 
 
 def to_uint8(rgb: torch.Tensor) -> np.ndarray:
@@ -156,9 +159,7 @@ class EditorEngine:
     ) -> None:
         if not 1 <= int(jpeg_quality) <= 100:
             raise ValueError(f"jpeg_quality must be in 1..100, got {jpeg_quality}")
-        self.layout: Layout = load_pack(pack).layout
-        self.pca = HierarchicalPCA.from_bundle(_run_default(TrainHierarchicalPCA, pack, device=device)["pca_model"])
-        self.model: Mapping[str, np.ndarray] = _run_default(BuildSynthesis, pack, device=device)["model"]
+        self.layout, self.pca, self.model = pack_models(pack, device=device)
         self.synthesizer = Synthesizer(self.model, device=device)
         self.size = tuple(int(v) for v in self.model["size"])  # (W, H)
         self.previewer = PreviewSynthesizer(self.synthesizer, self.model, scale=preview_scale)

@@ -61,13 +61,9 @@ def editor_server(performance):
 @pytest.fixture(scope="session")
 def pipeline():
     """The target's synthesis model and hierarchical PCA as the pipeline's stages make them."""
-    from editor.engine import _run_default
-    from stages.propagation.hierarchical_pca import HierarchicalPCA
-    from stages.propagation.stage import TrainHierarchicalPCA
-    from stages.synthesis.build import BuildSynthesis
+    from editor.engine import pack_models
 
-    model = _run_default(BuildSynthesis, PACK, device="cpu")["model"]
-    pca = HierarchicalPCA.from_bundle(_run_default(TrainHierarchicalPCA, PACK, device="cpu")["pca_model"])
+    _, pca, model = pack_models(PACK)
     return model, pca
 
 
