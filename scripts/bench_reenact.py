@@ -25,7 +25,8 @@ suffix of the metric (none for ``full``): ``reenact_psnr_db`` and ``reenact_ssim
 (nasolabial folds), each the mean over the test frames; ``reenact_subregion_psnr_db_<subregion>``
 over each layout subregion on the frame's points, the PSNR of the squared error pooled over the
 test frames (``stages.synthesis.metrics.pooled_psnr``). Also ``reenact_test_frames``,
-``reenact_examples`` and ``reenact_coverage_px`` (the examples' k-center radius). Over the clips:
+``reenact_examples``, ``reenact_coverage_px`` (the examples' k-center radius) and
+``reenact_rejected_<cause>`` (build frames ``pack.filter`` rejected, per cause). Over the clips:
 ``reenact_margin_warponly_db_min`` and ``reenact_margin_global_db_min`` (full minus baseline face
 PSNR, the smallest over the clips). ``--sheet PATH`` writes a contact sheet (truth | full |
 warp-only | global at 3 test frames per clip).
@@ -86,10 +87,12 @@ def head(bundle: dict[str, np.ndarray], frames: int, total: int) -> dict[str, np
             for k, v in bundle.items()}
 
 
-def build_pack(clip: Frames, work: Path, build: int, select: dict[str, Any]) -> tuple[Path, dict[str, np.ndarray], dict[str, np.ndarray]]:
+def build_pack(
+    clip: Frames, work: Path, build: int, select: dict[str, Any]
+) -> tuple[Path, dict[str, np.ndarray], dict[str, np.ndarray], dict[str, np.ndarray]]:
     """Landmarks of the whole clip and a pack from its first ``build`` frames (``select``: parameters
-    of ``pack.select``); returns the pack folder, the ``points`` bundle (whole clip) and the
-    ``pack_selection`` bundle."""
+    of ``pack.select``); returns the pack folder, the ``points`` bundle (whole clip), the
+    ``pack_selection`` bundle and the ``frame_filter`` bundle (rejections per cause)."""
     from runner.stage import Context
     from stages.landmarks.stage import FaceLandmarks, LayoutPoints
     from stages.packbuild.stage import PackFilter, PackSelect, PackWrite
@@ -105,7 +108,7 @@ def build_pack(clip: Frames, work: Path, build: int, select: dict[str, Any]) -> 
         import shutil
         shutil.rmtree(work / "pack")
     PackWrite().run({**part, "selection": selection}, {}, ctx)
-    return work / "pack", points, selection
+    return work / "pack", points, selection, part["filter"]
 
 
 def evaluate(
@@ -191,7 +194,7 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
         clip = decode(clip_path)
         build = int(round(extra.build_fraction * clip.info.frames))
         select = {} if extra.pose_deg is None else {"pose_deg": extra.pose_deg}
-        pack_dir, points, selection = build_pack(clip, work, build, select)
+        pack_dir, points, selection, filt = build_pack(clip, work, build, select)
         print(f"bench reenact: {stem}: pack built from frames 0-{build - 1} in {pack_dir}", file=sys.stderr, flush=True)
         valid = np.asarray(points["valid"], bool).all(axis=1)
         test = np.flatnonzero(valid[build:])[:: max(1, extra.stride)] + build
@@ -211,6 +214,8 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
         rows.append(row(f"reenact_test_frames_{stem}", len(test), "frames"))
         rows.append(row(f"reenact_examples_{stem}", len(selection["examples"]), "examples"))
         rows.append(row(f"reenact_coverage_px_{stem}", float(selection["example_radius_px"]), "px"))
+        for cause, count in zip(filt["cause_names"], filt["counts"]):
+            rows.append(row(f"reenact_rejected_{cause}_{stem}", count, "frames"))
     for baseline, values in margins.items():
         rows.append(row(f"reenact_margin_{baseline}_db_min", min(values), "dB"))
     if extra.sheet is not None:

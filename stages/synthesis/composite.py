@@ -16,6 +16,10 @@ Two ways to evaluate it, one function:
   example (``r c_{i1} + (1 - r) c_{i2}``), then a weighted sum of every example image over every
   pixel.
 
+With band-pass blending (Sec. 15 remedy, :mod:`stages.synthesis.bandpass`; ``detail_power`` p > 1)
+each subregion's term becomes ``sum_i c_{s,i} I_i + sum_i (c^_{s,i} - c_{s,i}) D_i`` with the
+examples' detail bands ``D_i`` and the sharpened weights ``c^ = c^p / sum c^p``.
+
 Labels: ``0 .. S-1`` are the layout's subregions (face subregions composite the examples, the
 teeth subregion the teeth examples, Sec. 8); label ``S`` is the outside of the face, always the
 standard image. Image stack order: ``M`` examples, ``Mt`` teeth examples, then the standard.
@@ -179,6 +183,9 @@ def composite(comp: Compositor, coeffs: torch.Tensor, *, min_coeff: float = 1e-3
         Sparse path only: coefficients at or below it are skipped and the rest renormalised.
     direct : bool
         Composite every example at every pixel (the paper's implementation) instead.
+
+    The compositor's ``detail_power`` (:func:`prepare_compositor`) adds the band-pass detail
+    term in both paths (see the module docstring).
 
     Returns
     -------

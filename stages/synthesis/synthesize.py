@@ -218,12 +218,13 @@ class Synthesize(FrameStage):
         Param("head_motion", bool, True, "carry the performer's 2D head motion (the similarity input) onto the output"),
         Param("head_motion_scale", float, 1.0, "multiplies the carried head translation (on top of the face-size ratio from 'performer')"),
         Param("fps", float, 30.0, "frame rate when the points bundle carries none"),
-        Param("detail_power", float, DETAIL_POWER, "band-pass blending: detail band weights are the coefficients to this power, renormalised (1 = plain eq. 6)"),
-        Param("detail_sigma_px", float, DETAIL_SIGMA_PX, "band-pass blending: Gaussian sigma separating the detail band, px"),
+        Param("detail_power", float, DETAIL_POWER, "band-pass blending: detail band weights are the coefficients to this power, renormalised (1 = plain eq. 6)", min=1.0),
+        Param("detail_sigma_px", float, DETAIL_SIGMA_PX, "band-pass blending: Gaussian sigma separating the detail band, px", min=0.1),
+        Param("flow_max_px", float, FLOW_MAX_PX, "refine the examples' alignment by optical flow (DIS) to the neutral, flow bounded to this many px (0 = off)", min=0.0),
     )
 
     def __init__(self) -> None:
-        self._prepared: tuple[Mapping[str, np.ndarray], str, tuple[float, float], Synthesizer] | None = None
+        self._prepared: tuple[Mapping[str, np.ndarray], str, tuple[float, float, float], Synthesizer] | None = None
 
     def stream_info(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> StreamInfo:
         xy, bundle = target_geometry(inputs, stage=self.name)
@@ -233,12 +234,10 @@ class Synthesize(FrameStage):
 
     def _synthesizer(self, model: Mapping[str, np.ndarray], device: str, params: Mapping[str, Any]) -> Synthesizer:
         """The model prepared on ``device``, kept between chunks of the same run."""
-        detail = (float(params["detail_power"]), float(params["detail_sigma_px"]))
-        if self._prepared is None or self._prepared[0] is not model or self._prepared[1:3] != (device, detail):
-            if not detail[0] >= 1 or not detail[1] > 0:
-                raise StageError(f"{self.name}: parameters 'detail_power' must be >= 1 and 'detail_sigma_px' > 0, got {detail[0]} and {detail[1]}")
-            synth = Synthesizer(model, device=device, detail_power=detail[0], detail_sigma_px=detail[1])
-            self._prepared = (model, device, detail, synth)
+        remedies = (float(params["detail_power"]), float(params["detail_sigma_px"]), float(params["flow_max_px"]))
+        if self._prepared is None or self._prepared[0] is not model or self._prepared[1:3] != (device, remedies):
+            synth = Synthesizer(model, device=device, detail_power=remedies[0], detail_sigma_px=remedies[1], flow_max_px=remedies[2])
+            self._prepared = (model, device, remedies, synth)
         return self._prepared[3]
 
     def process(self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
