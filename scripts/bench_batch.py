@@ -12,10 +12,15 @@ output folders), every side with a fresh cache, every command a new process as a
   --workers 1`` over the same job through ``runner run``; target <= 1.15. The difference is
   Ray's start-up and shut-down (a local Ray: its daemons and a worker process) and the driver.
 - ``batch_seq_s``, ``batch_2workers_s``, ``batch_one_job_s``, ``run_one_job_s``: the wall times
-  behind the ratios.
+  behind the ratios; ``batch_job_start_s``: from launching the one-job batch to its job starting
+  on a Ray worker (the command's and Ray's start-up).
+- ``batch_outputs_identical``: 1 if every file the 4-job batch published is byte-identical to
+  what ``runner run`` published for the same job.
 
-Each timing is one run (a side takes minutes). The machine may be shared: every row carries
-``load``, ``/proc/loadavg``'s three averages when the bench started and when it ended.
+The one-job timings are the best of ``ONE_JOB_REPEATS`` interleaved runs (the first also warms
+the page cache with the stages' libraries); the 4-job timings are one run each (a side takes
+minutes). The machine may be shared: every row carries ``load``, ``/proc/loadavg``'s three
+averages when the bench started and when it ended.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
+ONE_JOB_REPEATS = 2
 
 
 def _jobs(clips: Path) -> dict[str, dict]:
@@ -45,6 +51,11 @@ def _run_args(job: dict, out: Path) -> list[str]:
     """``runner run`` arguments of a manifest entry."""
     named = [a for name, path in job.get("inputs", {}).items() for a in ("--input", f"{name}={path}")]
     return ["run", job["pipeline"], "--in", job["clip"], *named, "--out", str(out)]
+
+
+def _tree(folder: Path) -> dict[str, bytes]:
+    """Relative path -> bytes of every file under ``folder``."""
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 def _timed(*commands: list[str], cache: Path) -> float:
@@ -67,7 +78,7 @@ def _batch(jobs: dict[str, dict], folder: Path, workers: int) -> list[str]:
     manifest = folder / "shots.yaml"
     manifest.write_text(json.dumps({"jobs": {name: {**job, "out": str(folder / "out" / name)}
                                              for name, job in jobs.items()}}, indent=1))
-    return ["batch", str(manifest), "--workers", str(workers)]
+    return ["batch", str(manifest), "--workers", str(workers), "--log-json", str(folder / "log.jsonl")]
 
 
 def run(args) -> list[dict]:
@@ -78,14 +89,23 @@ def run(args) -> list[dict]:
     first = dict(list(jobs.items())[:1])
     load_before = Path("/proc/loadavg").read_text().split()[:3]
 
-    run_one = _timed(_run_args(first[next(iter(first))], work / "run_out" / "one"), cache=work / "cache_run_one")
-    batch_one = _timed(_batch(first, work / "batch_one", 1), cache=work / "cache_batch_one")
+    run_one, batch_one, job_start = [], [], []
+    for _ in range(ONE_JOB_REPEATS):  # interleaved: the load of other sessions moves both alike
+        run_one.append(_timed(_run_args(first[next(iter(first))], work / "run_out" / "one"),
+                              cache=work / "cache_run_one"))
+        launched = time.time()
+        batch_one.append(_timed(_batch(first, work / "batch_one", 1), cache=work / "cache_batch_one"))
+        events = [json.loads(line) for line in (work / "batch_one" / "log.jsonl").read_text().splitlines()]
+        job_start.append(next(e["time"] for e in events if e["event"] == "job_start") - launched)
+    run_one, batch_one, job_start = min(run_one), min(batch_one), min(job_start)
     seq = _timed(*[_run_args(job, work / "run_out" / name) for name, job in jobs.items()], cache=work / "cache_seq")
     two = _timed(_batch(jobs, work / "batch_two", 2), cache=work / "cache_batch_two")
 
+    identical = all(_tree(work / "run_out" / name) == _tree(work / "batch_two" / "out" / name) for name in jobs)
     load = f"{' '.join(load_before)} -> {' '.join(Path('/proc/loadavg').read_text().split()[:3])}"
     rows = [("batch_speedup_2workers", seq / two, "x"), ("batch_overhead_ratio", batch_one / run_one, "x"),
             ("batch_seq_s", seq, "s"), ("batch_2workers_s", two, "s"), ("batch_one_job_s", batch_one, "s"),
-            ("run_one_job_s", run_one, "s")]
+            ("run_one_job_s", run_one, "s"), ("batch_job_start_s", job_start, "s"),
+            ("batch_outputs_identical", int(identical), "bool")]
     return [{"bench": "batch", "metric": m, "value": v, "unit": u, "load": load, "cpus": os.cpu_count()}
             for m, v, u in rows]
