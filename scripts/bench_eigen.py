@@ -1,7 +1,11 @@
-"""Eigenfeature benchmark (Valente & Dugelay) beside point tracking, on the fixture clips.
+"""Eigenfeature benchmark (Valente & Dugelay) beside point tracking, on the fixture clips and on
+real clips.
 
     python scripts/bench.py eigen [--json] [--work DIR] [--fixtures DIR] [--samples N] [--q Q]
-                                  [--blur PX] [--ridge A] [--figure PNG]
+                                  [--blur PX] [--ridge A] [--figure PNG] [--no-fixtures]
+                                  [--clip PATH ...] [--no-clips] [--build-fraction 0.6]
+
+**Fixture clips** (truth known).
 
 The performer's face model (the generator's identity of ``packs/performer``) is rendered under
 two samplings (the renders cached under ``--work``, about 230 MB) and a model trained on each
@@ -38,11 +42,29 @@ roll +-10 deg). Rows, for S in (paper, rich) and clip C in (calm, live), frames 
 - Headline rows (names the team's checks read): ``eigen_geom_err_px``, ``_neutral``, ``_tracked``
   (the in-frame geometry rows above for the default ``rich`` sampling, the neutral and the tracker,
   each the mean of calm and live), ``eigen_pose_leak`` and ``eigen_pose_leak_norot`` (``rich``).
+
+**Real clips** (``--clip PATH``, repeatable; default every ``*.mp4`` of ``../shared/dev-clips/``;
+no truth). Per clip (suffix ``_<clip stem>``): a performer pack from the first
+``--build-fraction`` of the frames (``scripts/bench_reenact.build_pack``: the landmark and pack
+stages), then ``pipeline.yaml`` (the point path) and ``pipeline_eigen_real.yaml`` with that pack
+(the eigenfeature path; its training renders the pack) on the whole clip, sharing one cache, and
+the expression-follow measures of ``bench real`` (:func:`stages.geometry.signals.follow` of the
+target geometry's signal against the performer's landmarks') over the frames after the build
+part: ``eigen_real_mouth_r``, ``eigen_real_mouth_amp``, ``eigen_real_brow_r``,
+``eigen_real_brow_amp`` (eigenfeatures) and ``eigen_real_points_mouth_r`` ... (the point path);
+``eigen_real_params`` (PCA parameters of the pack), ``eigen_real_train_s`` (the training stage:
+renders, PCA, estimator), ``eigen_real_fps`` (the analysis stage, frames/s),
+``eigen_real_test_frames``, ``eigen_real_load`` (the 1-minute load average when the clip
+started: the machine is shared).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -54,9 +76,10 @@ from scripts.bench_geometry import SMOOTH_SIGMA, decode
 from stages.actor_pack import load_pack
 from stages.eigen.model import EigenModel, analyze_frames, parameters_to_points
 from stages.eigen.patches import FEATURES, feature_points
+from stages.eigen.packface import pca_parameters
 from stages.eigen.sampling import rich_sampling, rotation_angles
-from stages.eigen.stage import training_sampling
-from stages.eigen.synthetic import PerformerRig, performer_rig, train_on_renders, training_samples
+from stages.eigen.synthetic import PerformerRig, performer_rig
+from stages.eigen.training import train_on_renders, training_samples
 from stages.geometry.compensate import compensate, fit_similarity
 from stages.geometry.face_model import pack_face_model
 from stages.geometry.frontalize import adapt_to_reference, frontalize
@@ -65,6 +88,9 @@ from stages.geometry.smooth import gaussian_smooth
 from stages.geometry.track import read_first_frame_points, track_points
 
 AREA = "eigen"
+REPO = Path(__file__).resolve().parent.parent
+DEV_CLIPS = REPO.parent / "shared" / "dev-clips"
+SIGNALS = (("mouth_open", "mouth"), ("brow_raise", "brow"))
 SAMPLINGS = ("paper", "rich")
 LEAK_DEG = (-10.0, -5.0, 0.0, 5.0, 10.0)
 LEAK_EXPRESSIONS = 4
@@ -83,7 +109,7 @@ def training_renders(rig: PerformerRig, sampling: str, *, samples: int, work: Pa
     if path.is_file():
         with np.load(path, allow_pickle=False) as data:
             return {k: data[k] for k in data.files}
-    controls, angles = training_sampling(sampling, len(rig.param_names), samples=samples, seed=0)
+    controls, angles = rig.sampling(sampling, samples=samples, seed=0)
     start = time.perf_counter()
     images, sims = zip(*training_samples(rig, controls, angles))
     out = {"images": np.stack(images), "similarity": np.stack(sims), "controls": controls, "angles": angles,
@@ -242,16 +268,9 @@ def figure(rig: PerformerRig, frames: list[np.ndarray], mu: np.ndarray, angles: 
     cv2.imwrite(str(path), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_PNG_COMPRESSION, 9])
 
 
-def run(args: argparse.Namespace) -> list[dict[str, Any]]:
-    parser = argparse.ArgumentParser(prog="bench.py eigen")
-    parser.add_argument("--fixtures", type=Path, default=Path("fixtures"), help="CI fixture set (clips/, packs/)")
-    parser.add_argument("--samples", type=int, default=500, help="random combinations of the rich sampling")
-    parser.add_argument("--q", type=int, default=16, help="eigenfeatures per feature")
-    parser.add_argument("--blur", type=float, default=BLUR_PX, help="patch blur, px (analyze/train default)")
-    parser.add_argument("--ridge", type=float, default=1e-3, help="ridge of the ..._ridge rows")
-    parser.add_argument("--figure", type=Path, default=None, help="write the Fig. 2 sheet here (default: under --work)")
-    own = parser.parse_args(args.extra)
-    root, work = own.fixtures, Path(args.work)
+def fixture_rows(own: argparse.Namespace, work: Path) -> list[dict[str, Any]]:
+    """The rows of the fixture clips (module docstring)."""
+    root = own.fixtures
     rig = performer_rig(root / "packs" / "performer")
     renders = {sampling: training_renders(rig, sampling, samples=own.samples, work=work) for sampling in SAMPLINGS}
     models, variants = {}, {}
@@ -286,6 +305,88 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     frames, mu, angles = estimates[("rich", "calm")]
     figure(rig, frames, mu, angles, own.figure or work / "eigen_fig2.png")
     return rows + headline_rows(rows)
+
+
+def run_pipeline(pipeline: Path, clip: Path, out: Path, cache: Path, *extra: str) -> dict[str, float]:
+    """Run ``pipeline`` on ``clip`` up to its ``data`` stage (outputs under ``out``, stages cached
+    in ``cache``); return each stage's own seconds (from ``--log-json``)."""
+    log = out.parent / f"{out.name}.jsonl"
+    command = [sys.executable, "-c", "from runner.cli import main; main()", "run", str(pipeline), "--in", str(clip),
+               "--out", str(out), "--cache-dir", str(cache), "--log-json", str(log), "--until", "data", *extra]
+    result = subprocess.run(command, cwd=REPO, env=dict(os.environ, PYTHONPATH=str(REPO)), capture_output=True,
+                            text=True)
+    if result.returncode != 0:
+        raise SystemExit(f"{pipeline.name} failed on {clip} ({result.returncode}): {result.stderr.strip()[-2000:]}")
+    events = [json.loads(line) for line in log.read_text().splitlines()]
+    return {e["stage"]: float(e.get("seconds", 0.0)) for e in events if e.get("event") == "stage"}
+
+
+def follow_rows(data_npz: Path, test: np.ndarray, prefix: str, stem: str) -> list[dict[str, Any]]:
+    """Mouth and brow follow (Pearson r, amplitude ratio) of a run's target geometry against the
+    performer's landmarks over the ``test`` frames ``(T,)`` bool, as ``bench real`` measures them."""
+    from stages.geometry.signals import expression_signals, follow
+
+    with np.load(data_npz, allow_pickle=False) as data:
+        names = [str(n) for n in data["target_names"]]
+        performer = expression_signals(data["tracked_xy"], names)
+        target = expression_signals(data["target_xy"], names)
+        valid = data["tracked_valid"].all(axis=1) & test
+    rows = []
+    for signal, short in SIGNALS:
+        r, ratio = follow(performer[signal], target[signal], valid)
+        rows += [row(f"{prefix}_{short}_r_{stem}", r, "r"), row(f"{prefix}_{short}_amp_{stem}", ratio, "ratio")]
+    return rows
+
+
+def real_clip_rows(clip_path: Path, work: Path, build_fraction: float) -> list[dict[str, Any]]:
+    """The eigenfeature path beside the point path on one real clip (module docstring)."""
+    from scripts.bench_reenact import build_pack, decode as decode_clip
+    from stages.actor_pack import load_pack as load
+
+    stem = clip_path.stem
+    load_1min = os.getloadavg()[0]
+    work.mkdir(parents=True, exist_ok=True)
+    clip = decode_clip(clip_path)
+    T = clip.info.frames
+    build = int(round(build_fraction * T))
+    pack_dir = build_pack(clip, work, build, {})[0]
+    print(f"bench eigen: {stem}: pack built from frames 0-{build - 1} in {pack_dir}", file=sys.stderr, flush=True)
+    cache = work / "cache"
+    run_pipeline(REPO / "pipeline.yaml", clip_path, work / "points", cache)
+    seconds = run_pipeline(REPO / "pipeline_eigen_real.yaml", clip_path, work / "eigen", cache,
+                           "--input", f"performer_pack={pack_dir}")
+    test = np.arange(T) >= build
+    rows = follow_rows(work / "eigen" / "data" / "data.npz", test, "eigen_real", stem)
+    rows += follow_rows(work / "points" / "data" / "data.npz", test, "eigen_real_points", stem)
+    return rows + [row(f"eigen_real_params_{stem}", len(pca_parameters(load(pack_dir).captured_points)), "parameters"),
+                   row(f"eigen_real_train_s_{stem}", seconds["train_eigen"], "s"),
+                   row(f"eigen_real_fps_{stem}", T / max(seconds["eigen"], 1e-9), "frames/s"),
+                   row(f"eigen_real_test_frames_{stem}", T - build, "frames"),
+                   row(f"eigen_real_load_{stem}", load_1min, "load")]
+
+
+def run(args: argparse.Namespace) -> list[dict[str, Any]]:
+    parser = argparse.ArgumentParser(prog="bench.py eigen")
+    parser.add_argument("--fixtures", type=Path, default=Path("fixtures"), help="CI fixture set (clips/, packs/)")
+    parser.add_argument("--samples", type=int, default=500, help="random combinations of the rich sampling")
+    parser.add_argument("--q", type=int, default=16, help="eigenfeatures per feature")
+    parser.add_argument("--blur", type=float, default=BLUR_PX, help="patch blur, px (analyze/train default)")
+    parser.add_argument("--ridge", type=float, default=1e-3, help="ridge of the ..._ridge rows")
+    parser.add_argument("--figure", type=Path, default=None, help="write the Fig. 2 sheet here (default: under --work)")
+    parser.add_argument("--no-fixtures", action="store_true", help="skip the fixture clips")
+    parser.add_argument("--clip", type=Path, action="append", default=[], help="a real clip (repeatable)")
+    parser.add_argument("--no-clips", action="store_true", help="skip the real clips")
+    parser.add_argument("--build-fraction", type=float, default=0.6, help="share of a real clip the pack is built from")
+    own = parser.parse_args(args.extra)
+    work = Path(args.work)
+    rows = [] if own.no_fixtures else fixture_rows(own, work)
+    clips = own.clip or (sorted(DEV_CLIPS.glob("*.mp4")) if DEV_CLIPS.is_dir() else [])
+    if not own.no_clips:
+        for clip in clips:
+            rows += real_clip_rows(clip, work / "eigen_real" / clip.stem, own.build_fraction)
+    return rows
+
+
 
 
 def headline_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:

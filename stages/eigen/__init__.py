@@ -6,6 +6,8 @@ beside point tracking.
 - :mod:`.estimator`: the linear estimator ``L = M Lambda^T (Lambda Lambda^T)^-1``.
 - :mod:`.sampling`: the paper's and a richer sampling of parameters and rotations.
 - :mod:`.model`: the trained model, the analysis of frames, parameters -> geometry.
-- :mod:`.synthetic`: training renders of the fixture generator's performer face.
+- :mod:`.training`: the face-model interface and the training from its renders.
+- :mod:`.synthetic`: the fixture generator's performer face as the face model.
+- :mod:`.packface`: a real performer's actor pack driven by the synthesis as the face model.
 - :mod:`.stage`: ``train.eigenfeatures``, ``analyze.eigenfeatures``.
 """
