@@ -2,6 +2,7 @@
 
     python scripts/bench.py real [--json] [--work DIR] [--clip PATH ...] [--realtex-frames N]
                                  [--realtex-seeds 1,2] [--no-realtex] [--no-clips]
+                                 [--target PACK [--cross-sheet PNG]]
 
 Two kinds of input:
 
@@ -37,6 +38,14 @@ Two kinds of input:
   frames; ``real_pose_err_deg``: mean absolute angle error. A contact sheet per clip goes to
   ``<work>/real/realtex_<seed>/sheet.png`` (the README's copy: these clips are public-domain
   material; frames of the dev clips are never committed).
+- **Cross-identity** (``--target PACK``, issue #13): each real clip is also mapped onto another
+  face's actor pack (e.g. one built by ``pack_build.yaml`` from a real-texture astronaut clip), and
+  the same follow rows are reported with the prefix ``real_cross_``: ``real_cross_mouth_follow_r``,
+  ``real_cross_mouth_amp_ratio``, ``real_cross_brow_follow_r``, ``real_cross_brow_amp_ratio`` per
+  clip, and ``real_cross_mouth_follow_r_min`` / ``real_cross_brow_follow_r_min`` over the clips.
+  ``--cross-sheet PNG`` writes a sheet that can be committed: no frame of the performer clips, only
+  the performer's layout points drawn as lines on grey (:func:`points_panel`) beside the target's
+  synthesized frame, six frames per clip, one row per clip.
 """
 
 from __future__ import annotations
@@ -140,6 +149,22 @@ def contact_sheet(preview: Path, path: Path, count: int = SHEET_FRAMES) -> None:
     cv2.imwrite(str(path), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
 
 
+def follow_rows(data: Any, prefix: str, stem: str) -> list[dict[str, Any]]:
+    """``<prefix>_{mouth,brow}_follow_r_<stem>`` and ``..._amp_ratio_<stem>`` of a run's data file:
+    the output target geometry's expression signals against the performer's landmarks."""
+    from stages.geometry.signals import expression_signals, follow
+
+    names = [str(n) for n in data["target_names"]]
+    valid = data["tracked_valid"].all(axis=1)
+    performer = expression_signals(data["tracked_xy"], names)
+    target = expression_signals(data["target_xy"], names)
+    rows = []
+    for signal, short in (("mouth_open", "mouth"), ("brow_raise", "brow")):
+        r, ratio = follow(performer[signal], target[signal], valid)
+        rows += [row(f"{prefix}_{short}_follow_r_{stem}", r, "r"), row(f"{prefix}_{short}_amp_ratio_{stem}", ratio, "ratio")]
+    return rows
+
+
 def clip_rows(clip: Path, work: Path) -> list[dict[str, Any]]:
     """The follow, jitter, pose and speed rows of one real clip."""
     from stages.geometry.signals import expression_signals, follow
@@ -154,10 +179,7 @@ def clip_rows(clip: Path, work: Path) -> list[dict[str, Any]]:
     performer = expression_signals(performer_xy, names)
     target = expression_signals(target_xy, names)
     stem = clip.stem
-    rows = []
-    for signal, short in (("mouth_open", "mouth"), ("brow_raise", "brow")):
-        r, ratio = follow(performer[signal], target[signal], valid)
-        rows += [row(f"real_{short}_follow_r_{stem}", r, "r"), row(f"real_{short}_amp_ratio_{stem}", ratio, "ratio")]
+    rows = follow_rows(data, "real", stem)
     rows += [row(f"real_target_jitter_px_{stem}", jitter(target_xy), "px"),
              row(f"real_landmark_jitter_px_{stem}", jitter(performer_xy[valid]), "px"),
              row(f"real_target_jitter_eye_{stem}", jitter(target_xy) / np.nanmedian(target["eye_distance_px"]), "eye"),
@@ -177,6 +199,88 @@ def clip_rows(clip: Path, work: Path) -> list[dict[str, Any]]:
              row(f"real_landmarker_fps_{stem}", frames / max(seconds.get("landmarks", np.nan), 1e-9), "frames/s"),
              row(f"real_reference_frame_{stem}", reference, "frame")]
     contact_sheet(work / "out" / "preview" / "preview.mp4", work / "sheet.png")
+    return rows
+
+
+def layout_polylines(names: list[str]) -> list[tuple[np.ndarray, bool]]:
+    """The layout's numbered point runs as polylines: ``(columns, closed)`` per run of names
+    ``<part>_<k>`` (``k = 0, 1, ...``); eye, brow and lip outlines are closed, the rest open, and a
+    point without a number is a run of one (drawn as a dot)."""
+    runs: dict[str, list[tuple[int, int]]] = {}
+    for column, name in enumerate(names):
+        part, _, k = name.rpartition("_")
+        key, order = (part, int(k)) if k.isdigit() else (name, 0)
+        runs.setdefault(key, []).append((order, column))
+    closed = ("eye_l", "eye_r", "brow_l", "brow_r", "mouth_outer", "mouth_inner")
+    return [(np.array([c for _, c in sorted(run)]), key in closed) for key, run in runs.items()]
+
+
+def points_panel(xy: np.ndarray, names: list[str], side: int, *, box: np.ndarray) -> np.ndarray:
+    """The performer's layout points of one frame drawn as lines on grey: ``(side, side, 3)`` uint8
+    RGB. ``box`` (``x0, y0, x1, y1`` px) is the part of the performer's frame shown, the same for
+    every frame of a clip so that head motion shows; NaN points (no face) leave the panel empty."""
+    import cv2
+
+    panel = np.full((side, side, 3), 128, np.uint8)
+    scale = (side - 1) / max(box[2] - box[0], box[3] - box[1])
+    centre = (np.asarray(box[:2]) + box[2:]) / 2
+    shift = 4  # fixed-point bits of cv2's sub-pixel drawing
+    where = np.round(((xy - centre) * scale + (side - 1) / 2) * (1 << shift)).astype(np.int64) \
+        if np.isfinite(xy).all() else None
+    if where is None:
+        return panel
+    for columns, closed in layout_polylines(names):
+        if len(columns) == 1:
+            cv2.circle(panel, tuple(int(v) for v in where[columns[0]]), 1 << shift, (255, 255, 255), -1, cv2.LINE_AA, shift)
+        else:
+            cv2.polylines(panel, [where[columns].astype(np.int32)], closed, (255, 255, 255), 1, cv2.LINE_AA, shift)
+    return panel
+
+
+def cross_sheet(runs: list[tuple[Any, Path]], path: Path, *, count: int = SHEET_FRAMES, side: int = 112) -> None:
+    """One row per clip of ``count`` pairs (performer's layout points | the target's synthesized
+    frame) at frames evenly spread over the clip, written as PNG. ``runs``: per clip its data file
+    (``np.load``-ed) and result video; no performer frame is drawn, only its points."""
+    import cv2
+
+    rows = []
+    for data, video in runs:
+        names = [str(n) for n in data["target_names"]]
+        xy = data["tracked_xy"]
+        found = np.isfinite(xy).all(axis=(1, 2))
+        lo, hi = np.nanmin(xy[found], axis=(0, 1)), np.nanmax(xy[found], axis=(0, 1))
+        box = np.concatenate([lo, hi]) + np.array([-1, -1, 1, 1]) * 0.08 * np.max(hi - lo)
+        frames = read_frames(video)
+        cells = []
+        for t in np.linspace(0, len(frames) - 1, count).round().astype(int):
+            result = frames[t]
+            height = side
+            width = int(round(result.shape[1] * height / result.shape[0]))
+            cells += [points_panel(xy[t], names, side, box=box),
+                      cv2.resize(result, (width, height), interpolation=cv2.INTER_AREA),
+                      np.full((side, 4, 3), 255, np.uint8)]
+        rows.append(np.concatenate(cells[:-1], axis=1))
+    width = max(r.shape[1] for r in rows)
+    sheet = np.concatenate([np.pad(r, ((0, 4), (0, width - r.shape[1]), (0, 0)), constant_values=255)
+                            for r in rows], axis=0)[:-4]
+    cv2.imwrite(str(path), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_PNG_COMPRESSION, 9])
+
+
+def cross_rows(clips: list[Path], work: Path, target: Path, sheet: Path | None) -> list[dict[str, Any]]:
+    """Each real clip mapped onto another face's pack ``target``: the ``real_cross_`` follow rows,
+    their minima over the clips, and with ``sheet`` the points | result sheet."""
+    rows, runs = [], []
+    for clip in clips:
+        folder = work / "cross" / clip.stem
+        folder.mkdir(parents=True, exist_ok=True)
+        run_pipeline(clip, folder, "--input", f"target={target}")
+        data = np.load(folder / "out" / "data" / "data.npz")
+        rows += follow_rows(data, "real_cross", clip.stem)
+        runs.append((data, folder / "out" / "video" / "result.mp4"))
+    for base in ("real_cross_mouth_follow_r", "real_cross_brow_follow_r"):
+        rows.append(row(f"{base}_min", min(r["value"] for r in rows if r["metric"].startswith(base + "_")), "r"))
+    if sheet is not None:
+        cross_sheet(runs, sheet)
     return rows
 
 
@@ -247,7 +351,9 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     parser.add_argument("--realtex-frames", type=int, default=150, help="frames of each real-texture clip")
     parser.add_argument("--realtex-seeds", default="1,2", help="seeds of the real-texture clips")
     parser.add_argument("--no-realtex", action="store_true", help="skip the real-texture clips")
-    parser.add_argument("--no-clips", action="store_true", help="skip the real clips")
+    parser.add_argument("--no-clips", action="store_true", help="skip the real clips' own rows (--target still maps them)")
+    parser.add_argument("--target", type=Path, help="also map each clip onto this actor pack (real_cross_ rows)")
+    parser.add_argument("--cross-sheet", type=Path, help="with --target: write the points | result sheet here (PNG)")
     options = parser.parse_args(args.extra)
     work = Path(args.work) / BENCH
     rows: list[dict[str, Any]] = []
@@ -259,4 +365,6 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
         for clip in clips:
             rows += clip_rows(clip, work / clip.stem)
         rows += aggregate(rows, [c.stem for c in clips])
+    if options.target is not None and clips:
+        rows += cross_rows(clips, work, options.target.resolve(), options.cross_sheet)
     return rows

@@ -15,6 +15,8 @@ of ``X'_i - X_i(r)`` — the 3D counterpart of the paper's ``T^-1(x') - x``.
 
 The reference frame is chosen, not assumed (:func:`choose_reference`): the most frontal, least
 expressive frame near the start of the clip, from the landmarker's blendshapes and head matrix.
+Its inner lips are closed before the displacements are taken (:func:`close_reference_lips`), so a
+reference with the lips slightly apart does not cost the target that much of its mouth opening.
 
 Coordinates: x right, y down (px, origin at the centre of the top-left pixel), z away from the
 camera (px): a right-handed camera frame as OpenCV's. Angles: ``R = Ry(yaw) Rx(pitch) Rz(roll)``,
@@ -40,6 +42,12 @@ RIGID_POINTS = (
     "eye_l_0", "eye_l_6", "eye_r_0", "eye_r_6", "nose_bridge_0", "nose_bridge_1", "nose_bridge_2",
     "forehead_l", "forehead_c", "forehead_r", "temple_l", "temple_r", "contour_0", "contour_16",
 )
+
+#: The facing inner-lip pairs of the zhang134 layout (upper, lower), left to right, with the teeth
+#: edges that lie between them (``teeth_upper_k`` / ``teeth_lower_k`` are mixes of pair k's lips:
+#: ``stages/layouts/zhang134_mediapipe.yaml``), for :func:`close_reference_lips`.
+LIP_PAIRS = tuple((f"mouth_inner_{k + 1}", f"mouth_inner_{9 - k}", f"teeth_upper_{k}", f"teeth_lower_{k}")
+                  for k in range(4))
 
 #: Blendshapes that are not facial expression (gaze direction) and the rest score, MediaPipe names.
 _NOT_EXPRESSION = ("_neutral", "eyeLook")
@@ -131,6 +139,61 @@ def compensate_rigid3d(xyz: np.ndarray, valid: np.ndarray, reference: int, rigid
     return {"d": d, "R": R, "s": s, "t": t, "residual_px": residual, "frame_valid": solved}
 
 
+def close_reference_lips(neutral: np.ndarray, d: np.ndarray, names: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """The reference geometry with its inner lips closed, and the displacements from it.
+
+    The mapping carries displacements from the performer's reference onto the target's neutral,
+    whose lips are closed. When the reference frame has the lips apart, a frame where the performer
+    closes them has the lower lip moving up from the reference: the target's lips would cross, the
+    crossing is clamped (``map.expression``), and the target's mouth opening loses that part of the
+    performer's (robustness campaign, ``docs/realface.md``: on variants of a real clip whose chosen
+    reference had the lips 3-5 % of the eye distance apart, the amplitude ratio of the target's
+    mouth opening to the performer's was 0.76-0.87; 0.94-0.98 with the lips closed here). Here
+    each facing pair of inner-lip points
+    (:data:`LIP_PAIRS`) that is apart in the reference is moved onto its midline along the face's
+    down direction (the normal of the outer-eye-corner line), with the teeth edges between them,
+    and the displacements are taken from that closed reference, ``d' = d + (x_ref - x_closed)``:
+    the compensated geometry ``x_closed + d'`` is unchanged, and the target opens its mouth by
+    what the performer opens from closed lips, whatever the reference frame. Pairs that touch or
+    overlap in the reference are left as they are (a reference with closed lips changes nothing).
+
+    Parameters
+    ----------
+    neutral : (N, 2) float
+        The reference frame's points, px.
+    d : (T, N, 2) float
+        Displacements from ``neutral``, px.
+    names : (N,) str
+        Layout point names (zhang134: the pairs, teeth edges and outer eye corners by name).
+
+    Returns
+    -------
+    closed : (N, 2) float64
+        The reference with its inner lips closed.
+    d_closed : (T, N, 2) float64
+        Displacements from ``closed``.
+    gap_px : float
+        The largest gap closed, px (0 when none was apart).
+    """
+    neutral = np.asarray(neutral, np.float64)
+    columns = {str(n): i for i, n in enumerate(names)}
+    left, right = (neutral[columns[n]] for n in ("eye_l_6", "eye_r_6"))
+    along = (right - left) / np.linalg.norm(right - left)
+    down = np.array([-along[1], along[0]])  # x right, y down: the eye line turned a quarter, pointing down
+    closed = neutral.copy()
+    widest = 0.0
+    for upper, lower, *teeth in LIP_PAIRS:
+        u, lw = columns[upper], columns[lower]
+        gap = float((neutral[lw] - neutral[u]) @ down)
+        if gap <= 0:
+            continue
+        widest = max(widest, gap)
+        middle = (neutral[u] + neutral[lw]) @ down / 2
+        for i in [u, lw] + [columns[t] for t in teeth if t in columns]:
+            closed[i] += (middle - neutral[i] @ down) * down
+    return closed, np.asarray(d, np.float64) + (neutral - closed)[None], widest
+
+
 def nearest_valid(valid: np.ndarray) -> np.ndarray:
     """``(T,)`` bool -> ``(T,)`` int: each frame's nearest valid frame (itself when valid)."""
     good = np.flatnonzero(valid)
@@ -192,7 +255,7 @@ class CompensateRigid3D(SequenceStage):
     chosen reference frame (an extension of Sec. 12 for real footage)."""
 
     name = "compensate.rigid3d"
-    version = "1"
+    version = "2"
     doc = "reference (neutral) frame chosen from blendshapes and pose; 3D similarity of the rigid points; displacements, pose, 2D similarity"
     inputs = {"points": "points", "landmarks": "landmarks"}
     outputs = {"displacements": "displacements", "similarity": "similarity", "pose": "pose"}
@@ -205,6 +268,8 @@ class CompensateRigid3D(SequenceStage):
         Param("warn_angle_deg", float, 12.0, "warn when the reference frame's head is turned more than this"),
         Param("warn_expression", float, 2.0, "warn when the reference frame's expressiveness (sum of blendshapes) "
               "exceeds this"),
+        Param("close_lips", bool, True, "displacements from the reference with its inner lips closed (a reference "
+              "with the lips apart would cost the target that much mouth opening)"),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
@@ -242,8 +307,17 @@ class CompensateRigid3D(SequenceStage):
         if (~frame_ok).any():
             ctx.log.warning("%s: no face in %d of %d frames; each holds the expression of the nearest frame with "
                             "one", self.name, int((~frame_ok).sum()), n_frames)
+        neutral, d = xy[reference].copy(), fit["d"]
+        if params["close_lips"]:
+            try:
+                neutral, d, gap = close_reference_lips(neutral, d, names)
+            except KeyError as exc:
+                raise StageError(f"{self.name}: close_lips needs the layout point {exc}; set close_lips=false") from None
+            if gap > 0:
+                ctx.log.info("%s: the reference frame's lips are apart (up to %.1f px): displacements are taken from "
+                             "the reference with its lips closed", self.name, gap)
         extra = {k: np.asarray(points[k]) for k in ("fps", "size") if k in points}
-        displacements = {"d": fit["d"], "valid": d_valid, "names": names, "neutral": xy[reference].copy(),
+        displacements = {"d": d, "valid": d_valid, "names": names, "neutral": neutral,
                          "neutral_frame": np.array(reference), "held": ~frame_ok, **extra}
         planar = similarity_2d(xy, valid, xy[reference], rigid)
         similarity = {"params": planar["params"], "residual_px": planar["residual_px"],

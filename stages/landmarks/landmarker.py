@@ -239,8 +239,11 @@ class Landmarker:
     select
         Which face to keep when there are several: ``"largest"`` (bounding-box area) or
         ``"central"`` (box centre nearest the frame centre).
-        The rule applies among the faces of the searched region; the next frame is searched
-        around the face kept first, so that face is followed even if another becomes larger.
+        The rule chooses a face when there is no previous one; after that the face overlapping
+        the previous frame's face most is kept (the crop around it may hold another face, and a
+        crop as large as the frame holds all of them), so the face chosen first is followed even
+        if another becomes larger or more central. Where no face overlaps the previous one the
+        rule chooses again.
     min_detection_confidence
         Detector score threshold.
     crop_scale
@@ -331,7 +334,7 @@ class Landmarker:
         for regions in searches:
             faces = self._merge([face for region in regions for face in self._faces(rgb, region)])
             if faces:
-                best = self._choose(faces, (width, height))
+                best = self._choose(faces, (width, height), previous=self._previous)
                 self._previous = _box(best.xy)
                 return MeshFrame(
                     best.xy, best.z, True, best.blendshapes, best.matrix, len(faces), best.region
@@ -373,8 +376,16 @@ class Landmarker:
                 kept.append(face)
         return kept
 
-    def _choose(self, faces: list[MeshFrame], size: tuple[int, int]) -> MeshFrame:
+    def _choose(self, faces: list[MeshFrame], size: tuple[int, int], *, previous: np.ndarray | None) -> MeshFrame:
+        """The face to keep: the one overlapping the ``previous`` frame's face box (``x0, y0, x1,
+        y1``) most, so that a face once chosen is followed while another in the searched region
+        grows or comes nearer the centre; the :attr:`select` rule when there is no previous face
+        or none of the faces overlaps it (a cut, or the face came back elsewhere)."""
         boxes = [_box(f.xy) for f in faces]
+        if previous is not None:
+            overlap = [_overlap(previous, b) for b in boxes]
+            if max(overlap) > 0:
+                return faces[int(np.argmax(overlap))]
         if self.select == "largest":
             score = [-(b[2] - b[0]) * (b[3] - b[1]) for b in boxes]
         else:

@@ -41,13 +41,13 @@ class FaceLandmarks(SequenceStage):
     """
 
     name = "landmarks.mediapipe"
-    version = "1"
+    version = "2"  # 2: the face overlapping the previous frame's is followed (was: the rule per frame)
     doc = "MediaPipe Face Landmarker: 478-point face mesh, 52 blendshapes and head matrix per frame"
     inputs = {"frames": "frames"}
     outputs = {"landmarks": "landmarks"}
     params = (
         Param("max_faces", int, 4, "faces looked for per searched region"),
-        Param("select", str, "largest", "face kept when there are several", choices=SELECT_RULES),
+        Param("select", str, "largest", "face chosen when there are several (then followed)", choices=SELECT_RULES),
         Param("min_detection_confidence", float, 0.5, "face detector score threshold"),
         Param("crop_scale", float, 3.0, "crop around the previous face, x its box side (0 = off)"),
         Param("search_tiles", bool, True, "search half-size tiles when the frame has no face"),

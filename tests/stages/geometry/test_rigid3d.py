@@ -110,7 +110,8 @@ def test_stage_holds_frames_without_a_face_and_reports_the_reference():
 
     points, marks, ref, names = _bundles()
     stage = CompensateRigid3D()
-    params = {p.name: p.default for p in stage.params} | {"neutral_frame": 0}
+    # random points, not a face: their "lips" are not closed (test_close_reference_lips_* below)
+    params = {p.name: p.default for p in stage.params} | {"neutral_frame": 0, "close_lips": False}
     out = stage.run({"points": points, "landmarks": marks}, params, Context(device="cpu", files_dir=None))
     d = out["displacements"]
     assert int(d["neutral_frame"]) == 0 and d["held"].tolist() == [False] * 4 + [True, False]
@@ -131,3 +132,66 @@ def test_stage_refuses_points_without_depth():
     with pytest.raises(StageError, match="no depth"):
         stage.run({"points": points, "landmarks": marks}, {p.name: p.default for p in stage.params},
                   Context(device="cpu", files_dir=None))
+
+
+def _face_with_open_lips(gap_px, roll_deg=0.0):
+    """The fixture target's neutral (zhang134 names) with its lips exactly closed, and a copy with
+    the lower inner lips and lower teeth moved down the face by ``gap_px``; both turned by
+    ``roll_deg`` in the image."""
+    from stages.actor_pack import load_pack
+
+    pack = load_pack("fixtures/packs/target")
+    names = np.array(pack.layout.point_names)
+    closed = np.asarray(pack.neutral.points, np.float64)
+    column = {str(n): i for i, n in enumerate(names)}
+    eye_line = closed[column["eye_r_6"]] - closed[column["eye_l_6"]]
+    level = Rotation.from_euler("z", -np.arctan2(eye_line[1], eye_line[0])).as_matrix()[:2, :2]
+    closed = (closed - closed.mean(axis=0)) @ level.T + 256.0  # eye line horizontal
+    for k in range(4):  # lips exactly closed: each pair's lower lip and teeth on the upper lip's line
+        upper = column[f"mouth_inner_{k + 1}"]
+        for name in (f"mouth_inner_{9 - k}", f"teeth_upper_{k}", f"teeth_lower_{k}"):
+            closed[column[name], 1] = closed[upper, 1]
+    opened = closed.copy()
+    lower = np.isin(names, [f"mouth_inner_{k}" for k in (6, 7, 8, 9)] + [f"teeth_lower_{k}" for k in range(4)])
+    opened[lower, 1] += gap_px
+    turn = Rotation.from_euler("z", roll_deg, degrees=True).as_matrix()[:2, :2]
+    centre = closed.mean(axis=0)
+    return (closed - centre) @ turn.T + centre, (opened - centre) @ turn.T + centre, names
+
+
+@pytest.mark.parametrize("roll", [0.0, 25.0])
+def test_close_reference_lips_makes_the_opening_count_from_closed_lips(roll):
+    """Regression (robustness campaign): a reference frame with the lips apart made every frame
+    where the performer closes them push the target's lips through each other (clamped, so the
+    target's mouth opening lost 10-19 % of its amplitude). From the closed reference the
+    displacements carry the whole opening; the compensated geometry itself is unchanged."""
+    from stages.geometry.rigid3d import close_reference_lips
+    from stages.geometry.signals import expression_signals
+
+    face_closed, reference, names = _face_with_open_lips(12.0, roll)
+    frames = np.stack([face_closed, reference, _face_with_open_lips(30.0, roll)[1]])  # closed, as ref, wider
+    d = frames - reference[None]
+    closed, d_closed, gap = close_reference_lips(reference, d, names)
+    assert gap == pytest.approx(12.0)
+    np.testing.assert_allclose(closed[None] + d_closed, frames, atol=1e-9)
+    opening = expression_signals(np.concatenate([closed[None], frames]), names)["mouth_open"]
+    assert opening[0] == pytest.approx(0.0, abs=1e-9)  # the closed reference: lips meet, on the face's axis
+    eye = expression_signals(frames, names)["eye_distance_px"][0]
+    np.testing.assert_allclose(opening[1:] * eye, [0.0, 12.0, 30.0], atol=1e-9)
+    # mapped onto a closed target with no scaling: target opening = performer's, nothing to clamp
+    target = face_closed[None] + d_closed
+    np.testing.assert_allclose(expression_signals(target, names)["mouth_open"] * eye, [0.0, 12.0, 30.0], atol=1e-9)
+    # the points away from the mouth keep their displacements
+    mouth = np.array([str(n).startswith(("mouth_inner", "teeth")) for n in names])
+    np.testing.assert_array_equal(d_closed[:, ~mouth], d[:, ~mouth])
+
+
+def test_close_reference_lips_leaves_a_closed_reference_alone():
+    from stages.geometry.rigid3d import close_reference_lips
+
+    face_closed, _, names = _face_with_open_lips(0.0)
+    d = np.random.default_rng(0).normal(size=(3, len(names), 2))
+    closed, d_closed, gap = close_reference_lips(face_closed, d, names)
+    assert gap == 0.0
+    np.testing.assert_array_equal(closed, face_closed)
+    np.testing.assert_array_equal(d_closed, d)

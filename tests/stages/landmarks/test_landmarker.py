@@ -147,3 +147,31 @@ def test_several_faces_choose_by_the_rule(select, expected):
         assert width > 120 and centre_x < 300
     else:
         assert width < 110 and centre_x > 300
+
+
+def _two_faces(left_scale: float, right_scale: float) -> np.ndarray:
+    """The astronaut's face twice on a 640 x 420 frame, centres at x 160 and 480, each scaled."""
+    x0, y0, x1, y1 = CROP
+    face = np.ascontiguousarray(data.astronaut()[y0:y1, x0:x1])
+    frame = np.full((420, 640, 3), 100, np.uint8)
+    for scale, cx in ((left_scale, 160), (right_scale, 480)):
+        image = cv2.resize(face, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
+        h, w = image.shape[:2]
+        frame[210 - h // 2:210 - h // 2 + h, cx - w // 2:cx - w // 2 + w] = image
+    return frame
+
+
+def test_the_face_chosen_first_is_followed_when_another_grows():
+    """Regression (two people side by side, the robustness campaign on real clips): the rule
+    (largest) chooses the left face in the first frame; when the right one becomes the larger,
+    the left one is still followed. A crop as large as the frame (crop_scale 5) searches both
+    faces every frame, as a wide crop around a face next to another does."""
+    with Landmarker(select="largest", crop_scale=5.0) as lm:
+        first = lm.detect(_two_faces(1.4, 1.2))
+        assert first.valid and first.faces == 2 and first.xy[:, 0].mean() < 320
+        for _ in range(2):
+            mesh = lm.detect(_two_faces(1.2, 1.4))
+            assert mesh.valid and mesh.faces == 2
+            assert mesh.xy[:, 0].mean() < 320  # still the left face
+        lm.reset()  # no previous face: the rule chooses again, the right face is now the largest
+        assert lm.detect(_two_faces(1.2, 1.4)).xy[:, 0].mean() > 320
