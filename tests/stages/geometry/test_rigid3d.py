@@ -195,3 +195,27 @@ def test_close_reference_lips_leaves_a_closed_reference_alone():
     assert gap == 0.0
     np.testing.assert_array_equal(closed, face_closed)
     np.testing.assert_array_equal(d_closed, d)
+
+
+@pytest.mark.parametrize("close_lips", [True, False])
+def test_stage_takes_displacements_from_the_reference_with_closed_lips(close_lips):
+    """The stage's wiring of close_reference_lips (parameter close_lips, default true): the
+    displacements it hands to the mapping start from closed lips; off, from the reference."""
+    from runner.stage import Context
+    from stages.geometry.rigid3d import CompensateRigid3D
+    from stages.geometry.signals import expression_signals
+
+    face_closed, reference, names = _face_with_open_lips(12.0)
+    xy = np.stack([reference, face_closed, _face_with_open_lips(30.0)[1]])
+    n = len(xy)
+    points = {"xy": xy, "z": np.zeros(xy.shape[:2]), "valid": np.ones(xy.shape[:2], bool), "names": names}
+    marks = {"valid": np.ones(n, bool), "blendshapes": np.zeros((n, 1), np.float32),
+             "blendshape_names": np.array(["_neutral"]), "matrix": np.repeat(np.eye(4)[None], n, axis=0)}
+    stage = CompensateRigid3D()
+    params = {p.name: p.default for p in stage.params} | {"neutral_frame": 0, "close_lips": close_lips}
+    assert next(p for p in stage.params if p.name == "close_lips").default is True
+    out = stage.run({"points": points, "landmarks": marks}, params, Context(device="cpu", files_dir=None))["displacements"]
+    np.testing.assert_allclose(out["neutral"][None] + out["d"], xy, atol=1e-6)
+    eye = expression_signals(xy, names)["eye_distance_px"][0]
+    opening = expression_signals(out["neutral"][None], names)["mouth_open"][0] * eye
+    assert opening == pytest.approx(0.0 if close_lips else 12.0, abs=1e-6)
