@@ -8,6 +8,9 @@ VENV_STAMP := .venv/.installed-$(shell sha256sum pyproject.toml | cut -c1-12)
 $(VENV_STAMP): pyproject.toml
 	test -x $(PY) || python3 -m venv .venv
 	$(PY) -m pip install -q --disable-pip-version-check -e '.[test]'
+	# bytecode of the editable packages, as pip writes it for installed ones: start-up does not
+	# recompile them where PYTHONDONTWRITEBYTECODE is set (stale files are recompiled by mtime)
+	$(PY) -m compileall -q runner stages editor scripts > /dev/null
 	rm -f .venv/.installed-* && touch $@
 
 run: $(VENV_STAMP)
