@@ -17,7 +17,10 @@ class StageFailed(Exception):
 
     def __init__(self, node: StageNode, error: StageError):
         self.node = node
-        super().__init__(f"stage {node.name!r} ({node.uses}): {error}")
+        message = str(error)
+        for prefix in (f"{node.uses}: ", f"{node.name}: "):  # a stage that names itself: once
+            message = message.removeprefix(prefix)
+        super().__init__(f"stage {node.name!r} ({node.uses}): {message}")
 
 
 @contextlib.contextmanager

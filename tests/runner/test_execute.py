@@ -152,3 +152,13 @@ def test_file_params_key_on_content_and_out_of_key_params_reuse_the_entry(tmp_pa
     status, reason = statuses(dry_run=True)["lookup"]
     assert status == "will run" and "file of param table changed" in reason
     assert statuses()["lookup"][0] == "ran"
+
+
+@pytest.mark.parametrize("own_prefix", ["t.ramp: ", "ramp: ", ""])
+def test_a_stage_that_names_itself_is_named_once(own_prefix):
+    from runner.config import StageNode, Where
+    from runner.stage import StageError
+
+    node = StageNode("ramp", "t.ramp", Ramp, {}, {}, Where("graph.yaml", 3, 3))
+    failed = StageFailed(node, StageError(f"{own_prefix}no face in clip.mp4"))
+    assert str(failed) == "stage 'ramp' (t.ramp): no face in clip.mp4"
