@@ -1,7 +1,7 @@
 """``expression-editor``: start the editor's local web server and print its URL.
 
     expression-editor --pack PACK [--performance RUN/data/data.npz] [--host 127.0.0.1]
-                      [--port 0] [--device cpu] [--threads 1] [--jpeg-quality 90]
+                      [--port 0] [--device cpu] [--threads 1] [--processes 2] [--jpeg-quality 90]
                       [--preview-scale 0.5] [--allow-remote]
 
 The URL carries a random token made for this run; the server answers no request without it.
@@ -46,7 +46,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--port", type=int, default=0, help="port (default 0: any free port)")
     parser.add_argument("--allow-remote", action="store_true", help="allow a --host that is not a loopback address")
     parser.add_argument("--device", default="cpu", help="torch device of the synthesis (cpu, cuda)")
-    parser.add_argument("--threads", type=int, default=1, help="torch/OpenCV threads of the synthesis (default 1, see docs/editor.md)")
+    parser.add_argument("--threads", type=int, default=1, help="torch/OpenCV threads of the synthesis (default 1; more needs --processes 0, see docs/editor.md)")
+    parser.add_argument("--processes", type=int, default=2, choices=range(0, 9), metavar="0..8",
+                        help="renderer processes (default 2; 0: render on the server's threads, sharing the GIL; see docs/editor.md)")
     parser.add_argument("--jpeg-quality", type=int, default=90, choices=range(1, 101), metavar="1..100",
                         help="quality of the JPEG images sent to the page (while dragging, in-betweens); when the mouse stops the image is PNG")
     parser.add_argument("--preview-scale", type=float, default=0.5,
@@ -61,7 +63,7 @@ async def serve(args: argparse.Namespace) -> None:
     engine = EditorEngine(args.pack, device=args.device, jpeg_quality=args.jpeg_quality, preview_scale=args.preview_scale,
                           performance=args.performance)
     token = secrets.token_urlsafe(24)
-    runner = web.AppRunner(make_app(engine, token=token), access_log=None)
+    runner = web.AppRunner(make_app(engine, token=token, processes=args.processes), access_log=None)
     await runner.setup()
     site = web.TCPSite(runner, args.host, args.port)
     await site.start()

@@ -26,9 +26,10 @@ and encoding, ``propagate_cpu_ms``: CPU time of the propagation,
 ``sizes``: the byte count of each image, ``types``: their MIME types), then the images back to
 back. Stale work is dropped: a request whose ``seq`` is
 older than the newest one seen from its ``client`` is answered 409 ``superseded`` without
-being computed, also when a newer one arrives while it waits for a renderer thread.
-Propagation and synthesis run on ``RENDER_THREADS`` threads (one torch thread each by default),
-so the work of two consecutive requests overlaps on two cores.
+being computed, also when a newer one arrives while it waits for a renderer.
+Propagation, synthesis and encoding run in ``RENDERERS`` renderer processes
+(:mod:`editor.renderers`; one torch thread each by default), so the work of two consecutive
+requests overlaps on two cores without contending for the GIL.
 """
 
 from __future__ import annotations
@@ -37,25 +38,23 @@ import asyncio
 import hmac
 import json
 import logging
-import struct
-import time
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Awaitable, Callable
 
-import numpy as np
 from aiohttp import web
 
 from editor import validate
-from editor.engine import EditorEngine, Rendered
-from editor.geometry import edited_geometry, inbetweens, interpolate_keyframes
+from editor.engine import EditorEngine
+from editor.geometry import interpolate_keyframes
 from editor.points_file import points_file_bytes
+from editor.renderers import Renderers
 
 STATIC = Path(__file__).resolve().parent / "static"
 MAX_BODY = 4 * 1024 * 1024  # bytes; an export of MAX_KEYFRAMES keyframes of 134 points fits
 MAX_CLIENTS = 64  # clients whose newest sequence number is remembered
-RENDER_THREADS = 2  # renderer threads: a page keeps up to this many requests in flight
+RENDERERS = 2  # renderer processes (and threads waiting on them): a page keeps up to this many requests in flight
 TOKEN_HEADER = "X-Editor-Token"
 log = logging.getLogger("editor.server")
 
@@ -63,6 +62,7 @@ ENGINE = web.AppKey("engine", EditorEngine)
 TOKEN = web.AppKey("token", str)
 NEWEST = web.AppKey("newest", OrderedDict)
 EXECUTOR = web.AppKey("executor", ThreadPoolExecutor)
+RENDERER = web.AppKey("renderer", Renderers)
 
 
 def json_error(status: int, message: str) -> web.Response:
@@ -114,35 +114,18 @@ def claim(app: web.Application, client: str, seq: int) -> bool:
     return True
 
 
-def image_answer(meta: dict[str, Any], rendered: Rendered) -> web.Response:
-    header = json.dumps({**meta, "sizes": [len(i) for i in rendered.images], "types": rendered.types}).encode()
-    body = b"".join([struct.pack("<I", len(header)), header, *rendered.images])
-    return web.Response(body=body, content_type="application/octet-stream")
-
-
-async def render_images(
-    request: web.Request, client: str, seq: int, geometries: Callable[[], np.ndarray], render: Callable[[np.ndarray], Rendered]
-) -> web.Response:
-    """Make ``geometries() (B, N, 2)`` and ``render`` them on a renderer thread, or answer 409
-    ``superseded`` when a newer request of ``client`` arrived before the work started. The last
-    geometry is sent with the images."""
+async def render_images(request: web.Request, client: str, seq: int, job: dict[str, Any]) -> web.Response:
+    """The image answer of ``job`` (:mod:`editor.renderers`), made by a renderer, or 409
+    ``superseded`` when a newer request of ``client`` arrived before the work started."""
     app = request.app
 
-    def job() -> tuple[np.ndarray, float, Rendered, float] | None:
-        if app[NEWEST].get(client) != seq:
-            return None
-        wall, start = time.perf_counter(), time.thread_time()
-        points = geometries()
-        propagate_cpu = time.thread_time() - start
-        return points, propagate_cpu, render(points), time.perf_counter() - wall
+    def run() -> bytes | None:
+        return app[RENDERER].run({**job, "seq": seq}) if app[NEWEST].get(client) == seq else None
 
-    done = await asyncio.get_running_loop().run_in_executor(app[EXECUTOR], job)
-    if done is None:
+    body = await asyncio.get_running_loop().run_in_executor(app[EXECUTOR], run)
+    if body is None:
         return json_error(409, "superseded")
-    points, propagate_cpu, rendered, work = done
-    meta = {"seq": seq, "work_ms": work * 1e3, "propagate_cpu_ms": propagate_cpu * 1e3, "synth_ms": rendered.wall_s * 1e3,
-            "synth_cpu_ms": rendered.cpu_s * 1e3, "points": points[-1].tolist()}
-    return image_answer(meta, rendered)
+    return web.Response(body=body, content_type="application/octet-stream")
 
 
 def _limit(engine: EditorEngine) -> float:
@@ -157,10 +140,9 @@ async def handle_render(request: web.Request) -> web.Response:
     preview = validate.flag(body, "preview")
     if not claim(request.app, client, seq):
         return json_error(409, "superseded")
-    geometry = lambda: edited_geometry(engine.pca, pinned, base=base)[None]  # noqa: E731
-    if preview:
-        return await render_images(request, client, seq, geometry, lambda points: engine.preview(points[0]))
-    return await render_images(request, client, seq, geometry, lambda points: engine.render(points, lossless_last=True))
+    job = {"op": "edit", "pinned": [[i, *map(float, xy)] for i, xy in pinned.items()], "preview": preview,
+           "base": None if base is None else base.tolist()}
+    return await render_images(request, client, seq, job)
 
 
 async def handle_inbetweens(request: web.Request) -> web.Response:
@@ -170,8 +152,7 @@ async def handle_inbetweens(request: web.Request) -> web.Response:
     previous, current = validate.inbetween_request(body, n_points=engine.pca.n_points, limit=_limit(engine))
     if not claim(request.app, client, seq):
         return json_error(409, "superseded")
-    return await render_images(request, client, seq, lambda: np.concatenate([inbetweens(previous, current), current[None]]),
-                               lambda points: engine.render(points, lossless_last=True))
+    return await render_images(request, client, seq, {"op": "inbetweens", "from": previous.tolist(), "to": current.tolist()})
 
 
 async def handle_export(request: web.Request) -> web.Response:
@@ -203,17 +184,20 @@ async def handle_index(request: web.Request) -> web.Response:
 
 async def _shutdown(app: web.Application) -> None:
     app[EXECUTOR].shutdown(wait=False, cancel_futures=True)
+    app[RENDERER].close()
 
 
-def make_app(engine: EditorEngine, *, token: str) -> web.Application:
-    """The editor's application, serving ``engine`` to holders of ``token``."""
+def make_app(engine: EditorEngine, *, token: str, processes: int = RENDERERS) -> web.Application:
+    """The editor's application, serving ``engine`` to holders of ``token``; ``processes``
+    renderer processes forked now (0: the renderer threads render, sharing the GIL)."""
     if len(token) < 16:
         raise ValueError(f"token must have at least 16 characters, got {len(token)}")
     app = web.Application(middlewares=[guard], client_max_size=MAX_BODY)
     app[ENGINE] = engine
     app[TOKEN] = token
     app[NEWEST] = OrderedDict()
-    app[EXECUTOR] = ThreadPoolExecutor(max_workers=RENDER_THREADS, thread_name_prefix="editor-render")
+    app[EXECUTOR] = ThreadPoolExecutor(max_workers=processes or RENDERERS, thread_name_prefix="editor-render")
+    app[RENDERER] = Renderers(engine, processes=processes)
     app.on_cleanup.append(_shutdown)
     app.router.add_get("/", handle_index)
     app.router.add_get("/api/describe", handle_describe)

@@ -13,7 +13,7 @@ records, per image drawn, the time since the pointer event whose geometry it sho
 * ``editor_synth_fps``: the synthesis-only rate in the same run, 1000 / median server time per
   image (synthesis and JPEG encoding, without propagation, transfer and decoding);
 * ``editor_wait_ms_p50``: request sent -> answer received, less the server's work on it (the
-  wait for a renderer thread and the transfer); ``editor_decode_ms_p50``: answer received ->
+  wait for a renderer and the transfer); ``editor_decode_ms_p50``: answer received ->
   image decoded in the page.
 
 The drag is measured twice: with the server's default previews (``--preview-scale``, 0.5) and,
@@ -25,12 +25,12 @@ instead the CPU time of each part of an update in this process (``editor_part_*`
     python scripts/bench.py editor --json [--pack PACK] [--seconds 8] [--screenshot docs/img/editor.png]
 
 * ``editor_synth_cpu_ms_p50``, ``editor_propagate_cpu_ms_p50``: CPU time of the server's
-  renderer thread per image for synthesis and JPEG encoding, and for motion propagation (with
+  renderer per image for synthesis and JPEG encoding, and for motion propagation (with
   one torch thread that is all of it; unlike wall-clock time it hardly grows when other
   processes load the machine, so it tells what an idle machine would do).
 
-The server runs with ``--threads 1`` (its default; ``--threads N`` here to compare): on 2 cores
-the browser needs the other one.
+The server runs with ``--threads 1`` and ``--processes 2`` (its defaults; ``--processes 0``
+here renders on the server's threads, to compare; ``--threads N`` needs ``--processes 0``).
 """
 
 from __future__ import annotations
@@ -121,7 +121,7 @@ def drag_session(page, *, point: str, seconds: float, move_ms: float) -> dict:
 
 def measure(pack: Path, opts: argparse.Namespace, *, preview_scale: float, screenshot: Path | None = None) -> dict:
     """Serve ``pack`` with ``preview_scale``, drag in Chromium; the stats of the measured drag."""
-    process, url = spawn(pack, "--threads", str(opts.threads), "--preview-scale", str(preview_scale))
+    process, url = spawn(pack, "--threads", str(opts.threads), "--processes", str(opts.processes), "--preview-scale", str(preview_scale))
     try:
         with chromium() as browser:
             page = browser.new_page(viewport={"width": 1000, "height": 840})
@@ -146,6 +146,7 @@ def run(args: argparse.Namespace) -> list[dict]:
     parser.add_argument("--move-ms", type=float, default=8.0, help="pause between pointer moves, ms")
     parser.add_argument("--point", default="mouth_outer_12", help="the feature point dragged")
     parser.add_argument("--threads", type=int, default=1, help="torch/OpenCV threads of the server (its --threads)")
+    parser.add_argument("--processes", type=int, default=2, help="renderer processes of the server (its --processes; 0: threads)")
     parser.add_argument("--preview-scale", type=float, default=0.5, help="the server's --preview-scale (its default 0.5)")
     parser.add_argument("--no-full", action="store_true", help="skip the second drag with full-size previews (--preview-scale 1)")
     parser.add_argument("--screenshot", type=Path, help="also save a screenshot of the editor (PNG, subregions shown)")
