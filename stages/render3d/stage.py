@@ -11,7 +11,7 @@ and textured with the frame's synthesized image (``synthesis.synthesize`` withou
 the expression in the target's own frame, whose feature points are the mesh's ``uv``). Outputs:
 ``frames`` sRGB over black, ``mask`` alpha (MSAA coverage x the synthesized face mask),
 ``depth`` camera depth in mm (``inf`` where empty), and ``exr``: ``frame.%06d.exr`` RGBA + Z
-(:mod:`stages.render3d.exr_depth`).
+(:func:`stages.writers.exr.write_exr` with ``depth``).
 """
 
 from __future__ import annotations
@@ -23,12 +23,11 @@ import numpy as np
 from runner.stage import Context, FrameStage, Param, SequenceStage, StageError, StreamInfo
 from stages.geometry.rigid3d import euler_yaw_pitch_roll
 from stages.mesh3d.stage import GEOMETRY, mesh_vertices
-from stages.render3d.exr_depth import write_exr_depth
 from stages.render3d.frame import render_textured, scaled_intrinsics, to_display
 from stages.render3d.head import apply_head, head_motion_3d
 from stages.render3d.raster import MeshRenderer
 from stages.synthesis.synthesize import head_motion_frame
-from stages.writers.exr import exr_name, frame_attributes
+from stages.writers.exr import exr_name, frame_attributes, write_exr
 
 
 def _field(bundle: Mapping[str, np.ndarray], key: str, stage: str, port: str) -> np.ndarray:
@@ -175,7 +174,7 @@ class Render3D(FrameStage):
                 attrs["exmap:head_t_mm"] = tuple(float(x) for x in np.asarray(head["t"][frame]))
             rgba, depth = render_textured(renderer, v, mesh["triangles"], mesh["uv"][frame], textures[i], A,
                                           mask=None if masks is None else masks[i])
-            write_exr_depth(folder / exr_name(frame), rgba, depth, attributes=attrs, compression=params["compression"])
+            write_exr(folder / exr_name(frame), rgba, attributes=attrs, compression=params["compression"], depth=depth)
             rgb, alpha = to_display(rgba)
             frames.append(rgb)
             alphas.append(alpha)

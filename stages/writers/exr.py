@@ -124,8 +124,12 @@ def exr_spec(width: int, height: int, *, attributes: Mapping[str, Attribute], co
     return spec
 
 
+DEPTH_UNIT = "mm"
+
+
 def write_exr(
-    path: Path, rgba: np.ndarray, *, attributes: Mapping[str, Attribute], compression: str = "zip"
+    path: Path, rgba: np.ndarray, *, attributes: Mapping[str, Attribute], compression: str = "zip",
+    depth: np.ndarray | None = None,
 ) -> None:
     """Write one half-float RGBA EXR atomically (temp name in the same folder, then rename).
 
@@ -135,22 +139,37 @@ def write_exr(
     rgba : (H, W, 4) float32, premultiplied scene-linear RGBA (see :func:`to_linear_rgba`).
     attributes : extra header attributes (see :func:`frame_attributes`).
     compression : one of ``COMPRESSIONS`` (all lossless).
+    depth : optional (H, W) camera depth of the surface at each pixel centre, in ``DEPTH_UNIT``
+        (mm, z away from the camera; ``inf`` where no surface is): written as a 32-bit float ``Z``
+        channel after RGBA, with the header attribute ``exmap:depth_unit``.
 
     Raises
     ------
+    ValueError
+        ``depth`` is not (H, W).
     StageError
         The file cannot be created or written (folder missing or read-only, disk full).
     """
     import OpenImageIO as oiio
     height, width = rgba.shape[:2]
+    pixels = np.ascontiguousarray(rgba, np.float32)
+    if depth is not None:
+        if depth.shape != (height, width):
+            raise ValueError(f"expected depth ({height}, {width}), got {depth.shape}")
+        attributes = {**attributes, "exmap:depth_unit": DEPTH_UNIT}
+        pixels = np.ascontiguousarray(np.concatenate([pixels, np.asarray(depth, np.float32)[..., None]], axis=2))
     spec = exr_spec(width, height, attributes=attributes, compression=compression)
+    if depth is not None:
+        spec.nchannels = 5
+        spec.channelnames = ("R", "G", "B", "A", "Z")
+        spec.channelformats = (oiio.HALF,) * 4 + (oiio.FLOAT,)
     try:
         with atomic_write(path) as tmp:
             out = oiio.ImageOutput.create("openexr")
             if out is None or not out.open(str(tmp), spec):
                 reason = out.geterror() if out is not None else oiio.geterror()
                 raise StageError(f"cannot write EXR {path}: {reason or 'open failed'}")
-            ok = out.write_image(np.ascontiguousarray(rgba, np.float32))
+            ok = out.write_image(pixels)
             ok = out.close() and ok
             if not ok:
                 raise StageError(f"cannot write EXR {path}: {out.geterror() or 'write failed'}")
