@@ -21,6 +21,8 @@ from stages.color import to_uint8
 from stages.writers.lut import apply_elementwise
 
 CODECS = {"h264": ("libx264", "yuv420p", ".mp4"), "ffv1": ("ffv1", "bgr0", ".mkv")}
+# Audio codecs copied as they are into the MP4 (an MKV takes any): what browsers play from MP4.
+MP4_AUDIO = frozenset({"aac", "mp3", "alac", "opus", "flac", "ac3"})
 
 
 def _open(path: Path) -> tuple[av.container.InputContainer, av.video.stream.VideoStream]:
@@ -197,11 +199,16 @@ class VideoWriter:
         ``"ffv1"``: FFV1 lossless 8-bit RGB (decodes to exactly the frames written).
     crf
         x264 constant rate factor, 0 (lossless luma) .. 51; ignored by FFV1.
+    audio_from
+        A clip whose first audio stream is copied into the file as it is (no re-encoding), its
+        timestamps shifted so that the clip's first video frame is at time 0; None, a clip without
+        audio, or (MP4) a codec outside ``MP4_AUDIO``: no audio (the last with a warning).
 
     Output is bit-exact across runs (``+bitexact`` muxing, frame i at pts i).
     """
 
-    def __init__(self, path: Path, *, fps: float, width: int, height: int, codec: str = "h264", crf: int = 18):
+    def __init__(self, path: Path, *, fps: float, width: int, height: int, codec: str = "h264", crf: int = 18,
+                 audio_from: Path | None = None):
         import av
         if codec not in CODECS:
             raise StageError(f"{path}: unknown codec {codec!r} (expected one of {', '.join(CODECS)})")
@@ -226,6 +233,26 @@ class VideoWriter:
             # the encoder output is a function of the frames alone.
             self._stream.options = {"crf": str(crf), "x264-params": "mbtree=0"}
         self._count = 0
+        self._audio_in, self._audio_out = self._audio_source(audio_from, codec) if audio_from else (None, None)
+
+    def _audio_source(self, clip: Path, codec: str) -> tuple[Any, Any]:
+        """The clip's first audio stream and its copy in the output, or (None, None)."""
+        import av
+        try:
+            source = av.open(str(clip))
+        except (av.FFmpegError, OSError) as exc:
+            raise StageError(f"{clip}: not a readable clip for its audio ({_reason(exc)})") from None
+        if not source.streams.audio:
+            source.close()
+            return None, None
+        audio = source.streams.audio[0]
+        if codec == "h264" and audio.codec_context.name not in MP4_AUDIO:
+            logging.getLogger("runner.stage").warning(
+                "%s: audio codec %s is not copied into the MP4 (copied: %s)", clip, audio.codec_context.name,
+                ", ".join(sorted(MP4_AUDIO)))
+            source.close()
+            return None, None
+        return audio, self._container.add_stream_from_template(audio)
 
     def write(self, frames: np.ndarray) -> None:
         """Append frames ``(B, H, W, 3)`` uint8 RGB or ``(B, H, W, 1)`` uint8 gray."""
@@ -250,11 +277,33 @@ class VideoWriter:
             self._container.mux(self._stream.encode(frame))
 
     def close(self) -> None:
-        """Flush the encoder and finish the file."""
+        """Flush the encoder, copy the audio (if any) and finish the file."""
         if self._container is not None:
             self._container.mux(self._stream.encode(None))
+            if self._audio_in is not None:
+                self._copy_audio()
             self._container.close()
             self._container = None
+
+    def _copy_audio(self) -> None:
+        """Remux the source's audio packets, shifted so the source's first video frame is at 0
+        and cut at the end of the video written."""
+        source, audio = self._audio_in.container, self._audio_in
+        video = source.streams.video[0] if source.streams.video else None
+        start_s = float(video.start_time * video.time_base) if video is not None and video.start_time is not None else 0.0
+        end_s = self._count * float(self._time_base)
+        shift = round(start_s / audio.time_base)
+        for packet in source.demux(audio):
+            if packet.dts is None or packet.pts is None:
+                continue
+            if float((packet.pts - shift) * audio.time_base) >= end_s:
+                break
+            packet.pts -= shift
+            packet.dts -= shift
+            packet.stream = self._audio_out
+            self._container.mux(packet)
+        source.close()
+        self._audio_in = None
 
     def __enter__(self) -> VideoWriter:
         return self
@@ -267,9 +316,10 @@ class WriteVideo(SequenceStage):
     """Encode a frame stream to one video file (H.264 MP4 or FFV1 MKV)."""
 
     name = "write.video"
-    version = "1"
-    doc = "Encode frames (uint8, or float sRGB in [0, 1]) to a video file: H.264 MP4 or FFV1 MKV."
-    inputs = {"frames": "frames"}
+    version = "2"
+    doc = "Encode frames (uint8, or float sRGB in [0, 1]) to a video file: H.264 MP4 or FFV1 MKV; audio copied from 'audio'."
+    inputs = {"frames": "frames", "audio": "video"}
+    optional_inputs = frozenset({"audio"})
     outputs = {"video": "files"}
     params = (
         Param("codec", str, "h264", "h264 (yuv420p MP4, plays in browsers) or ffv1 (lossless RGB MKV)",
@@ -285,7 +335,7 @@ class WriteVideo(SequenceStage):
         info = stream.info
         path = ctx.files_dir("video") / f"{params['filename']}{CODECS[params['codec']][2]}"
         with VideoWriter(path, fps=info.fps, width=info.width, height=info.height,
-                         codec=params["codec"], crf=params["crf"]) as writer:
+                         codec=params["codec"], crf=params["crf"], audio_from=inputs.get("audio")) as writer:
             for _, frames in stream.chunks():
                 writer.write(apply_elementwise(to_uint8, frames))  # half floats by lookup
                 ctx.progress(len(frames))

@@ -231,3 +231,59 @@ def test_phone_display_rotation_is_applied(tmp_path, matrix, turns):
     assert (info.height, info.width) == upright.shape[1:3]
     frames = VideoDecode().process(0, 5, {"video": rotated}, {}, None)["frames"]
     np.testing.assert_array_equal(frames, upright)
+
+
+def _clip_with_audio(path: Path, *, frames: int, fps: int, audio_codec: str, sample_rate: int = 48000) -> np.ndarray:
+    """An H.264 clip with a 440 Hz tone in ``audio_codec``; returns the tone's samples (mono)."""
+    images = synthetic_frames(0, frames, width=64, height=48)
+    tone = (0.3 * np.sin(2 * np.pi * 440 * np.arange(frames * sample_rate // fps) / sample_rate)).astype(np.float32)
+    with av.open(str(path), "w") as container:
+        video = container.add_stream("libx264", rate=fps)
+        video.width, video.height, video.pix_fmt = 64, 48, "yuv420p"
+        audio = container.add_stream(audio_codec, rate=sample_rate, layout="mono")
+        for image in images:
+            container.mux(video.encode(av.VideoFrame.from_ndarray(image, format="rgb24")))
+        step = 1024
+        for k in range(0, len(tone), step):
+            block = tone[k:k + step]
+            frame = av.AudioFrame.from_ndarray(block[None, :], format="fltp", layout="mono")
+            frame.sample_rate, frame.pts = sample_rate, k
+            container.mux(audio.encode(frame))
+        container.mux(video.encode(None))
+        container.mux(audio.encode(None))
+    return images
+
+
+def _audio_packets(path: Path) -> list[bytes]:
+    with av.open(str(path)) as container:
+        if not container.streams.audio:
+            return []
+        return [bytes(p) for p in container.demux(container.streams.audio[0]) if p.size]
+
+
+def test_write_video_copies_the_clips_audio_unchanged(tmp_path):
+    """The result plays with the performer's sound: the clip's AAC packets are copied as they are,
+    the video is the frames written, and the audio lasts as long as the video."""
+    clip = tmp_path / "talk.mp4"
+    images = _clip_with_audio(clip, frames=25, fps=25, audio_codec="aac")
+    for name, source in (("result.mp4", clip), ("silent.mp4", None)):
+        with VideoWriter(tmp_path / name, fps=25, width=64, height=48, audio_from=source) as writer:
+            writer.write(images)
+    with av.open(str(tmp_path / "result.mp4")) as result:
+        assert result.streams.audio[0].codec_context.name == "aac"
+        audio_s = float(result.streams.audio[0].duration * result.streams.audio[0].time_base)
+        assert abs(audio_s - 1.0) < 0.05
+    assert _audio_packets(tmp_path / "result.mp4") == _audio_packets(clip)
+    np.testing.assert_array_equal(_decode_all(tmp_path / "result.mp4"), _decode_all(tmp_path / "silent.mp4"))
+
+
+def test_audio_an_mp4_cannot_hold_is_left_out_with_a_warning(tmp_path, caplog):
+    clip = tmp_path / "talk.mkv"
+    images = _clip_with_audio(clip, frames=10, fps=25, audio_codec="pcm_s16le")
+    with VideoWriter(tmp_path / "result.mp4", fps=25, width=64, height=48, audio_from=clip) as writer:
+        writer.write(images)
+    assert _audio_packets(tmp_path / "result.mp4") == []
+    assert any("pcm_s16le" in r.getMessage() and "not copied" in r.getMessage() for r in caplog.records)
+    with VideoWriter(tmp_path / "result.mkv", fps=25, width=64, height=48, codec="ffv1", audio_from=clip) as writer:
+        writer.write(images)
+    assert _audio_packets(tmp_path / "result.mkv") == _audio_packets(clip)
