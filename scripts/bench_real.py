@@ -263,7 +263,9 @@ def cross_sheet(runs: list[tuple[Any, Path]], path: Path, *, count: int = SHEET_
     width = max(r.shape[1] for r in rows)
     sheet = np.concatenate([np.pad(r, ((0, 4), (0, width - r.shape[1]), (0, 0)), constant_values=255)
                             for r in rows], axis=0)[:-4]
-    cv2.imwrite(str(path), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_PNG_COMPRESSION, 9])
+    jpeg = Path(path).suffix.lower() in (".jpg", ".jpeg")  # format by suffix: .png or .jpg
+    cv2.imwrite(str(path), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR),
+                [cv2.IMWRITE_JPEG_QUALITY, 88] if jpeg else [cv2.IMWRITE_PNG_COMPRESSION, 9])
 
 
 def cross_rows(clips: list[Path], work: Path, target: Path, sheet: Path | None) -> list[dict[str, Any]]:
@@ -353,7 +355,7 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     parser.add_argument("--no-realtex", action="store_true", help="skip the real-texture clips")
     parser.add_argument("--no-clips", action="store_true", help="skip the real clips' own rows (--target still maps them)")
     parser.add_argument("--target", type=Path, help="also map each clip onto this actor pack (real_cross_ rows)")
-    parser.add_argument("--cross-sheet", type=Path, help="with --target: write the points | result sheet here (PNG)")
+    parser.add_argument("--cross-sheet", type=Path, help="with --target: write the points | result sheet here (.png, or .jpg at quality 88)")
     options = parser.parse_args(args.extra)
     work = Path(args.work) / BENCH
     rows: list[dict[str, Any]] = []

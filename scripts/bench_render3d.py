@@ -174,7 +174,7 @@ def run(args: argparse.Namespace) -> list[dict]:
     opts = parser.parse_args(args.extra)
     pack = load_pack(opts.pack)
     truth = dict(np.load(opts.pack / "truth.npz", allow_pickle=False))
-    model = build_target_model(pack)
+    model = build_target_model(pack, pack.model3d, pack.intrinsics)
     skin = np.array([not n.startswith("teeth_") for n in model.names])
     rows, sec9 = geometry_rows(model, truth, skin)
     rows += depth_source_rows(pack, model, truth, skin)

@@ -237,11 +237,7 @@ class VideoWriter:
 
     def _audio_source(self, clip: Path, codec: str) -> tuple[Any, Any]:
         """The clip's first audio stream and its copy in the output, or (None, None)."""
-        import av
-        try:
-            source = av.open(str(clip))
-        except (av.FFmpegError, OSError) as exc:
-            raise StageError(f"{clip}: not a readable clip for its audio ({_reason(exc)})") from None
+        source, _ = _open(clip)
         if not source.streams.audio:
             source.close()
             return None, None
@@ -289,8 +285,8 @@ class VideoWriter:
         """Remux the source's audio packets, shifted so the source's first video frame is at 0
         and cut at the end of the video written."""
         source, audio = self._audio_in.container, self._audio_in
-        video = source.streams.video[0] if source.streams.video else None
-        start_s = float(video.start_time * video.time_base) if video is not None and video.start_time is not None else 0.0
+        video = source.streams.video[0]  # _open checked there is one
+        start_s = float(video.start_time * video.time_base) if video.start_time is not None else 0.0
         end_s = self._count * float(self._time_base)
         shift = round(start_s / audio.time_base)
         for packet in source.demux(audio):

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from stages.actor_pack import ActorPack
+from stages.layout import Layout
+from stages.pack.bundles import PackImages
 from stages.synthesis.warp import triangulate
 
 __all__ = ["TargetModel", "fit_generic_depth", "lift", "skin_triangles", "build_target_model", "face_subregions"]
@@ -135,9 +137,8 @@ def skin_triangles(points: np.ndarray, skin: np.ndarray) -> np.ndarray:
     return np.where((area < 0)[:, None], tri[:, [0, 2, 1]], tri).astype(np.int32)
 
 
-def face_subregions(pack: ActorPack) -> np.ndarray:
+def face_subregions(layout: Layout) -> np.ndarray:
     """``(S, N)`` bool membership G^R of each face subregion (teeth subregion left out)."""
-    layout = pack.layout
     rows = [s for s in layout.subregions if not s.teeth]
     members = np.zeros((len(rows), layout.n_points), bool)
     for k, s in enumerate(rows):
@@ -145,8 +146,15 @@ def face_subregions(pack: ActorPack) -> np.ndarray:
     return members
 
 
-def build_target_model(pack: ActorPack) -> TargetModel:
+def build_target_model(pack: ActorPack | PackImages, model3d: np.ndarray, intrinsics: np.ndarray) -> TargetModel:
     """The target's 3D model from an actor pack (depth from the posed generic model).
+
+    Parameters
+    ----------
+    pack : the pack's layout, image size, neutral, standard and examples (an :class:`ActorPack`, or
+        the :class:`PackImages` of ``pack.load``'s ``images`` bundle).
+    model3d : (N, 3) the generic 3D model in the layout's point order, mm.
+    intrinsics : (3, 3) the camera matrix A of eq. 10, px.
 
     Raises
     ------
@@ -155,8 +163,8 @@ def build_target_model(pack: ActorPack) -> TargetModel:
     """
     names = np.array(pack.layout.point_names)
     skin = np.array([not n.startswith("teeth_") for n in names])
-    A = np.asarray(pack.intrinsics, np.float64)
-    depth, R, t = fit_generic_depth(pack.model3d, pack.neutral.points, A, use=skin)
+    A = np.asarray(intrinsics, np.float64)
+    depth, R, t = fit_generic_depth(model3d, pack.neutral.points, A, use=skin)
     examples = lift(np.stack([e.points for e in pack.examples]), depth, A)
     return TargetModel(
         names=names,
@@ -167,7 +175,7 @@ def build_target_model(pack: ActorPack) -> TargetModel:
         examples=examples,
         example_names=np.array([e.name for e in pack.examples]),
         triangles=skin_triangles(pack.standard.points, skin),
-        members=face_subregions(pack),
+        members=face_subregions(pack.layout),
         head_R=R,
         head_t=t,
     )

@@ -29,9 +29,9 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
-from stages.actor_pack import load_pack
 from stages.mesh3d.model import build_target_model, lift
 from stages.mesh3d.synthesis import synthesize_3d
+from stages.pack.bundles import camera_from_bundle, images_from_bundle, layout_from_bundle, model3d_from_bundle
 
 
 #: The parameter of the stages that read a ``mesh3d`` bundle: which geometry they take.
@@ -51,15 +51,22 @@ class Mesh3DSynthesize(SequenceStage):
     """``mesh3d.synthesize``: lift the target geometry to 3D and synthesize it from 3D examples."""
 
     name = "mesh3d.synthesize"
-    version = "1"
+    version = "2"
     doc = "Sec. 9: target 2D geometry per frame -> 3D expression mesh (per-subregion QP on 3n-vectors, vertex blending)"
-    inputs = {"pack": "dir", "points": "points"}
+    inputs = {"layout": "layout", "images": "pack_images", "model3d": "pack_model3d", "camera": "camera",
+              "points": "points"}
     outputs = {"mesh": "mesh3d"}
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
-        pack = load_pack(inputs["pack"])
         try:
-            model = build_target_model(pack)
+            layout = layout_from_bundle(inputs["layout"])
+            pack = images_from_bundle(inputs["images"], layout)
+            model3d = model3d_from_bundle(inputs["model3d"], layout.point_names)
+            intrinsics = camera_from_bundle(inputs["camera"], size=pack.image_size)
+        except ValueError as exc:
+            raise StageError(f"{self.name}: {exc}") from None
+        try:
+            model = build_target_model(pack, model3d, intrinsics)
         except ValueError as exc:
             raise StageError(f"{self.name}: pack {pack.path}: model3d: {exc}") from None
         bundle = inputs["points"]

@@ -36,7 +36,7 @@ def test_generic_depth_is_exact_when_the_model_is_the_face():
 def test_fixture_model_depth_error_is_bounded_and_the_mesh_is_counter_clockwise():
     pack = load_pack("fixtures/packs/target")
     truth = np.load("fixtures/packs/target/truth.npz")
-    model = build_target_model(pack)
+    model = build_target_model(pack, pack.model3d, pack.intrinsics)
     true3d = truth["neutral_points3d"] @ truth["R"].T + truth["t"]
     skin = np.array([not n.startswith("teeth_") for n in model.names])
     err = np.linalg.norm(model.neutral - true3d, axis=1)[skin]

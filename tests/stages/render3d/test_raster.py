@@ -45,7 +45,7 @@ def test_pack_mesh_at_identity_pose_matches_the_image_where_frontal(renderer):
     from stages.mesh3d.model import build_target_model
 
     pack = load_pack("fixtures/packs/target")
-    model = build_target_model(pack)
+    model = build_target_model(pack, pack.model3d, pack.intrinsics)
     Wp, Hp = pack.image_size
     r = MeshRenderer((Wp, Hp), samples=4)
     try:

@@ -18,12 +18,15 @@ PACK = Path("fixtures/packs/target")
 @pytest.fixture(scope="module")
 def chain(tmp_path_factory):
     from stages.actor_pack import load_pack
+    from stages.pack.bundles import pack_to_bundles
 
     root = tmp_path_factory.mktemp("render3d")
     ctx = files_context(root)
     pack = load_pack(PACK)
     xy = np.stack([pack.neutral.points, pack.standard.points])
-    mesh = Mesh3DSynthesize().run({"pack": PACK, "points": {"xy": xy, "fps": np.array(25.0)}}, {}, ctx)["mesh"]
+    bundles = pack_to_bundles(pack)
+    pack_inputs = {port: bundles[port] for port in ("layout", "images", "model3d", "camera")}
+    mesh = Mesh3DSynthesize().run({**pack_inputs, "points": {"xy": xy, "fps": np.array(25.0)}}, {}, ctx)["mesh"]
     R = np.stack([np.eye(3), Rotation.from_euler("y", 20, degrees=True).as_matrix()])
     pose = {"R": R, "tvec": np.zeros((2, 3)), "scale": np.ones(2), "valid": np.ones(2, bool)}
     head = HeadPose3D().run({"mesh": mesh, "pose": pose}, {"translation_scale": 1.0}, ctx)["head"]
