@@ -2,7 +2,7 @@
 
     expression-editor --pack PACK [--performance RUN/data/data.npz] [--host 127.0.0.1]
                       [--port 0] [--device cpu] [--threads 1] [--processes 2] [--jpeg-quality 90]
-                      [--preview-scale 0.5] [--allow-remote]
+                      [--preview-scale 1] [--allow-remote]
 
 The URL carries a random token made for this run; the server answers no request without it.
 It binds to 127.0.0.1 unless ``--host`` names another address, which also needs
@@ -51,8 +51,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help="renderer processes (default 2; 0: render on the server's threads, sharing the GIL; see docs/editor.md)")
     parser.add_argument("--jpeg-quality", type=int, default=90, choices=range(1, 101), metavar="1..100",
                         help="quality of the JPEG images sent to the page (while dragging, in-betweens); when the mouse stops the image is PNG")
-    parser.add_argument("--preview-scale", type=float, default=0.5,
-                        help="size of the images shown while dragging, fraction of the pack's image size, in (0, 1] (default 0.5, see docs/editor.md)")
+    parser.add_argument("--preview-scale", type=float, default=1.0,
+                        help="size of the images shown while dragging, fraction of the pack's image size, in (0, 1] (default 1: the pack's size; see docs/editor.md)")
     return parser.parse_args(argv)
 
 

@@ -54,13 +54,15 @@ def to_uint8(rgb: torch.Tensor) -> np.ndarray:
 
     Parameters
     ----------
-    rgb : (B, 3, H, W) float tensor, sRGB in [0, 1]
+    rgb : (B, 3, H, W) float tensor, sRGB, nominally in [0, 1] (values outside are clamped)
 
     Returns
     -------
-    (B, H, W, 3) uint8, BGR (OpenCV's channel order), rounded to nearest.
+    (B, H, W, 3) uint8, BGR (OpenCV's channel order), ``floor(255 v + 0.5)`` clamped to 0..255:
+    rounded to nearest, halves up.
     """
-    return (rgb.flip(1) * 255.0 + 0.5).clamp_(0, 255).to(torch.uint8).permute(0, 2, 3, 1).contiguous().cpu().numpy()
+    levels = torch.mul(rgb, 255.0).add_(0.5).clamp_(0, 255).to(torch.uint8).cpu().numpy()  # (B, 3, H, W)
+    return np.stack([cv2.merge([image[2], image[1], image[0]]) for image in levels])
 
 
 def encode(image: np.ndarray, *, mime: str, jpeg_quality: int = 90) -> bytes:
@@ -143,7 +145,7 @@ class EditorEngine:
         Quality of the JPEG images sent to the page (previews and in-betweens), 1..100.
     preview_scale : float
         Size of the images shown while dragging, as a fraction of the pack's image size, in
-        (0, 1] (see :meth:`preview`).
+        (0, 1] (see :meth:`preview`; 1: the pack's size).
     performance : Path, optional
         A run's ``data.npz`` whose frames can be loaded and touched up.
     """
@@ -154,7 +156,7 @@ class EditorEngine:
         *,
         device: str = "cpu",
         jpeg_quality: int = 90,
-        preview_scale: float = 0.5,
+        preview_scale: float = 1.0,
         performance: Path | None = None,
     ) -> None:
         if not 1 <= int(jpeg_quality) <= 100:
@@ -182,8 +184,8 @@ class EditorEngine:
 
     def preview(self, points: np.ndarray) -> Rendered:
         """The image shown while dragging: the synthesis at ``preview_scale`` of the pack's size
-        (:class:`editor.preview.PreviewSynthesizer`), as one JPEG; with ``preview_scale`` 1 it is
-        :meth:`render`'s image.
+        (:class:`editor.preview.PreviewSynthesizer`), as one JPEG; with ``preview_scale`` 1 (the
+        default) it is :meth:`render`'s image before JPEG (to float32 rounding).
 
         Parameters
         ----------

@@ -16,13 +16,20 @@ records, per image drawn, the time since the pointer event whose geometry it sho
   wait for a renderer and the transfer); ``editor_decode_ms_p50``: answer received ->
   image decoded in the page.
 
-The drag is measured twice: with the server's default previews (``--preview-scale``, 0.5) and,
-as the ``editor_full_*`` rows, with full-size previews (``--preview-scale 1``: the pipeline's
-image at the pack's size on every update, the baseline). ``--parts`` measures
-instead the CPU time of each part of an update in this process (``editor_part_*`` rows, see
-:func:`profile_parts`).
+* ``editor_cpu_ms_per_update_{server,renderers,browser,driver}``: CPU time (user + system,
+  from ``/proc``) of the editor's server process, its renderer processes, Chromium's processes
+  and playwright's driver over the measured drag, divided by the images drawn (what one update
+  costs the machine, all of it; the browser's and the driver's share is mostly per pointer event
+  and per displayed frame, not per image).
 
-    python scripts/bench.py editor --json [--pack PACK] [--seconds 8] [--screenshot docs/img/editor.png]
+The drag is measured twice: with the server's defaults (``--preview-scale`` 1: the pipeline's
+image at the pack's size on every update, as JPEG) and, as the ``editor_half_*`` rows, with
+half-size images while dragging (``--preview-scale 0.5``, the previous default), in the same
+run. ``--parts`` measures instead the CPU time of each part of an update in this process
+(``editor_part_*`` rows, see :func:`profile_parts`), among them the pipeline's synthesis of one
+image (``synth_pipeline``) against the editor's drag image at full size (``synth_drag``).
+
+    python scripts/bench.py editor --json [--pack PACK] [--seconds 8] [--no-half] [--screenshot docs/img/editor.png]
 
 * ``editor_synth_cpu_ms_p50``, ``editor_propagate_cpu_ms_p50``: CPU time of the server's
   renderer per image for synthesis and JPEG encoding, and for motion propagation (with
@@ -87,8 +94,38 @@ def percentile(values: list[float], q: float) -> float:
     return float(np.percentile(np.asarray(values, np.float64), q)) if values else float("nan")
 
 
-def drag_session(page, *, point: str, seconds: float, move_ms: float) -> dict:
-    """Drag ``point`` round an ellipse for ``seconds``; the page's stats of that window."""
+def process_cpu_s(server: int) -> dict[str, float]:
+    """CPU seconds (user + system) so far of this benchmark's descendant processes, by role:
+    ``server`` (the editor's server process ``server``), ``renderers`` (its children),
+    ``browser`` (Chromium's processes) and ``driver`` (the rest: playwright's driver).
+    Read from ``/proc`` (Linux)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    table = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            text = stat.read_text()
+            cmdline = (stat.parent / "cmdline").read_bytes()
+        except OSError:  # the process ended meanwhile
+            continue
+        fields = text[text.rindex(")") + 2:].split()  # after the command name, which may hold spaces
+        table[int(stat.parent.name)] = (int(fields[1]), (int(fields[11]) + int(fields[12])) / tick, cmdline)
+    mine, grew = {os.getpid()}, True
+    while grew:
+        found = {pid for pid, (ppid, _, _) in table.items() if ppid in mine} - mine
+        mine |= found
+        grew = bool(found)
+    totals = dict.fromkeys(("server", "renderers", "browser", "driver"), 0.0)
+    for pid in mine - {os.getpid()}:
+        ppid, cpu, cmdline = table[pid]
+        role = ("server" if pid == server else "renderers" if ppid == server
+                else "browser" if b"chromium" in cmdline else "driver")
+        totals[role] += cpu
+    return totals
+
+
+def drag_session(page, *, point: str, seconds: float, move_ms: float, server: int) -> dict:
+    """Drag ``point`` round an ellipse for ``seconds``; the page's stats of that window and the
+    CPU time of each process role (:func:`process_cpu_s`) over it."""
     layout = page.evaluate("window.editor.layout()")
     index = layout["names"].index(point)
     x0, y0 = page.evaluate("window.editor.geometry()")[index]
@@ -97,12 +134,14 @@ def drag_session(page, *, point: str, seconds: float, move_ms: float) -> dict:
     page.mouse.move(cx, cy)
     page.mouse.down()
     page_start = page.evaluate("performance.now()")
+    cpu_start = process_cpu_s(server)
     start = time.perf_counter()
     while (elapsed := time.perf_counter() - start) < seconds:
         phase = 2 * np.pi * elapsed / 2.0
         page.mouse.move(cx + 6.0 * np.sin(phase), cy + 10.0 * (1 - np.cos(phase)))
         time.sleep(move_ms / 1000.0)
     page_end = page.evaluate("performance.now()")
+    cpu_end = process_cpu_s(server)
     page.mouse.up()
     page.evaluate("window.editor.idle()")
     stats = page.evaluate("window.editor.stats")
@@ -116,6 +155,7 @@ def drag_session(page, *, point: str, seconds: float, move_ms: float) -> dict:
         "wait_ms": [stats["waitMs"][k] for k in inside],
         "decode_ms": [stats["decodeMs"][k] for k in inside],
         "errors": stats["errors"],
+        "cpu_ms": {role: (cpu_end[role] - cpu_start[role]) * 1e3 for role in cpu_start},
     }
 
 
@@ -127,10 +167,10 @@ def measure(pack: Path, opts: argparse.Namespace, *, preview_scale: float, scree
             page = browser.new_page(viewport={"width": 1000, "height": 840})
             page.goto(url)
             page.wait_for_function("() => window.editor && window.editor.stats.updates.length > 0", timeout=300_000)
-            drag_session(page, point=opts.point, seconds=1.0, move_ms=opts.move_ms)  # warm-up
+            drag_session(page, point=opts.point, seconds=1.0, move_ms=opts.move_ms, server=process.pid)  # warm-up
             page.click("#reset")
             page.evaluate("window.editor.idle()")
-            result = drag_session(page, point=opts.point, seconds=opts.seconds, move_ms=opts.move_ms)
+            result = drag_session(page, point=opts.point, seconds=opts.seconds, move_ms=opts.move_ms, server=process.pid)
             if screenshot:
                 save_screenshot(page, screenshot)
     finally:
@@ -147,18 +187,18 @@ def run(args: argparse.Namespace) -> list[dict]:
     parser.add_argument("--point", default="mouth_outer_12", help="the feature point dragged")
     parser.add_argument("--threads", type=int, default=1, help="torch/OpenCV threads of the server (its --threads)")
     parser.add_argument("--processes", type=int, default=2, help="renderer processes of the server (its --processes; 0: threads)")
-    parser.add_argument("--preview-scale", type=float, default=0.5, help="the server's --preview-scale (its default 0.5)")
-    parser.add_argument("--no-full", action="store_true", help="skip the second drag with full-size previews (--preview-scale 1)")
+    parser.add_argument("--preview-scale", type=float, default=1.0, help="the server's --preview-scale in the first drag (its default 1)")
+    parser.add_argument("--no-half", action="store_true", help="skip the second drag with half-size images (--preview-scale 0.5)")
     parser.add_argument("--screenshot", type=Path, help="also save a screenshot of the editor (PNG, subregions shown)")
     parser.add_argument("--parts", action="store_true", help="only the CPU time of each part of an update, in this process (no browser)")
     opts = parser.parse_args(getattr(args, "extra", []))
     pack = opts.pack or bench_pack(Path(args.work))
     row = lambda metric, value, unit: {"bench": "editor", "metric": metric, "value": value, "unit": unit}  # noqa: E731
     if opts.parts:
-        parts = profile_parts(pack, point=opts.point, preview_scale=opts.preview_scale)
+        parts = profile_parts(pack, point=opts.point)
         return [row(f"editor_part_{name}_cpu_ms", value, "ms") for name, value in parts.items()] + [
             row("editor_part_load_avg", os.getloadavg()[0], "processes")]
-    runs = [("editor", opts.preview_scale)] + ([] if opts.no_full else [("editor_full", 1.0)])
+    runs = [("editor", opts.preview_scale)] + ([] if opts.no_half else [("editor_half", 0.5)])
     rows = []
     for prefix, scale in runs:
         result = measure(pack, opts, preview_scale=scale, screenshot=opts.screenshot if prefix == "editor" else None)
@@ -172,6 +212,8 @@ def run(args: argparse.Namespace) -> list[dict]:
             row(f"{prefix}_wait_ms_p50", percentile(result["wait_ms"], 50), "ms"),
             row(f"{prefix}_decode_ms_p50", percentile(result["decode_ms"], 50), "ms"),
             row(f"{prefix}_updates", len(result["latencies"]), "images"),
+            *[row(f"{prefix}_cpu_ms_per_update_{role}", ms / max(len(result["latencies"]), 1), "ms")
+              for role, ms in result["cpu_ms"].items()],
             row(f"{prefix}_errors", result["errors"], "responses"),
             row(f"{prefix}_preview_scale", scale, "fraction"),
             row(f"{prefix}_load_avg", os.getloadavg()[0], "processes"),
@@ -179,15 +221,17 @@ def run(args: argparse.Namespace) -> list[dict]:
     return rows
 
 
-def profile_parts(pack: Path, *, point: str, preview_scale: float, repeats: int = 15) -> dict[str, float]:
+def profile_parts(pack: Path, *, point: str, repeats: int = 15) -> dict[str, float]:
     """Median CPU time (ms, this thread, one torch thread) of each part of an update, over
     geometries of ``point`` dragged round the benchmark's ellipse.
 
-    ``propagate``: motion propagation; ``qp``: the per-subregion QPs; ``composite_full`` /
-    ``composite_preview``: compositing at the full / preview size; ``synth_full`` /
-    ``synth_preview``: the whole synthesis (QP, compositing, warp); ``jpeg_full``,
-    ``png_full``, ``jpeg_preview``: encoding the 8-bit image. The warp is ``synth - qp -
-    composite``.
+    ``propagate``: motion propagation; ``qp``: the per-subregion QPs; ``composite_pipeline``:
+    compositing the whole image (the pipeline's synthesis); ``composite_drag``: compositing the
+    face box only (the drag image, :mod:`editor.preview`); ``synth_pipeline``: the pipeline's
+    whole synthesis (QP, compositing, warp of colour and alpha, clamping); ``synth_drag``: the
+    drag image at the pack's size (QP, face-box compositing, warp of colour); ``uint8``: the
+    8-bit conversion; ``jpeg``, ``png``: encoding the 8-bit image. The warp is about ``synth -
+    qp - composite``.
     """
     import cv2
     import torch
@@ -198,25 +242,25 @@ def profile_parts(pack: Path, *, point: str, preview_scale: float, repeats: int 
 
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
-    engine = EditorEngine(pack, preview_scale=preview_scale)
+    engine = EditorEngine(pack)
     synth, previewer = engine.synthesizer, engine.previewer
     index = engine.layout.point_names.index(point)
     neutral = engine.pca.neutral
     pinned = [{index: neutral[index] + [6.0 * np.sin(t), 10.0 * (1 - np.cos(t))]} for t in np.linspace(0, 2 * np.pi, repeats)]
     points = [edited_geometry(engine.pca, p) for p in pinned]
     coeffs = [synth.qp.coefficients(p[None])[0] for p in points]
-    full = [to_uint8(synth.render(p[None])[0])[0] for p in points[:2]]
-    small = [to_uint8(previewer.render(p))[0] for p in points[:2]]
+    rgb = [synth.render(p[None])[0] for p in points[:2]]
+    full = [to_uint8(image)[0] for image in rgb]
     jobs = {
         "propagate": lambda k: edited_geometry(engine.pca, pinned[k]),
         "qp": lambda k: synth.qp.coefficients(points[k][None]),
-        "composite_full": lambda k: composite(synth.compositor, coeffs[k]),
-        "composite_preview": lambda k: composite(previewer.compositor, coeffs[k]),
-        "synth_full": lambda k: synth.render(points[k][None]),
-        "synth_preview": lambda k: previewer.render(points[k]),
-        "jpeg_full": lambda k: encode(full[k % 2], mime="image/jpeg", jpeg_quality=engine.jpeg_quality),
-        "png_full": lambda k: encode(full[k % 2], mime="image/png"),
-        "jpeg_preview": lambda k: encode(small[k % 2], mime="image/jpeg", jpeg_quality=engine.jpeg_quality),
+        "composite_pipeline": lambda k: composite(synth.compositor, coeffs[k]),
+        "composite_drag": lambda k: composite(previewer.compositor, coeffs[k]),
+        "synth_pipeline": lambda k: synth.render(points[k][None]),
+        "synth_drag": lambda k: previewer.render(points[k]),
+        "uint8": lambda k: to_uint8(rgb[k % 2]),
+        "jpeg": lambda k: encode(full[k % 2], mime="image/jpeg", jpeg_quality=engine.jpeg_quality),
+        "png": lambda k: encode(full[k % 2], mime="image/png"),
     }
     out = {}
     with torch.inference_mode():

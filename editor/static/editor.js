@@ -35,7 +35,7 @@ const actions = new Set();    // asynchronous button actions under way (load fra
 
 // Measurements read by the tests and scripts/bench_editor.py.
 const stats = {
-  updates: [], latencies: [], widths: [], synthMs: [], synthCpuMs: [], propagateCpuMs: [],
+  updates: [], latencies: [], widths: [], types: [], synthMs: [], synthCpuMs: [], propagateCpuMs: [],
   waitMs: [],    // request sent -> answer received, less the server's work on it (queue, transfer)
   decodeMs: [],  // answer received -> image decoded
   played: 0, errors: 0,
@@ -106,7 +106,8 @@ async function decode(blobs) {
   return Promise.all(blobs.map(async (b) => Object.assign(await createImageBitmap(b), { mime: b.type })));
 }
 
-// Previews come smaller than the canvas and are drawn scaled to it.
+// Images while dragging come smaller than the canvas with --preview-scale below 1, and are
+// drawn scaled to it.
 function show(bitmap) {
   imageCtx.drawImage(bitmap, 0, 0, imageCanvas.width, imageCanvas.height);
   shown = { type: bitmap.mime, width: bitmap.width, height: bitmap.height };
@@ -120,7 +121,8 @@ function wakeIdle() {
 }
 
 // ---- rendering while dragging: at most MAX_IN_FLIGHT requests, only the newest edit waits ----
-// A preview (while dragging) is a smaller JPEG; otherwise the server sends the full image.
+// While dragging (preview) the server sends a JPEG (at the pack's size unless --preview-scale
+// says less); otherwise the pipeline's image, lossless.
 function requestRender(time, preview = false) {
   const body = {
     client: CLIENT, seq: ++seq, base: edit.base, preview,
@@ -153,6 +155,7 @@ async function pump() {
           stats.updates.push(now);
           stats.latencies.push(now - job.time);
           stats.widths.push(bitmap.width);
+          stats.types.push(bitmap.mime);
           stats.waitMs.push(received - sent - meta.work_ms);
           stats.decodeMs.push(decoded - received);
           stats.synthMs.push(meta.synth_ms);

@@ -114,14 +114,15 @@ def test_dragging_the_lower_lip_opens_the_mouth(page):
     assert np.abs(moved[brows, 1]).max() < 0.25 * moved[lower_lip, 1].mean()  # the brows hardly rise
 
 
-def test_previews_while_dragging_then_the_pipelines_image_when_the_mouse_stops(page, pipeline):
+def test_full_size_jpegs_while_dragging_then_the_pipelines_image_when_the_mouse_stops(page, pipeline):
     width, height = page.evaluate("window.editor.layout().size")
     updates = len(page.evaluate("window.editor.stats.updates"))
     drag(page, LAYOUT.index("mouth_outer_12"), (0.0, 8.0), steps=20)
     widths = page.evaluate("window.editor.stats.widths")[updates:]
-    # Previews were drawn while dragging (and the full image, were the pointer to rest 150 ms
-    # between two moves on a loaded machine).
-    assert width // 2 in widths and set(widths) <= {width // 2, width}
+    types = page.evaluate("window.editor.stats.types")[updates:]
+    # JPEGs at the pack's size were drawn while dragging (and the PNG, were the pointer to rest
+    # 150 ms between two moves on a loaded machine).
+    assert "image/jpeg" in types and set(types) <= {"image/jpeg", "image/png"} and set(widths) == {width}
     assert page.evaluate("window.editor.shown()") == {"type": "image/png", "width": width, "height": height}
     frame = synthesize_stage(pipeline[0], geometry(page)[None])[0]
     assert_is_pipeline_image(canvas_pixels(page), frame)
