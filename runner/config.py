@@ -415,18 +415,31 @@ def _check_references(r: _Reader, stages: dict[str, StageNode], inputs: dict[str
                 r.error(ref.where, key, f"port type mismatch: {port!r} takes {expected}, {ref} gives {got}")
 
 
+def clip_inputs(pipeline: Pipeline) -> list[str]:
+    """The inputs ``--in`` may bind: the pipeline's ``video`` inputs, or, in a pipeline without
+    one (a folder of photos as the footage, ``pack_build_photos.yaml``), its ``dir`` inputs.
+    ``--in`` binds when this names exactly one."""
+    for kind in ("video", "dir"):
+        names = [i.name for i in pipeline.inputs.values() if i.type == kind]
+        if names:
+            return names
+    return []
+
+
 def bind_inputs(pipeline: Pipeline, *, clip: Path | None, named: list[str]) -> dict[str, Path]:
-    """Paths for every pipeline input: ``--in`` for the video input, ``--input NAME=PATH`` for
-    any, else the declared default. Raises :class:`ConfigError` naming what is missing."""
+    """Paths for every pipeline input: ``--in`` for the clip input (:func:`clip_inputs`),
+    ``--input NAME=PATH`` for any, else the declared default. Raises :class:`ConfigError` naming
+    what is missing."""
     issues: list[Issue] = []
     values: dict[str, Path] = {}
+    clip_names = clip_inputs(pipeline)
     if clip is not None:
-        videos = [i.name for i in pipeline.inputs.values() if i.type == "video"]
-        if len(videos) != 1:
-            issues.append(Issue(Where("--in"), "--in", f"the pipeline has {len(videos)} video inputs; "
+        if len(clip_names) != 1:
+            issues.append(Issue(Where("--in"), "--in", f"the pipeline has {len(clip_names)} clip inputs "
+                                                     f"({', '.join(clip_names) or 'no video or folder input'}); "
                                                      "name one with --input NAME=PATH"))
         else:
-            values[videos[0]] = Path(clip)
+            values[clip_names[0]] = Path(clip)
     for text in named:
         name, eq, value = text.partition("=")
         if not eq or not value:
@@ -438,11 +451,12 @@ def bind_inputs(pipeline: Pipeline, *, clip: Path | None, named: list[str]) -> d
     for decl in pipeline.inputs.values():
         values.setdefault(decl.name, decl.default)
         path = values[decl.name]
-        flag = "--in" if decl.type == "video" else f"--input {decl.name}=PATH"
+        flag = "--in" if clip_names == [decl.name] else f"--input {decl.name}=PATH"
         if path is None:
             issues.append(Issue(decl.where, f"inputs.{decl.name}", f"missing input: no value given (use {flag})"))
         elif decl.type in ("video", "file") and not path.is_file():
-            issues.append(Issue(decl.where, f"inputs.{decl.name}", f"missing input: {path}: no such file"))
+            found = "a folder, not a file" if path.is_dir() else "no such file"
+            issues.append(Issue(decl.where, f"inputs.{decl.name}", f"missing input: {path}: {found}"))
         elif decl.type == "dir" and not path.is_dir():
             issues.append(Issue(decl.where, f"inputs.{decl.name}", f"missing input: {path}: no such folder"))
     if issues:

@@ -34,3 +34,14 @@ def recording(into: set[Path]) -> Iterator[set[Path]]:
         yield into
     finally:
         _recorder.reset(token)
+
+
+@contextmanager
+def not_recording() -> Iterator[None]:
+    """Files read while the block runs are not dependencies: a stage re-reading what it has
+    just written (to check it) must not make its entry depend on its own temporary output."""
+    token = _recorder.set(None)
+    try:
+        yield
+    finally:
+        _recorder.reset(token)

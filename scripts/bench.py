@@ -13,7 +13,7 @@ import json
 import sys
 from pathlib import Path
 
-AREAS = ("runner", "geometry", "propagation", "synthesis", "writers", "e2e", "landmarks", "smoothing", "real", "editor", "eigen", "reenact", "render3d", "batch")
+AREAS = ("runner", "geometry", "propagation", "synthesis", "writers", "e2e", "landmarks", "smoothing", "real", "editor", "eigen", "reenact", "render3d", "batch", "photo_identity")
 
 
 def main(argv: list[str] | None = None) -> int:

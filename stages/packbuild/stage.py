@@ -7,6 +7,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from runner.depends import not_recording
 from runner.stage import Context, Param, SequenceStage, StageError
 from stages.geometry.pose import default_intrinsics
 from stages.landmarks.stage import layout_and_correspondence
@@ -230,6 +231,7 @@ class PackWrite(SequenceStage):
                             "to its border", self.name, done["clipped_points"], *size)
         for label, g in done["gains"].items():
             ctx.log.info("%s: %s exposure gains (linear R, G, B) %.3f %.3f %.3f", self.name, label, *g)
-        load_pack(folder)
+        with not_recording():  # a check of what was just written, not an input
+            load_pack(folder)
         ctx.progress(len(xy))
         return {"pack": None}

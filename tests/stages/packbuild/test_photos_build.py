@@ -17,7 +17,7 @@ import pytest
 from PIL import Image
 
 from runner.cache import CacheStore
-from runner.config import bind_inputs, load_pipeline
+from runner.config import ConfigError, bind_inputs, load_pipeline
 from runner.execute import Options, Runner
 from runner.registry import Registry
 from stages.actor_pack import load_pack
@@ -39,7 +39,16 @@ WIDE, SMALL = 6, 10  # a 640x512 photo (the clip's frame padded), a 384x384 one 
 
 
 def registry():
-    return Registry(classes=[PhotosDecode, PhotoIdentity, FaceLandmarks, LayoutPoints, PackFilter, PackSelect, PackWrite])
+    return Registry(classes=[PhotosDecode, PhotoIdentity, VideoDecode, FaceLandmarks, LayoutPoints, PackFilter,
+                             PackSelect, PackWrite])
+
+
+def test_in_binds_the_photo_folder_and_a_folder_is_not_a_clip(tmp_path):
+    photos = load_pipeline(REPO / "pack_build_photos.yaml", registry())
+    assert bind_inputs(photos, clip=tmp_path, named=[]) == {"photos": tmp_path}
+    video = load_pipeline(REPO / "pack_build.yaml", registry())
+    with pytest.raises(ConfigError, match=rf"inputs\.clip: missing input: {tmp_path}: a folder, not a file"):
+        bind_inputs(video, clip=tmp_path, named=[])
 
 
 def save_jpeg(path, rgb, *, orientation=None):
@@ -51,7 +60,7 @@ def save_jpeg(path, rgb, *, orientation=None):
 
 def run(folder, tmp, **options):
     pipeline = load_pipeline(REPO / "pack_build_photos.yaml", registry(), overrides=["select.pose_deg=30"])
-    runner = Runner(pipeline, bind_inputs(pipeline, clip=None, named=[f"photos={folder}"]),
+    runner = Runner(pipeline, bind_inputs(pipeline, clip=folder, named=[]),  # --in FOLDER
                     Options(cache=CacheStore(tmp / "cache"), out=tmp / "out", **options))
     return runner, runner.run()
 
@@ -142,9 +151,7 @@ def test_adding_a_photo_reruns_the_graph(built, clip_folder, tmp_path):
     folder.mkdir()
     for photo in clip_folder[0].iterdir():
         (folder / photo.name).symlink_to(photo)
-    # (not "pack": pack.write's check that the pack loads records the pack.yaml it wrote in a temporary
-    # folder as a dependency, so a dry run always says it will run)
-    stages = ("landmarks", "identity")
+    stages = ("landmarks", "identity", "filter", "select", "pack")
     _, reports = run(folder, tmp, dry_run=True)  # same bytes, another folder: cached
     assert {r.stage: r.status for r in reports if r.stage in stages} == dict.fromkeys(stages, "cached")
     (folder / "f048.png").symlink_to(clip_folder[0] / "f000.png")
