@@ -1,16 +1,30 @@
-"""Writer throughput: EXR frames/s at 600x800 with 1 thread and with N threads, per compression.
+"""Writer costs: CPU ms per frame of every output writer, per setting, at the demo's sizes.
 
-Runs the ``write.exr`` stage itself (sRGB decode, premultiply, half conversion, compression,
-atomic rename) on a synthetic face-like chunk, in three configurations:
+    python scripts/bench.py writers --json [--clip PATH] [--frames 48] [--threads N]
+    python scripts/bench_writers.py [--work DIR] [...]       (the same JSON lines, without the dispatcher)
 
-* ``serial``: 1 writer thread, OpenEXR's own thread pool off (``exr_threads`` = 1) — the baseline;
-* ``1thread``: 1 writer thread, OpenEXR compressing a file's line blocks on its default pool;
-* ``<N>threads``: N frames written in parallel by the stage's pool (the stage's default).
+Content: the first ``--frames`` frames of ``--clip`` (default: the demo clip ``live.mp4`` of the
+fixture set that ``bench.py e2e`` maps, generated under ``--work`` once). The *result* stream is
+those frames scaled to the demo target's 600x800 (W x H) and held as half floats in [0, 1], what
+``synthesis.synthesize`` emits; its face mask is a soft ellipse. The *performer* stream is the
+clip's frames as decoded (uint8).
 
-Ratios are against ``serial`` measured in the same run.
+CPU time is ``time.process_time`` (all the process's threads) over the frames, divided by their
+count: the share of the 2-core budget a writer takes, which the machine's load disturbs less than
+wall time. Each figure is the best of ``--repeats`` runs. Rows (all per frame):
 
-    python scripts/bench.py writers --json [--frames 24] [--threads N]
-    python scripts/bench_writers.py          (the same JSON lines, without the dispatcher)
+- ``writers_x264_ms_<preset>``, ``writers_x264_psnr_db_<preset>``, ``writers_x264_kb_<preset>``:
+  ``write.video``'s encoder on the result (crf 18, 1 thread): CPU ms, PSNR of the decoded RGB
+  frames against the frames encoded (dB), file size (kB per frame).
+- ``writers_preview_ms_<scale>_<preset>``: ``preview.side_by_side`` plus its encode (crf 20,
+  1 thread) at scale 1.0 with ``medium`` (before) and at the stage defaults (after).
+- ``writers_exr_ms_<compression>``, ``writers_exr_mb_<compression>``: ``write.exr`` (sRGB decode,
+  premultiply, half conversion, compression, atomic rename) with one writer thread and OpenEXR's
+  own pool off: CPU ms and MB per frame.
+- ``writers_exr_fps_zip_serial`` / ``writers_exr_fps_zip_<N>threads``: wall frames/s of
+  ``write.exr`` serial and at the stage's default (N frames in parallel, OpenEXR's pool on).
+- ``writers_total_ms_before`` / ``writers_total_ms``: result encode + preview + EXR (zip), with
+  the settings before this design (``medium``, full-size preview) and with the defaults.
 """
 
 from __future__ import annotations
@@ -21,8 +35,10 @@ import os
 import shutil
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import OpenImageIO as oiio
@@ -30,23 +46,31 @@ import OpenImageIO as oiio
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from runner.stage import Context, StreamInfo  # noqa: E402
-from stages.writers.exr import WriteExr  # noqa: E402
+from stages.video import VideoWriter, X264_PRESETS  # noqa: E402
+from stages.writers.exr import COMPRESSIONS, WriteExr  # noqa: E402
+from stages.writers.preview import SideBySide  # noqa: E402
 
-WIDTH, HEIGHT = 600, 800
+WIDTH, HEIGHT = 600, 800  # the demo target's size (W x H)
+PRESETS = X264_PRESETS[:X264_PRESETS.index("medium") + 1]  # ultrafast .. medium (x264's default)
 
 
-def synthetic_chunk(frames: int, *, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Smooth shading plus fine noise (skin-like texture) and a soft elliptical face mask.
+def clip_frames(clip: Path, frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """The first ``frames`` frames of ``clip``: ``(performer (T, h, w, 3) uint8, result (T, 800,
+    600, 3) float16 sRGB in [0, 1])``, the result being the performer scaled to the target's size."""
+    import cv2
 
-    Returns ``(srgb (T, H, W, 3) float32 in [0, 1], alpha (T, H, W, 1) float32)``.
-    """
-    rng = np.random.default_rng(seed)
+    from stages.video import VideoDecode
+    performer = VideoDecode().process(0, frames, {"video": clip}, {}, None)["frames"]
+    scaled = [cv2.resize(f, (WIDTH, HEIGHT), interpolation=cv2.INTER_LINEAR) for f in performer]
+    return performer, (np.stack(scaled) / np.float32(255)).astype(np.float16)
+
+
+def face_mask(frames: int) -> np.ndarray:
+    """A soft elliptical face mask ``(T, 800, 600, 1)`` float16 in [0, 1]."""
     y, x = np.mgrid[0:HEIGHT, 0:WIDTH].astype(np.float32)
-    base = np.stack([0.55 + 0.3 * x / WIDTH, 0.4 + 0.2 * y / HEIGHT, 0.35 + 0.1 * np.sin(x / 37)], axis=2)
-    srgb = np.clip(base + rng.normal(0, 0.02, (frames, HEIGHT, WIDTH, 3)), 0, 1).astype(np.float32)
     r = np.hypot((x - WIDTH / 2) / (0.35 * WIDTH), (y - HEIGHT / 2) / (0.4 * HEIGHT))
-    alpha = np.clip((1.1 - r) * 10, 0, 1).astype(np.float32)[None, :, :, None]
-    return srgb, np.repeat(alpha, frames, axis=0)
+    alpha = np.clip((1.1 - r) * 10, 0, 1).astype(np.float16)[None, :, :, None]
+    return np.repeat(alpha, frames, axis=0)
 
 
 def _stream(frames: np.ndarray, fps: float = 30.0) -> SimpleNamespace:
@@ -54,19 +78,91 @@ def _stream(frames: np.ndarray, fps: float = 30.0) -> SimpleNamespace:
     return SimpleNamespace(info=info, read=lambda start, stop: frames[start:stop])
 
 
-def exr_fps(srgb: np.ndarray, alpha: np.ndarray, *, threads: int, compression: str, work: Path) -> float:
-    """Frames per second of one ``write.exr`` chunk over all of ``srgb``, best of two runs."""
+def best_of(repeats: int, work: Callable[[], Any]) -> tuple[float, float, Any]:
+    """``(cpu s, wall s, result)`` of the run of ``work`` with the least CPU time."""
+    best = (np.inf, np.inf, None)
+    for _ in range(repeats):
+        cpu, wall = time.process_time(), time.perf_counter()
+        result = work()
+        cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
+        if cpu < best[0]:
+            best = (cpu, wall, result)
+    return best
+
+
+def encode(path: Path, frames: np.ndarray, *, preset: str, crf: int) -> None:
+    """``write.video``'s encoder (1 thread) over uint8 ``frames``."""
+    with VideoWriter(path, fps=30.0, width=frames.shape[2], height=frames.shape[1], crf=crf, preset=preset,
+                     threads=1) as writer:
+        writer.write(frames)
+
+
+def psnr_db(path: Path, frames: np.ndarray) -> float:
+    """PSNR (dB, peak 255) of ``path``'s decoded RGB frames against ``frames``."""
+    import av
+    with av.open(str(path)) as container:
+        decoded = np.stack([f.to_ndarray(format="rgb24") for f in container.decode(video=0)])
+    mse = np.mean((decoded.astype(np.float64) - frames) ** 2)
+    return float(10 * np.log10(255.0**2 / mse))
+
+
+def x264_rows(result: np.ndarray, work: Path, repeats: int) -> list[dict]:
+    """Result encode per preset: CPU ms, PSNR, kB per frame."""
+    from stages.color import to_uint8
+    from stages.writers.lut import apply_elementwise
+    frames = apply_elementwise(to_uint8, result)
+    rows = []
+    for preset in PRESETS:
+        path = work / f"result_{preset}.mp4"
+        cpu, _, _ = best_of(repeats, lambda: encode(path, frames, preset=preset, crf=18))
+        rows += [_row(f"writers_x264_ms_{preset}", 1e3 * cpu / len(frames), "ms/frame"),
+                 _row(f"writers_x264_psnr_db_{preset}", psnr_db(path, frames), "dB"),
+                 _row(f"writers_x264_kb_{preset}", path.stat().st_size / 1e3 / len(frames), "kB/frame")]
+    return rows
+
+
+def preview_ms(performer: np.ndarray, result: np.ndarray, work: Path, *, scale: float, preset: str,
+               repeats: int) -> float:
+    """CPU ms per frame of ``preview.side_by_side`` at ``scale`` and its encode with ``preset``."""
+    stage, params = SideBySide(), {"height": 0, "scale": scale}
+    inputs = {"performer": _stream(performer), "result": _stream(result)}
+
+    def run() -> None:
+        frames = stage.process(0, len(result), inputs, params, None)["frames"]
+        encode(work / "preview.mp4", frames, preset=preset, crf=20)
+
+    return 1e3 * best_of(repeats, run)[0] / len(result)
+
+
+def write_exr(srgb: np.ndarray, alpha: np.ndarray, folder: Path, *, threads: int, compression: str) -> None:
+    """One ``write.exr`` chunk over all of ``srgb`` into an emptied ``folder``."""
+    shutil.rmtree(folder, ignore_errors=True)
+    ctx = Context(device="cpu", files_dir=lambda port: folder)
     inputs = {"frames": _stream(srgb), "mask": _stream(alpha)}
-    best = np.inf
-    for _ in range(2):
-        folder = work / f"exr_{compression}_{threads}"
-        shutil.rmtree(folder, ignore_errors=True)
-        ctx = Context(device="cpu", files_dir=lambda port: folder)
-        t0 = time.perf_counter()
-        WriteExr().process(0, len(srgb), inputs, {"compression": compression, "threads": threads}, ctx)
-        best = min(best, time.perf_counter() - t0)
-    shutil.rmtree(work / f"exr_{compression}_{threads}", ignore_errors=True)
-    return len(srgb) / best
+    WriteExr().process(0, len(srgb), inputs, {"compression": compression, "threads": threads}, ctx)
+
+
+def exr_rows(result: np.ndarray, work: Path, repeats: int, threads: int) -> list[dict]:
+    """``write.exr`` CPU ms and MB per frame per compression (serial), and zip's wall frames/s."""
+    alpha = face_mask(len(result))
+    folder = work / "exr"
+    pool = oiio.get_int_attribute("exr_threads")
+    rows = []
+    try:
+        oiio.attribute("exr_threads", 1)  # OpenEXR's own pool off: one core's work
+        for compression in COMPRESSIONS:
+            cpu, wall, _ = best_of(repeats, lambda: write_exr(result, alpha, folder, threads=1, compression=compression))
+            size = sum(p.stat().st_size for p in folder.glob("*.exr")) / len(result)
+            rows += [_row(f"writers_exr_ms_{compression}", 1e3 * cpu / len(result), "ms/frame"),
+                     _row(f"writers_exr_mb_{compression}", size / 1e6, "MB/frame")]
+            if compression == "zip":
+                rows.append(_row("writers_exr_fps_zip_serial", len(result) / wall, "frames/s"))
+    finally:
+        oiio.attribute("exr_threads", pool)
+    _, wall, _ = best_of(repeats, lambda: write_exr(result, alpha, folder, threads=threads, compression="zip"))
+    rows.append(_row(f"writers_exr_fps_zip_{threads}threads", len(result) / wall, "frames/s"))
+    shutil.rmtree(folder, ignore_errors=True)
+    return rows
 
 
 def _row(metric: str, value: float, unit: str) -> dict:
@@ -75,27 +171,32 @@ def _row(metric: str, value: float, unit: str) -> dict:
 
 def run(args: argparse.Namespace) -> list[dict]:
     parser = argparse.ArgumentParser(prog="bench writers")
-    parser.add_argument("--frames", type=int, default=24, help="frames in the chunk")
-    parser.add_argument("--threads", type=int, default=os.cpu_count() or 1, help="N of the N-thread figure")
+    parser.add_argument("--clip", type=Path, help="performer clip (default: the e2e demo clip live.mp4)")
+    parser.add_argument("--frames", type=int, default=48, help="frames written per run")
+    parser.add_argument("--repeats", type=int, default=2, help="runs per figure (the least CPU time is kept)")
+    parser.add_argument("--threads", type=int, default=os.cpu_count() or 1, help="N of the N-thread EXR figure")
     opts = parser.parse_args(getattr(args, "extra", []))
     work = Path(args.work) / "writers"
     work.mkdir(parents=True, exist_ok=True)
-    srgb, alpha = synthetic_chunk(opts.frames)
-    exr_threads = oiio.get_int_attribute("exr_threads")
-    rows = []
-    for compression in ("zip", "piz"):
-        oiio.attribute("exr_threads", 1)
-        serial = exr_fps(srgb, alpha, threads=1, compression=compression, work=work)
-        oiio.attribute("exr_threads", exr_threads)
-        fps = {
-            "serial": serial,
-            "1thread": exr_fps(srgb, alpha, threads=1, compression=compression, work=work),
-            f"{opts.threads}threads": exr_fps(srgb, alpha, threads=opts.threads, compression=compression, work=work),
-        }
-        for name, value in fps.items():
-            rows.append(_row(f"exr_fps_{compression}_{name}", value, "frames/s"))
-        for name, value in list(fps.items())[1:]:
-            rows.append(_row(f"exr_speedup_{compression}_{name}", value / serial, "x"))
+    clip = opts.clip
+    if clip is None:
+        from scripts.bench_geometry import fixture_set
+        clip = fixture_set(None, Path(args.work), demo=True) / "clips" / "live.mp4"
+    performer, result = clip_frames(clip, opts.frames)
+    rows = x264_rows(result, work, opts.repeats)
+    defaults = {param.name: param.default for param in SideBySide.params}
+    from stages.video import WriteVideo
+    preset = next(param.default for param in WriteVideo.params if param.name == "preset")
+    before = preview_ms(performer, result, work, scale=1.0, preset="medium", repeats=opts.repeats)
+    after = preview_ms(performer, result, work, scale=defaults["scale"], preset=preset, repeats=opts.repeats)
+    rows += [_row("writers_preview_ms_1.0_medium", before, "ms/frame"),
+             _row(f"writers_preview_ms_{defaults['scale']}_{preset}", after, "ms/frame")]
+    rows += exr_rows(result, work, opts.repeats, opts.threads)
+    value = {r["metric"]: r["value"] for r in rows}
+    rows += [_row("writers_total_ms_before", value["writers_x264_ms_medium"] + before + value["writers_exr_ms_zip"],
+                  "ms/frame"),
+             _row("writers_total_ms", value[f"writers_x264_ms_{preset}"] + after + value["writers_exr_ms_zip"],
+                  "ms/frame")]
     return rows
 
 

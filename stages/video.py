@@ -21,8 +21,12 @@ from stages.color import to_uint8
 from stages.writers.lut import apply_elementwise
 
 CODECS = {"h264": ("libx264", "yuv420p", ".mp4"), "ffv1": ("ffv1", "bgr0", ".mkv")}
+# x264's presets, fastest first (docs/writers.md, "Encoder settings", measures them).
+X264_PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower", "veryslow")
 # Audio codecs copied as they are into the MP4 (an MKV takes any): what browsers play from MP4.
 MP4_AUDIO = frozenset({"aac", "mp3", "alac", "opus", "flac", "ac3"})
+# H.264 colour tags (ISO/IEC 23091-2 code points): limited range, BT.709 primaries, sRGB curve.
+_TV_RANGE, _BT709_PRIMARIES, _SRGB_TRC = 1, 1, 13
 
 
 def _open(path: Path) -> tuple[av.container.InputContainer, av.video.stream.VideoStream]:
@@ -199,21 +203,39 @@ class VideoWriter:
         ``"ffv1"``: FFV1 lossless 8-bit RGB (decodes to exactly the frames written).
     crf
         x264 constant rate factor, 0 (lossless luma) .. 51; ignored by FFV1.
+    preset
+        x264 preset (``X264_PRESETS``): encoder CPU time against file size at the same ``crf``
+        (the picture quality depends on ``crf``; docs/writers.md measures both). The class keeps
+        x264's own default (``medium``) for source clips; ``write.video`` defaults to ``veryfast``
+        for its review copies. Ignored by FFV1.
+    threads
+        x264 threads, >= 1. They are slice threads (each frame is cut into ``threads`` slices
+        encoded in parallel), so the bytes depend on the count: it is a fixed number, not "one
+        per core". Ignored by FFV1.
     audio_from
         A clip whose first audio stream is copied into the file as it is (no re-encoding), its
         timestamps shifted so that the clip's first video frame is at time 0; None, a clip without
         audio, or (MP4) a codec outside ``MP4_AUDIO``: no audio (the last with a warning).
 
+    H.264 colour: RGB is converted to Y'CbCr with the BT.601 matrix, limited range (swscale's
+    conversion), and the stream says so, with the sRGB primaries (BT.709) and transfer curve
+    (IEC 61966-2-1), so that players do not guess (many take untagged video of 720 lines or more
+    as BT.709 and shift its colours).
+
     Output is bit-exact across runs (``+bitexact`` muxing, frame i at pts i).
     """
 
     def __init__(self, path: Path, *, fps: float, width: int, height: int, codec: str = "h264", crf: int = 18,
-                 audio_from: Path | None = None):
+                 preset: str = "medium", threads: int = 2, audio_from: Path | None = None):
         import av
         if codec not in CODECS:
             raise StageError(f"{path}: unknown codec {codec!r} (expected one of {', '.join(CODECS)})")
         if not 0 <= crf <= 51:
             raise StageError(f"{path}: crf must be within 0..51, got {crf}")
+        if preset not in X264_PRESETS:
+            raise StageError(f"{path}: unknown x264 preset {preset!r} (expected one of {', '.join(X264_PRESETS)})")
+        if threads < 1:
+            raise StageError(f"{path}: x264 threads must be >= 1, got {threads}")
         encoder, pix_fmt, _ = CODECS[codec]
         self.path, self.width, self.height = Path(path), width, height
         self._pad = (height % 2, width % 2) if codec == "h264" else (0, 0)
@@ -231,7 +253,11 @@ class VideoWriter:
         if codec == "h264":
             # MB-tree rate control is not bit-exact from run to run on small frames; without it
             # the encoder output is a function of the frames alone.
-            self._stream.options = {"crf": str(crf), "x264-params": "mbtree=0"}
+            self._stream.options = {"crf": str(crf), "preset": preset, "x264-params": "mbtree=0"}
+            context = self._stream.codec_context
+            context.thread_count = threads  # PyAV's thread type is SLICE: x264 sliced threads
+            context.colorspace, context.color_range = av.video.reformatter.Colorspace.ITU601, _TV_RANGE
+            context.color_primaries, context.color_trc = _BT709_PRIMARIES, _SRGB_TRC
         self._count = 0
         self._audio_in, self._audio_out = self._audio_source(audio_from, codec) if audio_from else (None, None)
 
@@ -265,8 +291,8 @@ class VideoWriter:
             else:
                 frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(image), format="rgb24")
             # Convert here, not inside encode(): PyAV's implicit conversion is not bit-exact
-            # from one run to the next.
-            frame = frame.reformat(format=self._stream.pix_fmt)
+            # from one run to the next. One swscale thread: the same rows every time.
+            frame = frame.reformat(format=self._stream.pix_fmt, threads=1)
             frame.pts = self._count
             frame.time_base = self._time_base
             self._count += 1
@@ -312,7 +338,7 @@ class WriteVideo(SequenceStage):
     """Encode a frame stream to one video file (H.264 MP4 or FFV1 MKV)."""
 
     name = "write.video"
-    version = "2"
+    version = "3"
     doc = "Encode frames (uint8, or float sRGB in [0, 1]) to a video file: H.264 MP4 or FFV1 MKV; audio copied from 'audio'."
     inputs = {"frames": "frames", "audio": "video"}
     optional_inputs = frozenset({"audio"})
@@ -321,6 +347,10 @@ class WriteVideo(SequenceStage):
         Param("codec", str, "h264", "h264 (yuv420p MP4, plays in browsers) or ffv1 (lossless RGB MKV)",
               choices=tuple(CODECS)),
         Param("crf", int, 18, "x264 constant rate factor 0..51 (lower = better); ignored by ffv1", min=0, max=51),
+        Param("preset", str, "veryfast", "x264 preset: encoder time against file size at the same crf "
+              "(docs/writers.md); ignored by ffv1", choices=X264_PRESETS),
+        Param("threads", int, 2, "x264 slice threads (the bytes depend on the count); ignored by ffv1",
+              min=1, max=16),
         Param("filename", str, "video", "file name without extension"),
     )
 
@@ -331,7 +361,8 @@ class WriteVideo(SequenceStage):
         info = stream.info
         path = ctx.files_dir("video") / f"{params['filename']}{CODECS[params['codec']][2]}"
         with VideoWriter(path, fps=info.fps, width=info.width, height=info.height,
-                         codec=params["codec"], crf=params["crf"], audio_from=inputs.get("audio")) as writer:
+                         codec=params["codec"], crf=params["crf"], preset=params["preset"],
+                         threads=params["threads"], audio_from=inputs.get("audio")) as writer:
             for _, frames in stream.chunks():
                 writer.write(apply_elementwise(to_uint8, frames))  # half floats by lookup
                 ctx.progress(len(frames))

@@ -45,7 +45,7 @@ def srgb_decode(srgb: np.ndarray) -> np.ndarray:
 
 
 def to_linear_rgba(srgb: np.ndarray, alpha: np.ndarray | None = None) -> np.ndarray:
-    """sRGB frame and optional alpha -> premultiplied scene-linear RGBA.
+    """sRGB frame and optional alpha -> premultiplied scene-linear RGBA, as the half floats stored.
 
     Parameters
     ----------
@@ -57,18 +57,18 @@ def to_linear_rgba(srgb: np.ndarray, alpha: np.ndarray | None = None) -> np.ndar
 
     Returns
     -------
-    (H, W, 4) float32: ``(R, G, B) = srgb_to_linear(srgb) * alpha`` and ``A = alpha``
-    (OpenEXR associated alpha).
+    (H, W, 4) float16: ``(R, G, B) = srgb_to_linear(srgb) * alpha`` and ``A = alpha``
+    (OpenEXR associated alpha), computed in float32 and rounded once to the nearest half (ties to
+    even): the values ``numpy``'s or OpenEXR's own conversion of the float32 products gives. The
+    products are rounded by OpenCV as it multiplies (one vectorized pass that releases the GIL,
+    where numpy's float16 conversion is a slow scalar loop), so the file writer converts nothing.
     """
+    import cv2
     linear = apply_elementwise(srgb_decode, srgb)
-    rgba = np.empty(linear.shape[:2] + (4,), np.float32)
-    if alpha is None:
-        rgba[:, :, :3], rgba[:, :, 3] = linear, 1.0
-    else:
-        a = np.asarray(alpha, np.float32).reshape(linear.shape[:2] + (1,))
-        np.multiply(linear, a, out=rgba[:, :, :3])
-        rgba[:, :, 3:] = a
-    return rgba
+    shape = linear.shape[:2]
+    a = np.ones(shape, np.float32) if alpha is None else np.asarray(alpha, np.float32).reshape(shape)
+    premultiplied = [cv2.multiply(channel, a, dtype=cv2.CV_16F) for channel in cv2.split(linear)]
+    return cv2.merge(premultiplied + [cv2.multiply(a, 1.0, dtype=cv2.CV_16F)])
 
 
 def frame_attributes(
@@ -136,7 +136,8 @@ def write_exr(
     Parameters
     ----------
     path : final file name (``.exr``).
-    rgba : (H, W, 4) float32, premultiplied scene-linear RGBA (see :func:`to_linear_rgba`).
+    rgba : (H, W, 4) float16 (written as it is) or another float type (converted by OpenEXR),
+        premultiplied scene-linear RGBA (see :func:`to_linear_rgba`).
     attributes : extra header attributes (see :func:`frame_attributes`).
     compression : one of ``COMPRESSIONS`` (all lossless).
     depth : optional (H, W) camera depth of the surface at each pixel centre, in ``DEPTH_UNIT``
@@ -152,7 +153,7 @@ def write_exr(
     """
     import OpenImageIO as oiio
     height, width = rgba.shape[:2]
-    pixels = np.ascontiguousarray(rgba, np.float32)
+    pixels = np.ascontiguousarray(rgba, np.float16 if rgba.dtype == np.float16 else np.float32)
     if depth is not None:
         if depth.shape != (height, width):
             raise ValueError(f"expected depth ({height}, {width}), got {depth.shape}")

@@ -1,7 +1,9 @@
 """``preview.side_by_side``: performer | result frames at a common height, for a quick-look video.
 
 The output is an 8-bit sRGB ``frames`` stream with even width and height (what H.264 in yuv420p
-needs); ``write.video`` encodes it. The stage is not cached: a resize and a concatenation cost
+needs); ``write.video`` encodes it. By default it is half the result's height: a review copy
+beside the master EXR frames, and a quarter of the pixels to encode (docs/writers.md measures
+the encoder at both sizes). The stage is not cached: a resize and a concatenation cost
 less than writing, hashing and reading back its frames (1.2 GB for 300 frames at 800x1666), so
 its chunks are computed while the encoder reads them.
 """
@@ -76,12 +78,21 @@ class SideBySide(FrameStage):
     """Performer | result, uint8 RGB at a common even height, for ``write.video``."""
 
     name = "preview.side_by_side"
-    version = "1"
+    version = "2"
     doc = "performer | result frames side by side (uint8 RGB, even size) for a preview video"
     inputs = {"performer": "frames", "result": "frames"}
     outputs = {"frames": "frames"}
     cached = False  # cheaper to recompute than to store and read back (see the module's docstring)
-    params = (Param("height", int, 0, "common height in px (rounded down to even); 0 = the result's height", min=0),)
+    params = (
+        Param("height", int, 0, "common height in px (rounded down to even); 0 = scale x the result's height", min=0),
+        Param("scale", float, 0.5, "common height as a fraction of the result's height, when height is 0",
+              min=0.05, max=1.0),
+    )
+
+    @staticmethod
+    def _height(result_height: int, params: Mapping[str, Any]) -> int:
+        """The common height in px: ``height``, else ``scale`` x the result's (at least 2)."""
+        return params["height"] or max(2, round(params["scale"] * result_height))
 
     def stream_info(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> StreamInfo:
         performer, result = inputs["performer"].info, inputs["result"].info
@@ -90,7 +101,8 @@ class SideBySide(FrameStage):
                 f"preview.side_by_side: 'performer' has {performer.frames} frames, 'result' {result.frames}"
             )
         h, w_left, w_right = side_by_side_size(
-            (performer.height, performer.width), (result.height, result.width), height=params["height"]
+            (performer.height, performer.width), (result.height, result.width),
+            height=self._height(result.height, params),
         )
         return StreamInfo(frames=result.frames, fps=result.fps, width=w_left + w_right, height=h)
 
@@ -103,5 +115,6 @@ class SideBySide(FrameStage):
         for port, frames in (("performer", performer), ("result", result)):
             if frames.ndim != 4 or frames.shape[3] != 3:
                 raise StageError(f"preview.side_by_side: input '{port}' must be RGB (B, H, W, 3), got {frames.shape}")
-        pairs = [side_by_side(p, r, height=params["height"]) for p, r in zip(performer, result)]
+        height = self._height(result.shape[1], params)
+        pairs = [side_by_side(p, r, height=height) for p, r in zip(performer, result)]
         return {"frames": np.stack(pairs)}

@@ -100,11 +100,12 @@ def test_write_video_stage_encodes_a_stream(tmp_path, lossless):
     done = []
     ctx = Context("cpu", files_dir=lambda port: out, progress=done.append)
     out.mkdir()
-    WriteVideo().run({"frames": stream}, {"codec": "ffv1", "crf": 18, "filename": "clip"}, ctx)
+    defaults = {param.name: param.default for param in WriteVideo.params}
+    WriteVideo().run({"frames": stream}, {**defaults, "codec": "ffv1", "filename": "clip"}, ctx)
     np.testing.assert_array_equal(_decode_all(out / "clip.mkv"), truth)
     assert sum(done) == 37
     with pytest.raises(StageError, match="plain file name"):
-        WriteVideo().run({"frames": stream}, {"codec": "h264", "crf": 18, "filename": "../x"}, ctx)
+        WriteVideo().run({"frames": stream}, {**defaults, "filename": "../x"}, ctx)
 
 
 def test_gray_matches_bt601_weights(lossless):

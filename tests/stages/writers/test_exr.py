@@ -14,7 +14,7 @@ import pytest
 from runner.stage import StageError
 from stages.color import srgb_to_linear
 from stages.writers.atomic import atomic_write, temp_name
-from stages.writers.exr import WriteExr, exr_name, to_linear_rgba, write_exr
+from stages.writers.exr import COMPRESSIONS, WriteExr, exr_name, to_linear_rgba, write_exr
 from tests.memory_stream import MemoryStream, files_context
 
 REPO = Path(__file__).resolve().parents[3]
@@ -187,3 +187,37 @@ def test_mismatched_inputs_are_stage_errors(tmp_path: Path) -> None:
     inputs["pose"] = {k: v[:2] for k, v in inputs["pose"].items()}
     with pytest.raises(StageError, match="'pose'"):
         WriteExr().process(0, T, inputs, _params(), files_context(tmp_path))
+
+
+@pytest.mark.parametrize("compression", COMPRESSIONS)
+def test_every_compression_is_lossless_on_half_frames(tmp_path: Path, compression: str) -> None:
+    """The synthesized frames are half floats: each codec gives back exactly the half values of
+    the premultiplied linear RGBA (float32 rounded once to half), with the metadata."""
+    rng = np.random.default_rng(5)
+    frames = rng.random((1, 64, 48, 3), dtype=np.float32).astype(np.float16)
+    mask = np.clip(rng.normal(0.5, 0.5, (1, 64, 48, 1)), 0, 1).astype(np.float16)
+    inputs = {"frames": MemoryStream(frames, fps=FPS), "mask": MemoryStream(mask, fps=FPS)}
+    WriteExr().process(0, 1, inputs, _params(compression=compression), files_context(tmp_path))
+    inp = oiio.ImageInput.open(str(tmp_path / "exr" / exr_name(0)))
+    stored, spec = inp.read_image(oiio.HALF), inp.spec()
+    inp.close()
+    expected = to_linear_rgba(frames[0], mask[0]).astype(np.float16)
+    np.testing.assert_array_equal(stored.view(np.uint16), expected.view(np.uint16))
+    assert spec.getattribute("compression") == compression
+    assert (spec.getattribute("exmap:frame"), spec.getattribute("exmap:fps")) == (0, FPS)
+
+
+def test_half_rgba_is_numpys_rounding_of_the_float32_products() -> None:
+    """Every half bit pattern (inf and NaN included) as sRGB, under random alpha: the half RGBA
+    equals numpy's round-to-nearest-even of the float32 ``srgb_to_linear(x) * alpha``, bit for bit."""
+    rng = np.random.default_rng(6)
+    patterns = np.arange(1 << 16, dtype=np.uint16).view(np.float16)
+    srgb = rng.permutation(np.tile(patterns, 3)).reshape(256, 256, 3)
+    alpha = rng.random((256, 256, 1), dtype=np.float32)
+    alpha[:8] = 0.0
+    with np.errstate(all="ignore"):
+        expected = (srgb_to_linear(srgb.astype(np.float32)) * alpha).astype(np.float16)
+        rgba = to_linear_rgba(srgb, alpha)
+    assert rgba.dtype == np.float16
+    np.testing.assert_array_equal(rgba[..., :3].view(np.uint16), expected.view(np.uint16))
+    np.testing.assert_array_equal(rgba[..., 3:].view(np.uint16), alpha.astype(np.float16).view(np.uint16))

@@ -7,6 +7,8 @@ import pytest
 
 from runner.stage import StageError
 from stages.writers.preview import SideBySide, side_by_side, side_by_side_size
+
+DEFAULTS = {param.name: param.default for param in SideBySide.params}
 from tests.memory_stream import MemoryStream, files_context
 
 
@@ -33,7 +35,7 @@ def test_stage_stream_info_and_frames(tmp_path: Path) -> None:
     performer = MemoryStream(rng.integers(0, 256, (4, 45, 61, 3), dtype=np.uint8), fps=25.0)
     result = MemoryStream(rng.random((4, 63, 51, 3), dtype=np.float32), fps=25.0)
     inputs = {"performer": performer, "result": result}
-    stage, params = SideBySide(), {"height": 0}
+    stage, params = SideBySide(), {"height": 0, "scale": 1.0}
     info = stage.stream_info(inputs, params)
     out = stage.process(1, 3, inputs, params, files_context(tmp_path))["frames"]
     assert out.shape == (2, info.height, info.width, 3) and out.dtype == np.uint8
@@ -46,7 +48,22 @@ def test_frame_count_mismatch_is_a_stage_error() -> None:
     performer = MemoryStream(np.zeros((3, 8, 8, 3), np.uint8))
     result = MemoryStream(np.zeros((4, 8, 8, 3), np.float32))
     with pytest.raises(StageError, match="3 frames"):
-        SideBySide().stream_info({"performer": performer, "result": result}, {"height": 0})
+        SideBySide().stream_info({"performer": performer, "result": result}, DEFAULTS)
+
+
+def test_default_is_half_the_result_height_and_height_wins_over_scale(tmp_path: Path) -> None:
+    """The demo's sizes: a 640x480 performer beside a 600x800 result -> 400 px high, 534 + 300 wide."""
+    performer = MemoryStream(np.full((2, 480, 640, 3), 200, np.uint8))
+    result = MemoryStream(np.full((2, 800, 600, 3), 0.25, np.float16))
+    inputs = {"performer": performer, "result": result}
+    info = SideBySide().stream_info(inputs, DEFAULTS)
+    assert (info.height, info.width) == (400, 534 + 300)
+    out = SideBySide().process(0, 2, inputs, DEFAULTS, files_context(tmp_path))["frames"]
+    assert out.shape == (2, 400, 834, 3)
+    np.testing.assert_array_equal(out[:, :, :534], 200)
+    np.testing.assert_array_equal(out[:, :, 534:], round(0.25 * 255))
+    explicit = SideBySide().stream_info(inputs, {**DEFAULTS, "height": 240})
+    assert (explicit.height, explicit.width) == (240, 320 + 180)
 
 
 def test_negative_height_is_refused_by_the_declaration():
