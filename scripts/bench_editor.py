@@ -20,7 +20,8 @@ records, per image drawn, the time since the pointer event whose geometry it sho
   from ``/proc``) of the editor's server process, its renderer processes, Chromium's processes
   and playwright's driver over the measured drag, divided by the images drawn (what one update
   costs the machine, all of it; the browser's and the driver's share is mostly per pointer event
-  and per displayed frame, not per image).
+  and per displayed frame, not per image); ``editor_answers``: image answers received in the
+  window, drawn or overtaken by a newer one (work done and not shown: answers - updates).
 
 The drag is measured twice: with the server's defaults (``--preview-scale`` 1: the pipeline's
 image at the pack's size on every update, as JPEG) and, as the ``editor_half_*`` rows, with
@@ -155,6 +156,7 @@ def drag_session(page, *, point: str, seconds: float, move_ms: float, server: in
         "wait_ms": [stats["waitMs"][k] for k in inside],
         "decode_ms": [stats["decodeMs"][k] for k in inside],
         "errors": stats["errors"],
+        "answers": sum(page_start < t <= page_end for t in stats["answers"]),
         "cpu_ms": {role: (cpu_end[role] - cpu_start[role]) * 1e3 for role in cpu_start},
     }
 
@@ -212,6 +214,7 @@ def run(args: argparse.Namespace) -> list[dict]:
             row(f"{prefix}_wait_ms_p50", percentile(result["wait_ms"], 50), "ms"),
             row(f"{prefix}_decode_ms_p50", percentile(result["decode_ms"], 50), "ms"),
             row(f"{prefix}_updates", len(result["latencies"]), "images"),
+            row(f"{prefix}_answers", result["answers"], "images"),
             *[row(f"{prefix}_cpu_ms_per_update_{role}", ms / max(len(result["latencies"]), 1), "ms")
               for role, ms in result["cpu_ms"].items()],
             row(f"{prefix}_errors", result["errors"], "responses"),

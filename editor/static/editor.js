@@ -38,6 +38,7 @@ const stats = {
   updates: [], latencies: [], widths: [], types: [], synthMs: [], synthCpuMs: [], propagateCpuMs: [],
   waitMs: [],    // request sent -> answer received, less the server's work on it (queue, transfer)
   decodeMs: [],  // answer received -> image decoded
+  answers: [],   // when each image answer to a render request arrived (shown or overtaken)
   played: 0, errors: 0,
 };
 let shown = null;             // the image on the canvas: {type, width, height} as sent
@@ -142,6 +143,7 @@ async function pump() {
     const response = await api("api/render", job.body);
     if (response.ok) {
       const { meta, images } = await unpack(response);
+      stats.answers.push(performance.now());
       if (meta.seq > latestShown) {           // an answer overtaken by a newer one is not shown
         const received = performance.now();
         const [bitmap] = await decode(images);
