@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from editor.preview import PreviewSynthesizer
+from editor.propagation import PinnedPropagation
 from runner.stage import Context, SequenceStage, StageError
 from stages.actor_pack import load_pack
 from stages.pack.bundles import pack_to_bundles
@@ -162,6 +163,7 @@ class EditorEngine:
         if not 1 <= int(jpeg_quality) <= 100:
             raise ValueError(f"jpeg_quality must be in 1..100, got {jpeg_quality}")
         self.layout, self.pca, self.model = pack_models(pack, device=device)
+        self.propagation = PinnedPropagation(self.pca)
         self.synthesizer = Synthesizer(self.model, device=device)
         self.size = tuple(int(v) for v in self.model["size"])  # (W, H)
         self.previewer = PreviewSynthesizer(self.synthesizer, self.model, scale=preview_scale)

@@ -7,7 +7,7 @@ frame (no head motion), the frame of a run's ``data.npz`` ``target_xy``.
 
 from __future__ import annotations
 
-from typing import Mapping
+from typing import Callable, Mapping
 
 import numpy as np
 
@@ -18,7 +18,11 @@ INBETWEENS = 5  # in-between frames from the previous to the current geometry (S
 
 
 def edited_geometry(
-    model: HierarchicalPCA, pinned: Mapping[int, np.ndarray], *, base: np.ndarray | None = None
+    model: HierarchicalPCA,
+    pinned: Mapping[int, np.ndarray],
+    *,
+    base: np.ndarray | None = None,
+    propagate: Callable[..., np.ndarray] = propagate_edit,
 ) -> np.ndarray:
     """The most likely geometry given the points the user pinned (Sec. 13, propagation Sec. 10.1).
 
@@ -35,6 +39,10 @@ def edited_geometry(
         base are propagated and added to it: ``base + P(d) - P(0)``, where ``P`` propagates
         displacements given at the pinned points; subtracting ``P(0)`` (the same pinned set held
         still) keeps the base where nothing was moved, so unmoved pins leave the base unchanged.
+    propagate : callable
+        ``propagate(model, current_points, fixed) -> (N, 2)``: :func:`propagate_edit` (the
+        default), or :class:`editor.propagation.PinnedPropagation` (the same, faster while the
+        pinned set stays the same).
 
     Returns
     -------
@@ -64,9 +72,9 @@ def edited_geometry(
     if not moved:
         return start.copy()
     if base is None:
-        return propagate_edit(model, neutral, moved)
-    shifted = propagate_edit(model, neutral, {i: neutral[i] + xy - start[i] for i, xy in moved.items()})
-    held = propagate_edit(model, neutral, {i: neutral[i] for i in moved})
+        return propagate(model, neutral, moved)
+    shifted = propagate(model, neutral, {i: neutral[i] + xy - start[i] for i, xy in moved.items()})
+    held = propagate(model, neutral, {i: neutral[i] for i in moved})
     result = start + shifted - held
     for i, xy in moved.items():
         result[i] = xy

@@ -61,7 +61,7 @@ def answer(engine: EditorEngine, job: dict[str, Any]) -> bytes:
     if job["op"] == "edit":
         pinned = {int(i): np.array([x, y], np.float64) for i, x, y in job["pinned"]}
         base = None if job["base"] is None else np.asarray(job["base"], np.float64)
-        points = edited_geometry(engine.pca, pinned, base=base)[None]
+        points = edited_geometry(engine.pca, pinned, base=base, propagate=engine.propagation)[None]
     elif job["op"] == "inbetweens":
         previous, current = (np.asarray(job[key], np.float64) for key in ("from", "to"))
         points = np.concatenate([inbetweens(previous, current), current[None]])

@@ -226,9 +226,11 @@ def run(args: argparse.Namespace) -> list[dict]:
 
 def profile_parts(pack: Path, *, point: str, repeats: int = 15) -> dict[str, float]:
     """Median CPU time (ms, this thread, one torch thread) of each part of an update, over
-    geometries of ``point`` dragged round the benchmark's ellipse.
+    geometries of ``point`` dragged round the benchmark's ellipse, the parts taking turns.
 
-    ``propagate``: motion propagation; ``qp``: the per-subregion QPs; ``composite_pipeline``:
+    ``propagate``: motion propagation (the library's ``propagate_edit``); ``propagate_drag``: the
+    same with the pinned set's sweeps recorded (:mod:`editor.propagation`, what the editor runs;
+    the recording is made before the timing); ``qp``: the per-subregion QPs; ``composite_pipeline``:
     compositing the whole image (the pipeline's synthesis); ``composite_drag``: compositing the
     face box only (the drag image, :mod:`editor.preview`); ``synth_pipeline``: the pipeline's
     whole synthesis (QP, compositing, warp of colour and alpha, clamping); ``synth_drag``: the
@@ -250,12 +252,13 @@ def profile_parts(pack: Path, *, point: str, repeats: int = 15) -> dict[str, flo
     index = engine.layout.point_names.index(point)
     neutral = engine.pca.neutral
     pinned = [{index: neutral[index] + [6.0 * np.sin(t), 10.0 * (1 - np.cos(t))]} for t in np.linspace(0, 2 * np.pi, repeats)]
-    points = [edited_geometry(engine.pca, p) for p in pinned]
+    points = [edited_geometry(engine.pca, p, propagate=engine.propagation) for p in pinned]
     coeffs = [synth.qp.coefficients(p[None])[0] for p in points]
     rgb = [synth.render(p[None])[0] for p in points[:2]]
     full = [to_uint8(image)[0] for image in rgb]
     jobs = {
         "propagate": lambda k: edited_geometry(engine.pca, pinned[k]),
+        "propagate_drag": lambda k: edited_geometry(engine.pca, pinned[k], propagate=engine.propagation),
         "qp": lambda k: synth.qp.coefficients(points[k][None]),
         "composite_pipeline": lambda k: composite(synth.compositor, coeffs[k]),
         "composite_drag": lambda k: composite(previewer.compositor, coeffs[k]),
@@ -265,16 +268,14 @@ def profile_parts(pack: Path, *, point: str, repeats: int = 15) -> dict[str, flo
         "jpeg": lambda k: encode(full[k % 2], mime="image/jpeg", jpeg_quality=engine.jpeg_quality),
         "png": lambda k: encode(full[k % 2], mime="image/png"),
     }
-    out = {}
+    times: dict[str, list[float]] = {name: [] for name in jobs}
     with torch.inference_mode():
-        for name, job in jobs.items():
-            times = []
-            for k in range(repeats):
+        for k in range(repeats):  # the parts interleaved, so that a change of load hits them alike
+            for name, job in jobs.items():
                 start = time.thread_time()
                 job(k)
-                times.append((time.thread_time() - start) * 1e3)
-            out[name] = float(np.median(times))
-    return out
+                times[name].append((time.thread_time() - start) * 1e3)
+    return {name: float(np.median(values)) for name, values in times.items()}
 
 
 def save_screenshot(page, path: Path, *, max_bytes: int = 300_000) -> None:

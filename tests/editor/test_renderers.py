@@ -57,9 +57,11 @@ def test_process_answer_is_the_thread_answer_and_the_pipeline_image(engine, rend
     assert meta["seq"] == 7 and meta["types"] == ["image/png"]
     assert images == local_images
     index = job["pinned"][0][0]
-    expected = edited_geometry(engine.pca, {index: np.array(job["pinned"][0][1:])})
+    pinned = {index: np.array(job["pinned"][0][1:])}
+    expected = edited_geometry(engine.pca, pinned, propagate=engine.propagation)
     np.testing.assert_array_equal(meta["points"], expected)
     np.testing.assert_array_equal(local_meta["points"], expected)
+    np.testing.assert_allclose(expected, edited_geometry(engine.pca, pinned), rtol=0, atol=1e-9)  # the library's propagate_edit
     assert_is_pipeline_image(decode(images[0]), synthesize_stage(pipeline[0], expected[None])[0])
 
 
