@@ -12,8 +12,9 @@ API (POST bodies are JSON)
 ``GET  /api/describe``     size, point names, neutral, subregion outlines, performance frames
 ``GET  /api/frame?index=K`` frame K's geometry of the ``--performance`` data.npz
 ``POST /api/render``       ``{client, seq, base, pinned, preview}`` -> propagated geometry + its
-                           image: with ``preview: true`` (while dragging) a JPEG at the preview
-                           size (``EditorEngine.preview``), else the pipeline's synthesis at the
+                           image: with ``preview: true`` (while dragging) a JPEG at
+                           ``--preview-scale`` of the pack's size, 1 by default
+                           (``EditorEngine.preview``), else the pipeline's synthesis at the
                            pack's size, lossless (PNG)
 ``POST /api/inbetweens``   ``{client, seq, from, to}`` -> the five in-between images (Sec. 14.2,
                            JPEG) and the image of ``to`` (PNG)
