@@ -7,6 +7,18 @@ the cache shared by all workers (a folder every host sees at the same path; its 
 atomic renames hold across processes and hosts, see ``docs/batch.md``). Parallelism is per
 job: the frame chunks of one job are computed one after another by its worker, as in
 ``runner run --jobs 1``, which is what makes the outputs byte-identical to ``runner run``'s.
+A job computes with one thread (Ray sets ``OMP_NUM_THREADS`` to the task's one CPU): a lone job
+given both cores' threads was 1.5x slower at load 10 on 2 cores and, by the idle figures, no
+faster idle (``docs/batch.md``).
+
+Start-up: a local Ray is a chain of processes started one after another (the GCS; the dashboard
+head, which ``ray.init`` starts and waits for even without a dashboard; the raylet, which waits
+for its dashboard and runtime-env agents; then the driver's and the workers' connections), about
+5 s on an idle 2-core machine, and its shut-down waits up to 1 s for the autoscaler monitor;
+``docs/batch.md`` gives the measured breakdown. The command starts it with usage statistics off
+(``RAY_USAGE_STATS_ENABLED=0`` unless set: no usage report from a render node), the dashboard
+off and the workers' output kept out of the driver; ``batch_start`` carries ``ray_init_s``
+(``ray.init``'s seconds) and ``batch_end`` ``shutdown_s`` (``ray.shutdown``'s).
 
 Failures: a stage that fails (:class:`runner.errors.StageFailed`, a bad input) fails its job
 at once, with its one-line message; anything else (a worker process that died, an unexpected
@@ -172,12 +184,15 @@ def run_batch(jobs: list[Job], *, cache_dir: Path, device: str = "auto", workers
         raise ValueError(f"workers is for a local Ray only, got workers={workers} with address={address!r}")
     cache_dir = Path(cache_dir).resolve()
     started = time.perf_counter()
+    if address is None:
+        os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # read by ray.init and the processes it starts
     ray.init(address=address or "local", num_cpus=None if address else (workers or os.cpu_count()),
              include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
+    ray_init_s = time.perf_counter() - started
     states: dict[str, _State] = {job.name: _State(job) for job in jobs}
     try:
         log({"event": "batch_start", "time": time.time(), "jobs": len(jobs), "address": address,
-             "cpus": ray.cluster_resources().get("CPU")})
+             "cpus": ray.cluster_resources().get("CPU"), "ray_init_s": ray_init_s})
         sink = ray.remote(num_cpus=0)(EventSink).remote()
         task = ray.remote(num_cpus=1, max_retries=retries, retry_exceptions=True)(_job_task)
         pending = {}
@@ -200,7 +215,9 @@ def run_batch(jobs: list[Job], *, cache_dir: Path, device: str = "auto", workers
         log({"event": "batch_end", "time": time.time(), "status": "interrupted", "exit_code": 130})
         raise
     finally:
+        stopping = time.perf_counter()
         ray.shutdown()
+    shutdown_s = time.perf_counter() - stopping
     seconds = time.perf_counter() - started
     counts = {s: sum(state.status == s for state in states.values()) for s in ("done", "cached", "failed")}
     code = EXIT_FAILED if counts["failed"] else EXIT_OK
@@ -208,7 +225,8 @@ def run_batch(jobs: list[Job], *, cache_dir: Path, device: str = "auto", workers
         echo(line)
     echo(f"{len(jobs)} jobs: {counts['done']} done, {counts['cached']} cached, {counts['failed']} failed "
          f"in {seconds:.1f} s")
-    log({"event": "batch_end", "time": time.time(), "exit_code": code, "seconds": seconds, **counts})
+    log({"event": "batch_end", "time": time.time(), "exit_code": code, "seconds": seconds, "shutdown_s": shutdown_s,
+         **counts})
     return code
 
 
