@@ -11,7 +11,7 @@ leave the image as it is:
   written into the composite of the outside made once. Compositing is per pixel, so the crop's
   pixels are the full composite's;
 * **no alpha.** Only the three colour channels are warped (the editor never shows the face
-  alpha), and the image is not clamped until it is made 8-bit.
+  alpha), and they are clamped to [0, 1] in place.
 
 At ``scale`` < 1 (``--preview-scale``) the same runs on a model whose images and weight maps are
 reduced to ``(w, h) = round(s (W, H))``: compositing and warping cost about ``s^2`` of the full
