@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from editor.preview import PreviewSynthesizer
-from editor.propagation import PinnedPropagation
+from stages.propagation.pinned import PinnedPropagation
 from runner.stage import Context, SequenceStage, StageError
 from stages.actor_pack import load_pack
 from stages.pack.bundles import pack_to_bundles

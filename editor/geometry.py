@@ -41,7 +41,7 @@ def edited_geometry(
         still) keeps the base where nothing was moved, so unmoved pins leave the base unchanged.
     propagate : callable
         ``propagate(model, current_points, fixed) -> (N, 2)``: :func:`propagate_edit` (the
-        default), or :class:`editor.propagation.PinnedPropagation` (the same, faster while the
+        default), or :class:`stages.propagation.pinned.PinnedPropagation` (the same, faster while the
         pinned set stays the same).
 
     Returns

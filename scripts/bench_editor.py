@@ -229,7 +229,7 @@ def profile_parts(pack: Path, *, point: str, repeats: int = 15) -> dict[str, flo
     geometries of ``point`` dragged round the benchmark's ellipse, the parts taking turns.
 
     ``propagate``: motion propagation (the library's ``propagate_edit``); ``propagate_drag``: the
-    same with the pinned set's sweeps recorded (:mod:`editor.propagation`, what the editor runs;
+    same with the pinned set's sweeps recorded (:mod:`stages.propagation.pinned`, what the editor runs;
     the recording is made before the timing); ``qp``: the per-subregion QPs; ``composite_pipeline``:
     compositing the whole image (the pipeline's synthesis); ``composite_drag``: compositing the
     face box only (the drag image, :mod:`editor.preview`); ``synth_pipeline``: the pipeline's

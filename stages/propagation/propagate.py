@@ -185,7 +185,7 @@ def motion_propagation(
         error_history_px=np.full((n_frames, max_iterations), np.nan) if record_history else None,
     )
     options = {"stop_progress_px": stop_progress_px, "max_iterations": max_iterations}
-    sweep = _Sweep(model)
+    sweep = Sweep(model)
     starts = start_sets(model, known)
     packed = np.ascontiguousarray(np.packbits(known, axis=1))
     _, first_frame, pattern_of_frame, counts = np.unique(
@@ -199,7 +199,7 @@ def motion_propagation(
         pattern = known[frame]
         if starts[frame] >= 0 and count >= 2 * pattern.sum() + 1:
             frames = np.flatnonzero(pattern_of_frame == p)
-            _propagate_shared_mask(sweep, starts[frame], inputs[frames], pattern, frames, result, **options)
+            propagate_shared_mask(sweep, starts[frame], inputs[frames], pattern, frames, result, **options)
             shared[frames] = True
     for start in np.unique(starts[(starts >= 0) & ~shared]):
         frames = np.flatnonzero((starts == start) & ~shared)
@@ -207,7 +207,7 @@ def motion_propagation(
     return result
 
 
-class _Sweep:
+class Sweep:
     """One iteration's updates, V <- Proj(V, F) for F in the traversal order (Sec. 10.1).
 
     V is held as ``(2N, C)``: one column per frame (or per basis input), rows x0, y0, x1, y1,
@@ -231,7 +231,7 @@ class _Sweep:
 
 
 def _propagate_frames(
-    sweep: _Sweep,
+    sweep: Sweep,
     start: int,
     inputs: np.ndarray,
     known: np.ndarray,
@@ -273,8 +273,8 @@ def _propagate_frames(
         v_prev = v.copy()
 
 
-def _propagate_shared_mask(
-    sweep: _Sweep,
+def propagate_shared_mask(
+    sweep: Sweep,
     start: int,
     inputs: np.ndarray,
     known: np.ndarray,

@@ -1,4 +1,4 @@
-"""Motion propagation of a drag with the pinned set's sweeps recorded (editor/propagation.py)
+"""Motion propagation of a drag with the pinned set's sweeps recorded (stages/propagation/pinned.py)
 against the library's propagate_edit, and the recording in use."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from editor.geometry import edited_geometry
-from editor.propagation import MAX_RECORDED_PINS, PinnedPropagation
 from stages.actor_pack import load_pack
+from stages.propagation.pinned import MAX_RECORDED_PINS, PinnedPropagation
 from stages.propagation.propagate import propagate_edit
 from tests.editor.conftest import PACK
 

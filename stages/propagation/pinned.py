@@ -1,6 +1,7 @@
-"""Motion propagation (Sec. 10.1) of a drag: the sweeps of its pinned set recorded once.
+"""Motion propagation (Sec. 10.1) of many positions of one pinned set: its sweeps recorded once.
 
-While a point is dragged the pinned set does not change, only the pinned positions. One
+While a point is dragged in the editor (Sec. 13) the pinned set does not change, only the
+pinned positions. One
 iteration of MotionPropagation (reset the input points, then ``V <- Proj(V, F)`` for every set
 ``F`` of the traversal order) is affine in the inputs, so the library's shared-mask batching
 (:func:`stages.propagation.propagate.motion_propagation`, for frames that share their input
@@ -24,7 +25,7 @@ from typing import Mapping
 import numpy as np
 
 from stages.propagation.hierarchical_pca import HierarchicalPCA
-from stages.propagation.propagate import PropagationResult, _propagate_shared_mask, _Sweep, propagate_edit, start_sets
+from stages.propagation.propagate import PropagationResult, Sweep, propagate_edit, propagate_shared_mask, start_sets
 
 __all__ = ["PinnedPropagation"]
 
@@ -35,7 +36,7 @@ MAX_RECORDED_PINS = 16  # more pinned points: the 2k + 1 basis columns cost more
 class _Recorder:
     """A sweep (``sweep(v, start)``, in place) that records its outputs, then replays them."""
 
-    def __init__(self, sweep: _Sweep) -> None:
+    def __init__(self, sweep: Sweep) -> None:
         self.sweep = sweep
         self.outputs: list[np.ndarray] = []
         self.calls = 0
@@ -65,7 +66,7 @@ class PinnedPropagation:
 
     def __init__(self, model: HierarchicalPCA) -> None:
         self.model = model
-        self.sweep = _Sweep(model)
+        self.sweep = Sweep(model)
         self.recorded: tuple[bytes, _Recorder] | None = None  # (pinned mask, its sweeps)
         self.lock = threading.Lock()
 
@@ -112,6 +113,6 @@ class PinnedPropagation:
                 self.recorded = (key, _Recorder(self.sweep))
             recorder = self.recorded[1]
             recorder.calls = 0
-            _propagate_shared_mask(recorder, start, (target - model.neutral)[None], known, np.zeros(1, np.int64), result,
+            propagate_shared_mask(recorder, start, (target - model.neutral)[None], known, np.zeros(1, np.int64), result,
                                    stop_progress_px=stop_progress_px, max_iterations=max_iterations)
         return model.neutral + result.displacements[0]
