@@ -2,7 +2,7 @@
 
     python scripts/bench.py reenact [--json] [--work DIR] [--clip PATH ...] [--build-fraction 0.6]
                                     [--stride 1] [--sheet PATH] [--pose-deg DEG]
-                                    [--detail-power P] [--detail-sigma-px S] [--flow-max-px F]
+                                    [--detail-power P] [--detail-sigma-px S] [--flow-max-px F] [--ridge-px T]
 
 Per clip (``--clip``, repeatable; default every ``*.mp4`` of ``../shared/dev-clips/``):
 
@@ -19,9 +19,12 @@ Per clip (``--clip``, repeatable; default every ``*.mp4`` of ``../shared/dev-cli
 
 Methods: ``full`` (the paper's per-subregion synthesis), ``warponly`` (the neutral warped to the
 geometry), ``global`` (one convex combination over the face, Pighin et al.), ``nearest`` (the
-example nearest in geometry, warped). Rows per clip (suffix ``_<clip stem>``), the method as a
-suffix of the metric (none for ``full``): ``reenact_psnr_db`` and ``reenact_ssim`` over the face,
-``reenact_wrinkle_psnr_db`` over the forehead, glabella, eye zones (crow's feet) and cheeks
+example nearest in geometry, warped), and two bounds that see the truth: ``oracle`` (per
+subregion, the convex combination of the aligned examples fitted to the true frame, in the standard
+geometry: ``stages.synthesis.oracle``; the best any choice of per-subregion coefficients can do)
+and ``oracleglobal`` (one such fit over the whole face: the best of a global combination). Rows
+per clip (suffix ``_<clip stem>``), the method as a suffix of the metric (none for ``full``):
+``reenact_psnr_db`` and ``reenact_ssim`` over the face, ``reenact_wrinkle_psnr_db`` over the forehead, glabella, eye zones (crow's feet) and cheeks
 (nasolabial folds), each the mean over the test frames; ``reenact_subregion_psnr_db_<subregion>``
 over each layout subregion on the frame's points, the PSNR of the squared error pooled over the
 test frames (``stages.synthesis.metrics.pooled_psnr``). Also ``reenact_test_frames``,
@@ -45,7 +48,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 DEV_CLIPS = REPO.parent / "shared" / "dev-clips"
 BENCH = "reenact"
-METHODS = {"full": "", "warponly": "_warponly", "global": "_global", "nearest": "_nearest"}
+METHODS = {"full": "", "warponly": "_warponly", "global": "_global", "nearest": "_nearest", "oracle": "_oracle",
+           "oracleglobal": "_oracleglobal"}
 WRINKLE_SUBREGIONS = ("forehead", "glabella", "eyezone_l", "eyezone_r", "cheek_l", "cheek_r")
 BATCH = 8
 SHEET_FRAMES = 3
@@ -124,6 +128,7 @@ def evaluate(
     from stages.packbuild.writing import align_image
     from stages.synthesis.build import build_synthesis_model
     from stages.synthesis.metrics import masked_psnr, masked_ssim, subregion_errors
+    from stages.synthesis.oracle import texture_oracle
     from stages.synthesis.synthesize import Synthesizer
     from stages.synthesis.warp import warp_images
 
@@ -147,9 +152,13 @@ def evaluate(
         geometry = np.stack([apply_similarity(p, xy[t]) for p, t in zip(params, frames)])
         truth = np.stack([align_image(clip.frames[t], p, size) for p, t in zip(params, frames)])
         out = {m: synth.render(geometry, mode=m.replace("warponly", "warp-only"))[0] for m in ("full", "warponly", "global")}
+        dst = np.concatenate([geometry, np.broadcast_to(anchors, (len(frames),) + anchors.shape)], 1)
+        aligned = torch.from_numpy(truth).permute(0, 3, 1, 2).float() / 255.0
+        standard = warp_images(aligned, torch.from_numpy(dst), synth.standard_points[None].expand(len(frames), -1, -1), model["triangles"])
+        for m, mode in (("oracle", "full"), ("oracleglobal", "global")):
+            out[m] = synth.render(geometry, mode=mode, coeffs=texture_oracle(model, standard, mode=mode))[0]
         nearest = np.argmin(np.sqrt(((geometry[:, None] - example_points[None]) ** 2).sum(-1).mean(-1)), axis=1)
         src = np.concatenate([example_points[nearest], np.broadcast_to(anchors, (len(frames),) + anchors.shape)], 1)
-        dst = np.concatenate([geometry, np.broadcast_to(anchors, (len(frames),) + anchors.shape)], 1)
         out["nearest"] = warp_images(example_images[nearest], torch.from_numpy(src), torch.from_numpy(dst), model["triangles"]).clamp(0, 1)
         for k, t in enumerate(frames):
             region = subregion_mask(layout, geometry[k], size)
@@ -178,6 +187,7 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     parser.add_argument("--detail-power", type=float, help="band-pass blending power (default: the Synthesizer's)")
     parser.add_argument("--detail-sigma-px", type=float, help="band-pass split, Gaussian sigma, px (default: the Synthesizer's)")
     parser.add_argument("--flow-max-px", type=float, help="optical-flow refinement bound, px, 0: off (default: the Synthesizer's)")
+    parser.add_argument("--ridge-px", type=float, help="coefficient regularisation of the QPs, px, 0: plain eq. 2 (default: the Synthesizer's)")
     extra = parser.parse_args(args.extra)
     clips = extra.clip or sorted(DEV_CLIPS.glob("*.mp4"))
     if not clips:
@@ -198,7 +208,7 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
         print(f"bench reenact: {stem}: pack built from frames 0-{build - 1} in {pack_dir}", file=sys.stderr, flush=True)
         valid = np.asarray(points["valid"], bool).all(axis=1)
         test = np.flatnonzero(valid[build:])[:: max(1, extra.stride)] + build
-        remedies = {k: getattr(extra, k) for k in ("detail_power", "detail_sigma_px", "flow_max_px") if getattr(extra, k) is not None}
+        remedies = {k: getattr(extra, k) for k in ("detail_power", "detail_sigma_px", "flow_max_px", "ridge_px") if getattr(extra, k) is not None}
         scores, clip_tiles = evaluate(clip, points, pack_dir, test, **remedies)
         tiles += clip_tiles
         for method, suffix in METHODS.items():

@@ -16,7 +16,9 @@ unless ``--pack`` names another pack with a ``truth.npz``:
   leaves a subregion exactly as in the neutral, 100+ dB under ``warp-only``, dominate the mean);
 
 for the method (``full``), ``_warponly`` (traditional expression mapping: the neutral warped) and
-``_global`` (one convex combination over the whole face, Pighin et al.). A contact sheet
+``_global`` (one convex combination over the whole face, Pighin et al.); and, as bounds that see the
+truth, ``_oracle`` / ``_oracleglobal`` (per subregion / over the whole face, the convex combination
+of the aligned examples fitted to the true image: ``stages.synthesis.oracle``). A contact sheet
 (truth | ours | warp-only | global) goes to ``<work>/synthesis/synthesis_sheet.png`` (the
 README's ``docs/img/synthesis_sheet.png`` is a copy of it).
 
@@ -27,9 +29,10 @@ same run; ``synth_speedup`` = their ratio. The pack is resized to 600x800 (point
 has another size; missing examples (fewer than 15) are taken from the held-out expressions.
 
     python scripts/bench.py synthesis --json [--pack fixtures/packs/target] [--frames 16] [--repeats 5]
-                                         [--detail-power P] [--detail-sigma-px S] [--flow-max-px F]
+                                         [--detail-power P] [--detail-sigma-px S] [--flow-max-px F] [--ridge-px T]
 
-(the last three: the Sec. 15 remedies of :class:`Synthesizer`, its defaults when absent).
+(the last four: the Sec. 15 remedies and the coefficient regularisation of :class:`Synthesizer`, its
+defaults when absent).
 """
 
 from __future__ import annotations
@@ -51,11 +54,14 @@ from stages.actor_pack import ActorPack, Expression, load_pack  # noqa: E402
 from stages.layout import Layout, subregion_mask  # noqa: E402
 from stages.synthesis.build import build_synthesis_model  # noqa: E402
 from stages.synthesis.metrics import masked_psnr, masked_ssim, pooled_psnr, subregion_errors  # noqa: E402
-from stages.synthesis.synthesize import DETAIL_POWER, DETAIL_SIGMA_PX, FLOW_MAX_PX, Synthesizer  # noqa: E402
+from stages.synthesis.oracle import texture_oracle  # noqa: E402
+from stages.synthesis.synthesize import DETAIL_POWER, DETAIL_SIGMA_PX, FLOW_MAX_PX, RIDGE_PX, Synthesizer  # noqa: E402
+from stages.synthesis.warp import warp_images  # noqa: E402
 
 SPEED_SIZE = (600, 800)  # (W, H)
 SPEED_EXAMPLES = 15
 MODES = (("full", ""), ("warp-only", "_warponly"), ("global", "_global"))
+ORACLES = (("full", "_oracle"), ("global", "_oracleglobal"))  # texture oracles (stages.synthesis.oracle)
 
 
 def wrinkle_mask(layout: Layout, points: np.ndarray, size: tuple[int, int]) -> np.ndarray:
@@ -124,7 +130,8 @@ def quality(pack: ActorPack, truths: list[Expression], sheet_path: Path, **synth
     model = build_synthesis_model(pack)
     synth = Synthesizer(model, **synthesis)
     size = pack.image_size
-    scores = {mode: {"psnr": [], "ssim": [], "wrinkle": [], "subregions": []} for mode, _ in MODES}
+    methods = [(mode, suffix) for mode, suffix in MODES] + [(suffix, suffix) for _, suffix in ORACLES]
+    scores = {key: {"psnr": [], "ssim": [], "wrinkle": [], "subregions": []} for key, _ in methods}
     names = [s.name for s in pack.layout.subregions]
     rows: list[np.ndarray] = []
     points = np.stack([t.points for t in truths])
@@ -132,12 +139,17 @@ def quality(pack: ActorPack, truths: list[Expression], sheet_path: Path, **synth
     for mode, _ in MODES:
         out = [synth.render(points[k : k + 8], mode=mode)[0] for k in range(0, len(points), 8)]
         renders[mode] = torch.cat(out).double()
+    truth_std = torch.stack([warp_to_standard(synth, t) for t in truths])
+    for mode, suffix in ORACLES:
+        out = [synth.render(points[k : k + 8], mode=mode, coeffs=texture_oracle(model, truth_std[k : k + 8], mode=mode))[0]
+               for k in range(0, len(points), 8)]
+        renders[suffix] = torch.cat(out).double()
     for k, truth in enumerate(truths):
         ref = to_tensor(truth.image)
         region = subregion_mask(pack.layout, truth.points, size)
         face = torch.from_numpy(region >= 0)
         wrinkles = torch.from_numpy(wrinkle_mask(pack.layout, truth.points, size)) & face
-        for mode, _ in MODES:
+        for mode, _ in methods:
             img = renders[mode][k]
             scores[mode]["psnr"].append(masked_psnr(img, ref, face))
             scores[mode]["ssim"].append(masked_ssim(img, ref, face))
@@ -161,7 +173,7 @@ def quality(pack: ActorPack, truths: list[Expression], sheet_path: Path, **synth
     sheet_path.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(sheet_path), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
     out = []
-    for mode, suffix in MODES:
+    for mode, suffix in methods:
         s = scores[mode]
         out += [
             {"bench": "synthesis", "metric": f"synth_psnr_db{suffix}", "value": float(np.mean(s["psnr"])), "unit": "dB"},
@@ -174,6 +186,13 @@ def quality(pack: ActorPack, truths: list[Expression], sheet_path: Path, **synth
         ]
     out.append({"bench": "synthesis", "metric": "synth_heldout_count", "value": len(truths), "unit": "expressions"})
     return out
+
+
+def warp_to_standard(synth: Synthesizer, expr: Expression) -> torch.Tensor:
+    """An expression's image warped from its geometry to the standard geometry, (3, H, W) float32 in [0, 1]."""
+    src = torch.from_numpy(np.concatenate([expr.points, synth.anchors]))[None]
+    image = torch.from_numpy(expr.image).permute(2, 0, 1)[None].float() / 255.0
+    return warp_images(image, src, synth.standard_points[None], synth.triangles)[0]
 
 
 def resized(expr: Expression, size: tuple[int, int], from_size: tuple[int, int]) -> Expression:
@@ -244,6 +263,7 @@ def run(args: argparse.Namespace) -> list[dict]:
     parser.add_argument("--detail-power", type=float, default=DETAIL_POWER, help="band-pass blending power (1: plain eq. 6)")
     parser.add_argument("--detail-sigma-px", type=float, default=DETAIL_SIGMA_PX, help="band-pass split, Gaussian sigma, px")
     parser.add_argument("--flow-max-px", type=float, default=FLOW_MAX_PX, help="optical-flow refinement bound, px (0: off)")
+    parser.add_argument("--ridge-px", type=float, default=RIDGE_PX, help="coefficient regularisation of the QPs, px (0: plain eq. 2)")
     opts = parser.parse_args(getattr(args, "extra", []))
     opts.sheet = opts.sheet or Path(args.work) / "synthesis" / "synthesis_sheet.png"
     torch.set_num_threads(opts.threads)
@@ -251,7 +271,7 @@ def run(args: argparse.Namespace) -> list[dict]:
     pack_dir = opts.pack or demo_pack(Path(args.work))
     pack = load_pack(pack_dir)
     truths = held_out(pack)
-    remedies = {"detail_power": opts.detail_power, "detail_sigma_px": opts.detail_sigma_px, "flow_max_px": opts.flow_max_px}
+    remedies = {"detail_power": opts.detail_power, "detail_sigma_px": opts.detail_sigma_px, "flow_max_px": opts.flow_max_px, "ridge_px": opts.ridge_px}
     rows = quality(pack, truths, opts.sheet, **remedies) if opts.only in ("all", "quality") else []
     if opts.only in ("all", "speed"):
         rows += speed(pack, truths, frames=opts.frames, chunk=opts.chunk, repeats=opts.repeats, **remedies)

@@ -42,10 +42,20 @@ class SubregionQP:
         A ``synthesis_model`` bundle (keys ``subregion_points``, ``subregion_teeth``,
         ``example_points``, ``teeth_points``).
     device : str
+    ridge_px : float
+        Coefficient regularisation ``tau``, px: every QP (per subregion, global and teeth) gets
+        the Tikhonov term ``n_R tau^2 ||c||^2`` (``n_R`` its number of points), i.e. per point the
+        objective is the mean squared point distance plus ``tau^2 ||c||^2``: spreading the
+        combination from one example over many is worth up to ``tau^2`` of mean squared point
+        distance. 0 is the plain eq. 2 (see docs/synthesis.md, "Per-subregion vs global on real
+        faces", for the measurements behind the default).
     """
 
-    def __init__(self, model: Mapping[str, np.ndarray], *, device: str = "cpu") -> None:
+    def __init__(self, model: Mapping[str, np.ndarray], *, device: str = "cpu", ridge_px: float = 0.0) -> None:
+        if not ridge_px >= 0:
+            raise ValueError(f"ridge_px must be >= 0, got {ridge_px}")
         self.device = device
+        self.ridge_px = float(ridge_px)
         member = np.asarray(model["subregion_points"], bool)
         teeth = np.asarray(model["subregion_teeth"], bool)
         self.n_subregions = len(member)
@@ -79,10 +89,12 @@ class SubregionQP:
             return
         B, R = len(points), family.index.shape[0]
         target = points[:, family.index].reshape(B, R, -1) * family.weight
+        ridge = self.ridge_px**2 * family.weight.sum(-1) / 2  # tau^2 n_R per subregion
         c, d2 = project_onto_convex_hull(
             family.examples[None].expand(B, -1, -1, -1).reshape(B * R, *family.examples.shape[1:]),
             target.reshape(B * R, -1),
             weights=family.weight[None].expand(B, -1, -1).reshape(B * R, -1),
+            ridge=ridge[None].expand(B, -1).reshape(B * R),
         )
         c, d2 = c.view(B, R, -1), d2.view(B, R)
         rows = family.rows
@@ -102,7 +114,8 @@ class SubregionQP:
         -------
         coeffs : (B, S, K) float64; face subregions over the ``M`` examples, the teeth subregion over
             the ``Mt`` teeth examples, zero-padded to ``K = max(M, Mt)``.
-        distance2 : (B, S) float64, the squared distance to each hull (eq. 5), px^2.
+        distance2 : (B, S) float64, the squared distance of each combination to the target's
+            points (eq. 5; the distance to the hull when ``ridge_px`` is 0), px^2.
         """
         import torch
         if mode not in QP_MODES:

@@ -129,10 +129,17 @@ def project_onto_convex_hull(
     target: torch.Tensor,
     *,
     weights: torch.Tensor | None = None,
+    ridge: torch.Tensor | None = None,
     tol: float = 1e-13,
     max_iter: int = 60,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Closest point of the convex hull of example geometries to a target geometry (eq. 2-5).
+
+    With ``ridge`` the objective gains a Tikhonov term on the coefficients,
+    ``||G^R - sum_i c_i G^R_i||^2 + lambda ||c||^2``: among combinations that fit the points about
+    equally well it prefers the one spread over more examples (``||c||^2`` is 1 on a single
+    example, ``1/k`` spread evenly over ``k``), which keeps landmark noise from switching the
+    texture between examples. ``lambda = 0`` is eq. 2.
 
     Parameters
     ----------
@@ -144,13 +151,16 @@ def project_onto_convex_hull(
     weights : (B, D) tensor, optional
         Per-coordinate 0/1 (or non-negative) weights; lets problems of different sizes share one
         padded batch (a zero weight removes a coordinate from the objective).
+    ridge : (B,) tensor, optional
+        ``lambda`` per problem, px^2 (>= 0).
 
     Returns
     -------
     coeffs : (B, M) tensor
         Convex combination coefficients ``c_i`` (eq. 4): ``>= 0``, summing to one.
     distance2 : (B,) tensor
-        The objective (eq. 5) at ``coeffs``: squared distance to the hull, px^2.
+        The geometry term (eq. 5) at ``coeffs``: squared distance of the combination to the
+        target, px^2 (the hull distance when ``ridge`` is absent or zero).
     """
     import torch
     if examples.ndim != 3 or target.shape != (examples.shape[0], examples.shape[2]):
@@ -159,6 +169,10 @@ def project_onto_convex_hull(
     if weights is not None:
         X = X * weights.sqrt()[:, None, :]
     A = X @ X.transpose(1, 2)
+    if ridge is not None:
+        if ridge.shape != (examples.shape[0],) or bool((ridge < 0).any()):
+            raise ValueError(f"ridge must be (B,) = ({examples.shape[0]},) and >= 0, got shape {tuple(ridge.shape)}")
+        A = A + ridge.to(A)[:, None, None] * torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
     coeffs = solve_simplex_qp(2.0 * A, tol=tol, max_iter=max_iter)
     residual = torch.einsum("bm,bmd->bd", coeffs, X)
     return coeffs, (residual * residual).sum(-1)

@@ -30,6 +30,7 @@ MODES = ("full", "warp-only", "global")
 DETAIL_POWER = 1.0  # band-pass blending defaults (docs/synthesis.md, "Fine texture")
 DETAIL_SIGMA_PX = 2.0
 FLOW_MAX_PX = 0.0  # optical-flow refinement of the examples' alignment (0: off)
+RIDGE_PX = 0.0  # coefficient regularisation of the QPs (docs/synthesis.md, "Per-subregion vs global on real faces")
 
 
 def head_motion_points(
@@ -110,6 +111,8 @@ class Synthesizer:
     flow_max_px : float
         Refine the examples' alignment by optical flow (Sec. 15 remedy, :mod:`stages.synthesis.align`),
         the flow clipped to this many px per component; 0 leaves the examples as built.
+    ridge_px : float
+        Coefficient regularisation ``tau`` of the QPs, px (:class:`SubregionQP`; 0: plain eq. 2).
     """
 
     def __init__(
@@ -120,12 +123,13 @@ class Synthesizer:
         detail_power: float = DETAIL_POWER,
         detail_sigma_px: float = DETAIL_SIGMA_PX,
         flow_max_px: float = FLOW_MAX_PX,
+        ridge_px: float = RIDGE_PX,
     ) -> None:
         import torch
         from stages.synthesis.align import refine_model
         model = refine_model(model, max_px=flow_max_px)
         self.device = device
-        self.qp = SubregionQP(model, device=device)
+        self.qp = SubregionQP(model, device=device, ridge_px=ridge_px)
         self.compositor: Compositor = prepare_compositor(
             dict(model), device=device, detail_power=detail_power, detail_sigma_px=detail_sigma_px
         )
@@ -148,6 +152,7 @@ class Synthesizer:
         motion_scale: float = 1.0,
         min_coeff: float = 1e-3,
         direct: bool = False,
+        coeffs: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Synthesize the expression images of a chunk of frames.
 
@@ -165,6 +170,9 @@ class Synthesizer:
             Coefficients skipped in compositing (see :func:`composite`).
         direct : bool
             Composite every example at every pixel (the paper's implementation; speed baseline).
+        coeffs : (B, S, K) tensor, optional
+            Composite with these coefficients instead of solving the QPs (``full`` / ``global``
+            modes; e.g. :func:`stages.synthesis.oracle.texture_oracle`).
 
         Returns
         -------
@@ -190,7 +198,10 @@ class Synthesizer:
             alpha = self.compositor.alpha.view(1, 1, H, W)
             alpha = warp_images(alpha, self.standard_points[None].expand(B, -1, -1), dst_t, self.triangles)
         else:
-            coeffs, _ = self.qp.coefficients(points, mode=mode)
+            if coeffs is None:
+                coeffs, _ = self.qp.coefficients(points, mode=mode)
+            elif tuple(coeffs.shape) != (B, self.qp.n_subregions, self.qp.K):
+                raise ValueError(f"coeffs must be (B, S, K) = ({B}, {self.qp.n_subregions}, {self.qp.K}), got {tuple(coeffs.shape)}")
             standard = composite(self.compositor, coeffs, min_coeff=min_coeff, direct=direct)
             out = warp_images(standard, self.standard_points[None].expand(B, -1, -1), dst_t, self.triangles)
             rgb, alpha = out[:, :3], out[:, 3:]
@@ -221,10 +232,11 @@ class Synthesize(FrameStage):
         Param("detail_power", float, DETAIL_POWER, "band-pass blending: detail band weights are the coefficients to this power, renormalised (1 = plain eq. 6)", min=1.0),
         Param("detail_sigma_px", float, DETAIL_SIGMA_PX, "band-pass blending: Gaussian sigma separating the detail band, px", min=0.1),
         Param("flow_max_px", float, FLOW_MAX_PX, "refine the examples' alignment by optical flow (DIS) to the neutral, flow bounded to this many px (0 = off)", min=0.0),
+        Param("ridge_px", float, RIDGE_PX, "coefficient regularisation of the QPs: n_R tau^2 ||c||^2 with tau this many px (0 = plain eq. 2)", min=0.0),
     )
 
     def __init__(self) -> None:
-        self._prepared: tuple[Mapping[str, np.ndarray], str, tuple[float, float, float], Synthesizer] | None = None
+        self._prepared: tuple[Mapping[str, np.ndarray], str, tuple[float, float, float, float], Synthesizer] | None = None
 
     def stream_info(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> StreamInfo:
         xy, bundle = target_geometry(inputs, stage=self.name)
@@ -234,9 +246,10 @@ class Synthesize(FrameStage):
 
     def _synthesizer(self, model: Mapping[str, np.ndarray], device: str, params: Mapping[str, Any]) -> Synthesizer:
         """The model prepared on ``device``, kept between chunks of the same run."""
-        remedies = (float(params["detail_power"]), float(params["detail_sigma_px"]), float(params["flow_max_px"]))
+        remedies = (float(params["detail_power"]), float(params["detail_sigma_px"]), float(params["flow_max_px"]), float(params["ridge_px"]))
         if self._prepared is None or self._prepared[0] is not model or self._prepared[1:3] != (device, remedies):
-            synth = Synthesizer(model, device=device, detail_power=remedies[0], detail_sigma_px=remedies[1], flow_max_px=remedies[2])
+            synth = Synthesizer(model, device=device, detail_power=remedies[0], detail_sigma_px=remedies[1], flow_max_px=remedies[2],
+                                ridge_px=remedies[3])
             self._prepared = (model, device, remedies, synth)
         return self._prepared[3]
 

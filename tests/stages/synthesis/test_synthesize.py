@@ -67,6 +67,21 @@ def test_global_mode_uses_one_combination_over_all_face_points(pack, synth):
     torch.testing.assert_close(c_global[:, 6], c_full[:, 6])  # teeth unchanged
 
 
+def test_given_coefficients_replace_the_qp(pack, synth):
+    rng = np.random.default_rng(6)
+    points = pack.standard.points[None] + rng.normal(0, 1.0, (2, 16, 2))
+    rgb, _, coeffs = synth.render(points)
+    again, _, used = synth.render(points, coeffs=coeffs)
+    torch.testing.assert_close(again, rgb)
+    assert used is coeffs
+    one_hot = torch.zeros_like(coeffs)
+    one_hot[:, :, 1] = 1.0  # example 1 everywhere (teeth example 1 in the teeth subregion)
+    swapped, _, _ = synth.render(points, coeffs=one_hot)
+    assert float((swapped - rgb).abs().max()) > 0.1
+    with pytest.raises(ValueError, match="coeffs must be"):
+        synth.render(points, coeffs=coeffs[:, :3])
+
+
 def test_head_motion_translation_and_rotation_about_the_centre():
     pts = np.array([[[10.0, 0.0], [0.0, 0.0], [0.0, 10.0]]])
     shift = head_motion_points(pts, np.array([[1.0, 0.0, 4.0, -2.0]]), source_center=np.zeros(2), target_center=np.zeros(2), scale=0.5)
