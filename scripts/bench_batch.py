@@ -88,8 +88,8 @@ def _batch(jobs: dict[str, dict], folder: Path, workers: int | None = None, addr
     manifest = folder / "shots.yaml"
     manifest.write_text(json.dumps({"jobs": {name: {**job, "out": str(folder / "out" / name)}
                                              for name, job in jobs.items()}}, indent=1))
-    ray = ["--address", address] if address else ["--workers", str(workers)]
-    return ["batch", str(manifest), *ray, "--log-json", str(folder / "log.jsonl")]
+    where = ["--address", address] if address else ["--workers", str(workers)]
+    return ["batch", str(manifest), *where, "--log-json", str(folder / "log.jsonl")]
 
 
 def _start_up(log: Path, launched: float) -> dict[str, float]:
@@ -111,7 +111,10 @@ def _attached(jobs: dict[str, dict], work: Path) -> float:
     try:
         ray.init(num_cpus=os.cpu_count(), include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
     finally:
-        os.environ.pop("PYTHONPATH") if saved is None else os.environ.update(PYTHONPATH=saved)
+        if saved is None:
+            del os.environ["PYTHONPATH"]
+        else:
+            os.environ["PYTHONPATH"] = saved
     try:
         args = _batch(jobs, work / "batch_attached", address=ray.get_runtime_context().gcs_address)
         env = {**os.environ, "RAY_AUTH_MODE": "token"}  # the token of a local ray.init
