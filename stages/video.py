@@ -9,6 +9,7 @@ that cannot be converted to RGB) raises :class:`runner.stage.StageError` naming 
 from __future__ import annotations
 
 import logging
+import threading
 from collections.abc import Iterator, Mapping
 from fractions import Fraction
 from pathlib import Path
@@ -139,7 +140,12 @@ class _Reader:
 
 class VideoDecode(FrameStage):
     """Decode a clip to RGB frames, chunk by chunk (not cached: decoding is cheaper than
-    reading raw frames back)."""
+    reading raw frames back).
+
+    Thread-safe: each thread that calls :meth:`process` has its own decoder, so stages that
+    read the clip concurrently (each in order) each decode sequentially instead of sharing one
+    position.
+    """
 
     name = "video.decode"
     version = "1"
@@ -149,7 +155,7 @@ class VideoDecode(FrameStage):
     cached = False
 
     def __init__(self) -> None:
-        self._reader: _Reader | None = None
+        self._local = threading.local()  # .reader: this thread's _Reader
 
     def stream_info(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> StreamInfo:
         return probe(Path(inputs["video"]))
@@ -158,9 +164,12 @@ class VideoDecode(FrameStage):
                 ctx: Context) -> dict[str, Any]:
         """Frames ``[start, stop)`` as ``(stop - start, H, W, 3)`` uint8 RGB."""
         path = Path(inputs["video"])
-        if self._reader is None or self._reader.path != path:
-            self._reader = _Reader(path)
-        return {"frames": self._reader.read(start, stop)}
+        reader = getattr(self._local, "reader", None)
+        if reader is None or reader.path != path:
+            if reader is not None:
+                reader.close()
+            reader = self._local.reader = _Reader(path)
+        return {"frames": reader.read(start, stop)}
 
 
 class ImageGray(FrameStage):

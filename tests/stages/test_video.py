@@ -3,6 +3,7 @@ the written ones exactly), and one-line errors for bad input."""
 
 from __future__ import annotations
 
+import threading
 from fractions import Fraction
 from pathlib import Path
 
@@ -44,6 +45,32 @@ def test_decode_is_exact_on_lossless_clip_in_any_chunk_order(lossless):
         np.testing.assert_array_equal(frames, truth[start:stop])
     with pytest.raises(StageError, match="truncated stream: frame 37 missing"):
         stage.process(30, 40, {"video": path}, {}, None)
+
+
+def test_decode_from_several_threads_at_once_is_exact(lossless):
+    """Readers in threads (the runner streams a clip to several stages at once), each reading the
+    clip in order from its own start, all get exactly their frames from one stage object."""
+    path, truth = lossless
+    stage, errors = VideoDecode(), []
+    barrier = threading.Barrier(3)
+
+    def read_in_order(first: int) -> None:
+        barrier.wait()
+        try:
+            for _ in range(3):
+                for start in range(first, 37, 4):
+                    stop = min(start + 4, 37)
+                    frames = stage.process(start, stop, {"video": path}, {}, None)["frames"]
+                    np.testing.assert_array_equal(frames, truth[start:stop])
+        except Exception as exc:  # noqa: BLE001 - reported by the main thread
+            errors.append(exc)
+
+    threads = [threading.Thread(target=read_in_order, args=(first,)) for first in (0, 1, 2)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert errors == []
 
 
 def test_h264_writer_is_browser_friendly_close_and_bit_exact(tmp_path):
