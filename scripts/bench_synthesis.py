@@ -3,7 +3,10 @@
 Quality — the target pack's held-out expressions (captured expressions that are not examples),
 each synthesized from its TRUE geometry, compared with its true image. The pack is the 600x800
 demo target of ``make_fixtures.py --demo`` (rendered once under ``--work``; 28 held-out images)
-unless ``--pack`` names another pack with a ``truth.npz``:
+unless ``--pack`` names another pack with a ``truth.npz``, or ``--combo`` asks for the 600x800
+combinatorial pack (examples moving one facial region each, held-out expressions combining
+regions: the paper's central claim; rows prefixed ``synth_combo_``, e.g.
+``synth_combo_wrinkle_psnr_db`` and ``synth_combo_wrinkle_psnr_db_global``):
 
 * ``synth_psnr_db``, ``synth_ssim``: PSNR / SSIM over the face (the layout's subregions rasterized
   on the true geometry);
@@ -28,7 +31,7 @@ same with every example composited at every pixel (the paper's implementation), 
 same run; ``synth_speedup`` = their ratio. The pack is resized to 600x800 (points scaled) when it
 has another size; missing examples (fewer than 15) are taken from the held-out expressions.
 
-    python scripts/bench.py synthesis --json [--pack fixtures/packs/target] [--frames 16] [--repeats 5]
+    python scripts/bench.py synthesis --json [--pack fixtures/packs/target | --combo] [--frames 16] [--repeats 5]
                                          [--detail-power P] [--detail-sigma-px S] [--flow-max-px F] [--ridge-px T]
 
 (the last four: the Sec. 15 remedies and the coefficient regularisation of :class:`Synthesizer`, its
@@ -254,6 +257,7 @@ def speed(pack: ActorPack, truths: list[Expression], *, frames: int, chunk: int,
 def run(args: argparse.Namespace) -> list[dict]:
     parser = argparse.ArgumentParser(prog="bench.py synthesis")
     parser.add_argument("--pack", type=Path, default=None, help="target actor pack with truth.npz (default: the 600x800 demo target, generated under --work)")
+    parser.add_argument("--combo", action="store_true", help="the 600x800 combinatorial pack (generated under --work); rows synth_combo_*")
     parser.add_argument("--frames", type=int, default=16, help="frames timed per speed run")
     parser.add_argument("--repeats", type=int, default=5, help="speed runs per variant (the best counts)")
     parser.add_argument("--chunk", type=int, default=8, help="frames per render call")
@@ -268,24 +272,30 @@ def run(args: argparse.Namespace) -> list[dict]:
     opts.sheet = opts.sheet or Path(args.work) / "synthesis" / "synthesis_sheet.png"
     torch.set_num_threads(opts.threads)
     cv2.setNumThreads(opts.threads)
-    pack_dir = opts.pack or demo_pack(Path(args.work))
+    if opts.combo and opts.pack is not None:
+        parser.error("--combo and --pack name two packs: give one")
+    pack_dir = opts.pack or demo_pack(Path(args.work), part="pack:combo" if opts.combo else "pack:target")
     pack = load_pack(pack_dir)
     truths = held_out(pack)
     remedies = {"detail_power": opts.detail_power, "detail_sigma_px": opts.detail_sigma_px, "flow_max_px": opts.flow_max_px, "ridge_px": opts.ridge_px}
     rows = quality(pack, truths, opts.sheet, **remedies) if opts.only in ("all", "quality") else []
     if opts.only in ("all", "speed"):
         rows += speed(pack, truths, frames=opts.frames, chunk=opts.chunk, repeats=opts.repeats, **remedies)
+    if opts.combo:
+        for row in rows:
+            row["metric"] = row["metric"].replace("synth_", "synth_combo_", 1)
     return rows
 
 
-def demo_pack(work: Path) -> Path:
-    """The paper-sized (600x800) target pack of ``make_fixtures.py --demo``, generated once under
-    ``work`` (only the target pack, the same identity and seed as ``make_fixtures.py --demo``)."""
-    folder = work / "synthesis_demo" / "packs" / "target"
+def demo_pack(work: Path, *, part: str = "pack:target") -> Path:
+    """A paper-sized (600x800) pack of ``make_fixtures.py --demo``: the target (``pack:target``)
+    or the combinatorial pack (``pack:combo``), generated once under ``work`` (that part only,
+    the same identity and seed as ``make_fixtures.py --demo``)."""
+    folder = work / "synthesis_demo" / "packs" / part.split(":")[1]
     if not (folder / "pack.yaml").is_file():
         from scripts.make_fixtures import DEMO, make_part
 
-        make_part(work / "synthesis_demo", "pack:target", seed=1, spec=DEMO)
+        make_part(work / "synthesis_demo", part, seed=1, spec=DEMO)
     return folder
 
 
