@@ -11,7 +11,7 @@ Schema
       set: [synthesize.mode=full]    # --set overrides; a job's own come after (they win)
     jobs:                            # one entry per shot, keyed by a unique name
       calm:
-        clip: ../clips/calm.mp4      # the pipeline's video input (--in)
+        clip: ../clips/calm.mp4      # the pipeline's clip input (--in: a video, or a folder of photos)
         out: out/calm                # --out; default out/<name> next to the manifest
       live:
         clip: ../clips/live.mp4
@@ -33,7 +33,7 @@ from pathlib import Path
 import yaml
 
 from runner import safe_yaml
-from runner.config import NAME_RE, ConfigError, Issue, Pipeline, Where, _Reader, bind_inputs, load_pipeline
+from runner.config import NAME_RE, ConfigError, Issue, Pipeline, Where, _Reader, bind_inputs, clip_inputs, load_pipeline
 from runner.publish import conflicts
 from runner.registry import Registry
 
@@ -222,10 +222,10 @@ def _check_inputs(r: _Reader, key: str, loaded: Pipeline, clip: tuple[str, yaml.
                   named: dict[str, tuple[str, yaml.Node]]) -> None:
     """Record an issue, at its manifest node, for each input of job ``key`` that the pipeline
     does not declare or that does not exist (a file, or a folder for a ``dir`` input)."""
-    videos = [i.name for i in loaded.inputs.values() if i.type == "video"]
-    given = [("clip", name, clip) for name in videos[:1] if clip is not None]
-    if clip is not None and len(videos) != 1:
-        r.error(clip[1], f"{key}.clip", f"{loaded.path} has {len(videos)} video inputs; bind one with `inputs`")
+    clips = clip_inputs(loaded)
+    given = [("clip", name, clip) for name in clips[:1] if clip is not None]
+    if clip is not None and len(clips) != 1:
+        r.error(clip[1], f"{key}.clip", f"{loaded.path} has {len(clips)} clip inputs; bind one with `inputs`")
     for name, value in named.items():
         field_name = "target" if name == "target" else "inputs"
         if name not in loaded.inputs:

@@ -192,17 +192,22 @@ jobs:
     # An input with no default and no value.
     ("jobs:\n  a: {pipeline: noclip.yaml}\n", ["{manifest}:2:3: jobs.a: inputs.clip: missing input: no value given "
                                                "(give it in the job or in `defaults`)"]),
+    # A pipeline without a video input: `clip` binds its folder input (a folder of photos).
+    ("jobs:\n  a: {pipeline: photos.yaml, clip: nofolder}\n",
+     ["{manifest}:2:36: jobs.a.clip: {tmp}/nofolder: no such folder"]),
 ])
 def test_manifest_file_problems(site, tmp_path, text, expected):
     (tmp_path / "broken.yaml").write_text("inputs: {clip: {type: video}}\nstages:\n  d: {uses: no.such}\n")
     (tmp_path / "noclip.yaml").write_text("inputs: {clip: {type: video}}\n"
                                           "stages:\n  d: {uses: video.decode, inputs: {video: clip}}\n")
+    (tmp_path / "photos.yaml").write_text("inputs: {photos: {type: dir}}\n"
+                                          "stages:\n  d: {uses: pack.load, inputs: {pack: photos}}\n")
     path = tmp_path / "shots.yaml"
     path.write_text(text)
     done = run_cli("batch", path, env=_env(site, tmp_path), cwd=tmp_path)
     assert done.returncode == 2
     assert done.stderr.splitlines() == [
-        "error: " + line.format(manifest=path, broken=tmp_path / "broken.yaml") for line in expected]
+        "error: " + line.format(manifest=path, broken=tmp_path / "broken.yaml", tmp=tmp_path) for line in expected]
 
 
 def test_batch_outputs_are_byte_identical_to_runner_run(site, cluster, alone, tmp_path):
