@@ -2,8 +2,11 @@
 each other (:class:`Value`).
 
 A chunk is *resolved* once per run: its key (which resolves the upstream chunks its window
-reads), then its stored entry, or compute, store and commit it under the entry's lock. Reading a
-stored chunk hashes it against its entry's record the first time in a run; a damaged chunk is
+reads), then its stored entry, or compute, store and commit it under the entry's lock. An entry
+stores the chunk's bundles and files and only the digests of its ``frames`` outputs: the frames
+are handed to every stage reading them as they are computed (:class:`runner.broadcast.Broadcast`)
+and computed again for a reader that asks after every registered reader passed them (or in a
+later run). Reading a stored bundle hashes it against its entry's record; a damaged one is
 reported and recomputed (:func:`runner.outputs.read_or_redo`). Frame chunks use the run through
 :class:`RunServices` only: the run's :class:`runner.keys.Keys`, the cache store, progress
 reporting and ``--jobs``.
@@ -30,16 +33,17 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from runner.broadcast import Broadcast
 from runner.cache import CacheStore, Entry
 from runner.config import StageNode
 from runner.depends import recording
 from runner.digest import cache_key, combine
 from runner.errors import stage_errors
 from runner.keys import Keys
-from runner.outputs import check_frames, entry_context, load_bundle, load_frames, load_mapped, read_or_redo, save_outputs
+from runner.outputs import check_frames, entry_context, load_bundle, read_or_redo, save_outputs
 from runner.progress import Progress, Report, own_time
-from runner.stage import Context, FrameStage, StreamInfo
-from runner.streams import ChunkedStream, ComputedStream, StoredStream, chunk_ranges
+from runner.stage import FrameStage, StreamInfo
+from runner.streams import ChunkedStream, ComputedStream, SharedStream, chunk_ranges
 
 if TYPE_CHECKING:
     from tqdm import tqdm
@@ -87,9 +91,10 @@ class Value:
             return self.digest
         return self.chunks.digest(self.port)
 
-    def get(self) -> Any:
+    def get(self, reader: str | None = None) -> Any:
+        """The value; a frame stream as seen by stage ``reader`` (see :meth:`FrameChunks.stream`)."""
         if self.chunks is not None and self.type == "frames":
-            return self.chunks.stream(self.port)
+            return self.chunks.stream(self.port, reader)
         if self._loaded is None:
             self._loaded = self.load()
         return self._loaded
@@ -127,19 +132,26 @@ class FrameChunks:
 
     Resolving chunk ``i`` (:meth:`entry`) computes its key, which resolves the upstream chunks
     its window reads, then takes the stored entry or computes, stores and commits it under the
-    entry's lock (a cached stage), logging a ``chunk`` event either way. An uncached stage
-    stores nothing: its chunks are computed whenever read (:meth:`stream`) and their digests
-    derive from their keys. A *lazy* stage is resolved by its readers. Thread-safe: one lock
-    per chunk.
+    entry's lock (a cached stage), logging a ``chunk`` event either way; the frames computed are
+    offered to :attr:`broadcast` for the stages reading them. An uncached stage stores nothing:
+    its chunks are computed whenever read (:meth:`stream`) and their digests derive from their
+    keys. A *lazy* stage is resolved by its readers. Thread-safe: one lock per chunk.
+
+    ``keep`` bounds the chunks computed ahead of the slowest registered reader
+    (:class:`runner.broadcast.Broadcast`); ``lag`` is how many chunks behind the one it asks
+    for a reader's position stays (a reader computing ``--jobs`` chunks at once asks out of
+    order by up to ``2 * jobs`` chunks).
 
     What it uses of the run is ``run`` (:class:`RunServices`): keys, the store, progress.
     ``entries`` (one per chunk, None until resolved) and :meth:`redo` serve publishing.
     """
 
     def __init__(self, run: RunServices, node: StageNode, stage: FrameStage, inputs: dict[str, Value],
-                 info: StreamInfo, *, forced: bool, lazy: bool):
+                 info: StreamInfo, *, forced: bool, lazy: bool, keep: int = 3):
         self.run, self.node, self.stage, self.inputs, self.info = run, node, stage, inputs, info
         self.forced, self.lazy = forced, lazy
+        self.broadcast = Broadcast(keep=keep + 2 * (run.jobs - 1))
+        self._lag = 2 * (run.jobs - 1)
         self.ranges = chunk_ranges(info.frames, run.keys.chunk_frames)
         self.keys: list[str | None] = [None] * len(self.ranges)
         self.entries: list[Entry | None] = [None] * len(self.ranges)
@@ -151,7 +163,6 @@ class FrameChunks:
         self._streams: dict[str, ComputedStream] = {}
         self._readers: list[str] = []
         self._bar: tqdm | None = None
-        self._verified: set[tuple[int, str]] = set()  # (chunk, port) read and hashed in this run
         self._depends: set[Path] = set()  # files recorded by runner.depends while chunks were computed
 
     # -- keys and digests ------------------------------------------------------------------
@@ -252,7 +263,10 @@ class FrameChunks:
 
     def entry(self, i: int) -> Entry:
         """The stored entry of chunk ``i`` (cached stages), computed and committed if missing."""
+        self._passing(i)
         if self.entries[i] is None:
+            if not self.run.keys.dry_run and self.stored(i) is None:
+                self.broadcast.wait_room(i)  # before taking a lock that a slower reader may need
             with self._locks[i]:
                 if self.entries[i] is None:
                     if self.run.keys.dry_run:
@@ -273,8 +287,20 @@ class FrameChunks:
     def complete(self) -> bool:
         return all(entry is not None for entry in self.entries)
 
+    def _passing(self, i: int) -> None:
+        """Tell the upstream stages chunk ``i`` reads that this stage is at chunk ``i``: it will
+        ask them for no chunk before those it reads now."""
+        for read in self.reads(i):
+            if read.chunks is not None:
+                read.value.chunks.passed(self.node.name, read.chunks[0])
+
+    def passed(self, reader: str, chunk: int) -> None:
+        """Stage ``reader`` asks for no chunk before ``chunk`` any more (:meth:`Broadcast.advance`)."""
+        self.broadcast.advance(reader, chunk - self._lag)
+
     def _compute(self, i: int, key: str) -> tuple[Entry, bool]:
-        """Compute chunk ``i`` under its entry's lock, unless another run stored it meanwhile."""
+        """Compute chunk ``i`` under its entry's lock, unless another run stored it meanwhile;
+        offer its frames to the readers."""
         store, keys, node = self.run.store, self.run.keys, self.node
         start, stop = self.ranges[i]
         with store.locked(key, on_wait=self.run.progress.waiting(node)):
@@ -294,6 +320,7 @@ class FrameChunks:
                 entry = store.commit(key, tmp, {"stage": node.name, "uses": node.uses, "range": [start, stop],
                                                 **record, "depends": keys.depends(files)},
                                      replace=self.forced)
+        self.broadcast.offer(i, {port: np.asarray(result[port]) for port in self._frame_ports()})
         return entry, True
 
     def redo(self, i: int) -> Entry:
@@ -325,14 +352,15 @@ class FrameChunks:
                 self._readers.append(progress.current)
         self.run.store.touch(entry)
 
-    def _spent(self, seconds: float) -> None:
+    def _spent(self, seconds: float, cpu_seconds: float) -> None:
         with self._book:
             self.report.seconds += seconds
+            self.report.cpu_seconds += cpu_seconds
 
     def _inputs(self) -> dict[str, Any]:
         """What ``process`` is handed: frame streams, loaded bundles, paths (loaded once)."""
         if self._upstream is None:
-            self._upstream = {port: v.get() for port, v in self.inputs.items()}
+            self._upstream = {port: v.get(self.node.name) for port, v in self.inputs.items()}
         return self._upstream
 
     def finish(self) -> Report:
@@ -351,28 +379,42 @@ class FrameChunks:
 
     # -- outputs ---------------------------------------------------------------------------
 
-    def stream(self, port: str) -> ChunkedStream:
-        """Frames of output ``port``: of a cached stage, its stored chunks, each resolved (so
-        computed and stored, if missing) when first read and read back from its entry (from
-        the page cache: about one copy), verified on the first read; of an uncached stage,
-        chunks computed as read."""
+    def stream(self, port: str, reader: str | None = None) -> ChunkedStream:
+        """Frames of output ``port`` as stage ``reader`` reads them: of a cached stage, each
+        chunk resolved (computed and its entry committed, if missing) when first asked for and
+        handed over as computed, or computed again if no registered reader kept it; of an
+        uncached stage, chunks computed as read."""
         if self.node.cls.cached:
-            return StoredStream(self.info, self.ranges, lambda i: self._frames(i, port))
+            return SharedStream(self.info, self.ranges, lambda i, lo, hi: self._frames(i, port, lo, hi),
+                                lambda i: None if reader is None else self.passed(reader, i))
         with self._book:
             if port not in self._streams:
-                self._streams[port] = ComputedStream(self.info, self.ranges, lambda i, p=port: self._computed(p, i),
+                self._streams[port] = ComputedStream(self.info, self.ranges, lambda i, p=port: self._process(*self.ranges[i])[p],
                                                      keep=self.run.jobs + 2)
             return self._streams[port]
 
-    def _frames(self, i: int, port: str) -> np.ndarray:
-        """Frames ``(B, H, W, C)`` of output ``port`` in chunk ``i``: hashed against the entry's
-        record on the first read in this run (a damaged entry is recomputed), memory-mapped
-        after that."""
+    def _frame_ports(self) -> list[str]:
+        return [port for port, kind in self.node.cls.outputs.items() if kind == "frames"]
+
+    def _frames(self, i: int, port: str, lo: int, hi: int) -> np.ndarray:
+        """Frames ``[lo, hi)`` (from the chunk's first) of output ``port`` in chunk ``i`` of a
+        cached stage: as computed when its entry was resolved, or computed again if no
+        registered reader kept them: the whole chunk, offered to the other readers, or, for a
+        part of it, just those frames (a reader picking frames here and there)."""
         self.entry(i)
-        if (i, port) in self._verified:
-            return load_mapped(self.entries[i], port)
-        frames = self._read(i, lambda entry: load_frames(entry, port))
-        self._verified.add((i, port))
+        frames = self.broadcast.take(i, port)
+        if frames is not None:
+            return frames[lo:hi]
+        start, stop = self.ranges[i]
+        if hi - lo < stop - start:
+            return self._process(start + lo, start + hi)[port]
+        self.broadcast.wait_room(i)  # before taking a lock that a slower reader may need
+        with self._locks[i]:
+            frames = self.broadcast.take(i, port)
+            if frames is None:
+                computed = self._process(start, stop)
+                self.broadcast.offer(i, computed)
+                frames = computed[port]
         return frames
 
     def _read(self, i: int, read: Callable[[Entry], Any]) -> Any:
@@ -386,27 +428,27 @@ class FrameChunks:
         parts = [self._read(i, lambda entry: load_bundle(entry, port)) for i in range(len(self.ranges))]
         return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
-    def _computed(self, port: str, i: int) -> np.ndarray:
-        """Frames ``(B, H, W, C)`` of output ``port`` in chunk ``i`` of an uncached stage."""
-        start, stop = self.ranges[i]
-        ctx = Context(device=self.run.keys.device, files_dir=_no_files(self.node),
-                      log=logging.getLogger(f"runner.stage.{self.node.name}"))
-        with stage_errors(self.node):
-            frames = np.asarray(self.stage.process(start, stop, self._inputs(), dict(self.node.params), ctx)[port])
-            check_frames(port, frames, stop - start, self.info)
+    def _process(self, start: int, stop: int) -> dict[str, np.ndarray]:
+        """The ``frames`` outputs ``(stop - start, H, W, C)`` of frames ``[start, stop)``
+        computed without storing anything (an uncached stage's chunk, or a cached stage's frames
+        needed again: a ``recompute`` event); the stage's ``files`` outputs, if any, are written
+        to a folder dropped at once."""
+        timing = own_time(self._spent) if self.node.cls.cached else contextlib.nullcontext()
+        if self.node.cls.cached:
+            self.run.progress.log({"event": "recompute", "stage": self.node.name, "start": start, "stop": stop})
+        with timing, self.run.store.writing(f"again-{self.node.name}") as tmp, stage_errors(self.node):
+            ctx = entry_context(tmp, device=self.run.keys.device, progress=lambda n: None)
+            ctx.log = logging.getLogger(f"runner.stage.{self.node.name}")
+            result = self.stage.process(start, stop, self._inputs(), dict(self.node.params), ctx)
+            frames = {port: np.asarray(result[port]) for port in self._frame_ports()}
+            for port, array in frames.items():
+                check_frames(port, array, stop - start, self.info)
         return frames
 
 
 def defines_stream_info(cls: type[FrameStage]) -> bool:
     """True if the stage computes its own output shape instead of taking its frames input's."""
     return cls.stream_info is not FrameStage.stream_info
-
-
-def _no_files(node: StageNode) -> Callable[[str], Path]:
-    def files_dir(port: str) -> Path:
-        raise RuntimeError(f"{node.uses} has cached = False and cannot write files")
-
-    return files_dir
 
 
 def map_ordered(fn: Callable[[int], Any], items: list[int], *, jobs: int):

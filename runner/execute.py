@@ -36,6 +36,8 @@ from __future__ import annotations
 
 import contextlib
 import importlib.metadata
+import queue
+import threading
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -102,9 +104,21 @@ class Runner:
         self.redo: dict[str, Callable[[int], Entry]] = {}  # per stage, recompute its entry i (found damaged)
         self.keys = Keys(self.store, pipeline.path, device=options.device, chunk_frames=pipeline.chunk_frames,
                          dry_run=options.dry_run)
-        self.progress = Progress(log=options.log, warn=options.warn, bars=options.progress)
+        lock = threading.Lock()  # stages on several threads log events
+        self._stopping = threading.Event()
+        self._scheduler = threading.current_thread()
+
+        def log(event: dict[str, Any]) -> None:
+            if self._stopping.is_set() and threading.current_thread() is not self._scheduler:
+                raise KeyboardInterrupt  # the run was interrupted: a stage on a thread stops here
+            with lock:
+                options.log(event)
+
+        self.log = log
+        self.progress = Progress(log=log, warn=options.warn, bars=options.progress)
         self.services = RunServices(self.keys, self.store, self.progress, options.jobs)
         self._lazy: list[FrameChunks] = []  # lazy frame stages not reported yet
+        self._joined: dict[str, list[tuple[FrameChunks, str, threading.Thread]]] = {}  # per stage, the readers it registered
 
     def selected(self) -> list[StageNode]:
         names = self.pipeline.ancestors(self.opts.until) if self.opts.until else set(self.pipeline.stages)
@@ -131,26 +145,12 @@ class Runner:
         reports: list[Report] = []
 
         def emit(report: Report) -> None:
-            self.opts.log({"event": "stage", **asdict(report)})
+            self.log({"event": "stage", **asdict(report)})
             self.opts.echo(report.line())
             reports.append(report)
 
         try:
-            for node in self.selected():
-                self.progress.current = node.name
-                self.opts.log({"event": "stage_start", "stage": node.name, "uses": node.uses})
-                spent: list[float] = []
-                with own_time(spent.append), stage_errors(node):
-                    if issubclass(node.cls, FrameStage):
-                        report = self._frame_stage(node)
-                    else:
-                        report = self._sequence_stage(node)
-                for finished in self._finished_lazy():
-                    emit(finished)
-                if report is not None:  # None: a lazy frame stage, reported once resolved
-                    report.seconds += spent[0]
-                    emit(report)
-            self.progress.current = None
+            self._schedule(emit)
             for chunks in self._lazy:  # chunks no reader needed (normally none)
                 chunks.resolve_all()
             for finished in self._finished_lazy():
@@ -166,6 +166,132 @@ class Runner:
                     with stage_errors(node):
                         publish(self.opts.out, item, on_damaged=lambda exc, n=node: self.progress.damaged(n, exc))
         return reports
+
+    def _schedule(self, emit: Callable[[Report], None]) -> None:
+        """Visit every selected stage once the stages it reads have had their turn: in
+        topological order on this thread, except a stage that reads a stream being computed
+        (:meth:`_stream_reads`), which runs on a thread of its own, at the same time as the
+        other readers of that stream, so that each chunk is computed once and handed to all.
+        The first failure stops new stages; it is raised once the running ones have ended."""
+        self._scheduler = threading.current_thread()
+        waiting = self.selected()
+        done: set[str] = set()
+        running: dict[str, threading.Thread] = {}
+        ended: queue.Queue[tuple[StageNode, Report | None, BaseException | None]] = queue.Queue()
+        failure: BaseException | None = None
+
+        def visit(node: StageNode) -> tuple[StageNode, Report | None, BaseException | None]:
+            try:
+                return node, self._visit(node), None
+            except BaseException as exc:  # re-raised on the scheduling thread
+                return node, None, exc
+            finally:
+                self._leave(node)
+
+        def launch(ready: list[StageNode]) -> bool:
+            """Start every ready stage that reads a stream being computed, each registered with
+            the broadcasts it reads before any starts (so none finds a chunk dropped)."""
+            started = []
+            for node in ready:
+                threaded, joins = self._stream_reads(node)
+                if threaded:
+                    thread = threading.Thread(target=lambda n=node: ended.put(visit(n)), name=f"stage-{node.name}",
+                                              daemon=True)
+                    for chunks, reader in joins:
+                        chunks.broadcast.join(reader, thread)
+                    self._joined[node.name] = [(chunks, reader, thread) for chunks, reader in joins]
+                    running[node.name] = thread
+                    waiting.remove(node)
+                    started.append(thread)
+            for thread in started:
+                thread.start()
+            return bool(started)
+
+        try:
+            while waiting or running:
+                ready = [] if failure is not None else [
+                    node for node in waiting if all(ref.stage is None or ref.stage in done for ref in node.inputs.values())]
+                setups = [node for node in ready if self._sets_up_only(node)]
+                if ready and not setups and launch(ready):
+                    continue
+                if ready:
+                    waiting.remove((setups or ready)[0])
+                    node, report, error = visit((setups or ready)[0])
+                elif running:
+                    node, report, error = ended.get()
+                    running.pop(node.name)
+                else:
+                    break
+                done.add(node.name)
+                failure = failure or error
+                for finished in self._finished_lazy():
+                    emit(finished)
+                if report is not None:  # None: a lazy frame stage, reported once resolved
+                    emit(report)
+        except BaseException:  # interrupted: the stages on threads stop at their next event
+            self._stopping.set()
+            for thread in running.values():
+                thread.join()
+            raise
+        if failure is not None:
+            raise failure
+
+    def _sets_up_only(self, node: StageNode) -> bool:
+        """True for a frame stage whose turn computes nothing: uncached, or lazy (read by a
+        selected stage), outside a dry run."""
+        return (issubclass(node.cls, FrameStage) and not self.opts.dry_run
+                and (not node.cls.cached or self._is_read(node)))
+
+    def _leave(self, node: StageNode) -> None:
+        """Unregister the readers ``node`` registered (it reads no more streams as computed)."""
+        for chunks, reader, thread in self._joined.pop(node.name, []):
+            chunks.broadcast.leave(reader, thread)
+
+    def _visit(self, node: StageNode) -> Report | None:
+        """Run (or plan) one stage; its report, or None for a lazy frame stage (reported once
+        its chunks are resolved)."""
+        self.progress.current = node.name
+        self.log({"event": "stage_start", "stage": node.name, "uses": node.uses})
+        spent: list[tuple[float, float]] = []
+        with own_time(lambda wall, cpu: spent.append((wall, cpu))), stage_errors(node):
+            if issubclass(node.cls, FrameStage):
+                report = self._frame_stage(node)
+            else:
+                report = self._sequence_stage(node)
+        self.progress.current = None
+        if report is not None:
+            report.seconds += spent[0][0]
+            report.cpu_seconds += spent[0][1]
+        return report
+
+    def _stream_reads(self, node: StageNode) -> tuple[bool, list[tuple[FrameChunks, str]]]:
+        """Whether ``node`` runs on a thread of its own (it is a sequence stage or an eager
+        frame stage reading a lazy frame stage that is not resolved yet), and the readers to
+        register with those streams' broadcasts: ``node`` for the streams it reads, and each
+        frame stage computed while ``node`` reads it (lazy, or uncached such as
+        ``preview.side_by_side``) for its own inputs."""
+        joins: list[tuple[FrameChunks, str]] = []
+        threaded = False
+
+        def walk(stage: StageNode, reader: str) -> None:
+            nonlocal threaded
+            for ref in stage.inputs.values():
+                value = self.values.get((ref.stage, ref.port))
+                if value is None or value.chunks is None:
+                    continue
+                producer = value.chunks
+                if producer.node.cls.cached:
+                    if not producer.lazy or producer.complete():
+                        continue
+                    threaded = True
+                    if value.type == "frames":
+                        joins.append((producer, reader))
+                walk(producer.node, producer.node.name)  # computed while read: it reads its inputs then
+
+        if self.opts.dry_run or self._sets_up_only(node):
+            return False, []
+        walk(node, node.name)
+        return threaded, joins
 
     def _finished_lazy(self) -> list[Report]:
         """Reports of the lazy frame stages whose chunks are now all resolved."""
@@ -203,6 +329,8 @@ class Runner:
         report = Report(node.name, node.uses, "cached")
         pending = {port: v for port, v in inputs.items() if v.known_digest() is None}
         streaming = bool(pending) and (forced or self._read_while_computed(node, pending))
+        if pending and not streaming:  # resolving its inputs first: it reads no chunk as computed
+            self._leave(node)
         key = None if streaming else cache_key(self.keys.material(node, input_digests(inputs)))
         entry = None if forced or key is None else self.keys.lookup(node, key)
         if entry is None:
@@ -250,7 +378,7 @@ class Runner:
             if entry is not None:
                 return entry, False
             with self.store.writing(key or f"pending-{node.name}") as tmp:
-                values = {port: v.get() for port, v in inputs.items()}
+                values = {port: v.get(node.name) for port, v in inputs.items()}
                 with recording(set()) as files:
                     result = node.cls().run(values, dict(node.params),
                                             entry_context(tmp, device=self.opts.device, progress=bar.update))
@@ -271,9 +399,8 @@ class Runner:
             return Report(node.name, node.uses, "may run", _after(unknown))
         stage = node.cls()
         info = self._stream_info(node, stage, inputs)
-        lazy = (node.cls.cached and not self.opts.dry_run and not forced and self.opts.jobs == 1
-                and self._is_read(node))
-        chunks = FrameChunks(self.services, node, stage, inputs, info, forced=forced, lazy=lazy)
+        lazy = node.cls.cached and not self.opts.dry_run and self._is_read(node)
+        chunks = FrameChunks(self.services, node, stage, inputs, info, forced=forced, lazy=lazy, keep=self._keep(node))
         self.entries[node.name], self.redo[node.name] = chunks.entries, chunks.redo
         for port, kind in node.cls.outputs.items():
             load = None if kind == "frames" else (lambda p=port: chunks.load(p))
@@ -302,15 +429,27 @@ class Runner:
         chunks.resolve_all()
         return chunks.finish()
 
+    def _keep(self, node: StageNode) -> int:
+        """How many chunks of ``node`` may be computed past its slowest reader's position: the
+        chunks one read spans (the largest window of a frame stage reading it, each side),
+        and two more so that readers of different speeds overlap."""
+        window = max((other.cls.window for other in self.selected() if issubclass(other.cls, FrameStage)
+                      and any(ref.stage == node.name for ref in other.inputs.values())), default=0)
+        return 3 + 2 * -(-window // self.pipeline.chunk_frames)
+
     def _is_read(self, node: StageNode) -> bool:
         """True if a selected stage reads one of ``node``'s outputs."""
         return any(ref.stage == node.name for other in self.selected() for ref in other.inputs.values())
 
     def _stream_info(self, node: StageNode, stage: FrameStage, inputs: dict[str, Value]) -> StreamInfo:
-        """The stage's output stream shape; cached when the stage computes it itself (probing
-        a video), taken from the frames input otherwise."""
+        """The stage's output stream shape: taken from the frames input, unless the stage
+        computes it itself: then from its inputs, cached when it reads no frame stream (probing
+        a video); with a frame stream, from the streams' shapes (their digests, which would
+        resolve every chunk before anything reads them, are not needed)."""
         if not defines_stream_info(node.cls):
             return next(v.info for port, v in inputs.items() if node.cls.inputs[port] == "frames")
+        if any(v.type == "frames" and v.chunks is not None for v in inputs.values()):
+            return stage.stream_info({port: v.get() for port, v in inputs.items()}, dict(node.params))
         key = cache_key({**self.keys.material(node, input_digests(inputs)), "stream_info": True})
         entry = self.store.lookup(key)
         if entry is None:

@@ -1,11 +1,12 @@
 """Storing a stage's outputs in a cache entry, and reading them back verified.
 
-Every data file of an entry has its sha256 in the entry's completion record: a frames chunk
-``<port>.npy`` and a bundle ``<port>.npz`` under ``outputs.<port>.sha256``, the files of a
-``files`` output under ``outputs.<port>.files`` (``[relative path, size, sha256]``). Readers
-hash the bytes they read (one read: the array is built on the buffer that was hashed) and raise
-:class:`Damaged` on a mismatch or a file that cannot be parsed, so the runner recomputes the
-entry instead of handing damaged data on.
+Every data file of an entry has its sha256 in the entry's completion record: a bundle
+``<port>.npz`` under ``outputs.<port>.sha256``, the files of a ``files`` output under
+``outputs.<port>.files`` (``[relative path, size, sha256]``). Readers hash the bytes they read
+(one read: the array is built on the buffer that was hashed) and raise :class:`Damaged` on a
+mismatch or a file that cannot be parsed, so the runner recomputes the entry instead of handing
+damaged data on. A ``frames`` output is not stored: the record keeps its digest only (its frames
+are handed to the stages reading them as they are computed, :mod:`runner.broadcast`).
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import io
-import math
+import json
 import os
 import shutil
 from collections.abc import Callable, Iterator, Mapping
@@ -27,7 +28,7 @@ from runner.digest import array_digest, bundle_digest, cache_key, file_digest
 from runner.stage import Context, StageError, StreamInfo
 
 BUNDLE_FILE = "{port}.npz"
-FRAMES_FILE = "{port}.npy"
+VERIFIED = "verified.json"  # stat records of files found intact (see link_verified)
 
 
 class Damaged(Exception):
@@ -36,18 +37,6 @@ class Damaged(Exception):
     def __init__(self, path: Path, reason: str):
         self.path = path
         super().__init__(f"{path}: {reason}")
-
-
-class _HashingWriter:
-    """A write-only file object that hashes what passes through it (``np.save`` target)."""
-
-    def __init__(self, raw: io.BufferedWriter):
-        self.raw = raw
-        self.sha256 = hashlib.sha256()
-
-    def write(self, data: bytes | memoryview) -> int:
-        self.sha256.update(data)
-        return self.raw.write(data)
 
 
 @contextlib.contextmanager
@@ -76,8 +65,9 @@ def save_outputs(declared: Mapping[str, str], result: Any, tmp: Path, *,
     declared
         The stage's output ports, name -> type.
     result
-        What the stage returned: per port an array (frames), a dict of arrays (bundle) or None
-        (``files``, already written under ``tmp/files/<port>/``).
+        What the stage returned: per port an array (frames: checked and digested, not stored),
+        a dict of arrays (bundle) or None (``files``, already written under
+        ``tmp/files/<port>/``).
     frames
         ``(chunk length, stream info)`` for a frame stage's chunk, None for a sequence stage.
 
@@ -89,23 +79,20 @@ def save_outputs(declared: Mapping[str, str], result: Any, tmp: Path, *,
     if not isinstance(result, dict) or set(result) != set(declared):
         got = sorted(result) if isinstance(result, dict) else type(result).__name__
         raise StageError(f"returned {got}, expected outputs {sorted(declared)}")
-    outputs = {}
+    outputs, verified = {}, {}
     for port, kind in declared.items():
         value = result[port]
         if kind == "frames":
             array = np.asarray(value)
             check_frames(port, array, frames[0], frames[1])
-            name = FRAMES_FILE.format(port=port)
-            with _naming(tmp / name), open(tmp / name, "wb") as raw:
-                writer = _HashingWriter(raw)
-                np.save(writer, array, allow_pickle=False)
-            outputs[port] = {"type": kind, "file": name, "digest": array_digest(array),
-                             "sha256": writer.sha256.hexdigest()}
+            outputs[port] = {"type": kind, "digest": array_digest(array)}
         elif kind == "files":
             folder = tmp / "files" / port
             folder.mkdir(parents=True, exist_ok=True)
-            listed = [[path.relative_to(folder).as_posix(), path.stat().st_size, file_digest(path)]
-                      for path in sorted(p for p in folder.rglob("*") if p.is_file())]
+            files = sorted(p for p in folder.rglob("*") if p.is_file())
+            stats = {path.relative_to(tmp).as_posix(): file_stat(path) for path in files}  # before hashing
+            listed = [[path.relative_to(folder).as_posix(), path.stat().st_size, file_digest(path)] for path in files]
+            verified.update(stats)
             digest = cache_key([[rel, sha] for rel, _, sha in listed])
             outputs[port] = {"type": kind, "file": f"files/{port}", "digest": digest, "files": listed}
         else:
@@ -115,6 +102,8 @@ def save_outputs(declared: Mapping[str, str], result: Any, tmp: Path, *,
                 np.savez(tmp / name, **arrays)
             outputs[port] = {"type": kind, "file": name, "digest": bundle_digest(arrays),
                              "sha256": file_digest(tmp / name)}
+    if verified:
+        (tmp / VERIFIED).write_text(json.dumps(verified, sort_keys=True))
     return {"outputs": outputs}
 
 
@@ -154,29 +143,6 @@ def _read_verified(path: Path, sha256: str | None) -> bytearray:
     return data
 
 
-def load_frames(entry: Entry, port: str) -> np.ndarray:
-    """Frames ``(B, H, W, C)`` of output ``port`` of a frame chunk's entry, verified (the array is
-    a view of the one buffer read and hashed). Raises :class:`Damaged`."""
-    path = output_path(entry, port)
-    data = _read_verified(path, entry.record["outputs"][port].get("sha256"))
-    header = io.BytesIO(data)
-    try:
-        version = np.lib.format.read_magic(header)
-        read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-        shape, fortran, dtype = read_header(header)
-        count = math.prod(shape)
-        array = np.frombuffer(data, dtype=dtype, count=count, offset=header.tell())
-    except ValueError as exc:
-        raise Damaged(path, f"not a readable .npy ({exc})") from None
-    return array.reshape(shape, order="F" if fortran else "C")
-
-
-def load_mapped(entry: Entry, port: str) -> np.ndarray:
-    """Frames of output ``port`` memory-mapped read-only, unverified: for chunks already read
-    with :func:`load_frames` in this run."""
-    return np.load(output_path(entry, port), mmap_mode="r", allow_pickle=False)
-
-
 def load_bundle(entry: Entry, port: str) -> dict[str, np.ndarray]:
     """Bundle ``port`` of ``entry``, verified. Raises :class:`Damaged`."""
     path = output_path(entry, port)
@@ -197,24 +163,57 @@ def verify_files(entry: Entry, port: str) -> Path:
     return folder
 
 
-def link_verified(source: Path, dest: Path, sha256: str) -> None:
+def file_stat(path: Path) -> list[int]:
+    """``[size, mtime_ns, inode]`` of ``path``: what changes when a file is written or replaced."""
+    stat = os.stat(path)
+    return [stat.st_size, stat.st_mtime_ns, stat.st_ino]
+
+
+def verified_stats(entry: Entry) -> dict[str, list[int]]:
+    """Per file of ``entry`` (path relative to the entry), its :func:`file_stat` when its
+    sha256 was last found equal to the recorded one (``verified.json``; empty if none)."""
+    try:
+        stats = json.loads((entry.path / VERIFIED).read_text())
+    except (OSError, ValueError):
+        return {}
+    return stats if isinstance(stats, dict) else {}
+
+
+def save_verified_stats(entry: Entry, stats: dict[str, list[int]]) -> None:
+    """Replace ``entry``'s ``verified.json`` with ``stats`` (atomically; a failure to write it
+    only means the files are hashed again next time)."""
+    tmp = entry.path / f".{VERIFIED}.{os.getpid()}.tmp"
+    try:
+        tmp.write_text(json.dumps(stats, sort_keys=True))
+        os.replace(tmp, entry.path / VERIFIED)
+    except OSError:
+        tmp.unlink(missing_ok=True)
+
+
+def link_verified(source: Path, dest: Path, sha256: str, *, stat: list[int] | None = None) -> list[int]:
     """Publish cache file ``source`` at ``dest`` after checking its bytes against ``sha256``:
     as a hard link (the bytes are stored once), or as a copy where ``dest`` cannot link to it
-    (another filesystem). :class:`Damaged` if ``source`` is missing or its bytes differ.
+    (another filesystem). Returns ``source``'s :func:`file_stat`. :class:`Damaged` if ``source``
+    is missing or its bytes differ.
+
+    ``stat``, the file's stat record when it was last verified: if the file's stat is still that
+    one, its bytes are not hashed again (as DVC does: writing a file changes its mtime).
 
     A published file shares its bytes with the cache entry: a tool that rewrites it in place
-    changes the entry too, which its sha256 catches on the next read (the entry is recomputed).
+    changes the entry too (and its mtime), which its sha256 catches on the next read or publish
+    (the entry is recomputed).
     """
     try:
-        digest = file_digest(source)
+        now = file_stat(source)
+        if now != stat and file_digest(source) != sha256:
+            raise Damaged(source, "sha256 differs from the one recorded when it was stored")
     except FileNotFoundError:
         raise Damaged(source, "missing") from None
-    if digest != sha256:
-        raise Damaged(source, "sha256 differs from the one recorded when it was stored")
     try:
         os.link(source, dest)
     except OSError:
         shutil.copyfile(source, dest)
+    return now
 
 
 def read_or_redo(read: Callable[[Entry], Any], entry: Entry, *, redo: Callable[[], Entry],

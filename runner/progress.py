@@ -31,6 +31,7 @@ class Report:
     chunks_cached: int = 0
     frames: int | None = None
     seconds: float = 0.0
+    cpu_seconds: float = 0.0  # of the stage's own Python thread(s), see own_time
 
     def line(self) -> str:
         parts = [f"{self.stage:<14} {self.uses:<18} {self.status:<9}"]
@@ -47,11 +48,20 @@ class Report:
 
 class Progress:
     """Events (``log``, one JSON-able dict each), warning lines (``warn``), progress bars on
-    stderr (``bars``), and ``current``: the stage whose turn it is."""
+    stderr (``bars``), and ``current``: the stage whose turn it is on the calling thread
+    (stages reading one stream run on threads of their own)."""
 
     def __init__(self, *, log: Callable[[dict[str, Any]], None], warn: Callable[[str], None], bars: bool):
         self.log, self.warn, self.bars = log, warn, bars
-        self.current: str | None = None
+        self._turn = threading.local()
+
+    @property
+    def current(self) -> str | None:
+        return getattr(self._turn, "stage", None)
+
+    @current.setter
+    def current(self, stage: str | None) -> None:
+        self._turn.stage = stage
 
     def bar(self, node: StageNode, total: int | None) -> tqdm:
         from tqdm import tqdm  # here: importing it costs start-up time
@@ -77,16 +87,18 @@ _clock = threading.local()
 
 
 @contextlib.contextmanager
-def own_time(add: Callable[[float], None]) -> Iterator[None]:
-    """Time the block and pass ``add`` its wall seconds minus those of timed blocks nested in
-    it on this thread (chunks of an upstream stage computed while this one reads them), so
-    that each stage's summary counts its own time only."""
-    outer = getattr(_clock, "nested", 0.0)
-    _clock.nested = 0.0
-    started = time.perf_counter()
+def own_time(add: Callable[[float, float], None]) -> Iterator[None]:
+    """Time the block and pass ``add`` its wall seconds and this thread's CPU seconds, each
+    minus those of timed blocks nested in it on this thread (chunks of an upstream stage
+    computed while this one reads them), so that each stage's summary counts its own time only.
+    The CPU seconds are of the Python thread: threads a library starts (x264's, OpenMP's) are
+    not counted."""
+    outer = getattr(_clock, "nested", (0.0, 0.0))
+    _clock.nested = (0.0, 0.0)
+    started, cpu = time.perf_counter(), time.thread_time()
     try:
         yield
     finally:
-        elapsed = time.perf_counter() - started
-        add(elapsed - _clock.nested)
-        _clock.nested = outer + elapsed
+        elapsed, used = time.perf_counter() - started, time.thread_time() - cpu
+        add(elapsed - _clock.nested[0], used - _clock.nested[1])
+        _clock.nested = (outer[0] + elapsed, outer[1] + used)

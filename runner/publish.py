@@ -2,7 +2,8 @@
 user's files.
 
 A stage's folder is built as ``--out/.<stage>.<pid>.tmp``, each file hashed and compared with
-the sha256 its cache entry recorded, then hard-linked from the entry (copied where the two lie
+the sha256 its cache entry recorded (unless its size, mtime and inode are those recorded in the
+entry's ``verified.json`` when it was last found intact), then hard-linked from the entry (copied where the two lie
 on different filesystems), ``manifest.json`` (the file list
 with sizes and sha256, and the entries' keys) written last; then the old folder is moved to
 ``.<stage>.<pid>.old``, the new one into place, and the old one deleted.
@@ -27,7 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from runner.cache import Entry, holder_is_stale
-from runner.outputs import Damaged, link_verified, output_path
+from runner.outputs import Damaged, link_verified, output_path, save_verified_stats, verified_stats
 from runner.stage import StageError
 
 MANIFEST = "manifest.json"
@@ -170,6 +171,8 @@ def _copy(item: Published, tmp: Path) -> list[dict]:
     """Put every file of ``item`` into ``tmp``, verified, hard-linked to its cache entry where
     the filesystem allows (:func:`runner.outputs.link_verified`); the manifest's file list."""
     listed = []
+    stats = [verified_stats(entry) for entry in item.entries]
+    checked = [dict(known) for known in stats]
     for port in item.ports:
         target = tmp if len(item.ports) == 1 else tmp / port
         for index, entry in enumerate(item.entries):
@@ -179,9 +182,13 @@ def _copy(item: Published, tmp: Path) -> list[dict]:
                 if dest.exists():
                     raise StageError(f"{port}: two chunks wrote the same file {rel!r}")
                 dest.parent.mkdir(parents=True, exist_ok=True)
+                name = (source / rel).relative_to(entry.path).as_posix()
                 try:
-                    link_verified(source / rel, dest, sha256)
+                    checked[index][name] = link_verified(source / rel, dest, sha256, stat=stats[index].get(name))
                 except Damaged as exc:
                     raise _DamagedEntry(index, exc) from None
                 listed.append({"path": dest.relative_to(tmp).as_posix(), "size": size, "sha256": sha256})
+    for entry, known, now in zip(item.entries, stats, checked):
+        if now != known:
+            save_verified_stats(entry, now)
     return listed

@@ -163,6 +163,12 @@ class FrameStage(Stage):
 
     ``window`` is the number of neighbouring frames each side that ``process`` may read from
     its ``frames`` inputs (their ``read`` clamps at the clip ends).
+
+    Each output frame must depend only on the inputs, not on which range ``[start, stop)`` it
+    is computed in: the cache keeps the digests of ``frames`` outputs, not the frames, and the
+    runner computes frames again for a reader that asks after the others (a whole chunk, or
+    just the frames it picks), handing them on as the same bytes (docs/runner.md,
+    "Scheduling").
     """
 
     window: ClassVar[int] = 0

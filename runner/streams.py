@@ -1,4 +1,5 @@
-"""Frame streams handed to stages: chunks read lazily from cache entries, or computed on demand.
+"""Frame streams handed to stages: chunks read from ``.npy`` files, shared as they are computed,
+or computed on demand.
 
 Both implement :class:`runner.stage.FrameStream`: ``read(start, stop)`` with indices clamped to
 the clip by edge replication, and ``chunks()`` over the whole clip in order. Only the chunks a
@@ -33,6 +34,14 @@ class ChunkedStream:
     def chunk(self, index: int, *, mmap: bool = False) -> np.ndarray:
         raise NotImplementedError
 
+    def rows(self, index: int, lo: int, hi: int) -> np.ndarray:
+        """Frames ``[lo, hi)`` of chunk ``index`` (counted from the chunk's first frame)."""
+        return self.chunk(index, mmap=True)[lo:hi]
+
+    def asked(self, index: int) -> None:
+        """Called before a read whose first chunk is ``index``: the reader will ask for no
+        earlier chunk (unless it reads out of order)."""
+
     def read(self, start: int, stop: int) -> np.ndarray:
         """Frames ``[start, stop)`` as ``(stop - start, H, W, C)``; indices outside the clip
         repeat the first or last frame."""
@@ -40,16 +49,19 @@ class ChunkedStream:
         if wanted.size == 0:
             raise ValueError(f"empty frame range [{start}, {stop})")
         which = np.searchsorted(self._starts, wanted, side="right") - 1
+        self.asked(int(which.min()))
         parts = []
         for index in np.unique(which):
-            frames = self.chunk(int(index), mmap=True)
             rows = wanted[which == index] - self.ranges[index][0]
+            frames = self.rows(int(index), int(rows.min()), int(rows.max()) + 1)
+            rows = rows - rows.min()
             # A slice (a view) where no frame repeats, so that the result is copied only once.
             parts.append(frames[rows[0]:rows[-1] + 1] if rows[-1] - rows[0] + 1 == rows.size else frames[rows])
         return np.concatenate(parts) if len(parts) > 1 else np.array(parts[0])
 
     def chunks(self) -> Iterator[tuple[int, np.ndarray]]:
         for index, (start, _) in enumerate(self.ranges):
+            self.asked(index)
             yield start, self.chunk(index)
 
 
@@ -64,16 +76,25 @@ class CachedStream(ChunkedStream):
         return np.load(self._files[index], mmap_mode="r" if mmap else None, allow_pickle=False)
 
 
-class StoredStream(ChunkedStream):
-    """Chunks of a cached frame stage, obtained from ``load(index)`` (which resolves the chunk,
-    computing and storing it if missing, and reads it back verified)."""
+class SharedStream(ChunkedStream):
+    """One reader's view of a frame stage's chunks shared as they are computed
+    (:class:`runner.broadcast.Broadcast`): ``fetch(index, lo, hi)`` gives frames ``[lo, hi)`` of
+    a chunk (kept, or computed), ``asked(index)`` tells the producer where this reader is."""
 
-    def __init__(self, info: StreamInfo, ranges: list[tuple[int, int]], load: Callable[[int], np.ndarray]):
+    def __init__(self, info: StreamInfo, ranges: list[tuple[int, int]],
+                 fetch: Callable[[int, int, int], np.ndarray], asked: Callable[[int], None]):
         super().__init__(info, ranges)
-        self._load = load
+        self._fetch, self._asked = fetch, asked
 
     def chunk(self, index: int, *, mmap: bool = False) -> np.ndarray:
-        return self._load(index)
+        start, stop = self.ranges[index]
+        return self._fetch(index, 0, stop - start)
+
+    def rows(self, index: int, lo: int, hi: int) -> np.ndarray:
+        return self._fetch(index, lo, hi)
+
+    def asked(self, index: int) -> None:
+        self._asked(index)
 
 
 class ComputedStream(ChunkedStream):

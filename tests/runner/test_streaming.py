@@ -1,7 +1,8 @@
-"""Cached frame stages computed while a downstream stage reads them: chunks of the upstream
-stages are computed, stored and read interleaved, one at a time; a second reader and a second
-run read the stored chunks; an interrupted stream resumes with the missing chunks only; and a
-reader whose input bytes did not change stays a cache hit. Ground truth: numpy on the ramp clip.
+"""Cached frame stages computed while the stages reading them run at the same time: each chunk
+is computed once and handed to both readers, who never fall more than the broadcast's ``keep``
+chunks behind; entries record the frames' digests, not the frames; a second run is a cache hit;
+an interrupted stream resumes with the missing entries only; and a reader whose input bytes did
+not change stays a cache hit. Ground truth: numpy on the ramp clip.
 """
 
 from __future__ import annotations
@@ -74,7 +75,19 @@ class Reader(SequenceStage):
         return {"all": {"frames": np.concatenate(parts)}}
 
 
-REGISTRY = Registry(classes=[Source, Double, Reader])
+class Picker(SequenceStage):
+    """Reads single frames here and there (like a contact sheet): ``read(f, f + 1)``."""
+
+    name, version = "s.picker", "1"
+    inputs = {"frames": "frames"}
+    outputs = {"all": "all"}
+    params = (Param("frames", list, [2, 13, 21], "frames picked"),)
+
+    def run(self, inputs, params, ctx):
+        return {"all": {"frames": np.concatenate([inputs["frames"].read(f, f + 1) for f in params["frames"]])}}
+
+
+REGISTRY = Registry(classes=[Source, Double, Reader, Picker])
 PIPELINE = """
 chunk_frames: 4
 stages:
@@ -91,9 +104,9 @@ def _clear_events():
     EVENTS.clear()
 
 
-def run(tmp_path: Path, *overrides: str, jobs: int = 1) -> tuple[Runner, dict[str, Report]]:
+def run(tmp_path: Path, *overrides: str, jobs: int = 1, extra: str = "") -> tuple[Runner, dict[str, Report]]:
     path = tmp_path / "p.yaml"
-    path.write_text(textwrap.dedent(PIPELINE))
+    path.write_text(textwrap.dedent(PIPELINE) + extra)
     pipeline = load_pipeline(path, REGISTRY, overrides=list(overrides))
     runner = Runner(pipeline, {}, Options(cache=CacheStore(tmp_path / "cache"), jobs=jobs))
     EVENTS.clear()
@@ -105,27 +118,35 @@ def _stored(tmp_path: Path, stage: str) -> list[int]:
                   if e.record.get("stage") == stage and "range" in e.record)
 
 
-def test_upstream_chunks_are_computed_stored_and_read_interleaved(tmp_path):
-    runner, reports = run(tmp_path)
-    # double's chunk i reads source frames up to 4i + 4 (window 1): source runs one chunk ahead.
-    expected = [("source", 0), ("source", 4), ("double", 0), ("first", 0)]
-    for start in STARTS[1:]:
-        expected += [("source", start + 4)] if start + 4 < N else []
-        expected += [("double", start), ("first", start)]
-    assert EVENTS[:len(expected)] == expected
-    # The second reader reads the stored chunks: nothing is computed again.
-    assert EVENTS[len(expected):] == [("second", start) for start in STARTS]
+def _reads_before(events: list[tuple[str, int]], reader: str, upto: int) -> int:
+    return sum(1 for what, _ in events[:upto] if what == reader)
+
+
+@pytest.mark.parametrize("jobs", [1, 3])
+def test_chunks_are_computed_once_and_handed_to_both_readers(tmp_path, jobs):
+    runner, reports = run(tmp_path, jobs=jobs)
+    for stage in ("source", "double"):
+        assert sorted(start for what, start in EVENTS if what == stage) == STARTS  # once each
     for reader in ("first", "second"):
+        assert [start for what, start in EVENTS if what == reader] == STARTS
         np.testing.assert_array_equal(runner.values[(reader, "all")].get()["frames"], 2 * clip())
+    # Bounded memory: double's chunk k is computed only once each reader has read chunk
+    # k - keep, give or take the one chunk a reader computes before it starts reading (to
+    # guess whether its key changes, see docs/runner.md).
+    keep = runner.values[("double", "frames")].chunks.broadcast.keep
+    for index, (what, start) in enumerate(EVENTS):
+        if what == "double":
+            for reader in ("first", "second"):
+                assert _reads_before(EVENTS, reader, index) >= start // 4 - keep
+    # Entries hold the chunks' digests, not their frames.
     assert _stored(tmp_path, "source") == _stored(tmp_path, "double") == STARTS
-    # Summaries: chunks and frames of the streamed stages, reported before their readers.
-    assert list(reports) == ["source", "double", "first", "second"]
+    assert not list((tmp_path / "cache" / "entries").rglob("*.npy"))
+    assert set(reports) == {"source", "double", "first", "second"}
     for stage in ("source", "double"):
         report = reports[stage]
         assert (report.status, report.chunks, report.chunks_cached, report.frames) == ("ran", 6, 0, N)
-        assert report.reason == "computed while first read it"
-    assert reports["first"].status == "ran" and reports["first"].reason == "read double while it was computed"
-    assert reports["second"].status == "ran" and reports["second"].reason == ""
+    for reader in ("first", "second"):
+        assert reports[reader].status == "ran" and reports[reader].reason == "read double while it was computed"
 
     # A second run is a full cache hit: no stage computes or reads anything.
     _, reports = run(tmp_path)
@@ -133,24 +154,17 @@ def test_upstream_chunks_are_computed_stored_and_read_interleaved(tmp_path):
     assert {stage: r.status for stage, r in reports.items()} == dict.fromkeys(reports, "cached")
 
 
-def test_jobs_precompute_gives_the_same_entries(tmp_path):
-    runner, _ = run(tmp_path, jobs=3)
-    assert EVENTS.index(("first", 0)) > max(EVENTS.index(("double", s)) for s in STARTS)  # no streaming
-    np.testing.assert_array_equal(runner.values[("first", "all")].get()["frames"], 2 * clip())
-    _, reports = run(tmp_path)  # the streaming run finds every chunk stored
-    assert EVENTS == [] and reports["double"].status == "cached"
-
-
 def test_interrupted_stream_resumes_with_missing_chunks_only(tmp_path):
     with pytest.raises(StageFailed, match=r"stage 'first' \(s.reader\): frame 9: cannot read"):
         run(tmp_path, "first.fail_at=9")
-    # The reader stopped in chunk 2: double has chunks 0-2, source one more (double's window).
-    assert _stored(tmp_path, "double") == [0, 4, 8] and _stored(tmp_path, "source") == [0, 4, 8, 12]
+    # second read on: every chunk's entry is stored; the failed reader left no lock behind.
+    assert _stored(tmp_path, "double") == STARTS and _stored(tmp_path, "source") == STARTS
     assert not list((tmp_path / "cache" / "locks").glob("*.lock"))
     runner, reports = run(tmp_path)
-    computed = [event for event in EVENTS if event[0] in ("source", "double")]
-    assert computed == [("source", 16), ("double", 12), ("source", 20), ("double", 16), ("double", 20)]
-    assert (reports["double"].status, reports["double"].chunks_cached) == ("partial", 3)
+    # first runs again and needs frames: computed again from the stored entries, none stored twice.
+    assert (reports["double"].status, reports["double"].chunks_cached) == ("cached", 6)
+    assert reports["second"].status == "cached" and reports["first"].status == "ran"
+    assert sorted(start for what, start in EVENTS if what == "double") == STARTS
     np.testing.assert_array_equal(runner.values[("first", "all")].get()["frames"], 2 * clip())
 
 
@@ -170,3 +184,14 @@ def test_reader_stays_cached_when_upstream_bytes_do_not_change(tmp_path):
     assert reports["first"].status == "ran"
     truth = clip() + 100 * (np.arange(N) >= 21)[:, None, None, None]
     np.testing.assert_array_equal(runner.values[("second", "all")].get()["frames"], 2 * truth)
+
+
+def test_a_reader_picking_frames_later_gets_just_those_frames_computed_again(tmp_path):
+    """After a run, a new stage picks three frames of double: neither source nor double stores
+    frames, so each picked frame is computed again on its own (with source's frames around it,
+    double's window), not its whole chunk, and equals the streamed frames."""
+    run(tmp_path)
+    runner, reports = run(tmp_path, extra="  pick: {uses: s.picker, inputs: {frames: double.frames}}\n")
+    assert reports["pick"].status == "ran" and reports["double"].status == "cached"
+    np.testing.assert_array_equal(runner.values[("pick", "all")].get()["frames"], 2 * clip()[[2, 13, 21]])
+    assert [event for event in EVENTS if event[0] == "double"] == [("double", 2), ("double", 13), ("double", 21)]

@@ -1,0 +1,109 @@
+"""Frames of one frame stage handed to every reader as they are computed, kept in memory only
+until each reader has passed them (:class:`Broadcast`).
+
+The cache stores no frames (docs/runner.md, "Scheduling"): a frame stage's chunk is computed
+once, offered here, and taken by each stage reading it at the same time. A *reader* is a stage
+name registered with :meth:`Broadcast.join` when it starts reading and removed with
+:meth:`Broadcast.leave` when it stops; its *position* is the first chunk it may still ask for
+(:meth:`Broadcast.advance`). A chunk is kept while a reader's position is at or before it, and
+dropped once every reader has passed it. A chunk asked for after it was dropped (a reader that
+joined late, reads out of order, or a later stage) is computed again by the caller.
+
+Bounded memory: before a chunk is computed, :meth:`Broadcast.wait_room` waits while it lies
+``keep`` or more chunks past the slowest reader's position. Each reader is *driven* by one
+thread (the thread of the stage reading, which also computes the chunks of the stages it reads
+through); a thread never waits for the readers it drives, so one thread that loads a stage's
+bundles before reading its frames does not wait for itself (those chunks are then held until it
+reads them). The slowest reader never waits (its chunk lies within ``keep`` of its own
+position), so readers that keep reading always progress.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import Counter
+from typing import Any
+
+
+class Broadcast:
+    """The computed chunks of one stage's ``frames`` outputs, shared by its readers.
+
+    Parameters
+    ----------
+    keep : how many chunks past the slowest reader's position may be computed before the
+        computing thread waits (at least the chunks one read spans, plus one).
+    """
+
+    def __init__(self, *, keep: int):
+        if keep < 1:
+            raise ValueError(f"keep must be >= 1, got {keep}")
+        self.keep = keep
+        self._held: dict[int, dict[str, Any]] = {}  # chunk -> {port: frames (B, H, W, C)}
+        self._position: dict[str, int] = {}  # reader -> first chunk it may still ask for
+        self._joined: Counter[str] = Counter()  # reader -> how many times joined (several runs of it)
+        self._drivers: dict[str, set[threading.Thread]] = {}  # reader -> the threads that read for it
+        self._changed = threading.Condition()
+
+    def join(self, reader: str, driver: threading.Thread) -> None:
+        """Register ``reader``, read by thread ``driver`` from the first chunk on."""
+        with self._changed:
+            self._joined[reader] += 1
+            self._position.setdefault(reader, 0)
+            self._drivers.setdefault(reader, set()).add(driver)
+
+    def leave(self, reader: str, driver: threading.Thread) -> None:
+        """Unregister ``reader`` as read by ``driver`` (it finished, or reads no more in order)."""
+        with self._changed:
+            if self._joined[reader] > 0:
+                self._joined[reader] -= 1
+                self._drivers[reader].discard(driver)
+            if self._joined[reader] == 0:
+                self._joined.pop(reader, None)
+                self._drivers.pop(reader, None)
+                self._position.pop(reader, None)
+                self._drop()
+
+    def advance(self, reader: str, chunk: int) -> None:
+        """``reader`` will ask for no chunk before ``chunk`` any more (no effect for a stage
+        that is not registered, or for a position it already passed)."""
+        with self._changed:
+            if reader in self._position and chunk > self._position[reader]:
+                self._position[reader] = chunk
+                self._drop()
+
+    def wait_room(self, chunk: int) -> None:
+        """Wait until ``chunk`` lies less than ``keep`` chunks past the position of every
+        reader that the calling thread does not drive."""
+        me = threading.current_thread()
+
+        def room() -> bool:
+            others = [p for reader, p in self._position.items() if me not in self._drivers.get(reader, ())]
+            return not others or chunk < min(others) + self.keep
+
+        with self._changed:
+            self._changed.wait_for(room)
+
+    def offer(self, chunk: int, frames: dict[str, Any]) -> None:
+        """Chunk ``chunk`` was computed: keep its frames (port -> array) while a reader's
+        position is at or before it."""
+        with self._changed:
+            if any(position <= chunk for position in self._position.values()):
+                self._held[chunk] = frames
+
+    def take(self, chunk: int, port: str) -> Any | None:
+        """Frames of ``port`` in ``chunk`` if they are kept, else None (compute them again)."""
+        with self._changed:
+            held = self._held.get(chunk)
+            return None if held is None else held[port]
+
+    def held(self) -> list[int]:
+        """The chunks kept now, in order."""
+        with self._changed:
+            return sorted(self._held)
+
+    def _drop(self) -> None:
+        """Drop the chunks every reader passed, and wake computing threads waiting for room."""
+        low = min(self._position.values(), default=None)
+        for chunk in [c for c in self._held if low is None or c < low]:
+            del self._held[chunk]
+        self._changed.notify_all()
