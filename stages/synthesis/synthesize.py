@@ -197,15 +197,17 @@ class Synthesizer:
             W, H = self.size
             alpha = self.compositor.alpha.view(1, 1, H, W)
             alpha = warp_images(alpha, self.standard_points[None].expand(B, -1, -1), dst_t, self.triangles)
+            rgb.clamp_(0, 1)
+            alpha.clamp_(0, 1)
         else:
             if coeffs is None:
                 coeffs, _ = self.qp.coefficients(points, mode=mode)
             elif tuple(coeffs.shape) != (B, self.qp.n_subregions, self.qp.K):
                 raise ValueError(f"coeffs must be (B, S, K) = ({B}, {self.qp.n_subregions}, {self.qp.K}), got {tuple(coeffs.shape)}")
             standard = composite(self.compositor, coeffs, min_coeff=min_coeff, direct=direct)
-            out = warp_images(standard, self.standard_points[None].expand(B, -1, -1), dst_t, self.triangles)
+            out = warp_images(standard, self.standard_points[None].expand(B, -1, -1), dst_t, self.triangles).clamp_(0, 1)
             rgb, alpha = out[:, :3], out[:, 3:]
-        return rgb.clamp(0, 1), alpha.clamp(0, 1), coeffs
+        return rgb, alpha, coeffs
 
 
 class Synthesize(FrameStage):

@@ -104,3 +104,20 @@ def test_batch_matches_single_and_float64():
     assert batch.shape == (3, 3, H, W) and batch.dtype == torch.float64
     single = warp_images(img, torch.from_numpy(src)[None], torch.from_numpy(dsts[2])[None], tri)
     torch.testing.assert_close(batch[2:], single)
+
+
+def test_cpu_remap_matches_grid_sample_for_every_padding():
+    """The CPU path (cv2.remap) against the grid_sample path (taken for tensors needing gradients)."""
+    rng = np.random.default_rng(5)
+    src = np.concatenate([face_points(rng), border_anchors((W, H))])
+    dst = np.stack([src + np.pad(rng.normal(0, 3, (20, 2)), ((0, 16), (0, 0))) + [4.0, -3.0] for _ in range(2)])
+    tri = triangulate(src)
+    img = torch.from_numpy(np.concatenate([smooth_image(), smooth_image()[..., :1]], -1)).permute(2, 0, 1)[None]
+    for padding in ("border", "zeros", "reflection"):
+        args = (torch.from_numpy(src)[None].expand(2, -1, -1), torch.from_numpy(dst), tri)
+        fast = warp_images(img, *args, padding_mode=padding, size=(W - 6, H + 4))
+        reference = warp_images(img.clone().requires_grad_(), *args, padding_mode=padding, size=(W - 6, H + 4)).detach()
+        assert fast.shape == reference.shape == (2, 4, H + 4, W - 6), padding
+        assert float((fast - reference).abs().max()) < 5e-3, padding  # 1/32 px fixed-point weights
+    alpha = warp_images(img[:, 3:], torch.from_numpy(src)[None], torch.from_numpy(dst[:1]), tri)
+    torch.testing.assert_close(alpha, warp_images(img, torch.from_numpy(src)[None], torch.from_numpy(dst[:1]), tri)[:, 3:])
