@@ -20,9 +20,25 @@ position), so readers that keep reading always progress.
 
 from __future__ import annotations
 
+import contextlib
 import threading
 from collections import Counter
+from collections.abc import Iterator
 from typing import Any
+
+_unbounded = threading.local()
+
+
+@contextlib.contextmanager
+def unbounded() -> Iterator[None]:
+    """Chunks computed on this thread inside the block do not wait for room: for a reader that
+    computes one chunk before it reads (those the others computed meanwhile are at most ``keep``)."""
+    outer = getattr(_unbounded, "on", False)
+    _unbounded.on = True
+    try:
+        yield
+    finally:
+        _unbounded.on = outer
 
 
 class Broadcast:
@@ -73,7 +89,9 @@ class Broadcast:
 
     def wait_room(self, chunk: int) -> None:
         """Wait until ``chunk`` lies less than ``keep`` chunks past the position of every
-        reader that the calling thread does not drive."""
+        reader that the calling thread does not drive (at once inside :func:`unbounded`)."""
+        if getattr(_unbounded, "on", False):
+            return
         me = threading.current_thread()
 
         def room() -> bool:

@@ -262,7 +262,9 @@ class FrameChunks:
         return self.entries[i]
 
     def entry(self, i: int) -> Entry:
-        """The stored entry of chunk ``i`` (cached stages), computed and committed if missing."""
+        """The stored entry of chunk ``i`` (cached stages), computed and committed if missing,
+        once it lies within the broadcast's ``keep`` of the slowest reader
+        (:meth:`runner.broadcast.Broadcast.wait_room`)."""
         self._passing(i)
         if self.entries[i] is None:
             if not self.run.keys.dry_run and self.stored(i) is None:

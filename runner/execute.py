@@ -1,21 +1,23 @@
 """Scheduling: run (or, for ``--dry-run``, plan) a validated pipeline against the cache.
 
-Stages are visited one after the other in topological order. A sequence stage is one cache
-entry. A frame stage is one entry per chunk of ``chunk_frames`` frames, and a
-:class:`FrameChunks` *resolves* each chunk once: its key (which resolves the upstream chunks its
-window reads), then the stored entry, or compute, store and commit it under the entry's lock. So
-an interrupted run recomputes only the chunks it had not finished.
+Stages are visited in topological order, each once the stages it reads have had their turn. A
+sequence stage is one cache entry. A frame stage is one entry per chunk of ``chunk_frames``
+frames, and a :class:`FrameChunks` *resolves* each chunk once: its key (which resolves the
+upstream chunks its window reads), then the stored entry, or compute, store and commit it under
+the entry's lock. An entry keeps a chunk's bundles and files and the digests of its frames, not
+the frames. So an interrupted run recomputes only the entries it had not finished.
 
 When a chunk is resolved depends on who reads the stage:
 
-- a cached frame stage that other stages read (with ``--jobs 1`` and no ``--force``) is
-  resolved *lazily*: each chunk is computed and stored when a downstream stage first needs it,
-  then read back (from the page cache), so decode -> gray -> write.video streams chunk by
-  chunk and the encoder's threads overlap the Python work; a second reader reads the stored
-  chunks;
-- any other cached frame stage (no reader, ``--force``, ``--jobs N``) resolves all its chunks
-  at its turn, with ``--jobs`` threads;
-- a frame stage declaring ``cached = False`` (decoding) is never stored: its chunks are computed
+- a cached frame stage that other stages read is resolved *lazily*: each chunk is computed
+  when a reader first needs it and handed to every registered reader
+  (:class:`runner.broadcast.Broadcast`); the stages reading it while it is not resolved run on
+  threads of their own at the same time (:meth:`Runner._schedule`), so that decode -> gray ->
+  write.video streams chunk by chunk and synthesize feeds its three writers at once; a reader
+  that asks after the others passed a chunk gets it computed again;
+- any other cached frame stage (no reader) resolves all its chunks at its turn, with
+  ``--jobs`` threads;
+- a frame stage declaring ``cached = False`` (decoding) stores no entry: its chunks are computed
   whenever they are read, and identified by their cache key instead of their bytes.
 
 Every key (see :mod:`runner.digest`) includes the digests of the inputs actually used: a frame
@@ -43,6 +45,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from runner.broadcast import unbounded
 from runner.cache import CacheStore, Entry
 from runner.chunks import FrameChunks, RunServices, Value, defines_stream_info, input_digests
 from runner.config import ConfigError, Issue, Pipeline, StageNode, Where
@@ -362,7 +365,13 @@ class Runner:
                 continue
             count = len(v.chunks.ranges)
             first = next((i for i in range(count) if v.chunks.known_digests(v.port, i, i) is None), None)
-            if first is not None and read.get(port, [])[first:first + 1] != v.chunks.digests(v.port, first, first):
+            if first is None:
+                continue
+            # Not waiting for the other readers: they may be waiting for this one, registered at
+            # chunk 0; the chunks they computed before (at most the broadcast's keep) are held.
+            with unbounded():
+                now = v.chunks.digests(v.port, first, first)
+            if read.get(port, [])[first:first + 1] != now:
                 return True
         return False
 
