@@ -189,13 +189,15 @@ def composite(comp: Compositor, coeffs: torch.Tensor, *, min_coeff: float = 1e-3
 
     Returns
     -------
-    (B, 4, H, W) float32: sRGB colour in [0, 1] in the standard geometry, and the face alpha.
+    (B, 4, H, W) float32: sRGB colour in [0, 1] in the standard geometry, and the face alpha; in
+    channels-last memory (``permute(0, 2, 3, 1)`` of it is contiguous), the layout the CPU warp
+    (:func:`stages.synthesis.warp.warp_images`, ``cv2.remap``) reads without a copy.
     """
     import torch
     W, H = comp.size
     B, S = coeffs.shape[:2]
     device = comp.images.device
-    out = torch.empty(B, 4, H * W, device=device)
+    out = torch.empty(B, H * W, 4, device=device).permute(0, 2, 1)  # (B, 4, H*W) view, channels-last
     out[:, 3] = comp.alpha
     if direct:
         full = torch.zeros(B, S + 1, comp.images.shape[0], device=device)

@@ -7,7 +7,7 @@ import torch
 
 from runner.stage import Context, StageError
 from stages.synthesis.build import build_synthesis_model
-from stages.synthesis.synthesize import Synthesize, Synthesizer, head_motion_frame, head_motion_points
+from stages.synthesis.synthesize import Synthesize, Synthesizer, half_float_planes, head_motion_frame, head_motion_points
 from tests.stages.synthesis.synthetic import make_pack
 
 
@@ -139,3 +139,24 @@ def test_head_motion_frame_from_the_performer_neutral(pack, model):
     np.testing.assert_allclose(out[1, 23:73, 24:84], out[0, 20:70, 20:80], atol=1e-3)
     with pytest.raises(StageError, match="'neutral' and 'names'"):
         stage.process(0, 2, {**inputs, "performer": {"d": xy}}, params, Context(device="cpu", files_dir=lambda port: None))
+
+
+def test_half_float_planes_match_torch_conversion_for_every_layout():
+    """The cv2 channel split against torch's own float16 conversion, channels-last and planar."""
+    rgba = torch.rand(3, 4, 7, 5, dtype=torch.float32)
+    for layout in (rgba, rgba.permute(0, 2, 3, 1).contiguous().permute(0, 3, 1, 2)):
+        frames, mask = half_float_planes(layout)
+        assert frames.shape == (3, 7, 5, 3) and mask.shape == (3, 7, 5, 1)
+        assert frames.dtype == mask.dtype == np.float16 and frames.flags.c_contiguous and mask.flags.c_contiguous
+        np.testing.assert_array_equal(frames, rgba.permute(0, 2, 3, 1)[..., :3].to(torch.float16).numpy())
+        np.testing.assert_array_equal(mask, rgba.permute(0, 2, 3, 1)[..., 3:].to(torch.float16).numpy())
+    with pytest.raises(ValueError, match="float32"):
+        half_float_planes(rgba[:, :3])
+
+
+def test_render_rgba_is_render_in_one_tensor(pack, synth):
+    for mode in ("full", "warp-only"):
+        rgb, alpha, coeffs = synth.render(pack.captured_points[:2], mode=mode)
+        rgba, coeffs_rgba = synth.render_rgba(pack.captured_points[:2], mode=mode)
+        torch.testing.assert_close(rgba, torch.cat([rgb, alpha], 1), rtol=0, atol=0)
+        torch.testing.assert_close(coeffs_rgba, coeffs, rtol=0, atol=0)
