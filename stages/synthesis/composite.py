@@ -53,7 +53,9 @@ class Compositor:
     primary and a secondary buffer (laid out label by label) with the weighted sum of its kept
     candidate images; the image is then two gathers, ``primary[:, primary_index] +
     secondary[:, secondary_index]`` (the secondary index of a pixel outside every band points at
-    a zero column). The outside label's slices are constant and filled once.
+    a zero column). The outside label's slices are constant and filled once; so is the image
+    outside ``box``, the bounding box of the face labels' pixels (``background``), and the
+    gathers run over the box only (``box_primary_index``, ``box_secondary_index``).
 
     ``candidates[l]`` indexes the full image stack (``M`` examples, ``Mt`` teeth examples, the
     standard image); ``alpha`` (H*W,) is the face alpha ``1 - w_S``; ``images`` (E, 3, H*W),
@@ -77,6 +79,10 @@ class Compositor:
     i2: torch.Tensor
     details: torch.Tensor | None
     detail_power: float
+    box: tuple[int, int, int, int]  # (y0, y1, x0, x1): bounding box of the pixels with a face label
+    box_primary_index: torch.Tensor  # (h*w,) primary_index inside the box
+    box_secondary_index: torch.Tensor
+    background: torch.Tensor  # (H*W, 4) channels-last: the composite outside the box (any coefficients), alpha
 
 
 def prepare_compositor(
@@ -134,10 +140,18 @@ def prepare_compositor(
     secondary_template = torch.zeros(3, s_off + 1, device=device)
     primary_template[:, primary[S].start : primary[S].stop] = primary[S].stack[0]
     secondary_template[:, secondary[S].start : secondary[S].stop] = secondary[S].stack[0]
-    alpha = 1 - torch.where(i1 == S, r, torch.zeros_like(r)) - torch.where(banded & (i2 == S), 1 - r, torch.zeros_like(r))
+    alpha = (1 - torch.where(i1 == S, r, torch.zeros_like(r)) - torch.where(banded & (i2 == S), 1 - r, torch.zeros_like(r))).clamp(0, 1)
+    face = ((i1 != S) | (banded & (i2 != S))).view(H, W)
+    rows, cols = torch.nonzero(face.any(1)).flatten(), torch.nonzero(face.any(0)).flatten()
+    box = (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1) if len(rows) else (0, 0, 0, 0)
+    y0, y1, x0, x1 = box
+    background = torch.empty(H * W, 4, device=device)
+    background[:, :3] = (primary_template.index_select(1, primary_index) + secondary_template.index_select(1, secondary_index)).t()
+    background[:, 3] = alpha
     return Compositor(
         (W, H), candidates, primary, secondary, primary_index, secondary_index,
-        primary_template, secondary_template, alpha.clamp(0, 1), images, r, i1, i2, details, float(detail_power),
+        primary_template, secondary_template, alpha, images, r, i1, i2, details, float(detail_power), box,
+        primary_index.view(H, W)[y0:y1, x0:x1].flatten(), secondary_index.view(H, W)[y0:y1, x0:x1].flatten(), background,
     )
 
 
@@ -198,8 +212,8 @@ def composite(comp: Compositor, coeffs: torch.Tensor, *, min_coeff: float = 1e-3
     B, S = coeffs.shape[:2]
     device = comp.images.device
     out = torch.empty(B, H * W, 4, device=device).permute(0, 2, 1)  # (B, 4, H*W) view, channels-last
-    out[:, 3] = comp.alpha
     if direct:
+        out[:, 3] = comp.alpha
         full = torch.zeros(B, S + 1, comp.images.shape[0], device=device)
         for label in range(S):
             cand = comp.candidates[label]
@@ -228,5 +242,10 @@ def composite(comp: Compositor, coeffs: torch.Tensor, *, min_coeff: float = 1e-3
                 detail = [] if comp.details is None else _detail_terms(terms, comp.detail_power)
                 _fill(primary, comp.primary[label], terms, detail)
                 _fill(secondary, comp.secondary[label], terms, detail)
-            torch.add(primary.index_select(1, comp.primary_index), secondary.index_select(1, comp.secondary_index), out=out[b, :3])
+            y0, y1, x0, x1 = comp.box
+            frame = out[b].t()  # (H*W, 4), contiguous
+            frame.copy_(comp.background)
+            inside = frame.view(H, W, 4)[y0:y1, x0:x1, :3].permute(2, 0, 1)  # (3, h, w) view
+            torch.add(primary.index_select(1, comp.box_primary_index).view(inside.shape),
+                      secondary.index_select(1, comp.box_secondary_index).view(inside.shape), out=inside)
     return out.view(B, 4, H, W)

@@ -36,6 +36,9 @@ def random_coeffs(rng: np.random.Generator, B: int, S: int, K: int) -> np.ndarra
 
 def test_sparse_and_direct_match_numpy_eq7(model):
     comp = prepare_compositor(model)
+    y0, y1, x0, x1 = comp.box
+    W, H = comp.size
+    assert 0 < y1 - y0 < H and 0 < x1 - x0 < W  # the sparse path composites inside the face box only
     c = random_coeffs(np.random.default_rng(0), 2, 7, 4)
     sparse = composite(comp, torch.from_numpy(c), min_coeff=0.0)
     direct = composite(comp, torch.from_numpy(c), direct=True)
