@@ -162,8 +162,8 @@ def _source_coordinates(
 
     Per pixel, the covering triangle's affine ``[[a0, a1, a2], [a3, a4, a5]]`` applied to the
     pixel centre ``(x, y)``: each of the six coefficients is gathered once from a
-    ``(6, B * (K + 1))`` table (one 1-D ``index_select`` per coefficient, the cheapest gather
-    on the CPU), then ``x_src = a0 x + a1 y + a2``, ``y_src = a3 x + a4 y + a5``.
+    ``(6, K + 1)`` table per frame (one 1-D ``index_select`` per coefficient, the cheapest gather
+    on the CPU; frame by frame so that the index stays in cache), then ``x_src = a0 x + a1 y + a2``, ``y_src = a3 x + a4 y + a5``.
     See :func:`backward_map` for the parameters.
     """
     import torch
@@ -180,20 +180,19 @@ def _source_coordinates(
         scale = torch.tensor([2.0 / max(sw - 1, 1), 2.0 / max(sh - 1, 1)], dtype=torch.float64, device=device)
         affines = affines * scale[:, None]
         affines[..., 2] -= 1.0
-    table = affines.to(dtype).reshape(B * (K + 1), 6).t().contiguous()  # (6, B * (K + 1))
-    dst_np = dst_points.detach().to(torch.float64).cpu().numpy()
-    index = torch.from_numpy(np.stack([triangle_index_map(d, triangles, size) for d in dst_np])).to(device)
-    covered = index >= 0
-    index = torch.where(covered, index, K).long()  # uncovered pixels: the identity
-    index += torch.arange(B, device=device).view(B, 1, 1) * (K + 1)
-    index = index.flatten()
-    a = [table[j].index_select(0, index).view(B, H, W) for j in range(6)]
-    xs = torch.arange(W, dtype=dtype, device=device).view(1, 1, W)
-    ys = torch.arange(H, dtype=dtype, device=device).view(1, H, 1)
-    planes = []
-    for axis in range(2):
-        plane = torch.addcmul(a[3 * axis + 2], a[3 * axis], xs)
-        planes.append(plane.addcmul_(a[3 * axis + 1], ys))
+    table = affines.to(dtype).reshape(B, K + 1, 6).transpose(1, 2).contiguous()  # (B, 6, K + 1)
+    xs = torch.arange(W, dtype=dtype, device=device).view(1, W)
+    ys = torch.arange(H, dtype=dtype, device=device).view(H, 1)
+    planes = torch.empty(2, B, H, W, dtype=dtype, device=device)
+    covered = torch.empty(B, H, W, dtype=torch.bool, device=device)
+    for b, d in enumerate(dst_points.detach().to(torch.float64).cpu().numpy()):  # frame by frame: the index stays in cache
+        index = triangle_index_map(d, triangles, size)
+        covered[b] = torch.from_numpy(index >= 0)
+        index[index < 0] = K  # uncovered pixels: the identity
+        index = torch.from_numpy(index.astype(np.int64)).to(device).flatten()
+        a = [table[b, j].index_select(0, index).view(H, W) for j in range(6)]
+        for axis in range(2):
+            torch.addcmul(a[3 * axis + 2], a[3 * axis], xs, out=planes[axis, b]).addcmul_(a[3 * axis + 1], ys)
     return planes[0], planes[1], covered
 
 
