@@ -24,7 +24,7 @@ import OpenImageIO as oiio
 import pytest
 
 from runner.cache import CacheStore
-from runner.outputs import load_frames
+from runner.outputs import load_bundle
 from stages.actor_pack import load_pack
 
 REPO = Path(__file__).resolve().parent.parent
@@ -201,11 +201,11 @@ def _cached_files(cache: Path, stage: str, pattern: str) -> list[Path]:
 
 
 def test_damaged_cache_entries_are_recomputed_not_used(default_run):
-    """The issue's cases: a synthesize chunk zeroed in the cache (a black streak in result.mp4)
-    and a damaged cached EXR (published with a manifest sha256 that did not match) are each
-    reported on one line and recomputed; the outputs are those of an undamaged cache."""
+    """The issue's cases: a synthesize chunk's coefficients zeroed in the cache (its frames are
+    not stored) and a damaged cached EXR (published with a manifest sha256 that did not match)
+    are each reported on one line and recomputed; the outputs are those of an undamaged cache."""
     cache = default_run.parent / "cache"
-    chunk = _cached_files(cache, "synthesize", "frames.npy")[1]
+    chunk = _cached_files(cache, "synthesize", "coeffs.npz")[1]
     data = chunk.read_bytes()
     chunk.write_bytes(data[:len(data) // 2] + bytes(len(data) - len(data) // 2))
     exr = _cached_files(cache, "exr", "frame.*.exr")[3]
@@ -214,13 +214,14 @@ def test_damaged_cache_entries_are_recomputed_not_used(default_run):
     undamaged = (default_run / "exr" / exr.name).read_bytes()
     exr.write_bytes(exr.read_bytes()[:-64] + bytes(64))
     out = default_run.parent / "repaired"
-    result = run_cli("run", "pipeline.yaml", "--set", "video.crf=17", "--out", str(out), "--cache-dir", str(cache))
+    result = run_cli("run", "pipeline.yaml", "--set", "video.crf=17", "--force", "coefficients", "--out", str(out),
+                     "--cache-dir", str(cache))
     assert result.returncode == 0, result.stderr
     warnings = [line for line in result.stderr.splitlines() if "damaged cache entry" in line]
     assert len(warnings) == 2 and "'synthesize'" in warnings[0] + warnings[1] and "'exr'" in warnings[0] + warnings[1]
     for entry in CacheStore(cache).iter_entries():  # the recomputed chunk reads back verified
         if entry.record.get("stage") == "synthesize" and "range" in entry.record:
-            load_frames(entry, "frames")
+            load_bundle(entry, "coeffs")
     manifest = json.loads((out / "exr" / "manifest.json").read_text())
     for listed in manifest["files"]:
         assert hashlib.sha256((out / "exr" / listed["path"]).read_bytes()).hexdigest() == listed["sha256"]
