@@ -41,7 +41,7 @@ sys.path.insert(0, str(REPO))
 
 from runner.registry import Registry  # noqa: E402
 from scripts.make_test_clip import write_clip  # noqa: E402
-from stages.video import VideoDecode, VideoWriter, probe, to_gray  # noqa: E402
+from stages.video import VideoDecode, VideoWriter, WriteVideo, probe, to_gray  # noqa: E402
 
 FRAMES, WIDTH, HEIGHT, CHUNK = 300, 640, 480, 16
 REPEATS = 3
@@ -91,10 +91,12 @@ def _plugin_site(work: Path) -> Path | None:
 
 
 def _direct(clip: Path, out: Path) -> None:
-    """The chain without the runner: the same stage code in a plain loop."""
+    """The chain without the runner: the same stage code in a plain loop, encoding with
+    ``CHAIN``'s crf and ``write.video``'s default preset and threads."""
     info = probe(clip)
     decode = VideoDecode()
-    with VideoWriter(out, fps=info.fps, width=info.width, height=info.height, codec="h264", crf=18) as writer:
+    defaults = {param.name: param.default for param in WriteVideo.params if param.name in ("preset", "threads")}
+    with VideoWriter(out, fps=info.fps, width=info.width, height=info.height, codec="h264", crf=18, **defaults) as writer:
         for start in range(0, info.frames, CHUNK):
             frames = decode.process(start, min(start + CHUNK, info.frames), {"video": clip}, {}, None)["frames"]
             writer.write(to_gray(frames))
