@@ -126,13 +126,15 @@ class EventSink:
 
 
 def _job_task(spec: dict[str, Any], cache_dir: str, device: str, sink: Any) -> dict[str, Any]:
-    """The Ray task of one job: :func:`run_job` with its events sent to ``sink``; the last
-    event is awaited so that every event is with the sink when the task's result is."""
+    """The Ray task of one job: :func:`run_job` with its events sent to ``sink``. The first and
+    the last event are awaited: the last so that every event is with the sink when the task's
+    result is, the first so that a try whose worker dies right after starting is still seen
+    (an actor call not yet sent is lost with its process)."""
     job = Job(**spec)
 
     def emit(event: dict[str, Any]) -> None:
         ref = sink.add.remote(job.name, {"time": time.time(), **event})
-        if event.get("event") == "run_end":
+        if event.get("event") in ("job_start", "run_end"):
             ray.get(ref)
 
     return run_job(job, cache_dir=Path(cache_dir), device=device, emit=emit)
