@@ -4,12 +4,9 @@ It runs the pipeline's synthesis (Sec. 6-8: the same per-subregion QP coefficien
 compositing with the fade bands, eq. 6-7, and the final warp of Sec. 7) with two savings that
 leave the image as it is:
 
-* **compositing on the face box only.** A pixel whose primary and secondary labels are both the
-  outside of the face (label ``S``) is the standard image whatever the coefficients; only the
-  bounding box of the other pixels (:func:`face_box`, 39 % of the 600x800 demo target) is
-  composited per update, on a compositor of the model cropped to it (:func:`cropped_model`), and
-  written into the composite of the outside made once. Compositing is per pixel, so the crop's
-  pixels are the full composite's;
+* **compositing on the face box only**, as the pipeline's compositor does it
+  (:func:`stages.synthesis.composite.prepare_compositor`: outside the bounding box of the face
+  labels the composite is the standard image whatever the coefficients);
 * **no alpha.** Only the three colour channels are warped (the editor never shows the face
   alpha), and they are clamped to [0, 1] in place.
 
@@ -32,7 +29,7 @@ from stages.synthesis.composite import Compositor, composite, prepare_compositor
 from stages.synthesis.synthesize import Synthesizer
 from stages.synthesis.warp import warp_images
 
-__all__ = ["preview_size", "to_preview", "reduced_model", "face_box", "cropped_model", "PreviewSynthesizer"]
+__all__ = ["preview_size", "to_preview", "reduced_model", "PreviewSynthesizer"]
 
 
 def preview_size(size: tuple[int, int], scale: float) -> tuple[int, int]:
@@ -76,43 +73,6 @@ def reduced_model(model: Mapping[str, np.ndarray], small: tuple[int, int]) -> di
     return reduced
 
 
-def face_box(model: Mapping[str, np.ndarray]) -> tuple[int, int, int, int]:
-    """The pixels whose composite depends on the coefficients (eq. 6, 7) of a ``synthesis_model``.
-
-    Returns
-    -------
-    (x0, y0, x1, y1) : int
-        The bounding box, px, ends exclusive, of the pixels whose primary (``blend_i1``) or
-        secondary (``blend_i2``) label is a subregion of the face (not the outside, label ``S``).
-        Outside it the composite is the standard image.
-
-    Raises
-    ------
-    ValueError
-        No pixel is labelled with a subregion of the face.
-    """
-    outside = len(model["subregion_teeth"])
-    face = (np.asarray(model["blend_i1"]) != outside) | (np.asarray(model["blend_i2"]) != outside)
-    if not face.any():
-        raise ValueError(f"synthesis model: no pixel is labelled with a face subregion (labels 0..{outside - 1})")
-    ys, xs = np.nonzero(face)
-    return int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1
-
-
-def cropped_model(model: Mapping[str, np.ndarray], box: tuple[int, int, int, int]) -> dict[str, np.ndarray]:
-    """The compositing fields of a ``synthesis_model`` bundle cut to ``box (x0, y0, x1, y1)`` px
-    (ends exclusive): images and weight maps cropped, ``size`` the box's; the other fields are
-    the model's."""
-    x0, y0, x1, y1 = box
-    cropped = dict(model)
-    for key in ("examples", "teeth"):
-        cropped[key] = np.asarray(model[key])[:, y0:y1, x0:x1]
-    for key in ("standard", "blend_r", "blend_i1", "blend_i2"):
-        cropped[key] = np.asarray(model[key])[y0:y1, x0:x1]
-    cropped["size"] = np.array([x1 - x0, y1 - y0], np.int64)
-    return cropped
-
-
 class PreviewSynthesizer:
     """Synthesis of one geometry while dragging (module docstring), at the full size or a reduced
     one, sharing a :class:`Synthesizer`'s QPs, anchors and triangulation.
@@ -129,8 +89,8 @@ class PreviewSynthesizer:
     Raises
     ------
     ValueError
-        ``scale`` out of range; the synthesizer blends band-pass details (their Gaussian would
-        reach across the face box's edge).
+        ``scale`` out of range; the synthesizer blends band-pass details (the reduced model's
+        compositor is made without them, so the sizes would not show the same image).
     """
 
     def __init__(self, synthesizer: Synthesizer, model: Mapping[str, np.ndarray], *, scale: float) -> None:
@@ -139,12 +99,8 @@ class PreviewSynthesizer:
         self.synthesizer = synthesizer
         self.full_size = tuple(int(v) for v in model["size"])
         self.size = preview_size(self.full_size, scale)
-        small = dict(model) if self.size == self.full_size else reduced_model(model, self.size)
-        self.box = face_box(small)
-        self.compositor: Compositor = prepare_compositor(cropped_model(small, self.box), device=synthesizer.device)
-        outside = synthesizer.compositor if self.size == self.full_size else prepare_compositor(small, device=synthesizer.device)
-        coeffs, _ = synthesizer.qp.coefficients(np.asarray(model["neutral_points"], np.float64)[None])
-        self.outside = composite(outside, coeffs)[:, :3].contiguous()  # (1, 3, h, w): any coefficients give the outside
+        self.compositor: Compositor = (synthesizer.compositor if self.size == self.full_size
+                                       else prepare_compositor(reduced_model(model, self.size), device=synthesizer.device))
         standard = np.concatenate([model["standard_points"], synthesizer.anchors])
         self.standard_points = torch.from_numpy(to_preview(standard, self.full_size, self.size)).to(synthesizer.device)
 
@@ -164,8 +120,6 @@ class PreviewSynthesizer:
         points = np.asarray(points, np.float64)
         dst = to_preview(np.concatenate([points, synth.anchors]), self.full_size, self.size)
         coeffs, _ = synth.qp.coefficients(points[None])
-        x0, y0, x1, y1 = self.box
-        standard = self.outside.clone()  # not written in place: renderer threads (--processes 0) share it
-        standard[:, :, y0:y1, x0:x1] = composite(self.compositor, coeffs)[:, :3]
+        standard = composite(self.compositor, coeffs)[:, :3]
         dst_t = torch.from_numpy(dst[None]).to(synth.device)
         return warp_images(standard, self.standard_points[None], dst_t, synth.triangles, size=self.size).clamp_(0, 1)

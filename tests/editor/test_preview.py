@@ -1,5 +1,4 @@
-"""The drag image (editor/preview.py): size mapping, the reduced model, the face box and its
-compositing, and the image against the pipeline's synthesis at full size (identical at scale 1,
+"""The drag image (editor/preview.py): size mapping, the reduced model, and the image against the pipeline's synthesis at full size (identical at scale 1,
 its area-average at scale 1/2)."""
 
 from __future__ import annotations
@@ -9,9 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from editor.preview import PreviewSynthesizer, cropped_model, face_box, preview_size, reduced_model, to_preview
+from editor.preview import PreviewSynthesizer, preview_size, reduced_model, to_preview
 from stages.actor_pack import load_pack
-from stages.synthesis.composite import composite, prepare_compositor
 from stages.synthesis.synthesize import Synthesizer
 from tests.editor.conftest import PACK
 
@@ -51,33 +49,6 @@ def test_reduced_model_keeps_labels_and_averages_images(model):
     block = model["standard"].reshape(80, 4, 60, 4, 3).mean((1, 3))
     assert np.abs(small["standard"] - block).max() <= 0.5 + 1e-9
     np.testing.assert_array_equal(small["example_points"], model["example_points"])
-
-
-def test_face_box_is_the_tight_box_of_the_face_labels(model):
-    x0, y0, x1, y1 = face_box(model)
-    outside = len(model["subregion_teeth"])
-    face = (model["blend_i1"] != outside) | (model["blend_i2"] != outside)
-    inside = np.zeros_like(face)
-    inside[y0:y1, x0:x1] = True
-    assert not face[~inside].any()
-    # tight: a face pixel on each edge of the box
-    assert face[y0, x0:x1].any() and face[y1 - 1, x0:x1].any() and face[y0:y1, x0].any() and face[y0:y1, x1 - 1].any()
-    no_face = dict(model, blend_i1=np.full_like(model["blend_i1"], outside), blend_i2=np.full_like(model["blend_i2"], outside))
-    with pytest.raises(ValueError, match="no pixel is labelled with a face subregion"):
-        face_box(no_face)
-
-
-def test_compositing_the_face_box_is_the_full_composite_there(model):
-    box = x0, y0, x1, y1 = face_box(model)
-    full = prepare_compositor(dict(model))
-    cropped = prepare_compositor(cropped_model(model, box))
-    assert cropped.size == (x1 - x0, y1 - y0)
-    S = len(model["subregion_teeth"])
-    K = max(len(model["example_points"]), len(model["teeth_points"]))
-    coeffs = torch.from_numpy(np.random.default_rng(3).dirichlet(np.ones(K), size=(1, S)))  # convex, all examples in play
-    with torch.inference_mode():
-        expected = composite(full, coeffs)[:, :3, y0:y1, x0:x1]
-        torch.testing.assert_close(composite(cropped, coeffs)[:, :3], expected, rtol=0, atol=1e-6)
 
 
 def test_band_pass_blending_is_refused(model):
