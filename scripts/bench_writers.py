@@ -20,7 +20,13 @@ wall time. Each figure is the best of ``--repeats`` runs. Rows (all per frame):
   1 thread) at scale 1.0 with ``medium`` (before) and at the stage defaults (after).
 - ``writers_exr_ms_<compression>``, ``writers_exr_mb_<compression>``: ``write.exr`` (sRGB decode,
   premultiply, half conversion, compression, atomic rename) with one writer thread and OpenEXR's
-  own pool off: CPU ms and MB per frame.
+  own pool off: CPU ms and MB per frame (``zip``, ``zips``, ``none``: the numpy + ISA-L writer at
+  the default level; ``piz``, ``rle``: OpenImageIO).
+- ``writers_exr_ms_zip_level<L>``, ``writers_exr_mb_zip_level<L>``: the same with ``zip`` at each
+  ISA-L level L.
+- ``writers_exr_ms_<zip|none>_oiio``, ``writers_exr_mb_zip_oiio``: the writer before, OpenImageIO
+  for every codec, on the same frames in the same run; ``writers_exr_cpu_ratio_<zip|none>``: the
+  stage's CPU ms over that.
 - ``writers_exr_fps_zip_serial`` / ``writers_exr_fps_zip_<N>threads``: wall frames/s of
   ``write.exr`` serial and at the stage's default (N frames in parallel, OpenEXR's pool on).
 - ``writers_total_ms_before`` / ``writers_total_ms``: result encode + preview + EXR (zip), with
@@ -47,7 +53,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from runner.stage import Context, StreamInfo  # noqa: E402
 from stages.video import VideoWriter, X264_PRESETS  # noqa: E402
-from stages.writers.exr import COMPRESSIONS, WriteExr  # noqa: E402
+from stages.writers.exr import (  # noqa: E402
+    COMPRESSIONS, WriteExr, exr_name, frame_attributes, oiio_write_exr, to_linear_rgba,
+)
+from stages.writers.exr_file import ZIP_LEVEL, ZIP_LEVELS  # noqa: E402
 from stages.writers.preview import SideBySide  # noqa: E402
 
 WIDTH, HEIGHT = 600, 800  # the demo target's size (W x H)
@@ -134,29 +143,57 @@ def preview_ms(performer: np.ndarray, result: np.ndarray, work: Path, *, scale: 
     return 1e3 * best_of(repeats, run)[0] / len(result)
 
 
-def write_exr(srgb: np.ndarray, alpha: np.ndarray, folder: Path, *, threads: int, compression: str) -> None:
+def write_exr(srgb: np.ndarray, alpha: np.ndarray, folder: Path, *, threads: int, compression: str,
+              zip_level: int = ZIP_LEVEL) -> None:
     """One ``write.exr`` chunk over all of ``srgb`` into an emptied ``folder``."""
     shutil.rmtree(folder, ignore_errors=True)
     ctx = Context(device="cpu", files_dir=lambda port: folder)
     inputs = {"frames": _stream(srgb), "mask": _stream(alpha)}
-    WriteExr().process(0, len(srgb), inputs, {"compression": compression, "threads": threads}, ctx)
+    params = {"compression": compression, "zip_level": zip_level, "threads": threads}
+    WriteExr().process(0, len(srgb), inputs, params, ctx)
+
+
+def write_exr_oiio(srgb: np.ndarray, alpha: np.ndarray, folder: Path, *, compression: str) -> None:
+    """The writer before, frame by frame into an emptied ``folder``: the same RGBA and attributes,
+    written by OpenImageIO (as ``write.exr`` did for every codec)."""
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    for i in range(len(srgb)):
+        oiio_write_exr(folder / exr_name(i), to_linear_rgba(srgb[i], alpha[i]),
+                       attributes=frame_attributes(i, fps=30.0), compression=compression)
 
 
 def exr_rows(result: np.ndarray, work: Path, repeats: int, threads: int) -> list[dict]:
-    """``write.exr`` CPU ms and MB per frame per compression (serial), and zip's wall frames/s."""
+    """``write.exr`` CPU ms and MB per frame per compression and zip level (serial), the writer
+    before on ``zip`` and ``none`` and the ratios, and zip's wall frames/s."""
     alpha = face_mask(len(result))
     folder = work / "exr"
     pool = oiio.get_int_attribute("exr_threads")
-    rows = []
+
+    def measure(name: str, work: Callable[[], Any]) -> tuple[list[dict], float, float]:
+        """Rows ``writers_exr_ms_<name>``, ``writers_exr_mb_<name>``; CPU ms and wall s per frame."""
+        cpu, wall, _ = best_of(repeats, work)
+        size = sum(p.stat().st_size for p in folder.glob("*.exr")) / len(result)
+        ms = 1e3 * cpu / len(result)
+        rows = [_row(f"writers_exr_ms_{name}", ms, "ms/frame"), _row(f"writers_exr_mb_{name}", size / 1e6, "MB/frame")]
+        return rows, ms, wall / len(result)
+
+    rows, ms = [], {}
     try:
         oiio.attribute("exr_threads", 1)  # OpenEXR's own pool off: one core's work
         for compression in COMPRESSIONS:
-            cpu, wall, _ = best_of(repeats, lambda: write_exr(result, alpha, folder, threads=1, compression=compression))
-            size = sum(p.stat().st_size for p in folder.glob("*.exr")) / len(result)
-            rows += [_row(f"writers_exr_ms_{compression}", 1e3 * cpu / len(result), "ms/frame"),
-                     _row(f"writers_exr_mb_{compression}", size / 1e6, "MB/frame")]
+            new, ms[compression], wall = measure(compression, lambda: write_exr(result, alpha, folder, threads=1,
+                                                                                compression=compression))
+            rows += new
             if compression == "zip":
-                rows.append(_row("writers_exr_fps_zip_serial", len(result) / wall, "frames/s"))
+                rows.append(_row("writers_exr_fps_zip_serial", 1 / wall, "frames/s"))
+        for level in ZIP_LEVELS:
+            rows += measure(f"zip_level{level}", lambda: write_exr(result, alpha, folder, threads=1, compression="zip",
+                                                                  zip_level=level))[0]
+        for compression in ("zip", "none"):
+            before, ms_before, _ = measure(f"{compression}_oiio",
+                                           lambda: write_exr_oiio(result, alpha, folder, compression=compression))
+            rows += before + [_row(f"writers_exr_cpu_ratio_{compression}", ms[compression] / ms_before, "after/before")]
     finally:
         oiio.attribute("exr_threads", pool)
     _, wall, _ = best_of(repeats, lambda: write_exr(result, alpha, folder, threads=threads, compression="zip"))

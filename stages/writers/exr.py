@@ -26,11 +26,13 @@ from runner.stage import Context, FrameStage, Param, StageError
 from stages.color import srgb_to_linear, to_unit_float
 from stages.writers.atomic import atomic_write
 from stages.writers.bundles import check_bundle
+from stages.writers.exr_file import COMPRESSION_CODES, ZIP_LEVEL, ZIP_LEVELS, write_scanline_exr
 from stages.writers.lut import apply_elementwise
 
 COMPRESSIONS = ("zip", "zips", "piz", "rle", "none")  # OpenEXR's lossless codecs
 FRAME_NAME = "frame.{:06d}.exr"  # 0-based frame index of the source clip
 PREFIX = "exmap:"
+COLOR_SPACE = "lin_rec709_scene"  # oiio:ColorSpace, written by OpenImageIO as colorInteropID
 Attribute = int | float | str | tuple[float, ...]
 
 
@@ -104,7 +106,7 @@ def frame_attributes(
 
 
 def exr_spec(width: int, height: int, *, attributes: Mapping[str, Attribute], compression: str) -> oiio.ImageSpec:
-    """Header of a half-float RGBA EXR with the given extra attributes.
+    """OpenImageIO header of a half-float RGBA EXR with the given extra attributes.
 
     Float tuples are written as ``float[n]`` attributes. ``DateTime`` is set empty (not written) so
     that the same frame always gives the same bytes (resumed runs match uninterrupted ones).
@@ -114,7 +116,7 @@ def exr_spec(width: int, height: int, *, attributes: Mapping[str, Attribute], co
     spec.channelnames = ("R", "G", "B", "A")
     spec.alpha_channel = 3
     spec.attribute("compression", compression)
-    spec.attribute("oiio:ColorSpace", "lin_rec709_scene")
+    spec.attribute("oiio:ColorSpace", COLOR_SPACE)
     spec.attribute("DateTime", "")
     for key, value in attributes.items():
         if isinstance(value, tuple):
@@ -124,22 +126,55 @@ def exr_spec(width: int, height: int, *, attributes: Mapping[str, Attribute], co
     return spec
 
 
+def oiio_write_exr(path: Path, pixels: np.ndarray, *, attributes: Mapping[str, Attribute], compression: str) -> None:
+    """Write ``pixels`` ``(H, W, 4)`` (RGBA, half) or ``(H, W, 5)`` (RGBA half + float Z) with
+    OpenImageIO, in place (not atomic): the codecs ``piz`` and ``rle``, and the reference the
+    tests and the benchmark compare :func:`write_exr` with.
+
+    Raises
+    ------
+    OSError
+        OpenImageIO cannot open or write the file (its message).
+    """
+    import OpenImageIO as oiio
+    height, width, channels = pixels.shape
+    spec = exr_spec(width, height, attributes=attributes, compression=compression)
+    if channels == 5:
+        spec.nchannels = 5
+        spec.channelnames = ("R", "G", "B", "A", "Z")
+        spec.channelformats = (oiio.HALF,) * 4 + (oiio.FLOAT,)
+    out = oiio.ImageOutput.create("openexr")
+    if out is None or not out.open(str(path), spec):
+        reason = out.geterror() if out is not None else oiio.geterror()
+        raise OSError(reason or "open failed")
+    ok = out.write_image(pixels)
+    ok = out.close() and ok
+    if not ok:
+        raise OSError(out.geterror() or "write failed")
+
+
 DEPTH_UNIT = "mm"
 
 
 def write_exr(
     path: Path, rgba: np.ndarray, *, attributes: Mapping[str, Attribute], compression: str = "zip",
-    depth: np.ndarray | None = None,
+    zip_level: int = ZIP_LEVEL, depth: np.ndarray | None = None,
 ) -> None:
     """Write one half-float RGBA EXR atomically (temp name in the same folder, then rename).
+
+    ``none``, ``zips`` and ``zip`` are written by :mod:`stages.writers.exr_file` (numpy and
+    ISA-L's deflate), ``piz`` and ``rle`` by OpenImageIO (:func:`oiio_write_exr`); both give the
+    same header attributes with the same EXR types and the same half floats.
 
     Parameters
     ----------
     path : final file name (``.exr``).
-    rgba : (H, W, 4) float16 (written as it is) or another float type (converted by OpenEXR),
-        premultiplied scene-linear RGBA (see :func:`to_linear_rgba`).
+    rgba : (H, W, 4) float16 (written as it is) or another float type (rounded to float32, then
+        to the nearest half, ties to even, as OpenEXR's conversion does), premultiplied
+        scene-linear RGBA (see :func:`to_linear_rgba`).
     attributes : extra header attributes (see :func:`frame_attributes`).
     compression : one of ``COMPRESSIONS`` (all lossless).
+    zip_level : ISA-L deflate level 0..3 of ``zip`` / ``zips`` (other codecs ignore it).
     depth : optional (H, W) camera depth of the surface at each pixel centre, in ``DEPTH_UNIT``
         (mm, z away from the camera; ``inf`` where no surface is): written as a 32-bit float ``Z``
         channel after RGBA, with the header attribute ``exmap:depth_unit``.
@@ -147,33 +182,34 @@ def write_exr(
     Raises
     ------
     ValueError
-        ``depth`` is not (H, W).
+        ``rgba`` is not (H, W, 4), ``depth`` is not (H, W), ``compression`` or ``zip_level`` unknown.
     StageError
         The file cannot be created or written (folder missing or read-only, disk full).
     """
-    import OpenImageIO as oiio
+    if rgba.ndim != 3 or rgba.shape[2] != 4:
+        raise ValueError(f"expected rgba (H, W, 4), got {rgba.shape}")
+    if compression not in COMPRESSIONS:
+        raise ValueError(f"expected compression in {COMPRESSIONS}, got {compression!r}")
     height, width = rgba.shape[:2]
-    pixels = np.ascontiguousarray(rgba, np.float16 if rgba.dtype == np.float16 else np.float32)
+    with np.errstate(over="ignore"):  # beyond the half range: inf, as OpenEXR converts
+        pixels = rgba if rgba.dtype == np.float16 else np.asarray(rgba, np.float32).astype(np.float16)
     if depth is not None:
         if depth.shape != (height, width):
             raise ValueError(f"expected depth ({height}, {width}), got {depth.shape}")
-        attributes = {**attributes, "exmap:depth_unit": DEPTH_UNIT}
-        pixels = np.ascontiguousarray(np.concatenate([pixels, np.asarray(depth, np.float32)[..., None]], axis=2))
-    spec = exr_spec(width, height, attributes=attributes, compression=compression)
-    if depth is not None:
-        spec.nchannels = 5
-        spec.channelnames = ("R", "G", "B", "A", "Z")
-        spec.channelformats = (oiio.HALF,) * 4 + (oiio.FLOAT,)
+        attributes = {**attributes, PREFIX + "depth_unit": DEPTH_UNIT}
     try:
         with atomic_write(path) as tmp:
-            out = oiio.ImageOutput.create("openexr")
-            if out is None or not out.open(str(tmp), spec):
-                reason = out.geterror() if out is not None else oiio.geterror()
-                raise StageError(f"cannot write EXR {path}: {reason or 'open failed'}")
-            ok = out.write_image(pixels)
-            ok = out.close() and ok
-            if not ok:
-                raise StageError(f"cannot write EXR {path}: {out.geterror() or 'write failed'}")
+            if compression in COMPRESSION_CODES:
+                channels = {name: pixels[..., c] for c, name in enumerate("RGBA")}
+                if depth is not None:
+                    channels["Z"] = np.asarray(depth, np.float32)
+                with open(tmp, "wb") as file:
+                    write_scanline_exr(file, channels, attributes={"colorInteropID": COLOR_SPACE, **attributes},
+                                       compression=compression, level=zip_level)
+            else:
+                if depth is not None:
+                    pixels = np.concatenate([pixels.astype(np.float32), np.asarray(depth, np.float32)[..., None]], axis=2)
+                oiio_write_exr(tmp, np.ascontiguousarray(pixels), attributes=attributes, compression=compression)
     except OSError as err:
         raise StageError(f"cannot write EXR {path}: {err.strerror or err}") from err
 
@@ -182,13 +218,15 @@ class WriteExr(FrameStage):
     """Writes ``frame.%06d.exr`` per frame: half float, scene-linear, premultiplied RGBA, metadata."""
 
     name = "write.exr"
-    version = "1"
+    version = "2"  # 2: own zip writer (ISA-L deflate): other bytes, the same pixels
     doc = "EXR per frame: half float, scene-linear (sRGB decoded), face mask as associated alpha"
     inputs = {"frames": "frames", "mask": "frames", "pose": "pose", "similarity": "similarity"}
     optional_inputs = frozenset({"mask", "pose", "similarity"})
     outputs = {"exr": "files"}
     params = (
         Param("compression", str, "zip", "lossless EXR compression", choices=COMPRESSIONS),
+        Param("zip_level", int, ZIP_LEVEL, "deflate level of zip/zips (ISA-L: 0 fastest, 3 slowest)",
+              min=ZIP_LEVELS.start, max=ZIP_LEVELS.stop - 1),
         Param("threads", int, 0, "frames written in parallel; 0 = one per CPU core", in_key=False, min=0),
     )
 
@@ -227,7 +265,8 @@ class WriteExr(FrameStage):
                 similarity=None if similarity is None else {k: similarity[k][frame] for k in ("params", "valid")},
             )
             rgba = to_linear_rgba(frames[i], None if masks is None else masks[i])
-            write_exr(folder / exr_name(frame), rgba, attributes=attributes, compression=params["compression"])
+            write_exr(folder / exr_name(frame), rgba, attributes=attributes, compression=params["compression"],
+                      zip_level=params["zip_level"])
 
         workers = min(params["threads"] or os.cpu_count() or 1, len(frames))
         with ThreadPoolExecutor(max_workers=max(workers, 1), thread_name_prefix="write.exr") as pool:

@@ -1,5 +1,6 @@
 """write.exr: round trip through OpenImageIO, metadata, atomic writes, clear errors."""
 
+import errno
 import os
 import signal
 import subprocess
@@ -14,7 +15,11 @@ import pytest
 from runner.stage import StageError
 from stages.color import srgb_to_linear
 from stages.writers.atomic import atomic_write, temp_name
-from stages.writers.exr import COMPRESSIONS, WriteExr, exr_name, to_linear_rgba, write_exr
+from stages.writers import exr_file
+from stages.writers.exr import (
+    COMPRESSIONS, DEPTH_UNIT, WriteExr, exr_name, oiio_write_exr, to_linear_rgba, write_exr,
+)
+from stages.writers.exr_file import ZIP_LEVEL
 from tests.memory_stream import MemoryStream, files_context
 
 REPO = Path(__file__).resolve().parents[3]
@@ -55,7 +60,7 @@ def _read(path: Path) -> tuple[np.ndarray, oiio.ImageSpec]:
 
 
 def _params(**overrides) -> dict:
-    return {"compression": "zip", "threads": 2, **overrides}
+    return {"compression": "zip", "zip_level": ZIP_LEVEL, "threads": 2, **overrides}
 
 
 def test_round_trip_pixels_alpha_metadata(tmp_path: Path) -> None:
@@ -119,16 +124,48 @@ def test_temp_name_never_matches_final_name(tmp_path: Path) -> None:
         assert name != final.name and not Path(name).match("frame.*.exr") and name.endswith(".part")
 
 
-def test_failed_write_leaves_no_file(tmp_path: Path) -> None:
+def test_failed_write_leaves_no_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     final = tmp_path / "frame.000000.exr"
     with pytest.raises(RuntimeError), atomic_write(final) as tmp:
         tmp.write_bytes(b"partial")
         raise RuntimeError("crash in the middle of a frame")
     assert list(tmp_path.iterdir()) == []
-    # a write OpenImageIO rejects half way (pixel buffer of the wrong size): clear error, no file
-    with pytest.raises(StageError, match="frame.000000.exr"):
+    with pytest.raises(ValueError, match=r"\(H, W, 4\)"):
         write_exr(final, np.zeros((4, 4, 3), np.float32), attributes={})
+    # a write that fails half way (the disk fills after the header): clear error, no file
+    def disk_full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    monkeypatch.setattr(exr_file, "chunk_data", disk_full)
+    with pytest.raises(StageError, match="frame.000000.exr.*No space"):
+        write_exr(final, np.zeros((4, 4, 4), np.float32), attributes={})
     assert list(tmp_path.iterdir()) == []
+    # a file OpenImageIO cannot open (piz, in a missing folder): clear error, no file
+    with pytest.raises(StageError, match="missing/frame.000000.exr"):
+        write_exr(tmp_path / "missing" / final.name, np.zeros((4, 4, 4), np.float16), attributes={}, compression="piz")
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("compression", ["zip", "none"])
+def test_own_writer_matches_openimageio_with_float_input_and_depth(tmp_path: Path, compression: str) -> None:
+    """What render3d writes (float32 RGBA, float Z, its own float[9] attribute): the same half
+    floats (float32 rounded to half as OpenEXR rounds), Z and attributes as OpenImageIO's file."""
+    rng = np.random.default_rng(7)
+    rgba = rng.normal(0, 2, (19, 13, 4)).astype(np.float32)
+    rgba[0, :4, 0] = [65520.0, -1e6, 2.0**-25, 3 * 2.0**-26]  # overflow and subnormal rounding
+    depth = rng.random((19, 13), dtype=np.float32) * 900
+    depth[2] = np.inf
+    attributes = {"exmap:frame": 4, "exmap:head_R": tuple(np.eye(3).ravel() * 0.5)}
+    write_exr(tmp_path / "own.exr", rgba, attributes=attributes, compression=compression, depth=depth)
+    oiio_write_exr(tmp_path / "oiio.exr", np.concatenate([rgba, depth[..., None]], axis=2),
+                   attributes={**attributes, "exmap:depth_unit": DEPTH_UNIT}, compression=compression)
+    ours, theirs = (oiio.ImageInput.open(str(tmp_path / name)) for name in ("own.exr", "oiio.exr"))
+    np.testing.assert_array_equal(ours.read_image(oiio.HALF)[..., :4].view(np.uint16),
+                                  theirs.read_image(oiio.HALF)[..., :4].view(np.uint16))
+    np.testing.assert_array_equal(ours.read_image(oiio.FLOAT)[..., 4], depth)
+    as_list = lambda spec: [(p.name, str(p.type), p.value) for p in spec.extra_attribs]  # noqa: E731
+    assert as_list(ours.spec()) == as_list(theirs.spec())
+    assert ours.spec().getattribute("exmap:depth_unit") == DEPTH_UNIT
+    ours.close(), theirs.close()
 
 
 KILLED_WRITER = """
