@@ -197,9 +197,8 @@ def write_scanline_exr(
     sizes = np.array([len(c) if isinstance(c, bytes) else c.nbytes for c in chunks], np.int64)
     table_end = len(header) + 8 * len(chunks)
     offsets = table_end + np.concatenate([[0], np.cumsum(sizes + 8)[:-1]])
-    file.write(header)
-    file.write(offsets.astype("<u8").tobytes())
     per_chunk = LINES_PER_CHUNK[compression]
+    parts = [header, offsets.astype("<u8").tobytes()]
     for index, (chunk, size) in enumerate(zip(chunks, sizes)):
-        file.write(struct.pack("<ii", index * per_chunk, size))
-        file.write(chunk)
+        parts += [struct.pack("<ii", index * per_chunk, size), chunk]
+    file.write(b"".join(parts))  # one write: 800 small ones cost more for ``none``
