@@ -9,7 +9,9 @@ mask, alpha is 1 and the whole frame is kept.
 
 Per-frame metadata goes into namespaced header attributes (``exmap:frame`` ...; see
 ``docs/writers.md``). Each file is written under a temporary name and renamed into place, so a
-file named ``frame.%06d.exr`` is always complete.
+file named ``frame.%06d.exr`` is always complete. The codecs ``zip``, ``zips`` and ``none`` are
+written by :mod:`stages.writers.exr_file` (numpy and ISA-L's deflate), ``piz`` and ``rle`` by
+OpenImageIO, with the same header and pixels.
 """
 
 from __future__ import annotations

@@ -258,3 +258,20 @@ def test_half_rgba_is_numpys_rounding_of_the_float32_products() -> None:
     assert rgba.dtype == np.float16
     np.testing.assert_array_equal(rgba[..., :3].view(np.uint16), expected.view(np.uint16))
     np.testing.assert_array_equal(rgba[..., 3:].view(np.uint16), alpha.astype(np.float16).view(np.uint16))
+
+
+def test_zip_level_changes_the_bytes_not_the_pixels(tmp_path: Path) -> None:
+    """Why ``zip_level`` is in the cache key: other bytes, the same half floats."""
+    rng = np.random.default_rng(8)
+    frames = np.repeat(np.linspace(0, 1, 64 * 48, dtype=np.float32).reshape(1, 64, 48, 1), 3, axis=3)
+    inputs = {"frames": MemoryStream((frames + rng.random(frames.shape, dtype=np.float32) / 64).astype(np.float16),
+                                     fps=FPS)}
+    WriteExr().process(0, 1, inputs, _params(zip_level=0), files_context(tmp_path / "fast"))
+    WriteExr().process(0, 1, inputs, _params(zip_level=3), files_context(tmp_path / "small"))
+    fast, small = (tmp_path / name / "exr" / exr_name(0) for name in ("fast", "small"))
+    assert fast.read_bytes() != small.read_bytes()
+    for path in (fast, small):
+        inp = oiio.ImageInput.open(str(path))
+        stored = inp.read_image(oiio.HALF)
+        inp.close()
+        np.testing.assert_array_equal(stored.view(np.uint16), to_linear_rgba(inputs["frames"].frames[0]).view(np.uint16))
