@@ -13,8 +13,9 @@ scanline holds every channel in turn, the channels sorted by name, each as ``wid
 ``d[i] = (b[i] - b[i-1] + 128) mod 256``) and a zlib stream (RFC 1950) made by ISA-L's deflate
 (``isal.isal_zlib``, 5 to 6 times faster than zlib's level 1 here for files 3 % smaller); a chunk
 that deflate does not shrink is stored raw, as OpenEXR does (a reader tells them apart by the
-size). The bytes depend only on the arguments and the pinned ``isal`` package (ISA-L picks its
-code path by CPU; x86-64 CPUs with SSE4.2 share one output).
+size). On one machine the bytes depend only on the arguments and the pinned ``isal`` package;
+ISA-L picks its code path by CPU features, so another CPU family may give other bytes for the
+same pixels (not checked here).
 
 Header attributes are typed as OpenImageIO 3.2 writes them (``exroutput.cpp``), so a file of this
 module and one of OpenImageIO carry the same header bytes: Python ``int`` -> ``int``, ``float``
