@@ -22,16 +22,22 @@ geometry), ``global`` (one convex combination over the face, Pighin et al.), ``n
 example nearest in geometry, warped), and two bounds that see the truth: ``oracle`` (per
 subregion, the convex combination of the aligned examples fitted to the true frame, in the standard
 geometry: ``stages.synthesis.oracle``; the best any choice of per-subregion coefficients can do)
-and ``oracleglobal`` (one such fit over the whole face: the best of a global combination). Rows
+and ``oracleglobal`` (one such fit over the whole face: the best of a global combination); and
+``footage`` / ``footageglobal``: coefficients learned from the build frames the pack passed
+(``stages.synthesis.footage``: per subregion / over the whole face, the mean of the oracle
+coefficients of the k build frames nearest in geometry, k by blocked cross-validation on the build
+frames; eq. 2 for the teeth). Rows
 per clip (suffix ``_<clip stem>``), the method as a suffix of the metric (none for ``full``):
 ``reenact_psnr_db`` and ``reenact_ssim`` over the face, ``reenact_wrinkle_psnr_db`` over the forehead, glabella, eye zones (crow's feet) and cheeks
 (nasolabial folds), each the mean over the test frames; ``reenact_subregion_psnr_db_<subregion>``
 over each layout subregion on the frame's points, the PSNR of the squared error pooled over the
 test frames (``stages.synthesis.metrics.pooled_psnr``). Also ``reenact_test_frames``,
 ``reenact_examples``, ``reenact_coverage_px`` (the examples' k-center radius) and
-``reenact_rejected_<cause>`` (build frames ``pack.filter`` rejected, per cause). Over the clips:
+``reenact_rejected_<cause>`` (build frames ``pack.filter`` rejected, per cause),
+``reenact_footage_k`` / ``reenact_footage_k_global`` (the cross-validated k) and
+``reenact_margin_footage_db`` (footage minus footageglobal face PSNR). Over the clips:
 ``reenact_margin_warponly_db_min`` and ``reenact_margin_global_db_min`` (full minus baseline face
-PSNR, the smallest over the clips). ``--sheet PATH`` writes a contact sheet (truth | full |
+PSNR, the smallest over the clips) and ``reenact_margin_footage_db_min``. ``--sheet PATH`` writes a contact sheet (truth | full |
 warp-only | global at 3 test frames per clip).
 """
 
@@ -49,7 +55,7 @@ REPO = Path(__file__).resolve().parent.parent
 DEV_CLIPS = REPO.parent / "shared" / "dev-clips"
 BENCH = "reenact"
 METHODS = {"full": "", "warponly": "_warponly", "global": "_global", "nearest": "_nearest", "oracle": "_oracle",
-           "oracleglobal": "_oracleglobal"}
+           "oracleglobal": "_oracleglobal", "footage": "_footage", "footageglobal": "_footageglobal"}
 WRINKLE_SUBREGIONS = ("forehead", "glabella", "eyezone_l", "eyezone_r", "cheek_l", "cheek_r")
 BATCH = 8
 SHEET_FRAMES = 3
@@ -116,10 +122,12 @@ def build_pack(
 
 
 def evaluate(
-    clip: Frames, points: dict[str, np.ndarray], pack_dir: Path, test: np.ndarray, **synthesis: float
-) -> tuple[dict[str, dict[str, list]], list]:
+    clip: Frames, points: dict[str, np.ndarray], pack_dir: Path, test: np.ndarray, footage: np.ndarray, **synthesis: float
+) -> tuple[dict[str, dict[str, list]], list, dict[str, int]]:
     """Per method, the face PSNR, SSIM, wrinkle PSNR and subregion errors of every test frame;
-    and sheet tiles. ``synthesis``: keyword options of the ``Synthesizer`` (its defaults when absent)."""
+    sheet tiles; the footage coefficients' cross-validated k per mode. ``footage``: the build
+    frames the footage coefficients learn from (time order). ``synthesis``: keyword options of
+    the ``Synthesizer`` (its defaults when absent)."""
     import torch
     from stages.actor_pack import load_pack
     from stages.geometry.compensate import apply_similarity, fit_similarity
@@ -127,6 +135,7 @@ def evaluate(
     from stages.packbuild.selection import stable_columns
     from stages.packbuild.writing import align_image
     from stages.synthesis.build import build_synthesis_model
+    from stages.synthesis.footage import FootageCoefficients
     from stages.synthesis.metrics import masked_psnr, masked_ssim, subregion_errors
     from stages.synthesis.oracle import texture_oracle
     from stages.synthesis.synthesize import Synthesizer
@@ -146,17 +155,30 @@ def evaluate(
     tiles = []
     sheet_at = set(test[np.linspace(0, len(test) - 1, SHEET_FRAMES).round().astype(int)].tolist())
     xy = np.asarray(points["xy"], np.float64)
-    for start in range(0, len(test), BATCH):
-        frames = test[start:start + BATCH]
+
+    def aligned(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, torch.Tensor]:
+        """The frames' points and images aligned into the pack's frame, and the images warped to
+        the standard geometry: ``(B, N, 2)``, ``(B, H, W, 3)`` uint8, ``(B, 3, H, W)`` float."""
         params = [fit_similarity(xy[t, columns], pack.neutral.points[columns]) for t in frames]
         geometry = np.stack([apply_similarity(p, xy[t]) for p, t in zip(params, frames)])
         truth = np.stack([align_image(clip.frames[t], p, size) for p, t in zip(params, frames)])
+        dst = np.concatenate([geometry, np.broadcast_to(anchors, (len(frames),) + anchors.shape)], 1)
+        images = torch.from_numpy(truth).permute(0, 3, 1, 2).float() / 255.0
+        standard = warp_images(images, torch.from_numpy(dst), synth.standard_points[None].expand(len(frames), -1, -1), model["triangles"])
+        return geometry, truth, standard
+
+    learned = [aligned(footage[s:s + BATCH]) for s in range(0, len(footage), BATCH)]
+    footage_qp = FootageCoefficients(model, np.concatenate([g for g, _, _ in learned]), torch.cat([st for _, _, st in learned]))
+    del learned
+    for start in range(0, len(test), BATCH):
+        frames = test[start:start + BATCH]
+        geometry, truth, standard = aligned(frames)
         out = {m: synth.render(geometry, mode=m.replace("warponly", "warp-only"))[0] for m in ("full", "warponly", "global")}
         dst = np.concatenate([geometry, np.broadcast_to(anchors, (len(frames),) + anchors.shape)], 1)
-        aligned = torch.from_numpy(truth).permute(0, 3, 1, 2).float() / 255.0
-        standard = warp_images(aligned, torch.from_numpy(dst), synth.standard_points[None].expand(len(frames), -1, -1), model["triangles"])
         for m, mode in (("oracle", "full"), ("oracleglobal", "global")):
             out[m] = synth.render(geometry, mode=mode, coeffs=texture_oracle(model, standard, mode=mode))[0]
+        for m, mode in (("footage", "full"), ("footageglobal", "global")):
+            out[m] = synth.render(geometry, mode=mode, coeffs=footage_qp.coefficients(geometry, mode=mode))[0]
         nearest = np.argmin(np.sqrt(((geometry[:, None] - example_points[None]) ** 2).sum(-1).mean(-1)), axis=1)
         src = np.concatenate([example_points[nearest], np.broadcast_to(anchors, (len(frames),) + anchors.shape)], 1)
         out["nearest"] = warp_images(example_images[nearest], torch.from_numpy(src), torch.from_numpy(dst), model["triangles"]).clamp(0, 1)
@@ -174,7 +196,7 @@ def evaluate(
                 as_u8 = lambda x: (x.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)  # noqa: E731
                 tiles += [(f"truth {t}", truth[k]), ("full", as_u8(out["full"][k])), ("warp-only", as_u8(out["warponly"][k])),
                           ("global", as_u8(out["global"][k]))]
-    return scores, tiles
+    return scores, tiles, footage_qp.k
 
 
 def run(args: argparse.Namespace) -> list[dict[str, Any]]:
@@ -196,6 +218,7 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     from stages.synthesis.metrics import pooled_psnr
     rows: list[dict[str, Any]] = []
     margins: dict[str, list[float]] = {"warponly": [], "global": []}
+    footage_margins: list[float] = []
     tiles = []
     for clip_path in clips:
         stem = clip_path.stem
@@ -209,7 +232,8 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
         valid = np.asarray(points["valid"], bool).all(axis=1)
         test = np.flatnonzero(valid[build:])[:: max(1, extra.stride)] + build
         remedies = {k: getattr(extra, k) for k in ("detail_power", "detail_sigma_px", "flow_max_px", "ridge_px") if getattr(extra, k) is not None}
-        scores, clip_tiles = evaluate(clip, points, pack_dir, test, **remedies)
+        footage = np.flatnonzero(np.asarray(filt["keep"], bool))
+        scores, clip_tiles, footage_k = evaluate(clip, points, pack_dir, test, footage, **remedies)
         tiles += clip_tiles
         for method, suffix in METHODS.items():
             rows.append(row(f"reenact_psnr_db{suffix}_{stem}", np.mean(scores[method]["psnr"]), "dB"))
@@ -221,6 +245,10 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
         for baseline in margins:
             margins[baseline].append(full - np.mean(scores[baseline]["psnr"]))
             rows.append(row(f"reenact_margin_{baseline}_db_{stem}", margins[baseline][-1], "dB"))
+        footage_margins.append(np.mean(scores["footage"]["psnr"]) - np.mean(scores["footageglobal"]["psnr"]))
+        rows.append(row(f"reenact_margin_footage_db_{stem}", footage_margins[-1], "dB"))
+        rows.append(row(f"reenact_footage_k_{stem}", footage_k["full"], "frames"))
+        rows.append(row(f"reenact_footage_k_global_{stem}", footage_k["global"], "frames"))
         rows.append(row(f"reenact_test_frames_{stem}", len(test), "frames"))
         rows.append(row(f"reenact_examples_{stem}", len(selection["examples"]), "examples"))
         rows.append(row(f"reenact_coverage_px_{stem}", float(selection["example_radius_px"]), "px"))
@@ -228,6 +256,7 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
             rows.append(row(f"reenact_rejected_{cause}_{stem}", count, "frames"))
     for baseline, values in margins.items():
         rows.append(row(f"reenact_margin_{baseline}_db_min", min(values), "dB"))
+    rows.append(row("reenact_margin_footage_db_min", min(footage_margins), "dB"))
     if extra.sheet is not None:
         extra.sheet.parent.mkdir(parents=True, exist_ok=True)
         write_png(extra.sheet, contact_sheet(tiles, columns=4, thumb_height=200))
