@@ -16,6 +16,13 @@ through); a thread never waits for the readers it drives, so one thread that loa
 bundles before reading its frames does not wait for itself (those chunks are then held until it
 reads them). The slowest reader never waits (its chunk lies within ``keep`` of its own
 position), so readers that keep reading always progress.
+
+*Producer* threads compute the chunks in order while readers are registered
+(:meth:`Broadcast.produce`, :meth:`Broadcast.room_to_produce`), so that readers only take what
+they computed and no reader's own work (an encoder) holds up the chunks the others wait for. A
+reader needing a chunk waits for it (:meth:`Broadcast.wait_turn`), and computes it itself only
+when the producers cannot reach it: the readers holding them back are driven by the reader's
+own thread (or it computes inside :func:`unbounded`), or no producer runs.
 """
 
 from __future__ import annotations
@@ -23,7 +30,7 @@ from __future__ import annotations
 import contextlib
 import threading
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 _unbounded = threading.local()
@@ -59,6 +66,7 @@ class Broadcast:
         self._joined: Counter[str] = Counter()  # reader -> how many times joined (several runs of it)
         self._drivers: dict[str, set[threading.Thread]] = {}  # reader -> the threads that read for it
         self._changed = threading.Condition()
+        self._producers: list[threading.Thread] = []  # the threads computing the chunks in order
 
     def join(self, reader: str, driver: threading.Thread) -> None:
         """Register ``reader``, read by thread ``driver`` from the first chunk on."""
@@ -90,16 +98,55 @@ class Broadcast:
     def wait_room(self, chunk: int) -> None:
         """Wait until ``chunk`` lies less than ``keep`` chunks past the position of every
         reader that the calling thread does not drive (at once inside :func:`unbounded`)."""
-        if getattr(_unbounded, "on", False):
-            return
         me = threading.current_thread()
-
-        def room() -> bool:
-            others = [p for reader, p in self._position.items() if me not in self._drivers.get(reader, ())]
-            return not others or chunk < min(others) + self.keep
-
         with self._changed:
-            self._changed.wait_for(room)
+            self._changed.wait_for(lambda: self._room(chunk, me))
+
+    def _room(self, chunk: int, me: threading.Thread | None) -> bool:
+        """Whether ``chunk`` lies less than ``keep`` chunks past the position of every reader
+        that thread ``me`` does not drive (None: of every reader)."""
+        if me is not None and getattr(_unbounded, "on", False):
+            return True
+        others = [p for reader, p in self._position.items() if me not in self._drivers.get(reader, ())]
+        return not others or chunk < min(others) + self.keep
+
+    def produce(self, producers: list[threading.Thread]) -> bool:
+        """Make ``producers`` the threads computing the chunks in order, unless some already
+        run (False: start nothing)."""
+        with self._changed:
+            if self._producers:
+                return False
+            self._producers = list(producers)
+            return True
+
+    def room_to_produce(self, chunk: int) -> bool:
+        """The producer: wait until ``chunk`` lies less than ``keep`` chunks past every reader's
+        position; False (stop producing) once no reader is registered or :meth:`stop` was called."""
+        with self._changed:
+            self._changed.wait_for(lambda: not self._producers or not self._position or self._room(chunk, None))
+            return bool(self._producers) and bool(self._position)
+
+    def stop(self) -> list[threading.Thread]:
+        """No more producing; the producer threads (to join)."""
+        with self._changed:
+            producers, self._producers = self._producers, []
+            self._changed.notify_all()
+            return producers
+
+    def wait_turn(self, chunk: int, resolved: Callable[[], bool]) -> None:
+        """A reader needs ``chunk``: wait until it is ``resolved()`` or this thread has to compute
+        it: it is a producer, none runs, or they cannot reach ``chunk`` (every registered
+        reader counted) while the calling thread can (it drives the readers holding them back,
+        or computes inside :func:`unbounded`)."""
+        me = threading.current_thread()
+        with self._changed:
+            self._changed.wait_for(lambda: resolved() or not self._producers or me in self._producers
+                                   or (not self._room(chunk, None) and self._room(chunk, me)))
+
+    def resolved(self) -> None:
+        """A chunk was resolved: wake the readers waiting for their turn."""
+        with self._changed:
+            self._changed.notify_all()
 
     def offer(self, chunk: int, frames: dict[str, Any]) -> None:
         """Chunk ``chunk`` was computed: keep its frames (port -> array) while a reader's
@@ -113,6 +160,11 @@ class Broadcast:
         with self._changed:
             held = self._held.get(chunk)
             return None if held is None else held[port]
+
+    def readers(self) -> list[str]:
+        """The registered readers."""
+        with self._changed:
+            return list(self._position)
 
     def held(self) -> list[int]:
         """The chunks kept now, in order."""

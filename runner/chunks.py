@@ -25,7 +25,7 @@ import contextlib
 import json
 import logging
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -51,13 +51,15 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class RunServices:
-    """What frame chunks use of the run: its keys, the cache store, progress reporting, and how
-    many chunks are computed at once."""
+    """What frame chunks use of the run: its keys, the cache store, progress reporting, how
+    many chunks are computed at once where a stage resolves its own chunks (``jobs``), and by
+    how many producer threads for a stage whose readers stream it (``producers``)."""
 
     keys: Keys
     store: CacheStore
     progress: Progress
     jobs: int
+    producers: int = 1
 
 
 @dataclass
@@ -150,8 +152,9 @@ class FrameChunks:
                  info: StreamInfo, *, forced: bool, lazy: bool, keep: int = 3):
         self.run, self.node, self.stage, self.inputs, self.info = run, node, stage, inputs, info
         self.forced, self.lazy = forced, lazy
-        self.broadcast = Broadcast(keep=keep + 2 * (run.jobs - 1))
-        self._lag = 2 * (run.jobs - 1)
+        at_once = max(run.jobs, run.producers)  # chunks of this stage's readers computed at once
+        self.broadcast = Broadcast(keep=keep + 2 * (at_once - 1))
+        self._lag = 2 * (at_once - 1)
         self.ranges = chunk_ranges(info.frames, run.keys.chunk_frames)
         self.keys: list[str | None] = [None] * len(self.ranges)
         self.entries: list[Entry | None] = [None] * len(self.ranges)
@@ -268,7 +271,9 @@ class FrameChunks:
         self._passing(i)
         if self.entries[i] is None:
             if not self.run.keys.dry_run and self.stored(i) is None:
-                self.broadcast.wait_room(i)  # before taking a lock that a slower reader may need
+                self.broadcast.wait_turn(i, lambda: self.entries[i] is not None)  # the producer's
+                if self.entries[i] is None:
+                    self.broadcast.wait_room(i)  # before taking a lock that a slower reader may need
             with self._locks[i]:
                 if self.entries[i] is None:
                     if self.run.keys.dry_run:
@@ -281,10 +286,53 @@ class FrameChunks:
                     self._resolved(i, found, ran)
         return self.entries[i]
 
+    def produce(self) -> None:
+        """Compute the chunks in order on ``producers`` threads of their own (each takes the next
+        chunk) while readers are registered with :attr:`broadcast`, unless such threads run
+        already: the readers then only take the frames, none computes a chunk the others wait
+        for while its own work (an encode) is pending."""
+        claimed = iter(range(len(self.ranges)))
+        threads = self.run.producers
+        running = [threads]  # producers still running, under the lock that hands out the chunks
+        claim = threading.Lock()
+        producers = [threading.Thread(target=self._produce, args=(claimed, running, claim),
+                                      name=f"produce-{self.node.name}-{k}", daemon=True) for k in range(threads)]
+        if not self.complete() and self.broadcast.produce(producers):
+            for thread in producers:
+                thread.start()
+
+    def _produce(self, claimed: Iterator[int], running: list[int], claim: threading.Lock) -> None:
+        """One producer thread: the next chunk not claimed yet, until none is left, or no reader."""
+        self.run.progress.current = self.node.name
+        try:
+            while True:
+                with claim:
+                    i = next(claimed, None)
+                if i is None or not self.broadcast.room_to_produce(i):
+                    break
+                self.entry(i)
+        except BaseException:  # noqa: BLE001 - a reader then computes the chunk itself and raises the error (or the interrupt)
+            self.broadcast.stop()
+        with claim:
+            running[0] -= 1
+            if running[0] == 0:  # the last one: chunks left (no reader, or stopped) go to whoever asks
+                self.broadcast.stop()
+
+    def stop_producing(self) -> None:
+        """Stop the producer threads (after the chunks they compute) and wait for them."""
+        for producer in self.broadcast.stop():
+            if producer is not threading.current_thread():
+                producer.join()
+
     def resolve_all(self) -> None:
         """Resolve every chunk now, ``--jobs`` at once."""
         for _ in map_ordered(self.entry, list(range(len(self.ranges))), jobs=self.run.jobs):
             pass
+
+    def computed(self, i: int) -> bool:
+        """True if chunk ``i`` was computed in this run (not found stored)."""
+        with self._book:
+            return self.entries[i] is not None and not self._cached[i]
 
     def complete(self) -> bool:
         return all(entry is not None for entry in self.entries)
@@ -350,8 +398,10 @@ class FrameChunks:
             if self._bar is None:
                 self._bar = progress.bar(self.node, self.info.frames)
             self._bar.update(stop - start)
-            if ran and self.lazy and progress.current not in (None, self.node.name, *self._readers):
-                self._readers.append(progress.current)
+            if ran and self.lazy:
+                self._readers += [reader for reader in dict.fromkeys([progress.current, *self.broadcast.readers()])
+                                  if reader not in (None, self.node.name, *self._readers)]
+        self.broadcast.resolved()
         self.run.store.touch(entry)
 
     def _spent(self, seconds: float, cpu_seconds: float) -> None:

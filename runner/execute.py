@@ -9,10 +9,12 @@ the frames. So an interrupted run recomputes only the entries it had not finishe
 
 When a chunk is resolved depends on who reads the stage:
 
-- a cached frame stage that other stages read is resolved *lazily*: each chunk is computed
-  when a reader first needs it and handed to every registered reader
-  (:class:`runner.broadcast.Broadcast`); the stages reading it while it is not resolved run on
-  threads of their own at the same time (:meth:`Runner._schedule`), so that decode -> gray ->
+- a cached frame stage that other stages read is resolved *lazily*: while readers are
+  registered, a producer thread of its own computes its chunks in order
+  (:meth:`FrameChunks.produce`), else each chunk is computed when a reader first needs it; each
+  is handed to every registered reader (:class:`runner.broadcast.Broadcast`); the stages
+  reading it while it is not resolved run on threads of their own at the same time
+  (:meth:`Runner._schedule`), so that decode -> gray ->
   write.video streams chunk by chunk and synthesize feeds its three writers at once; a reader
   that asks after the others passed a chunk gets it computed again;
 - any other cached frame stage (no reader) resolves all its chunks at its turn, with
@@ -38,6 +40,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib.metadata
+import os
 import queue
 import threading
 from collections.abc import Callable
@@ -66,6 +69,7 @@ class Options:
     cache: CacheStore
     device: str = "cpu"
     jobs: int = 1
+    producers: int | None = None  # threads computing a streamed lazy stage's chunks; None: os.cpu_count()
     force: frozenset[str] = frozenset()
     until: str | None = None
     dry_run: bool = False
@@ -119,9 +123,11 @@ class Runner:
 
         self.log = log
         self.progress = Progress(log=log, warn=options.warn, bars=options.progress)
-        self.services = RunServices(self.keys, self.store, self.progress, options.jobs)
+        self.services = RunServices(self.keys, self.store, self.progress, options.jobs,
+                                    producers=options.producers or os.cpu_count() or 1)
         self._lazy: list[FrameChunks] = []  # lazy frame stages not reported yet
         self._joined: dict[str, list[tuple[FrameChunks, str, threading.Thread]]] = {}  # per stage, the readers it registered
+        self._producers: dict[FrameChunks, None] = {}  # lazy frame stages given a producer thread (ordered set)
 
     def selected(self) -> list[StageNode]:
         names = self.pipeline.ancestors(self.opts.until) if self.opts.until else set(self.pipeline.stages)
@@ -159,6 +165,8 @@ class Runner:
             for finished in self._finished_lazy():
                 emit(finished)
         finally:
+            for chunks in self._producers:
+                chunks.stop_producing()
             for chunks in self._lazy:
                 chunks.close()
         if not self.opts.dry_run and self.opts.out is not None:
@@ -206,6 +214,10 @@ class Runner:
                     running[node.name] = thread
                     waiting.remove(node)
                     started.append(thread)
+            producers = list(dict.fromkeys(chunks for name in self._joined for chunks, _, _ in self._joined[name]))
+            for chunks in producers:
+                chunks.produce()
+            self._producers.update(dict.fromkeys(producers))
             for thread in started:
                 thread.start()
             return bool(started)
@@ -356,17 +368,23 @@ class Runner:
         Its key needs their whole digests, so running first means running even when its entry
         exists (an upstream stage re-ran and produced identical bytes). Hence: compute the
         first missing chunk of each pending stream now and compare it with the same chunk in
-        the stage's last completed run; run while computed if one differs (the key changes),
-        else resolve everything first and look the entry up.
+        the stage's last completed run (or the first one the stream's producer thread computed
+        already); run while computed if one differs (the key changes), else resolve everything
+        first and look the entry up. A stream whose chunks read whole streams still being
+        computed (a stage defining its own shape, such as ``preview.side_by_side``) is read while
+        computed: its first chunk's key needs every upstream chunk.
         """
         read = (self.keys.memo(node) or {}).get("input_chunks", {})
         for port, v in pending.items():
             if v.type != "frames":
                 continue
             count = len(v.chunks.ranges)
-            first = next((i for i in range(count) if v.chunks.known_digests(v.port, i, i) is None), None)
+            first = next((i for i in range(count) if v.chunks.computed(i) or v.chunks.known_digests(v.port, i, i) is None),
+                         None)
             if first is None:
                 continue
+            if any(r.value.type == "frames" and r.chunks is None for r in v.chunks.reads(first)):
+                return True  # its chunk reads whole streams (preview.side_by_side): known only once all computed
             # Not waiting for the other readers: they may be waiting for this one, registered at
             # chunk 0; the chunks they computed before (at most the broadcast's keep) are held.
             with unbounded():

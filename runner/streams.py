@@ -100,7 +100,11 @@ class SharedStream(ChunkedStream):
 class ComputedStream(ChunkedStream):
     """Chunks computed when first read by ``compute(index)``, strictly in order where possible
     (a decoder then never seeks back), keeping the last few in memory for temporal windows and
-    parallel readers. Thread-safe."""
+    parallel readers. A chunk before the in-order position that is no longer kept (a reader
+    behind the others, or picking frames here and there) is computed on the caller's thread
+    outside the stream's locks and not kept: it neither moves the position back nor holds up the
+    readers in order while it is computed. A chunk past the position starts the order there.
+    Thread-safe."""
 
     def __init__(self, info: StreamInfo, ranges: list[tuple[int, int]], compute: Callable[[int], np.ndarray],
                  *, keep: int = 3):
@@ -109,18 +113,32 @@ class ComputedStream(ChunkedStream):
         self._keep = keep
         self._recent: OrderedDict[int, np.ndarray] = OrderedDict()
         self._next = 0
-        self._lock = threading.Lock()
+        self._state = threading.Lock()  # guards _recent and _next, never held while computing
+        self._order = threading.Lock()  # held while computing in order
 
     def chunk(self, index: int, *, mmap: bool = False) -> np.ndarray:
-        with self._lock:
+        kept = self._kept(index)
+        if kept is not None:
+            return kept
+        with self._order:
+            kept = self._kept(index)
+            if kept is not None:
+                return kept
+            for i in range(self._next if index < self._next + self._keep else index, index + 1):
+                frames = self._compute(i)
+                with self._state:
+                    self._recent[i] = frames
+                    while len(self._recent) > self._keep:
+                        self._recent.popitem(last=False)
+                    self._next = i + 1
+            return frames
+
+    def _kept(self, index: int) -> np.ndarray | None:
+        """Chunk ``index`` if it is kept, else None; computes it at once, outside the locks and
+        without keeping it, if it lies before the in-order position."""
+        with self._state:
             if index in self._recent:
                 self._recent.move_to_end(index)
                 return self._recent[index]
-            first = self._next if self._next <= index < self._next + self._keep else index
-            for i in range(first, index + 1):
-                self._recent[i] = self._compute(i)
-                self._recent.move_to_end(i)
-                while len(self._recent) > self._keep:
-                    self._recent.popitem(last=False)
-            self._next = index + 1
-            return self._recent[index]
+            behind = index < self._next
+        return self._compute(index) if behind else None

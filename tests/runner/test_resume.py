@@ -121,7 +121,10 @@ def test_kill_mid_write(env, tmp_path, reference):
             e.get("event") == "stage_start" and e["stage"] == "write" for e in events))
         time.sleep(0.2)
 
-    killed, resumed, _ = _kill_then_resume(env, tmp_path, reference, wait=wait, RUNNER_TEST_WRITE_SLEEP="0.2")
+    # add is slowed down so that its producer threads (one per core, up to keep = 5 chunks ahead
+    # of gray) have not computed its 6 chunks when the kill lands.
+    killed, resumed, _ = _kill_then_resume(env, tmp_path, reference, wait=wait, RUNNER_TEST_SLEEP="0.5",
+                                           RUNNER_TEST_WRITE_SLEEP="0.2")
     assert "write" not in stage_status(killed)
     # Streaming: the writer was reading before its upstream stages had computed every chunk.
     assert 2 <= len(_ran_chunks(killed, "gray")) < 6 and len(_ran_chunks(killed, "add")) < 6
