@@ -1,21 +1,27 @@
 """The report page of ``write.report`` built from a run's bundles and frames (see
 :mod:`stages.report.stage`). Kept apart from the stage's declaration so that loading a pipeline
-does not import matplotlib or OpenCV."""
+does not import matplotlib or OpenCV.
+
+The contact sheet's frames (decoded and, in a run, synthesized again: PyAV, torch and OpenCV
+release the GIL) are read and encoded on worker threads (``sheet_threads``) while this thread
+imports matplotlib and draws the plots (:mod:`stages.report.sections`). The page is the same as
+built one part after the other: matplotlib is used on this thread only, the workers touch none
+of it, and each frame's image depends on that frame alone.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
 
-from stages.geometry.signals import SIGNALS, follow
 from stages.report import series
-from stages.report.figures import Panel, dominant_heatmap, timeline
-from stages.report.page import Section, image, listing, not_available, page, table
+from stages.report.page import Section, image, listing, not_available, page
 from stages.report.sheet import sheet_frames, sheet_image
 
-FOLLOW_WARN_R = 0.5  # warn when a target signal correlates less than this with the performer's
+SHEET_THREADS = 2  # contact-sheet frames read at once, besides this thread drawing the plots
 SPANS_SHOWN = 12
 TIMINGS_NOTE = ("the runner does not hand stage timings to stages (and timings would make the page differ "
                 "between runs); `runner run --log-json FILE` records them")
@@ -60,36 +66,19 @@ def frame_warnings(*, no_face: np.ndarray, pose_valid: np.ndarray, limited: np.n
     return lines
 
 
-def expression_section(expression: Mapping[str, Mapping[str, np.ndarray]] | None, *, reference: int,
-                       shaded: Mapping[str, list[tuple[int, int]]], fps: float) -> tuple[str, dict, list[str]]:
-    """The expression section's HTML, its ``follow`` numbers and its warnings (a poorly followed
-    signal); ``expression`` from :func:`series.expression_series`."""
-    follows, rows, warnings = {}, [], []
-    for signal in SIGNALS:
-        r, ratio = follow(expression[signal]["performer"], expression[signal]["target"])
-        follows[signal] = {"r": r, "amplitude_ratio": ratio}
-        rows.append([signal.replace("_", " "), f"{r:.2f}", f"{ratio:.2f}"])
-        if np.isfinite(r) and r < FOLLOW_WARN_R:
-            warnings.append(f"The target's {signal.replace('_', ' ')} follows the performer's poorly (r = {r:.2f})")
-    panels = [Panel(f"{s.replace('_', ' ')} (change from frame {reference})", "eye distances",
-                    {"performer": expression[s]["performer"], "target": expression[s]["target"]}, {"target": "--"})
-              for s in SIGNALS]
-    body = (image(timeline(panels, shaded=shaded, fps=fps), "image/png", "expression signals")
-            + "<p>How well the target follows (over frames with a face): Pearson r and the amplitude ratio "
-            "(target / performer standard deviation).</p>" + table(["signal", "r", "amplitude ratio"], rows))
-    return body, follows, warnings
-
-
-def contact_sheet(performer: Any, result: Any, frames: list[tuple[int, str]], *, height: int, fps: float) -> str:
-    """The contact sheet's HTML: one captioned performer | result image per ``(frame, label)``."""
+def contact_sheet(frames: list[tuple[int, str]], images: list[bytes], *, fps: float) -> str:
+    """The contact sheet's HTML: one captioned image per ``(frame, label)`` of ``frames``;
+    ``images`` are their performer | result JPEGs (:func:`stages.report.sheet.sheet_image`), in
+    the same order."""
     figures = "".join(
-        f"<figure>{image(sheet_image(performer, result, f, height=height), 'image/jpeg', f'frame {f}', css='')}"
+        f"<figure>{image(jpeg, 'image/jpeg', f'frame {f}', css='')}"
         f"<figcaption>frame {f} ({f / fps:.2f} s){': ' + label if label else ''}</figcaption></figure>"
-        for f, label in frames)
+        for (f, label), jpeg in zip(frames, images, strict=True))
     return f'<div class="sheet">{figures}</div>' if figures else not_available("no frame chosen")
 
 
-def report_html(inputs: Mapping[str, Any], *, evenly: int, thumb_height: int, title: str) -> str:
+def report_html(inputs: Mapping[str, Any], *, evenly: int, thumb_height: int, title: str,
+                sheet_threads: int = SHEET_THREADS) -> str:
     """The report page of one run.
 
     Parameters
@@ -100,11 +89,15 @@ def report_html(inputs: Mapping[str, Any], *, evenly: int, thumb_height: int, ti
         per-frame soft-limit flag, see :data:`series.LIMIT_KEYS`, and ``lips_clamped``).
     evenly : evenly spaced contact-sheet frames; thumb_height : contact-sheet height, px.
     title : the page's heading.
+    sheet_threads : worker threads reading and encoding the contact-sheet frames (>= 1); the page
+        does not depend on it.
 
     Returns
     -------
     The HTML document (str). Raises ValueError for inconsistent inputs.
     """
+    if sheet_threads < 1:
+        raise ValueError(f"sheet_threads must be >= 1, got {sheet_threads}")
     performer, result = inputs["performer"], inputs["result"]
     T, fps = performer.info.frames, float(performer.info.fps)
     tracked, target, pose, similarity = inputs["tracked"], inputs["target"], inputs["pose"], inputs["similarity"]
@@ -123,39 +116,37 @@ def report_html(inputs: Mapping[str, Any], *, evenly: int, thumb_height: int, ti
         expression = series.expression_series(tracked, target, reference=reference)
     except ValueError as exc:
         expression, expression_body = None, not_available(str(exc))
-    if expression is not None:
-        expression_body, data["follow"], poorly = expression_section(expression, reference=reference, shaded=shaded,
-                                                                     fps=fps)
-        data["expression"] = expression
-        warnings += poorly
     data["contact_sheet"] = sheet_frames(T, evenly=evenly, peaks=series.peak_frames(expression) if expression else [])
-
     data["head_pose"] = series.head_pose_series(pose)
     data["tracking"] = series.tracking_series(tracked)
     data["residuals"] = series.residual_series(pose, similarity)
     data["propagation"] = series.propagation_series(target)
-    panels = [Panel("head pose", "degrees", data["head_pose"]),
-              Panel("tracking: valid points and mean confidence", "fraction", data["tracking"]),
-              Panel("fit residuals", "px", data["residuals"])]
-    panels += [Panel(f"motion propagation: {key}", "px" if key.endswith("_px") else "count", {key: values})
-               for key, values in data["propagation"].items()]
-    geometry_body = image(timeline(panels, shaded=shaded, fps=fps), "image/png", "head pose and tracking") + (
-        "" if data["propagation"] else not_available("the target points carry no propagation iterations or residual"))
-
     dominant = series.dominant_examples(coefficients)
     data["coefficients"] = {**dominant, "subregions": coefficients["subregions"], "examples": coefficients["examples"]}
-    heatmap = dominant_heatmap(dominant["example"], dominant["weight"], subregions=coefficients["subregions"],
-                               examples=coefficients["examples"], limited=limited)
-    coefficient_body = image(heatmap, "image/png", "coefficients") + ("" if limited is not None else not_available(
-        "the run records no per-frame range limit (connect the mapping's points to 'mapped')"))
+
+    readers = ThreadPoolExecutor(max_workers=sheet_threads, thread_name_prefix="report-sheet")
+    try:
+        jpegs = [readers.submit(sheet_image, performer, result, frame, height=thumb_height)
+                 for frame, _ in data["contact_sheet"]]
+        from stages.report import sections  # matplotlib: imported while the sheet's frames are read
+
+        if expression is not None:
+            expression_body, data["follow"], poorly = sections.expression_section(
+                expression, reference=reference, shaded=shaded, fps=fps)
+            data["expression"] = expression
+            warnings += poorly
+        geometry_body = sections.geometry_section(data, shaded=shaded, fps=fps)
+        coefficient_body = sections.coefficient_section(dominant, coefficients, limited=limited)
+        sheet_body = contact_sheet(data["contact_sheet"], [jpeg.result() for jpeg in jpegs], fps=fps)
+    finally:
+        readers.shutdown(cancel_futures=True)
 
     warnings += frame_warnings(no_face=no_face, pose_valid=pose["valid"], limited=limited, mapped=mapped,
                                warp_only=bool((dominant["example"] < 0).all()))
     data["warnings"] = warnings
-    sections = [
+    parts = [
         Section("Warnings", listing(warnings, css="warn")),
-        Section("Contact sheet: performer | result",
-                contact_sheet(performer, result, data["contact_sheet"], height=thumb_height, fps=fps)),
+        Section("Contact sheet: performer | result", sheet_body),
         Section("Expression: performer vs target (mouth opening, mouth width, brow raise)", expression_body),
         Section("Head pose, tracking and propagation", geometry_body),
         Section("Which example drives which subregion", coefficient_body),
@@ -163,4 +154,4 @@ def report_html(inputs: Mapping[str, Any], *, evenly: int, thumb_height: int, ti
     ]
     meta = (f"{T} frames at {fps:g} frames/s ({T / fps:.2f} s), performer {performer.info.width}x"
             f"{performer.info.height}, result {result.info.width}x{result.info.height}")
-    return page(title=title, meta=meta, sections=sections, data=data)
+    return page(title=title, meta=meta, sections=parts, data=data)
