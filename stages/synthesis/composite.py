@@ -128,13 +128,13 @@ def prepare_compositor(
         candidates.append(cand)
         pix = torch.nonzero(i1 == label).flatten()
         primary_index[pix] = torch.arange(p_off, p_off + len(pix), device=device)
-        primary.append(_Segment(p_off, p_off + len(pix), images[cand][:, :, pix] * r[pix],
-                                None if details is None else details[cand][:, :, pix] * r[pix]))
+        primary.append(_Segment(p_off, p_off + len(pix), _gather(images, cand, pix) * r[pix],
+                                None if details is None else _gather(details, cand, pix) * r[pix]))
         p_off += len(pix)
         pix = torch.nonzero(banded & (i2 == label)).flatten()
         secondary_index[pix] = torch.arange(s_off, s_off + len(pix), device=device)
-        secondary.append(_Segment(s_off, s_off + len(pix), images[cand][:, :, pix] * (1 - r[pix]),
-                                  None if details is None else details[cand][:, :, pix] * (1 - r[pix])))
+        secondary.append(_Segment(s_off, s_off + len(pix), _gather(images, cand, pix) * (1 - r[pix]),
+                                  None if details is None else _gather(details, cand, pix) * (1 - r[pix])))
         s_off += len(pix)
     primary_template = torch.zeros(3, p_off, device=device)
     secondary_template = torch.zeros(3, s_off + 1, device=device)
@@ -153,6 +153,12 @@ def prepare_compositor(
         primary_template, secondary_template, alpha, images, r, i1, i2, details, float(detail_power), box,
         primary_index.view(H, W)[y0:y1, x0:x1].flatten(), secondary_index.view(H, W)[y0:y1, x0:x1].flatten(), background,
     )
+
+
+def _gather(stack: torch.Tensor, candidates: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor:
+    """``stack[candidates][:, :, pixels]`` for a ``(E, 3, H*W)`` stack, gathering the pixels first:
+    ``stack[candidates]`` alone would copy every candidate image whole for each subregion."""
+    return stack.index_select(2, pixels).index_select(0, candidates)
 
 
 def _kept(c: list[float], min_coeff: float) -> list[tuple[int, float]]:
