@@ -15,6 +15,8 @@ Modes
 
 from __future__ import annotations
 
+import threading
+
 from typing import Any, Mapping
 
 import numpy as np
@@ -282,6 +284,7 @@ class Synthesize(FrameStage):
 
     def __init__(self) -> None:
         self._prepared: tuple[Mapping[str, np.ndarray], str, tuple[float, float, float, float], Synthesizer] | None = None
+        self._preparing = threading.Lock()  # chunks are computed on several threads: prepare once
 
     def stream_info(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> StreamInfo:
         xy, bundle = target_geometry(inputs, stage=self.name)
@@ -292,11 +295,12 @@ class Synthesize(FrameStage):
     def _synthesizer(self, model: Mapping[str, np.ndarray], device: str, params: Mapping[str, Any]) -> Synthesizer:
         """The model prepared on ``device``, kept between chunks of the same run."""
         remedies = (float(params["detail_power"]), float(params["detail_sigma_px"]), float(params["flow_max_px"]), float(params["ridge_px"]))
-        if self._prepared is None or self._prepared[0] is not model or self._prepared[1:3] != (device, remedies):
-            synth = Synthesizer(model, device=device, detail_power=remedies[0], detail_sigma_px=remedies[1], flow_max_px=remedies[2],
-                                ridge_px=remedies[3])
-            self._prepared = (model, device, remedies, synth)
-        return self._prepared[3]
+        with self._preparing:
+            if self._prepared is None or self._prepared[0] is not model or self._prepared[1:3] != (device, remedies):
+                synth = Synthesizer(model, device=device, detail_power=remedies[0], detail_sigma_px=remedies[1],
+                                    flow_max_px=remedies[2], ridge_px=remedies[3])
+                self._prepared = (model, device, remedies, synth)
+            return self._prepared[3]
 
     def process(self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         xy, _ = target_geometry(inputs, stage=self.name)
