@@ -16,7 +16,6 @@ Modes
 from __future__ import annotations
 
 import threading
-
 from typing import Any, Mapping
 
 import numpy as np
