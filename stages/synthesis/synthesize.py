@@ -322,16 +322,30 @@ class Synthesize(FrameStage):
                     performer["neutral"], performer["names"], model["neutral_points"], model["point_names"]
                 )
                 scale *= ratio
+        import torch
         synth = self._synthesizer(model, ctx.device, params)
-        rgba, coeffs = synth.render_rgba(
-            points,
-            mode=params["mode"],
-            similarity=similarity,
-            source_center=source_center,
-            target_center=target_center,
-            motion_scale=scale,
-            min_coeff=params["min_coeff"],
-        )
-        ctx.progress(stop - start)
-        frames, mask = half_float_planes(rgba)
+        mode = params["mode"]
+        coeffs = None if mode == "warp-only" else synth.qp.coefficients(points, mode=mode)[0]  # the QPs batched
+        W, H = synth.size
+        frames = np.empty((len(points), H, W, 3), np.float16)
+        mask = np.empty((len(points), H, W, 1), np.float16)
+        rows = []
+        # Frame by frame: a chunk's (B, 4, H, W) float32 buffers (123 MB at 600x800) exceed glibc's
+        # largest mmap threshold and were mapped fresh, and faulted in page by page, every chunk.
+        for i in range(len(points)):
+            one = slice(i, i + 1)
+            rgba, row = synth.render_rgba(
+                points[one],
+                mode=mode,
+                similarity=None if similarity is None else similarity[one],
+                source_center=source_center,
+                target_center=target_center,
+                motion_scale=scale,
+                min_coeff=params["min_coeff"],
+                coeffs=None if coeffs is None else coeffs[one],
+            )
+            (frames[i],), (mask[i],) = half_float_planes(rgba)
+            rows.append(row)
+            ctx.progress(1)
+        coeffs = torch.cat(rows) if coeffs is None else coeffs
         return {"frames": frames, "mask": mask, "coeffs": {"coeffs": coeffs.cpu().numpy()}}
