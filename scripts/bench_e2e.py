@@ -1,6 +1,6 @@
 """End-to-end benchmark: the default pipeline on the 300-frame 640x480 demo clip.
 
-    python scripts/bench.py e2e [--json] [--work DIR] [--clip calm|live] [--ci] [--default]
+    python scripts/bench.py e2e [--json] [--work DIR] [--clip calm|live] [--ci] [--default] [--device cuda]
 
 The demo fixture set (600x800 target pack, 640x480 performer clips) is generated under
 ``--work`` on first use. Each run starts from an empty cache and writes every output of
@@ -15,6 +15,8 @@ Metrics
 - ``e2e_fps_warponly`` and ``e2e_speed_ratio``: the same pipeline with
   ``synthesize.mode=warp-only`` (traditional expression mapping, no details) measured in the same
   run, and the ratio ``e2e_fps / e2e_fps_warponly`` (the cost of expression details).
+- with ``--device cuda``: only ``e2e_fps_cuda``, the full run with ``runner run --device cuda``
+  (a GPU machine; on a CPU-only one the runner exits with "CUDA is not available").
 - ``e2e_cache_mb``: size of the cache folder after the full run (MB, 10^6 bytes; a file
   hard-linked twice counted once).
 - ``e2e_rerun_s``: wall time of a second, fully cached run.
@@ -75,6 +77,8 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     parser.add_argument("--clip", default="live", choices=("calm", "live"), help="demo clip to map")
     parser.add_argument("--ci", action="store_true", help="also the target geometry error on the CI clips")
     parser.add_argument("--default", action="store_true", help="also frames/s of the default pipeline.yaml")
+    parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"),
+                        help="cuda: only the full run, with `runner run --device cuda` (row e2e_fps_cuda)")
     options = parser.parse_args(args.extra)
     from scripts.bench_geometry import fixture_set
 
@@ -83,6 +87,11 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     truth = np.load(root / "clips" / f"{options.clip}_truth.npz")
     frames = len(truth["points"])
 
+    if options.device == "cuda":
+        shutil.rmtree(work / "cuda", ignore_errors=True)
+        seconds = run_pipeline(root, options.clip, work / "cuda" / "out", work / "cuda" / "cache", "--device", "cuda",
+                               "--set", "synthesize.mode=full")
+        return [row("e2e_frames", frames, "frames"), row("e2e_fps_cuda", frames / seconds, "frames/s")]
     timings = {}
     for mode in ("full", "warp-only"):
         shutil.rmtree(work / mode, ignore_errors=True)

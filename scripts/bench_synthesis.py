@@ -31,6 +31,8 @@ same with every example composited at every pixel (the paper's implementation), 
 same run; ``synth_speedup`` = their ratio; ``synth_cpu_ms``: CPU time (``time.process_time``, all
 threads) per frame of the sparse path, least of the repeats. The pack is resized to 600x800 (points scaled) when it
 has another size; missing examples (fewer than 15) are taken from the held-out expressions.
+``--device cuda`` (a GPU machine): the same rows on the GPU, named ``synth_fps_cuda``,
+``synth_cpu_ms_cuda`` ..., each timed run ending with ``torch.cuda.synchronize()``.
 
     python scripts/bench.py synthesis --json [--pack fixtures/packs/target | --combo] [--frames 16] [--repeats 5]
                                          [--detail-power P] [--detail-sigma-px S] [--flow-max-px F] [--ridge-px T]
@@ -222,15 +224,17 @@ def speed_pack(pack: ActorPack, truths: list[Expression]) -> ActorPack:
     )
 
 
-def speed(pack: ActorPack, truths: list[Expression], *, frames: int, chunk: int, repeats: int, **synthesis: float) -> list[dict]:
-    """synth_fps (sparse) and synth_fps_direct, interleaved runs, best of ``repeats`` each.
+def speed(pack: ActorPack, truths: list[Expression], *, frames: int, chunk: int, repeats: int, device: str = "cpu",
+          **synthesis: float) -> list[dict]:
+    """synth_fps (sparse) and synth_fps_direct, interleaved runs, best of ``repeats`` each; on
+    ``device`` ``cuda`` the rows are named ``synth_fps_cuda`` ... (each timed run waits for the GPU).
 
     The best run is the least disturbed by other processes; the 1-minute load average at the
     end is reported alongside (``synth_load_avg``) because the figures mean little on a busy
     machine.
     """
     big = speed_pack(pack, truths)
-    synth = Synthesizer(build_synthesis_model(big), **synthesis)
+    synth = Synthesizer(build_synthesis_model(big), device=device, **synthesis)
     sx, sy = SPEED_SIZE[0] / pack.image_size[0], SPEED_SIZE[1] / pack.image_size[1]
     geometry = (np.asarray(pack.captured_points, np.float64) + 0.5) * [sx, sy] - 0.5
     geometry = geometry[np.arange(frames) % len(geometry)]
@@ -239,6 +243,8 @@ def speed(pack: ActorPack, truths: list[Expression], *, frames: int, chunk: int,
         t0, c0 = time.perf_counter(), time.process_time()
         for k in range(0, frames, chunk):
             synth.render(geometry[k : k + chunk], direct=direct)
+        if device == "cuda":
+            torch.cuda.synchronize()
         return frames / (time.perf_counter() - t0), (time.process_time() - c0) / frames * 1e3
 
     synth.render(geometry[:chunk])  # warm-up
@@ -250,7 +256,8 @@ def speed(pack: ActorPack, truths: list[Expression], *, frames: int, chunk: int,
             best[direct] = max(best[direct], fps)
             if not direct:
                 cpu_ms = min(cpu_ms, ms)
-    return [
+    suffix = "_cuda" if device == "cuda" else ""
+    rows = [
         {"bench": "synthesis", "metric": "synth_fps", "value": best[False], "unit": "frames/s"},
         {"bench": "synthesis", "metric": "synth_cpu_ms", "value": cpu_ms, "unit": "ms/frame"},
         {"bench": "synthesis", "metric": "synth_fps_direct", "value": best[True], "unit": "frames/s"},
@@ -258,6 +265,9 @@ def speed(pack: ActorPack, truths: list[Expression], *, frames: int, chunk: int,
         {"bench": "synthesis", "metric": "synth_threads", "value": torch.get_num_threads(), "unit": "threads"},
         {"bench": "synthesis", "metric": "synth_load_avg", "value": os.getloadavg()[0], "unit": "processes"},
     ]
+    for row in rows:
+        row["metric"] += suffix
+    return rows
 
 
 def run(args: argparse.Namespace) -> list[dict]:
@@ -274,7 +284,10 @@ def run(args: argparse.Namespace) -> list[dict]:
     parser.add_argument("--detail-sigma-px", type=float, default=DETAIL_SIGMA_PX, help="band-pass split, Gaussian sigma, px")
     parser.add_argument("--flow-max-px", type=float, default=FLOW_MAX_PX, help="optical-flow refinement bound, px (0: off)")
     parser.add_argument("--ridge-px", type=float, default=RIDGE_PX, help="coefficient regularisation of the QPs, px (0: plain eq. 2)")
+    parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="speed rows on this device (cuda: synth_fps_cuda ...)")
     opts = parser.parse_args(getattr(args, "extra", []))
+    if opts.device == "cuda" and not torch.cuda.is_available():
+        parser.error("--device cuda: CUDA is not available on this machine")
     opts.sheet = opts.sheet or Path(args.work) / "synthesis" / "synthesis_sheet.png"
     torch.set_num_threads(opts.threads)
     cv2.setNumThreads(opts.threads)
@@ -286,7 +299,7 @@ def run(args: argparse.Namespace) -> list[dict]:
     remedies = {"detail_power": opts.detail_power, "detail_sigma_px": opts.detail_sigma_px, "flow_max_px": opts.flow_max_px, "ridge_px": opts.ridge_px}
     rows = quality(pack, truths, opts.sheet, **remedies) if opts.only in ("all", "quality") else []
     if opts.only in ("all", "speed"):
-        rows += speed(pack, truths, frames=opts.frames, chunk=opts.chunk, repeats=opts.repeats, **remedies)
+        rows += speed(pack, truths, frames=opts.frames, chunk=opts.chunk, repeats=opts.repeats, device=opts.device, **remedies)
     if opts.combo:
         for row in rows:
             row["metric"] = row["metric"].replace("synth_", "synth_combo_", 1)
