@@ -156,25 +156,25 @@ def evaluate(
     sheet_at = set(test[np.linspace(0, len(test) - 1, SHEET_FRAMES).round().astype(int)].tolist())
     xy = np.asarray(points["xy"], np.float64)
 
-    def aligned(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, torch.Tensor]:
-        """The frames' points and images aligned into the pack's frame, and the images warped to
-        the standard geometry: ``(B, N, 2)``, ``(B, H, W, 3)`` uint8, ``(B, 3, H, W)`` float."""
+    def aligned(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, torch.Tensor]:
+        """The frames' points and images aligned into the pack's frame, those points with the
+        anchors, and the images warped to the standard geometry: ``(B, N, 2)``, ``(B, H, W, 3)``
+        uint8, ``(B, N + A, 2)``, ``(B, 3, H, W)`` float."""
         params = [fit_similarity(xy[t, columns], pack.neutral.points[columns]) for t in frames]
         geometry = np.stack([apply_similarity(p, xy[t]) for p, t in zip(params, frames)])
         truth = np.stack([align_image(clip.frames[t], p, size) for p, t in zip(params, frames)])
         dst = np.concatenate([geometry, np.broadcast_to(anchors, (len(frames),) + anchors.shape)], 1)
         images = torch.from_numpy(truth).permute(0, 3, 1, 2).float() / 255.0
         standard = warp_images(images, torch.from_numpy(dst), synth.standard_points[None].expand(len(frames), -1, -1), model["triangles"])
-        return geometry, truth, standard
+        return geometry, truth, dst, standard
 
     learned = [aligned(footage[s:s + BATCH]) for s in range(0, len(footage), BATCH)]
-    footage_qp = FootageCoefficients(model, np.concatenate([g for g, _, _ in learned]), torch.cat([st for _, _, st in learned]))
+    footage_qp = FootageCoefficients(model, np.concatenate([g for g, _, _, _ in learned]), torch.cat([st for _, _, _, st in learned]))
     del learned
     for start in range(0, len(test), BATCH):
         frames = test[start:start + BATCH]
-        geometry, truth, standard = aligned(frames)
+        geometry, truth, dst, standard = aligned(frames)
         out = {m: synth.render(geometry, mode=m.replace("warponly", "warp-only"))[0] for m in ("full", "warponly", "global")}
-        dst = np.concatenate([geometry, np.broadcast_to(anchors, (len(frames),) + anchors.shape)], 1)
         for m, mode in (("oracle", "full"), ("oracleglobal", "global")):
             out[m] = synth.render(geometry, mode=mode, coeffs=texture_oracle(model, standard, mode=mode))[0]
         for m, mode in (("footage", "full"), ("footageglobal", "global")):
