@@ -1,6 +1,6 @@
 """Writer costs: CPU ms per frame of every output writer, per setting, at the demo's sizes.
 
-    python scripts/bench.py writers --json [--clip PATH] [--frames 48] [--threads N]
+    python scripts/bench.py writers --json [--clip PATH] [--frames 48] [--threads N] [--stream-only]
     python scripts/bench_writers.py [--work DIR] [...]       (the same JSON lines, without the dispatcher)
 
 Content: the first ``--frames`` frames of ``--clip`` (default: the demo clip ``live.mp4`` of the
@@ -29,6 +29,11 @@ wall time. Each figure is the best of ``--repeats`` runs. Rows (all per frame):
   stage's CPU ms over that.
 - ``writers_exr_fps_zip_serial`` / ``writers_exr_fps_zip_<N>threads``: wall frames/s of
   ``write.exr`` serial and at the stage's default (N frames in parallel, OpenEXR's pool on).
+- ``writers_stream_ms_<exr|video|preview>``, ``writers_stream_ms_total``: the writers of the
+  ``bench.py e2e`` run stage by stage as the pipeline runs them (``pipeline_paper.yaml``'s
+  parameters, stage defaults, 16-frame chunks, the EXR with one writer thread): ``write.exr``,
+  ``write.video`` of the half-float result, ``preview.side_by_side`` with its encode.
+  ``--stream-only`` gives just these rows.
 - ``writers_total_ms_before`` / ``writers_total_ms``: result encode + preview + EXR (zip), with
   the settings before this design (``medium``, full-size preview) and with the defaults.
 """
@@ -82,9 +87,15 @@ def face_mask(frames: int) -> np.ndarray:
     return np.repeat(alpha, frames, axis=0)
 
 
+CHUNK = 16  # frames per chunk, as pipeline_paper.yaml's chunk_frames
+
+
 def _stream(frames: np.ndarray, fps: float = 30.0) -> SimpleNamespace:
     info = StreamInfo(frames=len(frames), fps=fps, width=frames.shape[2], height=frames.shape[1])
-    return SimpleNamespace(info=info, read=lambda start, stop: frames[start:stop])
+    return SimpleNamespace(
+        info=info, read=lambda start, stop: frames[start:stop],
+        chunks=lambda: ((start, frames[start:start + CHUNK]) for start in range(0, len(frames), CHUNK)),
+    )
 
 
 def best_of(repeats: int, work: Callable[[], Any]) -> tuple[float, float, Any]:
@@ -202,6 +213,38 @@ def exr_rows(result: np.ndarray, work: Path, repeats: int, threads: int) -> list
     return rows
 
 
+def stream_rows(performer: np.ndarray, result: np.ndarray, work: Path, repeats: int) -> list[dict]:
+    """The writers of ``bench.py e2e``'s run, stage by stage with ``pipeline_paper.yaml``'s
+    parameters and the stage defaults, in 16-frame chunks: CPU ms per frame of ``exr``
+    (``write.exr``, one writer thread), ``video`` (``write.video``, crf 18, of the half-float
+    result) and ``preview`` (``preview.side_by_side`` and ``write.video`` of it, crf 20)."""
+    from stages.video import WriteVideo
+    alpha = face_mask(len(result))
+    video_defaults = {param.name: param.default for param in WriteVideo.params}
+    side_defaults = {param.name: param.default for param in SideBySide.params}
+    ctx = Context(device="cpu", files_dir=lambda port: work)
+
+    def video(frames: Any, *, crf: int, filename: str) -> None:
+        WriteVideo().run({"frames": frames}, {**video_defaults, "crf": crf, "filename": filename}, ctx)
+
+    def preview() -> None:
+        stage, inputs = SideBySide(), {"performer": _stream(performer), "result": _stream(result)}
+        info = stage.stream_info(inputs, side_defaults)
+        chunks = ((start, stage.process(start, min(start + CHUNK, len(result)), inputs, side_defaults, None)["frames"])
+                  for start in range(0, len(result), CHUNK))
+        video(SimpleNamespace(info=info, chunks=lambda: chunks), crf=20, filename="preview")
+
+    parts = {
+        "exr": lambda: write_exr(result, alpha, work / "exr", threads=1, compression="zip"),
+        "video": lambda: video(_stream(result), crf=18, filename="result"),
+        "preview": preview,
+    }
+    ms = {name: 1e3 * best_of(repeats, part)[0] / len(result) for name, part in parts.items()}
+    shutil.rmtree(work / "exr", ignore_errors=True)
+    return [_row(f"writers_stream_ms_{name}", value, "ms/frame") for name, value in ms.items()] + [
+        _row("writers_stream_ms_total", sum(ms.values()), "ms/frame")]
+
+
 def _row(metric: str, value: float, unit: str) -> dict:
     return {"bench": "writers", "metric": metric, "value": value, "unit": unit}
 
@@ -212,6 +255,7 @@ def run(args: argparse.Namespace) -> list[dict]:
     parser.add_argument("--frames", type=int, default=48, help="frames written per run")
     parser.add_argument("--repeats", type=int, default=2, help="runs per figure (the least CPU time is kept)")
     parser.add_argument("--threads", type=int, default=os.cpu_count() or 1, help="N of the N-thread EXR figure")
+    parser.add_argument("--stream-only", action="store_true", help="only the writers_stream_ms_* rows")
     opts = parser.parse_args(getattr(args, "extra", []))
     work = Path(args.work) / "writers"
     work.mkdir(parents=True, exist_ok=True)
@@ -220,7 +264,10 @@ def run(args: argparse.Namespace) -> list[dict]:
         from scripts.bench_geometry import fixture_set
         clip = fixture_set(None, Path(args.work), demo=True) / "clips" / "live.mp4"
     performer, result = clip_frames(clip, opts.frames)
-    rows = x264_rows(result, work, opts.repeats)
+    rows = stream_rows(performer, result, work, opts.repeats)
+    if opts.stream_only:
+        return rows
+    rows += x264_rows(result, work, opts.repeats)
     defaults = {param.name: param.default for param in SideBySide.params}
     from stages.video import WriteVideo
     preset = next(param.default for param in WriteVideo.params if param.name == "preset")

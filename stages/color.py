@@ -100,7 +100,29 @@ def to_uint8(image: Array) -> Array:
     xp = _namespace(image)
     if image.dtype == xp.uint8:
         return image
+    if xp is np and image.dtype == np.float16 and image.size:
+        return _half_to_uint8(image)
     if xp is np:
         image = image.astype(np.float32, copy=False)  # float16 has too few bits for x 255
     scaled = xp.round(xp.clip(image, 0.0, 1.0) * 255.0)
     return scaled.to(xp.uint8) if xp is not np else scaled.astype(np.uint8)
+
+
+HALF_INF_BITS = 0x7C00  # +inf as a float16 bit pattern
+
+
+def _half_to_uint8(image: np.ndarray) -> np.ndarray:
+    """:func:`to_uint8` of a non-empty float16 ndarray, by OpenCV's saturating multiply.
+
+    ``x * 255`` is exact in float32 for every half float (11 + 8 significant bits), and OpenCV
+    converts it to uint8 as ``to_uint8`` does: rounded to nearest (ties to even, as ``np.round``),
+    saturated to 0..255 (the clip), NaN -> 0 (numpy's cast on x86). Its one difference, +inf -> 0,
+    is set to 255 afterwards. All 65536 half floats give ``to_uint8``'s float32 values
+    (tests/stages/test_color.py); one SIMD pass instead of numpy's float16 -> float32 conversion
+    (5 to 8 times less CPU on a 600x800 frame).
+    """
+    import cv2
+    flat = np.ascontiguousarray(image).reshape(1, -1)
+    out = cv2.multiply(flat, 255.0, dtype=cv2.CV_8U)
+    cv2.bitwise_or(out, cv2.compare(flat.view(np.uint16), HALF_INF_BITS, cv2.CMP_EQ), dst=out)
+    return out.reshape(image.shape)

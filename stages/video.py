@@ -19,7 +19,6 @@ import numpy as np
 
 from runner.stage import Context, FrameStage, Param, SequenceStage, StageError, StreamInfo
 from stages.color import to_uint8
-from stages.writers.lut import apply_elementwise
 
 CODECS = {"h264": ("libx264", "yuv420p", ".mp4"), "ffv1": ("ffv1", "bgr0", ".mkv")}
 # x264's presets, fastest first (docs/writers.md, "Encoder settings", measures them).
@@ -215,7 +214,7 @@ class VideoWriter:
     preset
         x264 preset (``X264_PRESETS``): encoder CPU time against file size at the same ``crf``
         (the picture quality depends on ``crf``; docs/writers.md measures both). The class keeps
-        x264's own default (``medium``) for source clips; ``write.video`` defaults to ``veryfast``
+        x264's own default (``medium``) for source clips; ``write.video`` defaults to ``superfast``
         for its review copies. Ignored by FFV1.
     threads
         x264 threads, >= 1. They are slice threads (each frame is cut into ``threads`` slices
@@ -347,7 +346,7 @@ class WriteVideo(SequenceStage):
     """Encode a frame stream to one video file (H.264 MP4 or FFV1 MKV)."""
 
     name = "write.video"
-    version = "3"
+    version = "4"  # 4: default preset superfast (was veryfast)
     doc = "Encode frames (uint8, or float sRGB in [0, 1]) to a video file: H.264 MP4 or FFV1 MKV; audio copied from 'audio'."
     inputs = {"frames": "frames", "audio": "video"}
     optional_inputs = frozenset({"audio"})
@@ -356,7 +355,7 @@ class WriteVideo(SequenceStage):
         Param("codec", str, "h264", "h264 (yuv420p MP4, plays in browsers) or ffv1 (lossless RGB MKV)",
               choices=tuple(CODECS)),
         Param("crf", int, 18, "x264 constant rate factor 0..51 (lower = better); ignored by ffv1", min=0, max=51),
-        Param("preset", str, "veryfast", "x264 preset: encoder time against file size at the same crf "
+        Param("preset", str, "superfast", "x264 preset: encoder time against file size at the same crf "
               "(docs/writers.md); ignored by ffv1", choices=X264_PRESETS),
         Param("threads", int, 2, "x264 slice threads (the bytes depend on the count); ignored by ffv1",
               min=1, max=16),
@@ -373,6 +372,6 @@ class WriteVideo(SequenceStage):
                          codec=params["codec"], crf=params["crf"], preset=params["preset"],
                          threads=params["threads"], audio_from=inputs.get("audio")) as writer:
             for _, frames in stream.chunks():
-                writer.write(apply_elementwise(to_uint8, frames))  # half floats by lookup
+                writer.write(to_uint8(frames))  # half floats: one SIMD pass (stages.color)
                 ctx.progress(len(frames))
         return {"video": None}

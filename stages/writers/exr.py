@@ -48,6 +48,39 @@ def srgb_decode(srgb: np.ndarray) -> np.ndarray:
     return srgb_to_linear(to_unit_float(srgb).astype(np.float32, copy=False))
 
 
+def _bits(x: np.ndarray) -> np.ndarray:
+    """The bit patterns of a float array, as unsigned integers of the same size."""
+    return x.view(np.dtype(f"u{x.dtype.itemsize}"))
+
+
+def coverage_box(srgb: np.ndarray, alpha: np.ndarray) -> tuple[slice, slice]:
+    """Rows and columns outside which ``srgb_to_linear(srgb) * alpha`` is +0 at every pixel.
+
+    Parameters
+    ----------
+    srgb : (H, W, 3) uint8 or float sRGB-encoded frame.
+    alpha : (H, W) float16 or float32 coverage.
+
+    Returns
+    -------
+    (rows, columns) slices: the bounding box of the pixels whose alpha is not +0 (its bit pattern
+    is not all zeros: -0 and NaN count as covered), or the whole frame where some colour outside
+    that box is negative, -0, infinite or NaN (its product with +0 is -0 or NaN). Empty slices
+    when every alpha is +0 and the frame is finite and non-negative.
+    """
+    import cv2
+    height, width = alpha.shape
+    x, y, w, h = cv2.boundingRect((_bits(alpha) != 0).view(np.uint8))
+    if srgb.dtype == np.uint8:
+        return slice(y, y + h), slice(x, x + w)
+    # finite, sign bit clear: the bit pattern below that of +inf
+    inf = _bits(np.array(np.inf, srgb.dtype))
+    outside = [srgb[:y], srgb[y + h:], srgb[y:y + h, :x], srgb[y:y + h, x + w:]] if w else [srgb]
+    if any(part.size and _bits(part).max() >= inf for part in outside):
+        return slice(0, height), slice(0, width)
+    return slice(y, y + h), slice(x, x + w)
+
+
 def to_linear_rgba(srgb: np.ndarray, alpha: np.ndarray | None = None) -> np.ndarray:
     """sRGB frame and optional alpha -> premultiplied scene-linear RGBA, as the half floats stored.
 
@@ -66,13 +99,26 @@ def to_linear_rgba(srgb: np.ndarray, alpha: np.ndarray | None = None) -> np.ndar
     even): the values ``numpy``'s or OpenEXR's own conversion of the float32 products gives. The
     products are rounded by OpenCV as it multiplies (one vectorized pass that releases the GIL,
     where numpy's float16 conversion is a slow scalar loop), so the file writer converts nothing.
+    They are computed inside :func:`coverage_box` only (the face: about half the demo's frame);
+    outside it they are +0, the value of the product there. The array is a view of planar
+    memory (each channel contiguous, what the EXR scanlines are made of).
     """
     import cv2
-    linear = apply_elementwise(srgb_decode, srgb)
-    shape = linear.shape[:2]
-    a = np.ones(shape, np.float32) if alpha is None else np.asarray(alpha, np.float32).reshape(shape)
-    premultiplied = [cv2.multiply(channel, a, dtype=cv2.CV_16F) for channel in cv2.split(linear)]
-    return cv2.merge(premultiplied + [cv2.multiply(a, 1.0, dtype=cv2.CV_16F)])
+    height, width = srgb.shape[:2]
+    planes = np.zeros((4, height, width), np.float16)
+    alpha = np.ones((height, width), np.float16) if alpha is None else np.asarray(alpha).reshape(height, width)
+    if alpha.dtype == np.float16:
+        planes[3] = alpha
+    else:
+        alpha = np.asarray(alpha, np.float32)
+        planes[3] = cv2.multiply(alpha, 1.0, dtype=cv2.CV_16F)
+    rows, columns = coverage_box(srgb, alpha)
+    if rows.stop > rows.start:
+        coverage = cv2.multiply(np.ascontiguousarray(alpha[rows, columns]), 1.0, dtype=cv2.CV_32F)
+        linear = apply_elementwise(srgb_decode, srgb[rows, columns])
+        for plane, channel in zip(planes[:3], cv2.split(linear)):
+            plane[rows, columns] = cv2.multiply(channel, coverage, dtype=cv2.CV_16F)
+    return np.moveaxis(planes, 0, -1)
 
 
 def frame_attributes(

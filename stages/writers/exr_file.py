@@ -25,6 +25,7 @@ module and one of OpenImageIO carry the same header bytes: Python ``int`` -> ``i
 
 from __future__ import annotations
 
+import functools
 import struct
 from collections.abc import Mapping
 from typing import BinaryIO
@@ -148,6 +149,31 @@ def zip_predictor(blocks: np.ndarray) -> np.ndarray:
     return out
 
 
+@functools.lru_cache(maxsize=16)
+def zero_block_data(size: int, level: int) -> bytes:
+    """The ``zip`` chunk data of a block of ``size`` zero bytes: the zlib stream of its
+    preprocessed bytes (0, then 128 ``size - 1`` times), or the raw block if that is not smaller."""
+    packed = isal_zlib.compress(zip_predictor(np.zeros((1, size), np.uint8))[0], level)
+    return packed if len(packed) < size else bytes(size)
+
+
+def _compress_blocks(blocks: np.ndarray, level: int) -> list[bytes | np.ndarray]:
+    """``zip`` chunk data of each row of ``blocks`` ``(n, B)`` uint8.
+
+    All-zero blocks before the first and after the last block holding a non-zero byte (the
+    rows above and below the face in a premultiplied frame) take the data of
+    :func:`zero_block_data`, the same bytes as preprocessing and compressing each of them.
+    """
+    nonzero = np.flatnonzero(blocks.any(axis=1))
+    first, last = (nonzero[0], nonzero[-1] + 1) if nonzero.size else (0, 0)
+    zero = zero_block_data(blocks.shape[1], level)
+    chunks: list[bytes | np.ndarray] = [zero] * first
+    for block, predicted in zip(blocks[first:last], zip_predictor(blocks[first:last])):
+        packed = isal_zlib.compress(predicted, level)
+        chunks.append(packed if len(packed) < len(block) else block)
+    return chunks + [zero] * (len(blocks) - last)
+
+
 def chunk_data(lines: np.ndarray, *, compression: str, level: int) -> list[bytes | np.ndarray]:
     """The data of every chunk of ``lines`` (from :func:`scanlines`), in file order.
 
@@ -162,12 +188,7 @@ def chunk_data(lines: np.ndarray, *, compression: str, level: int) -> list[bytes
     raw = [lines[:full].reshape(-1, per_chunk * line_bytes)]
     if full < height:
         raw.append(lines[full:].reshape(1, -1))
-    chunks: list[bytes | np.ndarray] = []
-    for blocks in raw:
-        for block, predicted in zip(blocks, zip_predictor(blocks)):
-            packed = isal_zlib.compress(predicted, level)
-            chunks.append(packed if len(packed) < len(block) else block)
-    return chunks
+    return [chunk for blocks in raw for chunk in _compress_blocks(blocks, level)]
 
 
 def write_scanline_exr(

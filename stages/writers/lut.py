@@ -4,8 +4,8 @@ A half float has 65536 bit patterns, fewer than the values in one 600x800 RGB fr
 elementwise function of a ``float16`` array is computed once for every pattern and then looked
 up by the array's bits: the same values as calling the function on the array (it is the
 function's own output, bit for bit), for one indexing pass instead of its arithmetic. The
-synthesized frames are half floats; the writers decode them to linear light (EXR) and quantize
-them to 8 bits (H.264, the preview) this way.
+synthesized frames are half floats; ``write.exr`` decodes them to linear light this way (their
+8-bit quantization for H.264 and the preview is one OpenCV pass, :func:`stages.color.to_uint8`).
 """
 
 from __future__ import annotations

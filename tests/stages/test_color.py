@@ -69,3 +69,20 @@ def test_quantization() -> None:
     assert to_uint8(u) is u
     np.testing.assert_allclose(to_unit_float(u), [0.0, 0.2, 1.0], rtol=1e-7)
     assert to_unit_float(torch.from_numpy(u)).dtype == torch.float32
+
+
+def test_half_floats_quantize_as_float32() -> None:
+    """float16 arrays take OpenCV's path: every half bit pattern (0, 1, the 0.5/255 rounding
+    boundaries, above 1, below 0, subnormals, +-inf, NaN) gives the float32 formula's uint8,
+    in any shape and memory layout."""
+    every = np.arange(1 << 16, dtype=np.uint16).view(np.float16)
+    with np.errstate(invalid="ignore"):
+        expected = np.round(np.clip(every.astype(np.float32), 0, 1) * 255).astype(np.uint8)
+    assert expected[every == np.inf] == 255 and expected[np.isnan(every)].max() == 0
+    for shape in [(65536,), (256, 256), (16, 64, 64), (4, 64, 64, 4)]:
+        got = to_uint8(every.reshape(shape))
+        assert got.shape == shape and got.dtype == np.uint8
+        np.testing.assert_array_equal(got.reshape(-1), expected)
+    strided = every.reshape(256, 256)[1::3, ::2]
+    np.testing.assert_array_equal(to_uint8(strided), expected.reshape(256, 256)[1::3, ::2])
+    assert to_uint8(np.zeros((0, 3), np.float16)).shape == (0, 3)

@@ -93,7 +93,7 @@ def test_bad_preset_and_threads_are_refused(tmp_path):
 def test_stage_declares_preset_and_threads():
     """The loader checks declared choices and ranges (a bad --set is refused before the run)."""
     params = {p.name: p for p in WriteVideo.params}
-    assert params["preset"].default == "veryfast" and params["preset"].choices == X264_PRESETS
+    assert params["preset"].default == "superfast" and params["preset"].choices == X264_PRESETS
     assert params["preset"].problem("quick") is not None
     assert params["threads"].default == 2 and params["threads"].in_key  # the bytes depend on it
     assert params["threads"].problem(0) is not None and params["threads"].problem(2) is None

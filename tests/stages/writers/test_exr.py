@@ -13,11 +13,11 @@ import OpenImageIO as oiio
 import pytest
 
 from runner.stage import StageError
-from stages.color import srgb_to_linear
+from stages.color import srgb_to_linear, to_unit_float
 from stages.writers.atomic import atomic_write, temp_name
 from stages.writers import exr_file
 from stages.writers.exr import (
-    COMPRESSIONS, DEPTH_UNIT, WriteExr, exr_name, oiio_write_exr, to_linear_rgba, write_exr,
+    COMPRESSIONS, DEPTH_UNIT, WriteExr, coverage_box, exr_name, oiio_write_exr, to_linear_rgba, write_exr,
 )
 from stages.writers.exr_file import ZIP_LEVEL
 from tests.memory_stream import MemoryStream, files_context
@@ -275,3 +275,65 @@ def test_zip_level_changes_the_bytes_not_the_pixels(tmp_path: Path) -> None:
         stored = inp.read_image(oiio.HALF)
         inp.close()
         np.testing.assert_array_equal(stored.view(np.uint16), to_linear_rgba(inputs["frames"].frames[0]).view(np.uint16))
+
+
+def _whole_frame_rgba(srgb: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """The premultiply over every pixel, in numpy: float32 products rounded once to half."""
+    with np.errstate(all="ignore"):
+        linear = srgb_to_linear(to_unit_float(srgb).astype(np.float32))
+        a = alpha.astype(np.float32).reshape(linear.shape[:2] + (1,))
+        return np.concatenate([linear * a, a], axis=2).astype(np.float16)
+
+
+def _face_mask(rng: np.random.Generator, height: int, width: int) -> np.ndarray:
+    """A soft random blob inside the frame, zero around it."""
+    y, x = np.mgrid[0:height, 0:width]
+    r = np.hypot((x - width * rng.uniform(0.3, 0.7)) / (0.25 * width), (y - height * rng.uniform(0.3, 0.7)) / (0.3 * height))
+    return np.clip((1.05 - r) * 4, 0, 1).astype(np.float16)[..., None]
+
+
+@pytest.mark.parametrize("case", ["blob", "empty", "full", "negative_zero", "corner_pixel", "float32_alpha", "uint8"])
+def test_premultiply_in_the_coverage_box_equals_the_whole_frame(case: str) -> None:
+    """Computed inside the box of non-zero alpha only: the same halves, bit for bit, as the
+    product over every pixel."""
+    rng = np.random.default_rng(13)
+    srgb = rng.random((48, 40, 3), dtype=np.float32).astype(np.float16)
+    alpha = _face_mask(rng, 48, 40)
+    if case == "empty":
+        alpha[:] = 0
+    elif case == "full":
+        alpha[:] = rng.random(alpha.shape).astype(np.float16)
+    elif case == "negative_zero":
+        alpha[:3] = -0.0  # -0 alpha: the products' sign bit is set, so these rows are computed
+    elif case == "corner_pixel":
+        alpha[:] = 0
+        alpha[47, 39] = 0.5
+    elif case == "float32_alpha":
+        alpha = alpha.astype(np.float32) * np.float32(0.3)
+    elif case == "uint8":
+        srgb = rng.integers(0, 256, srgb.shape, dtype=np.uint8)
+    got = to_linear_rgba(srgb, alpha)
+    assert got.shape == (48, 40, 4) and got.dtype == np.float16
+    np.testing.assert_array_equal(got.view(np.uint16), _whole_frame_rgba(srgb, alpha).view(np.uint16))
+
+
+@pytest.mark.parametrize("value", [-0.0, -0.25, np.inf, -np.inf, np.nan])
+def test_colour_that_does_not_vanish_under_zero_alpha_keeps_the_whole_frame(value: float) -> None:
+    """-0, negative, infinite or NaN colour outside the face: its product with alpha 0 is -0 or
+    NaN, not +0, so the box is the whole frame and the halves are still the products."""
+    rng = np.random.default_rng(14)
+    srgb = rng.random((32, 24, 3), dtype=np.float32).astype(np.float16)
+    alpha = _face_mask(rng, 32, 24)
+    srgb[0, 0, 1] = value
+    assert coverage_box(srgb, alpha[..., 0]) == (slice(0, 32), slice(0, 24))
+    np.testing.assert_array_equal(to_linear_rgba(srgb, alpha).view(np.uint16),
+                                  _whole_frame_rgba(srgb, alpha).view(np.uint16))
+
+
+def test_coverage_box_is_the_bounding_box_of_non_zero_alpha() -> None:
+    alpha = np.zeros((10, 12), np.float16)
+    alpha[2, 5] = 0.1
+    alpha[6, 3] = 1.0
+    srgb = np.full((10, 12, 3), 0.5, np.float16)
+    assert coverage_box(srgb, alpha) == (slice(2, 7), slice(3, 6))
+    assert coverage_box(srgb, np.zeros((10, 12), np.float32)) == (slice(0, 0), slice(0, 0))

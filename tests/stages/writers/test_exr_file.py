@@ -3,16 +3,19 @@ the files, writes the reference headers) and the official OpenEXR binding (reads
 
 import io
 import struct
+import zlib
 from pathlib import Path
 
 import numpy as np
 import OpenEXR
 import OpenImageIO as oiio
 import pytest
+from isal import isal_zlib
 
 from stages.writers.exr import COLOR_SPACE, oiio_write_exr
 from stages.writers.exr_file import (
-    LINES_PER_CHUNK, ZIP_LEVELS, header_bytes, scanlines, write_scanline_exr, zip_predictor,
+    LINES_PER_CHUNK, ZIP_LEVEL, ZIP_LEVELS, chunk_data, header_bytes, scanlines, write_scanline_exr,
+    zero_block_data, zip_predictor,
 )
 
 ATTRIBUTES = {
@@ -197,3 +200,37 @@ def test_bad_arguments_are_rejected() -> None:
         write_scanline_exr(io.BytesIO(), ones, attributes={"exmap:valid": True})
     with pytest.raises(ValueError, match="dataWindow"):
         write_scanline_exr(io.BytesIO(), ones, attributes={"dataWindow": 1})
+
+
+@pytest.mark.parametrize("height", [16 * 7, 16 * 7 + 5])
+def test_zero_blocks_get_the_bytes_of_compressing_them(tmp_path: Path, height: int) -> None:
+    """Zero rows above and below the picture (and a zero chunk between): the shortcut for the
+    outer zero chunks gives the bytes of preprocessing and deflating each chunk, and both
+    OpenEXR and OpenImageIO read the halves back."""
+    rgba = np.zeros((height, 24, 4), np.float16)
+    rgba[20:40] = _rgba(np.random.default_rng(12), 20, 24)
+    rgba[64:80] = 0.0  # a zero chunk between non-zero ones: the general path
+    rgba[90:96, 3] = -0.0  # sign bits: not zero bytes
+    lines = scanlines({name: rgba[..., c] for c, name in enumerate("RGBA")})
+    full = height // 16 * 16
+    blocks = [lines[:full].reshape(-1, 16 * lines.shape[1])] + ([lines[full:].reshape(1, -1)] if full < height else [])
+    expected = []
+    for rows in blocks:
+        for block, predicted in zip(rows, zip_predictor(rows)):
+            packed = isal_zlib.compress(predicted, ZIP_LEVEL)
+            expected.append(packed if len(packed) < len(block) else block.tobytes())
+    got = chunk_data(lines, compression="zip", level=ZIP_LEVEL)
+    assert [bytes(c) for c in got] == expected
+    path = tmp_path / "frame.exr"
+    _write(path, rgba, compression="zip")
+    np.testing.assert_array_equal(_oiio_read(path)[0].view(np.uint16), rgba.view(np.uint16))
+    with OpenEXR.File(str(path)) as exr:
+        np.testing.assert_array_equal(exr.channels()["RGBA"].pixels.view(np.uint16), rgba.view(np.uint16))
+
+
+def test_an_all_zero_frame_is_read_back() -> None:
+    lines = scanlines({"R": np.zeros((33, 5), np.float16)})
+    chunks = chunk_data(lines, compression="zip", level=ZIP_LEVEL)
+    assert len(chunks) == 3 and chunks[0] == chunks[1] == zero_block_data(16 * 10, ZIP_LEVEL)
+    assert zlib.decompress(chunks[0]) == bytes([0] + [128] * 159)
+    assert chunks[2] == bytes(10)  # a 10-byte chunk does not shrink: stored raw

@@ -71,3 +71,20 @@ def test_negative_height_is_refused_by_the_declaration():
     height = next(p for p in SideBySide.params if p.name == "height")
     assert height.problem(-2) == "out of range: expected 0 <= height, got -2"
     assert height.problem(0) is None
+
+
+def test_half_size_panels_average_pixel_blocks_and_milder_shrinks_interpolate() -> None:
+    """The demo's preview: the 800x600 result halved is the mean of each 2x2 block (half floats
+    quantized first); the 480x640 performer to 400 rows follows a linear ramp (bilinear)."""
+    rng = np.random.default_rng(3)
+    result = rng.random((80, 60, 3), dtype=np.float32).astype(np.float16)
+    ramp = np.broadcast_to(np.arange(64, dtype=np.uint8)[None, :, None] * 4, (48, 64, 3))
+    out = side_by_side(ramp, result, height=40)
+    h, w_left, w_right = side_by_side_size(ramp.shape[:2], result.shape[:2], height=40)
+    quantized = np.round(np.clip(result.astype(np.float32), 0, 1) * 255)
+    blocks = quantized.reshape(40, 2, 30, 2, 3).mean(axis=(1, 3))
+    assert np.abs(out[:, w_left:].astype(np.float64) - blocks).max() <= 0.5
+    # bilinear with OpenCV's pixel-centre mapping: x_src = (x + 0.5) * 64 / w_left - 0.5
+    x = (np.arange(w_left) + 0.5) * 64 / w_left - 0.5
+    expected = 4 * np.clip(x, 0, 63)
+    assert np.abs(out[0, :w_left, 0] - expected).max() <= 1.0
