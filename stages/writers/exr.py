@@ -115,9 +115,9 @@ def to_linear_rgba(srgb: np.ndarray, alpha: np.ndarray | None = None) -> np.ndar
     rows, columns = coverage_box(srgb, alpha)
     if rows.stop > rows.start:
         coverage = cv2.multiply(np.ascontiguousarray(alpha[rows, columns]), 1.0, dtype=cv2.CV_32F)
-        linear = apply_elementwise(srgb_decode, srgb[rows, columns])
-        for plane, channel in zip(planes[:3], cv2.split(linear)):
-            plane[rows, columns] = cv2.multiply(channel, coverage, dtype=cv2.CV_16F)
+        linear = apply_elementwise(srgb_decode, np.moveaxis(srgb[rows, columns], 2, 0))  # (3, h, w)
+        for plane, channel in zip(planes[:3], linear):
+            cv2.multiply(channel, coverage, dst=plane[rows, columns], dtype=cv2.CV_16F)
     return np.moveaxis(planes, 0, -1)
 
 
@@ -175,7 +175,7 @@ def exr_spec(width: int, height: int, *, attributes: Mapping[str, Attribute], co
 
 
 def oiio_write_exr(path: Path, pixels: np.ndarray, *, attributes: Mapping[str, Attribute], compression: str) -> None:
-    """Write ``pixels`` ``(H, W, 4)`` (RGBA, half) or ``(H, W, 5)`` (RGBA half + float Z) with
+    """Write ``pixels`` ``(H, W, 4)`` (RGBA, half) or ``(H, W, 5)`` (RGBA half + float Z), any strides, with
     OpenImageIO, in place (not atomic): the codecs ``piz`` and ``rle``, and the reference the
     tests and the benchmark compare :func:`write_exr` with.
 
@@ -195,7 +195,7 @@ def oiio_write_exr(path: Path, pixels: np.ndarray, *, attributes: Mapping[str, A
     if out is None or not out.open(str(path), spec):
         reason = out.geterror() if out is not None else oiio.geterror()
         raise OSError(reason or "open failed")
-    ok = out.write_image(pixels)
+    ok = out.write_image(np.ascontiguousarray(pixels))  # OpenImageIO takes interleaved channels only
     ok = out.close() and ok
     if not ok:
         raise OSError(out.geterror() or "write failed")
@@ -257,7 +257,7 @@ def write_exr(
             else:
                 if depth is not None:
                     pixels = np.concatenate([pixels.astype(np.float32), np.asarray(depth, np.float32)[..., None]], axis=2)
-                oiio_write_exr(tmp, np.ascontiguousarray(pixels), attributes=attributes, compression=compression)
+                oiio_write_exr(tmp, pixels, attributes=attributes, compression=compression)
     except OSError as err:
         raise StageError(f"cannot write EXR {path}: {err.strerror or err}") from err
 

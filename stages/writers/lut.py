@@ -38,4 +38,4 @@ def apply_elementwise(fn: Elementwise, array: np.ndarray) -> np.ndarray:
     """
     if array.dtype != np.float16:
         return fn(array)
-    return half_table(fn)[np.ascontiguousarray(array).view(np.uint16)]
+    return half_table(fn)[array.view(np.uint16)]  # any strides; the result is C-contiguous

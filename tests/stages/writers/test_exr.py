@@ -337,3 +337,16 @@ def test_coverage_box_is_the_bounding_box_of_non_zero_alpha() -> None:
     srgb = np.full((10, 12, 3), 0.5, np.float16)
     assert coverage_box(srgb, alpha) == (slice(2, 7), slice(3, 6))
     assert coverage_box(srgb, np.zeros((10, 12), np.float32)) == (slice(0, 0), slice(0, 0))
+
+
+def test_openimageio_writer_takes_the_planar_rgba(tmp_path: Path) -> None:
+    """to_linear_rgba's view of planar memory, handed to OpenImageIO (the ``piz``/``rle`` path
+    and the benchmark's reference writer), is written and read back as the same halves."""
+    rng = np.random.default_rng(15)
+    rgba = to_linear_rgba(rng.random((20, 16, 3), dtype=np.float32).astype(np.float16), _face_mask(rng, 20, 16))
+    assert not rgba.flags["C_CONTIGUOUS"]
+    oiio_write_exr(tmp_path / "planar.exr", rgba, attributes={}, compression="zip")
+    inp = oiio.ImageInput.open(str(tmp_path / "planar.exr"))
+    stored = inp.read_image(oiio.HALF)
+    inp.close()
+    np.testing.assert_array_equal(stored.view(np.uint16), rgba.view(np.uint16))
