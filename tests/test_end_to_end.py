@@ -39,7 +39,8 @@ def run_cli(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess:
 
 def _run(tmp_path_factory, pipeline: str) -> Path:
     work = tmp_path_factory.mktemp("e2e")
-    result = run_cli("run", pipeline, "--out", str(work / "out"), "--cache-dir", str(work / "cache"))
+    result = run_cli("run", pipeline, "--out", str(work / "out"), "--cache-dir", str(work / "cache"),
+                     "--log-json", str(work / "log.jsonl"))
     assert result.returncode == 0, result.stderr
     return work / "out"
 
@@ -114,6 +115,16 @@ def test_data_files_agree_and_mapping_beats_neutral(paper_run):
     error = np.linalg.norm(data["target_xy"] - truth["target_points"], axis=-1).mean()
     neutral = load_pack(REPO / "fixtures" / "packs" / "target").neutral.points
     assert error < 0.6 < np.linalg.norm(neutral[None] - truth["target_points"], axis=-1).mean()
+
+
+def test_nothing_is_synthesized_twice(default_run):
+    """A run computes each synthesized chunk once: the report's contact sheet takes its frames as
+    they pass (``report.sheet``), nothing is computed again after the stream."""
+    events = [json.loads(line) for line in (default_run.parent / "log.jsonl").read_text().splitlines()]
+    chunks = [(e["start"], e["stop"]) for e in events if e["event"] == "chunk" and e["stage"] == "synthesize"]
+    assert chunks and len(chunks) == len(set(chunks))
+    assert [e for e in events if e["event"] == "recompute"] == []
+    assert next(e for e in events if e["event"] == "stage" and e["stage"] == "sheet")["status"] == "ran"
 
 
 def test_rerun_is_all_cached_and_byte_identical(default_run):

@@ -1,27 +1,21 @@
-"""The report page of ``write.report`` built from a run's bundles and frames (see
-:mod:`stages.report.stage`). Kept apart from the stage's declaration so that loading a pipeline
-does not import matplotlib or OpenCV.
+"""The report page of ``write.report`` built from a run's bundles (see :mod:`stages.report.stage`).
+Kept apart from the stage's declaration so that loading a pipeline does not import matplotlib.
 
-The contact sheet's frames (decoded and, in a run, synthesized again: PyAV, torch and OpenCV
-release the GIL) are read and encoded on worker threads (``sheet_threads``) while this thread
-imports matplotlib and draws the plots (:mod:`stages.report.sections`). The page is the same as
-built one part after the other: matplotlib is used on this thread only, the workers touch none
-of it, and each frame's image depends on that frame alone.
+The contact sheet comes ready-made in the ``sheet`` bundle of ``report.sheet``
+(:mod:`stages.report.sheet`), which picks its frames from the streams while they are computed.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
 from stages.report import series
 from stages.report.page import Section, image, listing, not_available, page
-from stages.report.sheet import sheet_frames, sheet_image
+from stages.report.sheet import sheet_images
 
-SHEET_THREADS = 2  # contact-sheet frames read at once, besides this thread drawing the plots
 SPANS_SHOWN = 12
 TIMINGS_NOTE = ("the runner does not hand stage timings to stages (and timings would make the page differ "
                 "between runs); `runner run --log-json FILE` records them")
@@ -32,14 +26,6 @@ def frame_list(flags: np.ndarray) -> str:
     runs = series.spans(flags)
     text = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in runs[:SPANS_SHOWN])
     return text + (f", ... ({len(runs) - SPANS_SHOWN} more ranges)" if len(runs) > SPANS_SHOWN else "")
-
-
-def reference_frame(*bundles: Mapping[str, np.ndarray] | None) -> int | None:
-    """The ``neutral_frame`` the first bundle that carries one records, else None."""
-    for bundle in bundles:
-        if bundle is not None and "neutral_frame" in bundle:
-            return int(np.asarray(bundle["neutral_frame"]))
-    return None
 
 
 def frame_warnings(*, no_face: np.ndarray, pose_valid: np.ndarray, limited: np.ndarray | None,
@@ -66,43 +52,37 @@ def frame_warnings(*, no_face: np.ndarray, pose_valid: np.ndarray, limited: np.n
     return lines
 
 
-def contact_sheet(frames: list[tuple[int, str]], images: list[bytes], *, fps: float) -> str:
-    """The contact sheet's HTML: one captioned image per ``(frame, label)`` of ``frames``;
-    ``images`` are their performer | result JPEGs (:func:`stages.report.sheet.sheet_image`), in
-    the same order."""
+def contact_sheet(images: Sequence[tuple[int, str, bytes]], *, fps: float) -> str:
+    """The contact sheet's HTML: one captioned image per ``(frame, label, performer | result
+    JPEG)`` of ``images`` (:func:`stages.report.sheet.sheet_images`)."""
     figures = "".join(
         f"<figure>{image(jpeg, 'image/jpeg', f'frame {f}', css='')}"
         f"<figcaption>frame {f} ({f / fps:.2f} s){': ' + label if label else ''}</figcaption></figure>"
-        for (f, label), jpeg in zip(frames, images, strict=True))
+        for f, label, jpeg in images)
     return f'<div class="sheet">{figures}</div>' if figures else not_available("no frame chosen")
 
 
-def report_html(inputs: Mapping[str, Any], *, evenly: int, thumb_height: int, title: str,
-                sheet_threads: int = SHEET_THREADS) -> str:
+def report_html(inputs: Mapping[str, Any], *, title: str) -> str:
     """The report page of one run.
 
     Parameters
     ----------
-    inputs : the stage's inputs: frame streams ``performer`` and ``result``; bundles ``target``,
-        ``tracked`` (points), ``pose``, ``similarity``, ``coefficients``; optional
-        ``displacements`` (its ``neutral_frame``) and ``mapped`` (the mapping's points with a
-        per-frame soft-limit flag, see :data:`series.LIMIT_KEYS`, and ``lips_clamped``).
-    evenly : evenly spaced contact-sheet frames; thumb_height : contact-sheet height, px.
+    inputs : the stage's inputs: the contact ``sheet`` bundle (:mod:`stages.report.sheet`, which
+        also gives the frame count, rate and sizes); bundles ``target``, ``tracked`` (points),
+        ``pose``, ``similarity``, ``coefficients``; optional ``displacements`` (its
+        ``neutral_frame``) and ``mapped`` (the mapping's points with a per-frame soft-limit
+        flag, see :data:`series.LIMIT_KEYS`, and ``lips_clamped``).
     title : the page's heading.
-    sheet_threads : worker threads reading and encoding the contact-sheet frames (>= 1); the page
-        does not depend on it.
 
     Returns
     -------
     The HTML document (str). Raises ValueError for inconsistent inputs.
     """
-    if sheet_threads < 1:
-        raise ValueError(f"sheet_threads must be >= 1, got {sheet_threads}")
-    performer, result = inputs["performer"], inputs["result"]
-    T, fps = performer.info.frames, float(performer.info.fps)
+    sheet = inputs["sheet"]
+    T, fps = int(sheet["frames"]), float(sheet["fps"])
     tracked, target, pose, similarity = inputs["tracked"], inputs["target"], inputs["pose"], inputs["similarity"]
     mapped, coefficients = inputs.get("mapped"), inputs["coefficients"]
-    chosen = reference_frame(inputs.get("displacements"), pose)
+    chosen = series.reference_frame(inputs.get("displacements"), pose)
     reference = 0 if chosen is None else chosen
     no_face = ~series.frame_valid(tracked)
     limited = series.limited_frames(mapped)
@@ -116,7 +96,8 @@ def report_html(inputs: Mapping[str, Any], *, evenly: int, thumb_height: int, ti
         expression = series.expression_series(tracked, target, reference=reference)
     except ValueError as exc:
         expression, expression_body = None, not_available(str(exc))
-    data["contact_sheet"] = sheet_frames(T, evenly=evenly, peaks=series.peak_frames(expression) if expression else [])
+    images = sheet_images(sheet)
+    data["contact_sheet"] = [(f, label) for f, label, _ in images]
     data["head_pose"] = series.head_pose_series(pose)
     data["tracking"] = series.tracking_series(tracked)
     data["residuals"] = series.residual_series(pose, similarity)
@@ -124,22 +105,16 @@ def report_html(inputs: Mapping[str, Any], *, evenly: int, thumb_height: int, ti
     dominant = series.dominant_examples(coefficients)
     data["coefficients"] = {**dominant, "subregions": coefficients["subregions"], "examples": coefficients["examples"]}
 
-    readers = ThreadPoolExecutor(max_workers=sheet_threads, thread_name_prefix="report-sheet")
-    try:
-        jpegs = [readers.submit(sheet_image, performer, result, frame, height=thumb_height)
-                 for frame, _ in data["contact_sheet"]]
-        from stages.report import sections  # matplotlib: imported while the sheet's frames are read
+    from stages.report import sections  # matplotlib: only when a page is drawn
 
-        if expression is not None:
-            expression_body, data["follow"], poorly = sections.expression_section(
-                expression, reference=reference, shaded=shaded, fps=fps)
-            data["expression"] = expression
-            warnings += poorly
-        geometry_body = sections.geometry_section(data, shaded=shaded, fps=fps)
-        coefficient_body = sections.coefficient_section(dominant, coefficients, limited=limited)
-        sheet_body = contact_sheet(data["contact_sheet"], [jpeg.result() for jpeg in jpegs], fps=fps)
-    finally:
-        readers.shutdown(cancel_futures=True)
+    if expression is not None:
+        expression_body, data["follow"], poorly = sections.expression_section(
+            expression, reference=reference, shaded=shaded, fps=fps)
+        data["expression"] = expression
+        warnings += poorly
+    geometry_body = sections.geometry_section(data, shaded=shaded, fps=fps)
+    coefficient_body = sections.coefficient_section(dominant, coefficients, limited=limited)
+    sheet_body = contact_sheet(images, fps=fps)
 
     warnings += frame_warnings(no_face=no_face, pose_valid=pose["valid"], limited=limited, mapped=mapped,
                                warp_only=bool((dominant["example"] < 0).all()))
@@ -152,6 +127,6 @@ def report_html(inputs: Mapping[str, Any], *, evenly: int, thumb_height: int, ti
         Section("Which example drives which subregion", coefficient_body),
         Section("Stage timings", not_available(TIMINGS_NOTE)),
     ]
-    meta = (f"{T} frames at {fps:g} frames/s ({T / fps:.2f} s), performer {performer.info.width}x"
-            f"{performer.info.height}, result {result.info.width}x{result.info.height}")
+    (pw, ph), (rw, rh) = (tuple(int(v) for v in sheet[k]) for k in ("performer_size", "result_size"))
+    meta = f"{T} frames at {fps:g} frames/s ({T / fps:.2f} s), performer {pw}x{ph}, result {rw}x{rh}"
     return page(title=title, meta=meta, sections=parts, data=data)

@@ -1,9 +1,8 @@
 """The report's plotted sections (matplotlib): expression, head pose / tracking / propagation, and
 which example drives which subregion.
 
-:func:`stages.report.html.report_html` imports this module only once the contact sheet's frame
-reads run on their worker thread, so that importing matplotlib (about 1.4 s of one core) and
-drawing these figures overlap the decoding and re-synthesis of the sheet's frames.
+:func:`stages.report.html.report_html` imports this module when it draws a page, so that loading a
+pipeline does not import matplotlib (about 1.4 s of one core).
 """
 
 from __future__ import annotations

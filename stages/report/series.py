@@ -85,6 +85,14 @@ def signals_over(xy: np.ndarray, names: Sequence[str], keep: Sequence[str]) -> d
     return expression_signals(filled, base_names + extra_names)
 
 
+def reference_frame(*bundles: Mapping[str, np.ndarray] | None) -> int | None:
+    """The ``neutral_frame`` the first bundle that carries one records, else None."""
+    for bundle in bundles:
+        if bundle is not None and "neutral_frame" in bundle:
+            return int(np.asarray(bundle["neutral_frame"]))
+    return None
+
+
 def frame_valid(points: Mapping[str, np.ndarray]) -> np.ndarray:
     """``(T,)`` bool: frames where a ``points`` bundle has at least one valid point (a face)."""
     return np.asarray(points["valid"], bool).any(axis=1)

@@ -8,7 +8,7 @@ without it, unless ``CI`` is set: then it fails).
 from pathlib import Path
 
 from tests.stages.report.browser import visit
-from tests.stages.report.test_stage import PARAMS, embedded, stage_inputs, write
+from tests.stages.report.test_stage import SHEET_PARAMS, embedded, stage_inputs, write
 
 
 def test_page_loads_cleanly_in_chromium(browser, tmp_path: Path):
@@ -22,5 +22,5 @@ def test_page_loads_cleanly_in_chromium(browser, tmp_path: Path):
     sheet = len(embedded(page)["contact_sheet"])
     assert len(seen.images) == sheet + 3  # the contact sheet, the two timelines and the heatmap
     assert all(width > 0 and height > 0 for width, height in seen.images), seen.images
-    assert seen.images[0][1] == PARAMS["thumb_height"]
+    assert seen.images[0][1] == SHEET_PARAMS["thumb_height"]
     assert shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and shot.stat().st_size < 400_000

@@ -1,63 +1,52 @@
-"""``report_html``'s contact sheet on worker threads: its frame reads run while the plots are
-drawn, the page holds the sheet built one frame after the other on the calling thread and does
-not depend on the number of threads, and a failing read reaches the stage as a StageError."""
+"""The contact sheet between ``report.sheet`` and ``write.report``: the page shows the sheet
+bundle's JPEGs, which are the performer | result images of the chosen frames; a bundle whose
+fields disagree, and a failing frame read, are stage errors naming the stage."""
 
-import threading
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
 
 from runner.stage import StageError
-from stages.report import sections
-from stages.report.html import contact_sheet, report_html
-from stages.report.sheet import sheet_image
-from tests.stages.report.test_stage import PARAMS, embedded, stage_inputs, write
+from stages.report.html import contact_sheet
+from stages.report.sheet import sheet_images
+from stages.report.stage import WriteReport
+from stages.writers.preview import side_by_side
+from tests.memory_stream import files_context
+from tests.stages.report.test_stage import PARAMS, SHEET_PARAMS, embedded, sheet, stage_inputs, write
 
-WAIT_S = 120.0  # a read waits at most this long for a plot to be drawn (generous: a loaded machine)
 
-
-def test_sheet_reads_run_while_the_plots_are_drawn(tmp_path: Path, monkeypatch):
-    """Each contact-sheet read waits until a timeline has been drawn: built before the plots (one
-    part after the other on one thread) it would wait in vain and the page would lack the sheet."""
-    drawn, readers, waited = threading.Event(), set(), []
-    timeline = sections.timeline
-
-    def drawing(*args, **kwargs):
-        drawn.set()
-        return timeline(*args, **kwargs)
-
-    monkeypatch.setattr(sections, "timeline", drawing)
+def test_page_shows_the_sheet_images(tmp_path: Path):
     inputs = stage_inputs()
-    for port in ("performer", "result"):
-        stream = inputs[port]
-
-        def read(a, b, original=stream.read):
-            readers.add(threading.current_thread())
-            waited.append(drawn.wait(WAIT_S))
-            return original(a, b)
-
-        stream.read = read
-    page = write(inputs, tmp_path)
-    assert waited and all(waited)
-    assert threading.current_thread() not in readers
-    assert len(embedded(page)["contact_sheet"]) * 2 == len(waited)
+    text = write(inputs, tmp_path).read_text()
+    images = sheet_images(sheet(inputs))
+    assert [[f, label] for f, label, _ in images] == embedded(tmp_path / "report" / "index.html")["contact_sheet"]
+    html = contact_sheet(images, fps=inputs["performer"].info.fps)
+    assert html.startswith('<div class="sheet"><figure>') and html in text
 
 
-def test_page_holds_the_sheet_built_on_the_calling_thread(tmp_path: Path):
-    text = write(stage_inputs(), tmp_path).read_text()
-    frames = [tuple(entry) for entry in embedded(tmp_path / "report" / "index.html")["contact_sheet"]]
-    fresh = stage_inputs()
-    jpegs = [sheet_image(fresh["performer"], fresh["result"], f, height=PARAMS["thumb_height"]) for f, _ in frames]
-    serial = contact_sheet(frames, jpegs, fps=fresh["performer"].info.fps)
-    assert serial.startswith('<div class="sheet"><figure>') and serial in text
+def test_sheet_images_are_the_chosen_frames_side_by_side():
+    """Each JPEG decodes to performer | result of its own frame at the thumbnail height: closer to
+    it than to any other chosen frame's, and within JPEG's loss (OpenCV's decoder, the frames)."""
+    inputs = stage_inputs()
+    images = sheet_images(sheet(inputs))
+    expected = {frame: side_by_side(inputs["performer"].frames[frame], inputs["result"].frames[frame],
+                                    height=SHEET_PARAMS["thumb_height"]) for frame, _, _ in images}
+    for frame, _, jpeg in images:
+        decoded = cv2.cvtColor(cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+        error = {f: np.abs(decoded.astype(int) - pair).mean() for f, pair in expected.items()}
+        assert error[frame] < 8.0 and error[frame] == min(error.values()), (frame, error)
 
 
-def test_page_does_not_depend_on_the_sheet_threads():
-    options = {"evenly": 12, "thumb_height": PARAMS["thumb_height"], "title": "threads"}
-    one = report_html(stage_inputs(), **options, sheet_threads=1)
-    assert report_html(stage_inputs(), **options, sheet_threads=5) == one
-    with pytest.raises(ValueError, match="sheet_threads must be >= 1, got 0"):
-        report_html(stage_inputs(), **options, sheet_threads=0)
+def test_inconsistent_sheet_bundle_is_a_stage_error(tmp_path: Path):
+    inputs = stage_inputs()
+    bundles = {port: value for port, value in inputs.items() if port not in ("performer", "result")}
+    bad = {**sheet(inputs)}
+    bad["jpeg_end"] = bad["jpeg_end"][:-1]
+    with pytest.raises(StageError, match=r"write.report: sheet: \d+ frames, \d+ labels and \d+ JPEG ends"):
+        WriteReport().run({**bundles, "sheet": bad}, PARAMS, files_context(tmp_path))
+    assert not (tmp_path / "report" / "index.html").exists()
 
 
 def test_a_failing_frame_read_is_a_stage_error(tmp_path: Path):
@@ -67,6 +56,6 @@ def test_a_failing_frame_read_is_a_stage_error(tmp_path: Path):
         raise ValueError(f"frame {a} cannot be decoded")
 
     inputs["result"].read = broken
-    with pytest.raises(StageError, match=r"write.report: frame 0 cannot be decoded"):
+    with pytest.raises(StageError, match=r"report.sheet: frame 0 cannot be decoded"):
         write(inputs, tmp_path)
     assert not (tmp_path / "report" / "index.html").exists()

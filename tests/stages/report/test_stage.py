@@ -1,5 +1,6 @@
-"""``write.report`` on synthetic inputs: the page's embedded series against the ground truth of the
-inputs, the frames it reads, byte-identical pages across runs and processes, input errors."""
+"""``report.sheet`` and ``write.report`` on synthetic inputs: the page's embedded series against the
+ground truth of the inputs, the frames the sheet reads, byte-identical pages across runs and
+processes, input errors."""
 
 import json
 import os
@@ -13,11 +14,13 @@ import pytest
 
 from runner.stage import StageError
 from stages.layout import load_layout
-from stages.report.stage import WriteReport
+from stages.report.stage import ContactSheet, WriteReport
 from tests.memory_stream import files_context
 from tests.stages.report import synthetic
 
-PARAMS = {"sheet_frames": 5, "thumb_height": 48, "title": "test report"}
+SHEET_PARAMS = {"sheet_frames": 5, "thumb_height": 48}
+PARAMS = {"title": "test report"}
+SHEET_PORTS = ("performer", "result", "target", "tracked", "pose", "displacements")
 REPO = Path(__file__).resolve().parents[3]
 
 
@@ -25,8 +28,16 @@ def stage_inputs(**options):
     return {k: v for k, v in synthetic.inputs(**options).items() if not k.startswith("truth")}
 
 
+def sheet(inputs) -> dict:
+    """``report.sheet``'s bundle for the stage inputs ``inputs`` (those it reads)."""
+    ports = {port: inputs[port] for port in SHEET_PORTS if port in inputs}
+    return ContactSheet().run(ports, SHEET_PARAMS, files_context(Path("/nonexistent")))["sheet"]
+
+
 def write(inputs, root: Path) -> Path:
-    WriteReport().run(inputs, PARAMS, files_context(root))
+    """``report.sheet`` then ``write.report`` on ``inputs``, as a pipeline connects them."""
+    bundles = {port: value for port, value in inputs.items() if port not in ("performer", "result")}
+    WriteReport().run({**bundles, "sheet": sheet(inputs)}, PARAMS, files_context(root))
     return root / "report" / "index.html"
 
 
@@ -65,7 +76,7 @@ def test_page_series_match_the_inputs(tmp_path: Path):
     T = len(face)
     sheet = [frame for frame, _ in data["contact_sheet"]]
     peak = int(np.argmax(truth["truth_performer_open"]))
-    assert set(np.round(np.linspace(0, T - 1, PARAMS["sheet_frames"])).astype(int)) | {peak} == set(sheet)
+    assert set(np.round(np.linspace(0, T - 1, SHEET_PARAMS["sheet_frames"])).astype(int)) | {peak} == set(sheet)
     assert dict(data["contact_sheet"])[peak] == "mouth open max"
     warnings = "\n".join(data["warnings"])
     assert "No face in 3 of 40 frames: 5-7" in warnings
@@ -90,7 +101,9 @@ def test_recorded_neutral_frame_and_tracked_subset(tmp_path: Path):
     assert "Not available: the run records no per-frame range limit" in (tmp_path / "report" / "index.html").read_text()
 
 
-def test_reads_only_the_contact_sheet_frames(tmp_path: Path):
+def test_reads_only_the_contact_sheet_frames_in_ascending_order(tmp_path: Path):
+    """One read per chosen frame and stream, in ascending order (so a stream being computed hands
+    each frame over as it passes, see runner.broadcast), no whole chunk."""
     inputs = stage_inputs()
     read = []
     for port in ("performer", "result"):
@@ -99,7 +112,9 @@ def test_reads_only_the_contact_sheet_frames(tmp_path: Path):
         stream.read = lambda a, b, original=original, port=port: read.append((port, a, b)) or original(a, b)
     data = embedded(write(inputs, tmp_path))
     frames = [f for f, _ in data["contact_sheet"]]
-    assert sorted(read) == sorted((port, f, f + 1) for port in ("performer", "result") for f in frames)
+    for port in ("performer", "result"):
+        assert [(a, b) for p, a, b in read if p == port] == [(f, f + 1) for f in frames]  # sorted: frames are
+    assert frames == sorted(frames)
     assert inputs["performer"].reads == 0 and inputs["result"].reads == 0  # chunks() never used
 
 
@@ -138,5 +153,5 @@ def test_warp_only_and_missing_signal_points_are_said(tmp_path: Path):
 
 
 def test_enabled_false_writes_nothing(tmp_path: Path):
-    WriteReport().run(stage_inputs(), {**PARAMS, "enabled": False}, files_context(tmp_path))
+    WriteReport().run({"sheet": {}}, {**PARAMS, "enabled": False}, files_context(tmp_path))
     assert not (tmp_path / "report" / "index.html").exists()
