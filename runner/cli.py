@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
+import os
 import signal
 import sys
 import threading
@@ -256,7 +258,11 @@ def main(argv: list[str] | None = None) -> None:
 
     SIGINT and SIGTERM both interrupt the run (exit 130, the cache left resumable). SIGINT is set
     explicitly: a process started in the background of a non-interactive shell inherits it
-    ignored, and Python then keeps ignoring it."""
+    ignored, and Python then keeps ignoring it.
+
+    Called without ``argv`` (the process is the command: the console script, ``python -m``), it
+    ends the process with :func:`exit_now` instead of the interpreter's teardown; with ``argv``
+    (called from Python) it raises ``SystemExit`` as usual."""
     signal.signal(signal.SIGTERM, _interrupt)
     signal.signal(signal.SIGINT, _interrupt)
     sys.unraisablehook = _unraisable
@@ -282,7 +288,24 @@ def main(argv: list[str] | None = None) -> None:
         where = f"{exc.filename}: " if exc.filename else ""
         click.echo(f"error: {where}{exc.strerror or exc}", err=True)
         code = EXIT_USAGE
+    if argv is None:
+        exit_now(code or 0)
     sys.exit(code or 0)
+
+
+def exit_now(code: int) -> None:
+    """End the process with exit status ``code`` once its own threads have finished and its
+    output is flushed, skipping the interpreter's teardown: unloading torch, OpenCV and
+    matplotlib module by module took 1.0-1.3 s after every run that synthesized (0.2 s without
+    torch), and it writes nothing. Everything the command writes is already closed (the cache's
+    entries and ``--out`` are committed by atomic renames before this point)."""
+    for thread in threading.enumerate():
+        if thread is not threading.current_thread() and not thread.daemon:
+            thread.join()
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 if __name__ == "__main__":

@@ -6,6 +6,8 @@ import contextlib
 import importlib.metadata
 import io
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import av
@@ -204,3 +206,16 @@ def test_a_swallowed_interrupt_is_not_reported_but_other_unraisables_are(capsys,
     Raises(ValueError("boom"))
     gc.collect()
     assert "boom" in capsys.readouterr().err
+
+
+def test_exit_now_waits_for_threads_and_flushes(tmp_path):
+    """The command's fast exit (no interpreter teardown) keeps the exit status, what was printed
+    without a newline, and the work of a thread still running."""
+    marker = tmp_path / "written"
+    script = ("import sys, threading, time; from pathlib import Path; from runner.cli import exit_now\n"
+              "def late(): time.sleep(0.3); Path(sys.argv[1]).write_text('done')\n"
+              "threading.Thread(target=late).start(); print('partial', end=''); exit_now(3)")
+    done = subprocess.run([sys.executable, "-c", script, str(marker)], capture_output=True, text=True, timeout=120,
+                          cwd=Path(__file__).resolve().parents[2])
+    assert (done.returncode, done.stdout) == (3, "partial")
+    assert marker.read_text() == "done"
