@@ -25,8 +25,9 @@ of the aligned examples fitted to the true image: ``stages.synthesis.oracle``). 
 (truth | ours | warp-only | global) goes to ``<work>/synthesis/synthesis_sheet.png`` (the
 README's ``docs/img/synthesis_sheet.png`` is a copy of it).
 
-Speed — ``synth_fps``: frames/s of the whole runtime synthesis (QP, compositing with small
-coefficients skipped, warp) at 600x800 with 15 examples on 2 threads; ``synth_fps_direct``: the
+Speed — ``synth_fps``: frames/s of the whole runtime synthesis as the stage runs it
+(``Synthesizer.render_half``: the chunk's QPs batched, then per frame compositing with small
+coefficients skipped, warp, half-float outputs; no coefficient memo) at 600x800 with 15 examples on 2 threads; ``synth_fps_direct``: the
 same with every example composited at every pixel (the paper's implementation), measured in the
 same run; ``synth_speedup`` = their ratio; ``synth_cpu_ms``: CPU time (``time.process_time``, all
 threads) per frame of the sparse path, least of the repeats. The pack is resized to 600x800 (points scaled) when it
@@ -234,7 +235,7 @@ def speed(pack: ActorPack, truths: list[Expression], *, frames: int, chunk: int,
     machine.
     """
     big = speed_pack(pack, truths)
-    synth = Synthesizer(build_synthesis_model(big), device=device, **synthesis)
+    synth = Synthesizer(build_synthesis_model(big), device=device, memo_frames=0, **synthesis)  # every QP solved
     sx, sy = SPEED_SIZE[0] / pack.image_size[0], SPEED_SIZE[1] / pack.image_size[1]
     geometry = (np.asarray(pack.captured_points, np.float64) + 0.5) * [sx, sy] - 0.5
     geometry = geometry[np.arange(frames) % len(geometry)]
@@ -242,12 +243,12 @@ def speed(pack: ActorPack, truths: list[Expression], *, frames: int, chunk: int,
     def run(direct: bool) -> tuple[float, float]:
         t0, c0 = time.perf_counter(), time.process_time()
         for k in range(0, frames, chunk):
-            synth.render(geometry[k : k + chunk], direct=direct)
+            synth.render_half(geometry[k : k + chunk], direct=direct)
         if device == "cuda":
             torch.cuda.synchronize()
         return frames / (time.perf_counter() - t0), (time.process_time() - c0) / frames * 1e3
 
-    synth.render(geometry[:chunk])  # warm-up
+    synth.render_half(geometry[:chunk])  # warm-up
     best = {False: 0.0, True: 0.0}
     cpu_ms = float("inf")
     for _ in range(repeats):

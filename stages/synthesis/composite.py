@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Compositor", "prepare_compositor", "composite"]
+__all__ = ["Compositor", "Workspace", "prepare_compositor", "workspace", "composite"]
 
 
 @dataclass
@@ -83,6 +83,22 @@ class Compositor:
     box_primary_index: torch.Tensor  # (h*w,) primary_index inside the box
     box_secondary_index: torch.Tensor
     background: torch.Tensor  # (H*W, 4) channels-last: the composite outside the box (any coefficients), alpha
+
+
+@dataclass
+class Workspace:
+    """One thread's buffers for compositing frames one at a time (see :func:`workspace`).
+
+    ``primary`` / ``secondary`` are private copies of the compositor's templates: the outside
+    label's slices keep the standard image, the face labels' slices are rewritten whole for every
+    frame. ``standard`` (1, 4, H, W) channels-last holds the last composited frame; outside
+    ``Compositor.box`` it always holds ``Compositor.background``, which is therefore never copied
+    again. A workspace is not thread-safe: one per thread.
+    """
+
+    primary: torch.Tensor
+    secondary: torch.Tensor
+    standard: torch.Tensor
 
 
 def prepare_compositor(
@@ -155,6 +171,14 @@ def prepare_compositor(
     )
 
 
+def workspace(comp: Compositor) -> Workspace:
+    """Buffers for :func:`composite` of single frames (``workspace=``): the templates copied and a
+    frame holding the background, once instead of for every frame (5.8 + 7.7 MB at 600x800)."""
+    W, H = comp.size
+    standard = comp.background.view(1, H, W, 4).clone().permute(0, 3, 1, 2)
+    return Workspace(comp.primary_template.clone(), comp.secondary_template.clone(), standard)
+
+
 def _gather(stack: torch.Tensor, candidates: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor:
     """``stack[candidates][:, :, pixels]`` for a ``(E, 3, H*W)`` stack, gathering the pixels first:
     ``stack[candidates]`` alone would copy every candidate image whole for each subregion."""
@@ -189,7 +213,9 @@ def _fill(buffer: torch.Tensor, segment: _Segment, terms: list[tuple[int, float]
         view.add_(segment.detail[k], alpha=d)
 
 
-def composite(comp: Compositor, coeffs: torch.Tensor, *, min_coeff: float = 1e-3, direct: bool = False) -> torch.Tensor:
+def composite(
+    comp: Compositor, coeffs: torch.Tensor, *, min_coeff: float = 1e-3, direct: bool = False, workspace: Workspace | None = None
+) -> torch.Tensor:
     """Blend the aligned example images by per-subregion coefficients (eq. 6, 7).
 
     Parameters
@@ -203,6 +229,9 @@ def composite(comp: Compositor, coeffs: torch.Tensor, *, min_coeff: float = 1e-3
         Sparse path only: coefficients at or below it are skipped and the rest renormalised.
     direct : bool
         Composite every example at every pixel (the paper's implementation) instead.
+    workspace : Workspace, optional
+        Sparse path, one frame (``B = 1``): composite in these buffers (:func:`workspace`) and
+        return ``workspace.standard``, which the next call with the same workspace overwrites.
 
     The compositor's ``detail_power`` (:func:`prepare_compositor`) adds the band-pass detail
     term in both paths (see the module docstring).
@@ -217,7 +246,12 @@ def composite(comp: Compositor, coeffs: torch.Tensor, *, min_coeff: float = 1e-3
     W, H = comp.size
     B, S = coeffs.shape[:2]
     device = comp.images.device
-    out = torch.empty(B, H * W, 4, device=device).permute(0, 2, 1)  # (B, 4, H*W) view, channels-last
+    if workspace is not None and (direct or B != 1):
+        raise ValueError(f"a workspace composites one frame on the sparse path, got B={B}, direct={direct}")
+    if workspace is not None:
+        out = workspace.standard.view(1, 4, H * W)  # (1, 4, H*W) view, channels-last
+    else:
+        out = torch.empty(B, H * W, 4, device=device).permute(0, 2, 1)  # (B, 4, H*W) view, channels-last
     if direct:
         out[:, 3] = comp.alpha
         full = torch.zeros(B, S + 1, comp.images.shape[0], device=device)
@@ -240,8 +274,10 @@ def composite(comp: Compositor, coeffs: torch.Tensor, *, min_coeff: float = 1e-3
                 out[b, :3] += torch.einsum("pe,ecp->cp", per_pixel, comp.details)
     else:
         table = coeffs.detach().to("cpu", torch.float64).tolist()
-        primary = comp.primary_template.clone()
-        secondary = comp.secondary_template.clone()
+        if workspace is None:
+            primary, secondary = comp.primary_template.clone(), comp.secondary_template.clone()
+        else:
+            primary, secondary = workspace.primary, workspace.secondary
         for b in range(B):
             for label in range(S):
                 terms = _kept(table[b][label][: len(comp.candidates[label])], min_coeff)
@@ -250,7 +286,8 @@ def composite(comp: Compositor, coeffs: torch.Tensor, *, min_coeff: float = 1e-3
                 _fill(secondary, comp.secondary[label], terms, detail)
             y0, y1, x0, x1 = comp.box
             frame = out[b].t()  # (H*W, 4), contiguous
-            frame.copy_(comp.background)
+            if workspace is None:
+                frame.copy_(comp.background)
             inside = frame.view(H, W, 4)[y0:y1, x0:x1, :3].permute(2, 0, 1)  # (3, h, w) view
             torch.add(primary.index_select(1, comp.box_primary_index).view(inside.shape),
                       secondary.index_select(1, comp.box_secondary_index).view(inside.shape), out=inside)

@@ -16,12 +16,13 @@ Modes
 from __future__ import annotations
 
 import threading
-from typing import Any, Mapping
+from collections import OrderedDict
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
 from runner.stage import Context, FrameStage, Param, StageError, StreamInfo
-from stages.synthesis.composite import Compositor, composite, prepare_compositor
+from stages.synthesis.composite import Compositor, Workspace, composite, prepare_compositor, workspace
 from stages.synthesis.coefficients import SubregionQP, target_geometry
 from stages.synthesis.warp import warp_images
 
@@ -32,6 +33,7 @@ DETAIL_POWER = 1.0  # band-pass blending defaults (docs/synthesis.md, "Fine text
 DETAIL_SIGMA_PX = 2.0
 FLOW_MAX_PX = 0.0  # optical-flow refinement of the examples' alignment (0: off)
 RIDGE_PX = 0.0  # coefficient regularisation of the QPs (docs/synthesis.md, "Per-subregion vs global on real faces")
+MEMO_FRAMES = 2048  # frames whose QP coefficients a Synthesizer keeps (about 4 KB each)
 
 
 def head_motion_points(
@@ -97,36 +99,50 @@ def head_motion_frame(
     return c_s, c_t, float(size_t / size_s)
 
 
-def half_float_planes(rgba: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+def half_float_planes(
+    rgba: torch.Tensor, *, out: tuple[np.ndarray, np.ndarray] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Colour and alpha planes as contiguous half floats, the ``frames`` / ``mask`` outputs.
 
     Parameters
     ----------
     rgba : (B, 4, H, W) float tensor, any device and memory layout
+    out : (frames, mask), optional
+        C-contiguous float16 arrays of the shapes below to write into (e.g. rows of a chunk's
+        output arrays) instead of new ones.
 
     Returns
     -------
     frames : (B, H, W, 3) float16 ndarray
     mask : (B, H, W, 1) float16 ndarray
 
-    On the CPU the channels are split frame by frame with ``cv2`` on contiguous float32 planes
-    and then converted (contiguous to contiguous, about 2 ms a 600x800 frame); a strided
-    float32 -> float16 copy of the three colour channels costs five times that.
+    On the CPU each frame is converted whole (RGBA float32 -> float16, contiguous to contiguous,
+    torch's conversion) and then split by ``cv2.mixChannels`` on the half floats' 16-bit
+    patterns: about 1 + 1.4 ms a 600x800 frame on one thread, where splitting the float32
+    channels first (``cv2.cvtColor``, ``cv2.extractChannel``) and converting each part cost 4.
     """
     import cv2
     import torch
     hwc = rgba.detach().permute(0, 2, 3, 1)
     if rgba.device.type != "cpu":
-        return hwc[..., :3].to(torch.float16).cpu().numpy(), hwc[..., 3:].to(torch.float16).cpu().numpy()
+        frames, mask = hwc[..., :3].to(torch.float16).cpu().numpy(), hwc[..., 3:].to(torch.float16).cpu().numpy()
+        if out is None:
+            return frames, mask
+        out[0][...], out[1][...] = frames, mask
+        return out
     if rgba.dtype != torch.float32 or rgba.shape[1] != 4:
         raise ValueError(f"rgba must be (B, 4, H, W) float32, got {tuple(rgba.shape)} {rgba.dtype}")
-    hwc = hwc.contiguous().numpy()
-    frames = torch.empty(hwc.shape[:3] + (3,), dtype=torch.float16)
-    mask = torch.empty(hwc.shape[:3] + (1,), dtype=torch.float16)
-    for b, image in enumerate(hwc):
-        frames[b].copy_(torch.from_numpy(cv2.cvtColor(image, cv2.COLOR_RGBA2RGB)))
-        mask[b, ..., 0].copy_(torch.from_numpy(cv2.extractChannel(image, 3)))
-    return frames.numpy(), mask.numpy()
+    B, H, W, _ = hwc.shape
+    if out is None:
+        out = np.empty((B, H, W, 3), np.float16), np.empty((B, H, W, 1), np.float16)
+    for array, C in zip(out, (3, 1)):
+        if array.shape != (B, H, W, C) or array.dtype != np.float16 or not array.flags.c_contiguous:
+            raise ValueError(f"out arrays must be C-contiguous float16 ({B}, {H}, {W}, {C}), got {array.shape} {array.dtype}")
+    half = torch.empty(H, W, 4, dtype=torch.float16)
+    for b in range(B):
+        half.copy_(hwc[b])
+        cv2.mixChannels([half.numpy().view(np.uint16)], [out[0][b].view(np.uint16), out[1][b].view(np.uint16)], [0, 0, 1, 1, 2, 2, 3, 3])
+    return out
 
 
 class Synthesizer:
@@ -146,6 +162,8 @@ class Synthesizer:
         the flow clipped to this many px per component; 0 leaves the examples as built.
     ridge_px : float
         Coefficient regularisation ``tau`` of the QPs, px (:class:`SubregionQP`; 0: plain eq. 2).
+    memo_frames : int
+        How many frames' QP coefficients :meth:`coefficients` keeps (0: none, every QP solved).
     """
 
     def __init__(
@@ -157,6 +175,7 @@ class Synthesizer:
         detail_sigma_px: float = DETAIL_SIGMA_PX,
         flow_max_px: float = FLOW_MAX_PX,
         ridge_px: float = RIDGE_PX,
+        memo_frames: int = MEMO_FRAMES,
     ) -> None:
         import torch
         from stages.synthesis.align import refine_model
@@ -173,6 +192,49 @@ class Synthesizer:
         self.neutral_points = torch.from_numpy(np.concatenate([model["neutral_points"], self.anchors])).to(device)
         self.neutral = torch.from_numpy(np.asarray(model["neutral"])).to(device).permute(2, 0, 1)[None].float() / 255.0
         self.center = np.asarray(model["neutral_points"], np.float64).mean(0)
+        self._local = threading.local()  # per thread: the compositing workspace
+        self._memo: OrderedDict[tuple[str, bytes], torch.Tensor] = OrderedDict()  # (mode, points bytes) -> (S, K)
+        self._memo_lock = threading.Lock()
+        self.memo_frames = int(memo_frames)
+
+    def _workspace(self) -> Workspace:
+        """This thread's compositing buffers (:func:`stages.synthesis.composite.workspace`)."""
+        if getattr(self._local, "workspace", None) is None:
+            self._local.workspace = workspace(self.compositor)
+        return self._local.workspace
+
+    def coefficients(self, points: np.ndarray, *, mode: str = "full") -> torch.Tensor:
+        """The QPs' coefficients (eq. 2-5) of a chunk, as :meth:`SubregionQP.coefficients`, with a memo.
+
+        A frame's coefficients depend only on its points and the mode, and its QP gives bit for
+        bit the same result alone as in a batch; so the coefficients of the last ``memo_frames``
+        frames are kept and a frame synthesized again (the runner recomputes single frames for a
+        reader that asks after the chunk was dropped) skips its QP, which alone costs about half
+        a 16-frame batch (the interior-point iterations are dominated by per-operation overhead).
+
+        Parameters
+        ----------
+        points : (B, N, 2) float, px
+        mode : ``"full" | "global"``
+
+        Returns
+        -------
+        (B, S, K) float64 tensor on the synthesizer's device.
+        """
+        import torch
+        points = np.ascontiguousarray(points, np.float64)
+        keys = [(mode, frame.tobytes()) for frame in points]
+        with self._memo_lock:
+            rows = [self._memo.get(key) for key in keys]
+        missing = [i for i, row in enumerate(rows) if row is None]
+        if missing:
+            solved, _ = self.qp.coefficients(points[missing], mode=mode)
+            with self._memo_lock:
+                for i, row in zip(missing, solved):
+                    rows[i] = self._memo[keys[i]] = row
+                while len(self._memo) > self.memo_frames:
+                    self._memo.popitem(last=False)
+        return torch.stack(rows)
 
     def render(self, points: np.ndarray, **options: Any) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Synthesize the expression images of a chunk of frames (see :meth:`render_rgba`).
@@ -185,6 +247,54 @@ class Synthesizer:
         """
         rgba, coeffs = self.render_rgba(points, **options)
         return rgba[:, :3], rgba[:, 3:], coeffs
+
+    def render_half(
+        self,
+        points: np.ndarray,
+        *,
+        mode: str = "full",
+        similarity: np.ndarray | None = None,
+        direct: bool = False,
+        progress: Callable[[int], None] = lambda n: None,
+        **options: Any,
+    ) -> tuple[np.ndarray, np.ndarray, torch.Tensor]:
+        """Synthesize a chunk as the stage outputs it: the QPs batched, then frame by frame into half floats.
+
+        Frame by frame because a chunk's (B, 4, H, W) float32 buffers (123 MB for 16 frames at
+        600x800) exceed glibc's largest mmap threshold and were mapped fresh, and faulted in
+        page by page, every chunk; one frame composites in this thread's workspace.
+
+        Parameters
+        ----------
+        points, mode, similarity, direct
+            As :meth:`render_rgba`; ``similarity`` (B, 4) is sliced per frame.
+        progress : callable
+            Called with 1 after each frame.
+        **options
+            The other keywords of :meth:`render_rgba` (``source_center``, ``target_center``,
+            ``motion_scale``, ``min_coeff``), the same for every frame.
+
+        Returns
+        -------
+        frames : (B, H, W, 3) float16, sRGB in [0, 1]
+        mask : (B, H, W, 1) float16, face alpha
+        coeffs : (B, S, K) float64 tensor (zeros in ``warp-only`` mode)
+        """
+        import torch
+        points = np.asarray(points, np.float64)
+        coeffs = None if mode == "warp-only" else self.coefficients(points, mode=mode)  # the QPs batched
+        W, H = self.size
+        frames = np.empty((len(points), H, W, 3), np.float16)
+        mask = np.empty((len(points), H, W, 1), np.float16)
+        rows = []
+        for i in range(len(points)):
+            one = slice(i, i + 1)
+            rgba, row = self.render_rgba(points[one], mode=mode, similarity=None if similarity is None else similarity[one],
+                                         direct=direct, coeffs=None if coeffs is None else coeffs[one], **options)
+            half_float_planes(rgba, out=(frames[one], mask[one]))
+            rows.append(row)
+            progress(1)
+        return frames, mask, torch.cat(rows) if coeffs is None else coeffs
 
     def render_rgba(
         self,
@@ -246,10 +356,12 @@ class Synthesizer:
             out = torch.cat([rgb, alpha], 1).clamp_(0, 1)
         else:
             if coeffs is None:
-                coeffs, _ = self.qp.coefficients(points, mode=mode)
+                coeffs = self.coefficients(points, mode=mode)
             elif tuple(coeffs.shape) != (B, self.qp.n_subregions, self.qp.K):
                 raise ValueError(f"coeffs must be (B, S, K) = ({B}, {self.qp.n_subregions}, {self.qp.K}), got {tuple(coeffs.shape)}")
-            standard = composite(self.compositor, coeffs, min_coeff=min_coeff, direct=direct)
+            one = B == 1 and not direct  # one frame: in this thread's workspace (no per-frame buffers)
+            standard = composite(self.compositor, coeffs, min_coeff=min_coeff, direct=direct,
+                                 workspace=self._workspace() if one else None)
             out = warp_images(standard, self.standard_points[None].expand(B, -1, -1), dst_t, self.triangles).clamp_(0, 1)
         return out, coeffs
 
@@ -322,30 +434,9 @@ class Synthesize(FrameStage):
                     performer["neutral"], performer["names"], model["neutral_points"], model["point_names"]
                 )
                 scale *= ratio
-        import torch
         synth = self._synthesizer(model, ctx.device, params)
-        mode = params["mode"]
-        coeffs = None if mode == "warp-only" else synth.qp.coefficients(points, mode=mode)[0]  # the QPs batched
-        W, H = synth.size
-        frames = np.empty((len(points), H, W, 3), np.float16)
-        mask = np.empty((len(points), H, W, 1), np.float16)
-        rows = []
-        # Frame by frame: a chunk's (B, 4, H, W) float32 buffers (123 MB at 600x800) exceed glibc's
-        # largest mmap threshold and were mapped fresh, and faulted in page by page, every chunk.
-        for i in range(len(points)):
-            one = slice(i, i + 1)
-            rgba, row = synth.render_rgba(
-                points[one],
-                mode=mode,
-                similarity=None if similarity is None else similarity[one],
-                source_center=source_center,
-                target_center=target_center,
-                motion_scale=scale,
-                min_coeff=params["min_coeff"],
-                coeffs=None if coeffs is None else coeffs[one],
-            )
-            (frames[i],), (mask[i],) = half_float_planes(rgba)
-            rows.append(row)
-            ctx.progress(1)
-        coeffs = torch.cat(rows) if coeffs is None else coeffs
+        frames, mask, coeffs = synth.render_half(
+            points, mode=params["mode"], similarity=similarity, source_center=source_center, target_center=target_center,
+            motion_scale=scale, min_coeff=params["min_coeff"], progress=ctx.progress,
+        )
         return {"frames": frames, "mask": mask, "coeffs": {"coeffs": coeffs.cpu().numpy()}}

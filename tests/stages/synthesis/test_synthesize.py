@@ -1,5 +1,7 @@
 """Runtime synthesis (Sec. 6-8, 11) on the synthetic pack: known coefficients and images."""
 
+import threading
+
 import cv2
 import numpy as np
 import pytest
@@ -154,9 +156,72 @@ def test_half_float_planes_match_torch_conversion_for_every_layout():
         half_float_planes(rgba[:, :3])
 
 
+def test_half_float_planes_write_into_given_arrays():
+    rgba = torch.rand(2, 4, 7, 5, dtype=torch.float32).permute(0, 2, 3, 1).contiguous().permute(0, 3, 1, 2)
+    frames, mask = np.zeros((2, 7, 5, 3), np.float16), np.zeros((2, 7, 5, 1), np.float16)
+    got = half_float_planes(rgba, out=(frames, mask))
+    assert got[0] is frames and got[1] is mask
+    np.testing.assert_array_equal(frames, rgba.permute(0, 2, 3, 1)[..., :3].to(torch.float16).numpy())
+    np.testing.assert_array_equal(mask, rgba.permute(0, 2, 3, 1)[..., 3:].to(torch.float16).numpy())
+    with pytest.raises(ValueError, match="C-contiguous float16"):
+        half_float_planes(rgba, out=(frames[:1], mask[:1]))
+
+
 def test_render_rgba_is_render_in_one_tensor(pack, synth):
     for mode in ("full", "warp-only"):
         rgb, alpha, coeffs = synth.render(pack.captured_points[:2], mode=mode)
         rgba, coeffs_rgba = synth.render_rgba(pack.captured_points[:2], mode=mode)
         torch.testing.assert_close(rgba, torch.cat([rgb, alpha], 1), rtol=0, atol=0)
         torch.testing.assert_close(coeffs_rgba, coeffs, rtol=0, atol=0)
+
+
+def test_render_half_is_render_rgba_in_half_floats(pack, model):
+    """The stage's frame-by-frame path (one frame per workspace) against the batched render of the
+    whole chunk (fresh buffers), bit for bit, with head motion."""
+    synth = Synthesizer(model)
+    points = pack.captured_points[:3]
+    sim = np.array([[1.0, 0.0, 0.0, 0.0], [0.98, 0.05, 2.0, -1.5], [1.02, -0.03, -3.0, 1.0]])
+    for mode in ("full", "global", "warp-only"):
+        frames, mask, coeffs = synth.render_half(points, mode=mode, similarity=sim, motion_scale=1.1)
+        rgba, coeffs_batch = synth.render_rgba(points, mode=mode, similarity=sim, motion_scale=1.1)
+        np.testing.assert_array_equal(frames, rgba.permute(0, 2, 3, 1)[..., :3].to(torch.float16).numpy())
+        np.testing.assert_array_equal(mask, rgba.permute(0, 2, 3, 1)[..., 3:].to(torch.float16).numpy())
+        torch.testing.assert_close(coeffs, coeffs_batch, rtol=0, atol=0)
+
+
+def test_coefficient_memo_returns_the_qps_solution_and_stays_bounded(pack, model):
+    synth = Synthesizer(model, memo_frames=3)
+    rng = np.random.default_rng(3)
+    points = np.asarray(pack.captured_points, np.float64)[[0, 1, 2, 3, 0]] + rng.normal(0, 0.5, (5, 16, 2))
+    direct, _ = synth.qp.coefficients(points)
+    for k in range(5):  # a QP alone gives what it gives in a batch: the premise of the memo
+        torch.testing.assert_close(synth.qp.coefficients(points[k : k + 1])[0], direct[k : k + 1], rtol=0, atol=0)
+    torch.testing.assert_close(synth.coefficients(points[:2]), direct[:2], rtol=0, atol=0)
+    torch.testing.assert_close(synth.coefficients(points[[4, 1, 0, 3]]), direct[[4, 1, 0, 3]], rtol=0, atol=0)
+    assert len(synth._memo) == 3
+    torch.testing.assert_close(synth.coefficients(points[[3]], mode="global"), synth.qp.coefficients(points[[3]], mode="global")[0],
+                               rtol=0, atol=0)  # the mode is part of the key
+    none = Synthesizer(model, memo_frames=0)
+    torch.testing.assert_close(none.coefficients(points), direct, rtol=0, atol=0)
+    assert len(none._memo) == 0
+
+
+def test_single_frame_process_equals_its_frame_in_a_chunk_on_other_threads(pack, model):
+    """The report's calls: single frames after the chunks, on threads of their own (each with its
+    workspace, the coefficients from the memo), bit for bit the chunk's frames."""
+    stage = Synthesize()
+    points = np.asarray(pack.captured_points[:4], np.float64)
+    inputs = {"model": model, "points": {"xy": points, "valid": np.ones(points.shape[:2], bool)}}
+    params = {p.name: p.default for p in Synthesize.params}
+    ctx = Context(device="cpu", files_dir=lambda port: None)
+    chunk = stage.process(0, 4, inputs, params, ctx)
+    singles: dict[int, dict] = {}
+    threads = [threading.Thread(target=lambda k=k: singles.__setitem__(k, stage.process(k, k + 1, inputs, params, ctx))) for k in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    for k in range(4):
+        for port in ("frames", "mask"):
+            np.testing.assert_array_equal(singles[k][port][0], chunk[port][k])
+        np.testing.assert_array_equal(singles[k]["coeffs"]["coeffs"][0], chunk["coeffs"]["coeffs"][k])
