@@ -441,8 +441,9 @@ class FrameChunks:
                                 lambda i: None if reader is None else self.passed(reader, i))
         with self._book:
             if port not in self._streams:
+                source = "frames" not in self.node.cls.inputs.values()  # decoding: nothing to drive
                 self._streams[port] = ComputedStream(self.info, self.ranges, lambda i, p=port: self._process(*self.ranges[i])[p],
-                                                     keep=self.run.jobs + 2)
+                                                     keep=self.run.jobs + 2, read_ahead=source)
             return self._streams[port]
 
     def _frame_ports(self) -> list[str]:

@@ -104,34 +104,91 @@ class ComputedStream(ChunkedStream):
     behind the others, or picking frames here and there) is computed on the caller's thread
     outside the stream's locks and not kept: it neither moves the position back nor holds up the
     readers in order while it is computed. A chunk past the position starts the order there.
-    Thread-safe."""
+    Thread-safe.
+
+    With ``read_ahead``, once a reader has a chunk in order, the next one is computed on a
+    thread of the stream's own while the reader works on this one (a decoder's frames are ready
+    when the tracker asks for them): one thread for the stream's life, so that a stage keeping
+    per-thread state (``video.decode``'s decoder) goes on decoding where it stopped; at most one
+    chunk ahead of the furthest in-order read, so at most one more chunk is held. A reader asking
+    for that chunk waits for it; a failure computing it is raised to that reader. Only for a
+    stage that reads no frames: its chunks depend on nothing another thread must drive.
+    """
 
     def __init__(self, info: StreamInfo, ranges: list[tuple[int, int]], compute: Callable[[int], np.ndarray],
-                 *, keep: int = 3):
+                 *, keep: int = 3, read_ahead: bool = False):
         super().__init__(info, ranges)
         self._compute = compute
         self._keep = keep
         self._recent: OrderedDict[int, np.ndarray] = OrderedDict()
         self._next = 0
-        self._state = threading.Lock()  # guards _recent and _next, never held while computing
+        self._state = threading.Lock()  # guards _recent, _next and the read-ahead's fields, never held while computing
         self._order = threading.Lock()  # held while computing in order
+        self._read_ahead = read_ahead
+        self._ahead_ready = threading.Condition(self._state)  # the read-ahead's chunk is done (or failed)
+        self._queued: int | None = None  # the chunk the read-ahead thread computes next
+        self._failed: dict[int, BaseException] = {}  # read-ahead failures, raised to the chunk's reader
+        self._ahead: threading.Thread | None = None
 
     def chunk(self, index: int, *, mmap: bool = False) -> np.ndarray:
-        kept = self._kept(index)
-        if kept is not None:
-            return kept
-        with self._order:
-            kept = self._kept(index)
-            if kept is not None:
-                return kept
-            for i in range(self._next if index < self._next + self._keep else index, index + 1):
-                frames = self._compute(i)
+        with self._ahead_ready:
+            while self._queued == index:
+                self._ahead_ready.wait()
+            if index in self._failed:
+                raise self._failed.pop(index)
+        frames = self._kept(index)
+        if frames is None:
+            with self._order:
+                frames = self._kept(index)
+                if frames is None:
+                    for i in range(self._next if index < self._next + self._keep else index, index + 1):
+                        frames = self._compute(i)
+                        self._keep_chunk(i, frames)
+        if self._read_ahead:
+            self._queue(index + 1)
+        return frames
+
+    def _keep_chunk(self, index: int, frames: np.ndarray) -> None:
+        """Keep chunk ``index`` (computed in order) and move the in-order position past it."""
+        with self._state:
+            self._recent[index] = frames
+            while len(self._recent) > self._keep:
+                self._recent.popitem(last=False)
+            self._next = index + 1
+
+    def _queue(self, index: int) -> None:
+        """Have the read-ahead thread compute chunk ``index`` if it is the next in order."""
+        with self._ahead_ready:
+            if index >= len(self.ranges) or index != self._next or self._queued is not None:
+                return
+            self._queued = index
+            if self._ahead is None:
+                self._ahead = threading.Thread(target=self._compute_ahead, name="read-ahead", daemon=True)
+                self._ahead.start()
+            self._ahead_ready.notify_all()
+
+    def _compute_ahead(self) -> None:
+        """The read-ahead thread: compute each queued chunk in order; end after the last chunk."""
+        last = False
+        while not last:
+            with self._ahead_ready:
+                while self._queued is None:
+                    self._ahead_ready.wait()
+                index = self._queued
+            last = index == len(self.ranges) - 1
+            try:
+                with self._order:
+                    if index == self._next:  # else a reader computed it meanwhile
+                        self._keep_chunk(index, self._compute(index))
+            except BaseException as exc:  # raised to the reader of this chunk
                 with self._state:
-                    self._recent[i] = frames
-                    while len(self._recent) > self._keep:
-                        self._recent.popitem(last=False)
-                    self._next = i + 1
-            return frames
+                    self._failed[index] = exc
+            finally:
+                with self._ahead_ready:
+                    self._queued = None
+                    if last:
+                        self._ahead = None
+                    self._ahead_ready.notify_all()
 
     def _kept(self, index: int) -> np.ndarray | None:
         """Chunk ``index`` if it is kept, else None; computes it at once, outside the locks and
