@@ -187,9 +187,10 @@ def _source_coordinates(
     covered = torch.empty(B, H, W, dtype=torch.bool, device=device)
     for b, d in enumerate(dst_points.detach().to(torch.float64).cpu().numpy()):  # frame by frame: the index stays in cache
         index = triangle_index_map(d, triangles, size)
-        covered[b] = torch.from_numpy(index >= 0)
-        index[index < 0] = K  # uncovered pixels: the identity
-        index = torch.from_numpy(index.astype(np.int64)).to(device).flatten()
+        uncovered = index < 0
+        covered[b] = torch.from_numpy(~uncovered)
+        index[uncovered] = K  # uncovered pixels: the identity
+        index = torch.from_numpy(index).to(device).flatten()  # int32: index_select takes it as it is
         a = [table[b, j].index_select(0, index).view(H, W) for j in range(6)]
         for axis in range(2):
             torch.addcmul(a[3 * axis + 2], a[3 * axis], xs, out=planes[axis, b]).addcmul_(a[3 * axis + 1], ys)
