@@ -11,14 +11,15 @@ A job computes with one thread (Ray sets ``OMP_NUM_THREADS`` to the task's one C
 given both cores' threads was 1.5x slower at load 10 on 2 cores and, by the idle figures, no
 faster idle (``docs/batch.md``).
 
-Start-up: a local Ray is a chain of processes started one after another (the GCS; the dashboard
-head, which ``ray.init`` starts and waits for even without a dashboard; the raylet, which waits
-for its dashboard and runtime-env agents; then the driver's and the workers' connections), about
-5 s on an idle 2-core machine, and its shut-down waits up to 1 s for the autoscaler monitor;
-``docs/batch.md`` gives the measured breakdown. The command starts it with usage statistics off
-(``RAY_USAGE_STATS_ENABLED=0`` unless set: no usage report from a render node), the dashboard
-off and the workers' output kept out of the driver; ``batch_start`` carries ``ray_init_s``
-(``ray.init``'s seconds) and ``batch_end`` ``shutdown_s`` (``ray.shutdown``'s).
+Start-up: a local Ray is a chain of processes started one after another; the command starts
+only those a batch on one machine uses (:func:`runner.batch_ray.start_local_ray`: the GCS, the
+raylet and its two agents; no dashboard head, autoscaler monitor or log monitor; usage
+statistics off, ``RAY_USAGE_STATS_ENABLED=0`` unless set), with one CPU
+more than the jobs' for the event sink actor, so that the raylet prestarts a worker process for
+it besides one per job and the first jobs start on prestarted workers. ``--address`` joins a
+running Ray with ``ray.init``. ``batch_start`` carries ``ray_init_s`` (the seconds until the
+driver is connected) and ``batch_end`` ``shutdown_s`` (those of stopping or leaving the Ray);
+``docs/batch.md`` gives the measured breakdown.
 
 Failures: a stage that fails (:class:`runner.errors.StageFailed`, a bad input) fails its job
 at once, with its one-line message; anything else (a worker process that died, an unexpected
@@ -34,7 +35,6 @@ retrying, done / cached / failed) and a final table; ``log`` receives every even
 from __future__ import annotations
 
 import dataclasses
-import logging
 import os
 import socket
 import time
@@ -45,6 +45,7 @@ from typing import Any
 import ray
 
 from runner.batch_manifest import Job
+from runner.batch_ray import RAY_OPTIONS, start_local_ray
 from runner.cache import CacheStore
 from runner.config import ConfigError, bind_inputs, load_pipeline
 from runner.errors import StageFailed
@@ -166,7 +167,8 @@ def run_batch(jobs: list[Job], *, cache_dir: Path, device: str = "auto", workers
     device
         Passed to each job (``--device``).
     workers
-        A local Ray's CPUs, i.e. jobs at once (default: this machine's CPUs); not with ``address``.
+        Jobs at once on a local Ray (default: this machine's CPUs; the Ray gets one CPU more, the
+        event sink's); not with ``address``.
     address
         A Ray cluster to join (``ray.init(address=...)``) instead of starting a local Ray.
     retries
@@ -187,15 +189,18 @@ def run_batch(jobs: list[Job], *, cache_dir: Path, device: str = "auto", workers
     cache_dir = Path(cache_dir).resolve()
     started = time.perf_counter()
     if address is None:
-        os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # read by ray.init and the processes it starts
-    ray.init(address=address or "local", num_cpus=None if address else (workers or os.cpu_count()),
-             include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
+        os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # read by Ray and the processes it starts
+        sink_cpus = 1  # the event sink's own CPU: the raylet prestarts a worker per CPU, one for the sink
+        stop_ray = start_local_ray((workers or os.cpu_count() or 1) + sink_cpus, note=echo)
+    else:
+        ray.init(address=address, **RAY_OPTIONS)
+        stop_ray, sink_cpus = ray.shutdown, 0
     ray_init_s = time.perf_counter() - started
     states: dict[str, _State] = {job.name: _State(job) for job in jobs}
     try:
         log({"event": "batch_start", "time": time.time(), "jobs": len(jobs), "address": address,
-             "cpus": ray.cluster_resources().get("CPU"), "ray_init_s": ray_init_s})
-        sink = ray.remote(num_cpus=0)(EventSink).remote()
+             "cpus": ray.cluster_resources().get("CPU", 0) - sink_cpus, "ray_init_s": ray_init_s})
+        sink = ray.remote(num_cpus=sink_cpus)(EventSink).remote()
         task = ray.remote(num_cpus=1, max_retries=retries, retry_exceptions=True)(_job_task)
         pending = {}
         for job in jobs:
@@ -218,7 +223,7 @@ def run_batch(jobs: list[Job], *, cache_dir: Path, device: str = "auto", workers
         raise
     finally:
         stopping = time.perf_counter()
-        ray.shutdown()
+        stop_ray()
     shutdown_s = time.perf_counter() - stopping
     seconds = time.perf_counter() - started
     counts = {s: sum(state.status == s for state in states.values()) for s in ("done", "cached", "failed")}

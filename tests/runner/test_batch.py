@@ -285,6 +285,7 @@ stages:
     assert len(starts) == 2 and (tmp_path / "out" / "crashes_once" / "table" / "series.json").is_file()
     begin, end = (next(e for e in read_log(log) if e["event"] == kind) for kind in ("batch_start", "batch_end"))
     assert 0 < begin["ray_init_s"] < end["seconds"] and 0 < end["shutdown_s"] < end["seconds"] - begin["ray_init_s"]
+    assert begin["cpus"] == 2  # the jobs' CPUs (the local Ray has one more, the event sink's)
     rows = {line.split()[0]: line for line in done.stdout.splitlines()[-4:-1]}
     assert rows["crashes_once"].split()[1] == "done"
     assert rows["bad"].split()[1] == "failed" and f"stage 'decode' (video.decode): {tmp_path / 'bad.mp4'}" in rows["bad"]
