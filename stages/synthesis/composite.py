@@ -55,7 +55,9 @@ class Compositor:
     secondary[:, secondary_index]`` (the secondary index of a pixel outside every band points at
     a zero column). The outside label's slices are constant and filled once; so is the image
     outside ``box``, the bounding box of the face labels' pixels (``background``), and the
-    gathers run over the box only (``box_primary_index``, ``box_secondary_index``).
+    gathers run over the box only: the primary one over every box pixel (``box_primary_index``),
+    the secondary one over the box's band pixels only (``box_band`` their positions in the box,
+    ``box_band_secondary`` their columns), added where they belong.
 
     ``candidates[l]`` indexes the full image stack (``M`` examples, ``Mt`` teeth examples, the
     standard image); ``alpha`` (H*W,) is the face alpha ``1 - w_S``; ``images`` (E, 3, H*W),
@@ -81,7 +83,8 @@ class Compositor:
     detail_power: float
     box: tuple[int, int, int, int]  # (y0, y1, x0, x1): bounding box of the pixels with a face label
     box_primary_index: torch.Tensor  # (h*w,) primary_index inside the box
-    box_secondary_index: torch.Tensor
+    box_band: torch.Tensor  # (n,) positions (of the h*w) of the box pixels in a blending band
+    box_band_secondary: torch.Tensor  # (n,) their secondary_index
     background: torch.Tensor  # (H*W, 4) channels-last: the composite outside the box (any coefficients), alpha
 
 
@@ -164,10 +167,12 @@ def prepare_compositor(
     background = torch.empty(H * W, 4, device=device)
     background[:, :3] = (primary_template.index_select(1, primary_index) + secondary_template.index_select(1, secondary_index)).t()
     background[:, 3] = alpha
+    box_secondary = secondary_index.view(H, W)[y0:y1, x0:x1].flatten()
+    box_band = torch.nonzero(box_secondary != s_off).flatten()
     return Compositor(
         (W, H), candidates, primary, secondary, primary_index, secondary_index,
         primary_template, secondary_template, alpha, images, r, i1, i2, details, float(detail_power), box,
-        primary_index.view(H, W)[y0:y1, x0:x1].flatten(), secondary_index.view(H, W)[y0:y1, x0:x1].flatten(), background,
+        primary_index.view(H, W)[y0:y1, x0:x1].flatten(), box_band, box_secondary[box_band], background,
     )
 
 
@@ -289,6 +294,7 @@ def composite(
             if workspace is None:
                 frame.copy_(comp.background)
             inside = frame.view(H, W, 4)[y0:y1, x0:x1, :3].permute(2, 0, 1)  # (3, h, w) view
-            torch.add(primary.index_select(1, comp.box_primary_index).view(inside.shape),
-                      secondary.index_select(1, comp.box_secondary_index).view(inside.shape), out=inside)
+            face = primary.index_select(1, comp.box_primary_index)  # (3, h*w)
+            face.index_add_(1, comp.box_band, secondary.index_select(1, comp.box_band_secondary))
+            inside.copy_(face.view(inside.shape))
     return out.view(B, 4, H, W)
