@@ -86,6 +86,7 @@ def run(pipeline: Path, clip: Path | None, named: tuple[str, ...], out: Path, dr
 
     options = Options(cache=CacheStore(cache_dir or default_cache_dir()), device=resolved, jobs=jobs,
                       force=frozenset(force), until=until, dry_run=dry_run, out=out,
+                      offload=not dry_run, overrides=tuple(overrides),
                       progress=sys.stderr.isatty(), log=log, echo=click.echo,
                       warn=lambda line: click.echo(line, err=True))
     if dry_run:

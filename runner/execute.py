@@ -43,6 +43,7 @@ import importlib.metadata
 import os
 import queue
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -56,6 +57,8 @@ from runner.depends import recording
 from runner.digest import cache_key, input_digest
 from runner.errors import StageFailed, stage_errors
 from runner.keys import Keys
+from runner.offload import spec as offload_spec
+from runner.offload import start as offload_start
 from runner.outputs import entry_context, load_bundle, read_or_redo, save_outputs, verify_files
 from runner.progress import Progress, Report, own_time
 from runner.publish import Published, conflicts, publish, remove_leftovers
@@ -78,6 +81,8 @@ class Options:
     log: Callable[[dict[str, Any]], None] = lambda event: None
     echo: Callable[[str], None] = lambda line: None
     warn: Callable[[str], None] = lambda line: None  # one line on stderr (a damaged cache entry)
+    offload: bool = False  # a ready stage reading a source's frames runs in a child process (runner.offload)
+    overrides: tuple[str, ...] = ()  # the pipeline's --set overrides (for those child processes)
 
 
 def resolve_device(requested: str) -> str:
@@ -128,6 +133,8 @@ class Runner:
         self._lazy: list[FrameChunks] = []  # lazy frame stages not reported yet
         self._joined: dict[str, list[tuple[FrameChunks, str, threading.Thread]]] = {}  # per stage, the readers it registered
         self._producers: dict[FrameChunks, None] = {}  # lazy frame stages given a producer thread (ordered set)
+        self._bound = bound
+        self._in_child: dict[str, float] = {}  # stages computed by a child process: its seconds
 
     def selected(self) -> list[StageNode]:
         names = self.pipeline.ancestors(self.opts.until) if self.opts.until else set(self.pipeline.stages)
@@ -222,18 +229,44 @@ class Runner:
                 thread.start()
             return bool(started)
 
+        children: dict[str, tuple[Any, float]] = {}  # stage -> (child process, start time): runner.offload
+        in_child = object()  # put on `ended` when a child process ends
+
+        def offload(ready: list[StageNode]) -> bool:
+            """Start a child process for a ready stage that reads a source's frames, when another
+            ready stage keeps this thread busy meanwhile (at most one child per spare core)."""
+            if not self.opts.offload or len(children) >= self.services.producers - 1 or len(ready) < 2:
+                return False
+            node = next((n for n in ready if self._offloadable(n)), None)
+            if node is None:
+                return False
+            argument = offload_spec(pipeline=self.pipeline.path, overrides=list(self.opts.overrides),
+                                    bound=self._bound, cache=self.store.root, device=self.opts.device, stage=node.name)
+            child = offload_start(argument)
+            children[node.name] = (child, time.perf_counter())
+            threading.Thread(target=lambda: (child.wait(), ended.put((node, in_child, None))), daemon=True,
+                             name=f"child-{node.name}").start()
+            self.log({"event": "offload", "stage": node.name, "pid": child.pid})
+            return True
+
         try:
-            while waiting or running:
+            while waiting or running or children:
                 ready = [] if failure is not None else [
-                    node for node in waiting if all(ref.stage is None or ref.stage in done for ref in node.inputs.values())]
+                    node for node in waiting if node.name not in children
+                    and all(ref.stage is None or ref.stage in done for ref in node.inputs.values())]
                 setups = [node for node in ready if self._sets_up_only(node)]
-                if ready and not setups and launch(ready):
+                if ready and not setups and (launch(ready) or offload(ready)):
                     continue
                 if ready:
                     waiting.remove((setups or ready)[0])
                     node, report, error = visit((setups or ready)[0])
-                elif running:
+                elif running or children:
                     node, report, error = ended.get()
+                    if report is in_child:  # its stage is visited next: its entry is in the cache
+                        child, began = children.pop(node.name)
+                        if child.returncode == 0:
+                            self._in_child[node.name] = time.perf_counter() - began
+                        continue
                     running.pop(node.name)
                 else:
                     break
@@ -245,6 +278,9 @@ class Runner:
                     emit(report)
         except BaseException:  # interrupted: the stages on threads stop at their next event
             self._stopping.set()
+            for child, _ in children.values():
+                child.terminate()
+                child.wait()
             for thread in running.values():
                 thread.join()
             raise
@@ -277,7 +313,27 @@ class Runner:
         if report is not None:
             report.seconds += spent[0][0]
             report.cpu_seconds += spent[0][1]
+            if node.name in self._in_child and report.status == "cached":
+                report.status, report.reason = "ran", "in a child process beside the run"
+                report.seconds = self._in_child[node.name]
         return report
+
+    def _offloadable(self, node: StageNode) -> bool:
+        """Whether ``node`` may run in a child process (:mod:`runner.offload`): a sequence stage,
+        not forced, reading the frames of a source (an uncached frame stage that reads no
+        frames: decoding), whose entry is not stored already."""
+        if issubclass(node.cls, FrameStage) or node.name in self.opts.force or self.opts.dry_run:
+            return False
+        sources = [ref.stage for ref in node.inputs.values() if ref.stage is not None
+                   and issubclass(self.pipeline.stages[ref.stage].cls, FrameStage)
+                   and not self.pipeline.stages[ref.stage].cls.cached
+                   and "frames" not in self.pipeline.stages[ref.stage].cls.inputs.values()]
+        if not sources:
+            return False
+        inputs = self._inputs(node)
+        if any(v.known_digest() is None for v in inputs.values()):
+            return True
+        return self.keys.lookup(node, cache_key(self.keys.material(node, input_digests(inputs)))) is None
 
     def _stream_reads(self, node: StageNode) -> tuple[bool, list[tuple[FrameChunks, str]]]:
         """Whether ``node`` runs on a thread of its own (it is a sequence stage or an eager

@@ -1,0 +1,82 @@
+"""A sequence stage reading a source's frames runs in a child process beside the run
+(runner.offload): same published outputs as computed in the run itself, the run reports it, a
+second run is all cached, and a child that fails leaves the stage to the run."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from runner import execute
+from runner.cache import CacheStore
+from runner.config import load_pipeline
+from runner.execute import Options, Runner
+from runner.registry import Registry
+from tests.runner.helpers import TINY, read_log, run_cli, stage_status
+
+PIPELINE = """\
+    chunk_frames: 8
+    inputs:
+      clip: {type: video}
+    stages:
+      decode: {uses: video.decode, inputs: {video: clip}}
+      mean: {uses: test.mean, inputs: {frames: decode.frames}}
+      table: {uses: test.table, inputs: {series: mean.series}}
+      video: {uses: write.video, params: {crf: 20}, inputs: {frames: decode.frames}}
+"""
+
+
+@pytest.fixture
+def pipeline(tmp_path: Path) -> Path:
+    path = tmp_path / "two.yaml"
+    path.write_text(textwrap.dedent(PIPELINE))
+    return path
+
+
+def test_stage_in_a_child_gives_the_same_outputs(env, tmp_path, pipeline, plugin_site, monkeypatch):
+    out = tmp_path / "out"
+    first = run_cli("run", pipeline, "--in", TINY, "--out", out, "--log-json", tmp_path / "1.jsonl", env=env, cwd=tmp_path)
+    assert first.returncode == 0, first.stderr
+    events = read_log(tmp_path / "1.jsonl")
+    moved = [e["stage"] for e in events if e["event"] == "offload"]
+    assert moved and set(moved) <= {"mean", "video"}
+    reports = {e["stage"]: e for e in events if e["event"] == "stage"}
+    for stage in moved:
+        assert (reports[stage]["status"], reports[stage]["reason"]) == ("ran", "in a child process beside the run")
+    assert first.stderr == ""
+
+    # The same pipeline computed in this process, without children, publishes the same bytes.
+    monkeypatch.syspath_prepend(str(plugin_site))
+    loaded = load_pipeline(pipeline, Registry.from_entry_points())
+    Runner(loaded, {"clip": TINY}, Options(cache=CacheStore(tmp_path / "alone"), out=tmp_path / "alone_out")).run()
+    for published in ("table/series.json", "video/video.mp4"):
+        assert (out / published).read_bytes() == (tmp_path / "alone_out" / published).read_bytes()
+
+    second = run_cli("run", pipeline, "--in", TINY, "--out", out, "--log-json", tmp_path / "2.jsonl", env=env, cwd=tmp_path)
+    assert second.returncode == 0, second.stderr
+    assert not [e for e in read_log(tmp_path / "2.jsonl") if e["event"] == "offload"]  # cached: no child
+    assert set(stage_status(read_log(tmp_path / "2.jsonl")).values()) <= {"cached", "on demand"}
+
+
+def test_a_failed_child_leaves_the_stage_to_the_run(tmp_path, pipeline, plugin_site, monkeypatch):
+    monkeypatch.syspath_prepend(str(plugin_site))
+    started = []
+
+    def failing(argument: str) -> subprocess.Popen:
+        started.append(json.loads(argument)["until"])
+        return subprocess.Popen([sys.executable, "-c", "raise SystemExit(1)"])
+
+    monkeypatch.setattr(execute, "offload_start", failing)
+    events = []
+    options = Options(cache=CacheStore(tmp_path / "cache"), out=tmp_path / "out", offload=True, log=events.append)
+    reports = {r.stage: r for r in Runner(load_pipeline(pipeline, Registry.from_entry_points()), {"clip": TINY},
+                                          options).run()}
+    assert started
+    for stage in started:
+        assert (reports[stage].status, reports[stage].reason) == ("ran", "")  # computed here after all
+    assert json.loads((tmp_path / "out" / "table" / "series.json").read_text())
