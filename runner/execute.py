@@ -39,6 +39,7 @@ publishing in :mod:`runner.publish`, reports and timing in :mod:`runner.progress
 from __future__ import annotations
 
 import contextlib
+import importlib
 import importlib.metadata
 import os
 import queue
@@ -135,6 +136,7 @@ class Runner:
         self._producers: dict[FrameChunks, None] = {}  # lazy frame stages given a producer thread (ordered set)
         self._bound = bound
         self._in_child: dict[str, float] = {}  # stages computed by a child process: its seconds
+        self._imported: set[str] = set()  # modules imported ahead (_import_ahead)
 
     def selected(self) -> list[StageNode]:
         names = self.pipeline.ancestors(self.opts.until) if self.opts.until else set(self.pipeline.stages)
@@ -261,6 +263,7 @@ class Runner:
                     waiting.remove((setups or ready)[0])
                     node, report, error = visit((setups or ready)[0])
                 elif running or children:
+                    self._import_ahead(waiting)
                     node, report, error = ended.get()
                     if report is in_child:  # its stage is visited next: its entry is in the cache
                         child, began = children.pop(node.name)
@@ -317,6 +320,17 @@ class Runner:
                 report.status, report.reason = "ran", "in a child process beside the run"
                 report.seconds = self._in_child[node.name]
         return report
+
+    def _import_ahead(self, waiting: list[StageNode]) -> None:
+        """Import the modules the ``waiting`` stages declare (:attr:`runner.stage.Stage.imports`),
+        once each, while this thread would only wait (for the streamed section). A module that
+        fails to import is left to the stage, which reports it when it runs."""
+        for node in waiting:
+            for module in node.cls.imports:
+                if module not in self._imported:
+                    self._imported.add(module)
+                    with contextlib.suppress(Exception):
+                        importlib.import_module(module)
 
     def _offloadable(self, node: StageNode) -> bool:
         """Whether ``node`` may run in a child process (:mod:`runner.offload`): a sequence stage,

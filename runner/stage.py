@@ -144,6 +144,10 @@ class Stage:
     optional_inputs: ClassVar[frozenset[str]] = frozenset()
     outputs: ClassVar[Mapping[str, str]] = {}
     params: ClassVar[tuple[Param, ...]] = ()
+    # Modules the stage's run imports (its heavy libraries): the runner imports them ahead while
+    # its scheduling thread waits for other stages (a stream), so that the stage does not start
+    # by importing. Loading a pipeline still imports none of them.
+    imports: ClassVar[tuple[str, ...]] = ()
 
 
 class SequenceStage(Stage):

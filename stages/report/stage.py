@@ -85,6 +85,7 @@ class WriteReport(SequenceStage):
     }
     optional_inputs = frozenset({"displacements", "mapped"})
     outputs = {"report": "files"}
+    imports = ("stages.report.sections",)  # matplotlib (~1 s of one core): imported while the frames stream
     params = (
         Param("title", str, "Expression mapping: run report", "the page's heading"),
         Param("enabled", bool, True, "write the page; false turns the report off (out/<stage>/ then holds only "
