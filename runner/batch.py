@@ -130,13 +130,15 @@ def _job_task(spec: dict[str, Any], cache_dir: str, device: str, sink: Any) -> d
     """The Ray task of one job: :func:`run_job` with its events sent to ``sink``. The first and
     the last event are awaited: the last so that every event is with the sink when the task's
     result is, the first so that a try whose worker dies right after starting is still seen
-    (an actor call not yet sent is lost with its process)."""
+    (an actor call not yet sent is lost with its process). They are awaited through the
+    reference's future, not ``ray.get``: a task blocked in ``ray.get`` or ``ray.wait`` lends its
+    CPU to another task, which started a second job on a one-CPU Ray."""
     job = Job(**spec)
 
     def emit(event: dict[str, Any]) -> None:
         ref = sink.add.remote(job.name, {"time": time.time(), **event})
         if event.get("event") in ("job_start", "run_end"):
-            ray.get(ref)
+            ref.future().result()  # not ray.get/ray.wait: a task blocked in those lends its CPU to another task
 
     return run_job(job, cache_dir=Path(cache_dir), device=device, emit=emit)
 
@@ -201,6 +203,7 @@ def run_batch(jobs: list[Job], *, cache_dir: Path, device: str = "auto", workers
         log({"event": "batch_start", "time": time.time(), "jobs": len(jobs), "address": address,
              "cpus": ray.cluster_resources().get("CPU", 0) - sink_cpus, "ray_init_s": ray_init_s})
         sink = ray.remote(num_cpus=sink_cpus)(EventSink).remote()
+        ray.get(sink.take.remote())  # created, holding its CPU, before a job can take that CPU
         task = ray.remote(num_cpus=1, max_retries=retries, retry_exceptions=True)(_job_task)
         pending = {}
         for job in jobs:

@@ -277,15 +277,21 @@ stages:
                      pipeline=pipeline)
     log = tmp_path / "log.jsonl"
     tag = f"local-{tmp_path.name}-{os.getpid()}"
-    done = run_cli("batch", path, "--workers", "2", "--log-json", log, env={**_env(site, tmp_path), TAG: tag},
+    done = run_cli("batch", path, "--workers", "1", "--log-json", log, env={**_env(site, tmp_path), TAG: tag},
                    cwd=tmp_path)
     assert done.returncode == 1, done.stderr
     _assert_gone(tag)
+    # One job at a time on the one worker CPU (the event sink has a CPU of its own): in the
+    # workers' events, in time order, another job's events begin only with its job_start.
+    worker_events = sorted((e for e in read_log(log) if e.get("job") and e["event"] not in ("job_queued", "job_end")),
+                           key=lambda e: e["time"])
+    for before, event in zip(worker_events, worker_events[1:]):
+        assert event["job"] == before["job"] or event["event"] == "job_start", f"{before} then {event}"
     starts = [e for e in read_log(log) if e.get("event") == "job_start" and e["job"] == "crashes_once"]
     assert len(starts) == 2 and (tmp_path / "out" / "crashes_once" / "table" / "series.json").is_file()
     begin, end = (next(e for e in read_log(log) if e["event"] == kind) for kind in ("batch_start", "batch_end"))
     assert 0 < begin["ray_init_s"] < end["seconds"] and 0 < end["shutdown_s"] < end["seconds"] - begin["ray_init_s"]
-    assert begin["cpus"] == 2  # the jobs' CPUs (the local Ray has one more, the event sink's)
+    assert begin["cpus"] == 1  # the jobs' CPUs (the local Ray has one more, the event sink's)
     rows = {line.split()[0]: line for line in done.stdout.splitlines()[-4:-1]}
     assert rows["crashes_once"].split()[1] == "done"
     assert rows["bad"].split()[1] == "failed" and f"stage 'decode' (video.decode): {tmp_path / 'bad.mp4'}" in rows["bad"]
