@@ -61,8 +61,35 @@ def rotation_matrix(rvec: np.ndarray) -> np.ndarray:
 
 def rotation_vector(R: np.ndarray) -> np.ndarray:
     """The rotation vectors ``(..., 3)`` rad, angle in ``[0, pi]``, of rotation matrices ``R (..., 3, 3)``
-    (the inverse of :func:`rotation_matrix`)."""
-    from scipy.spatial.transform import Rotation
+    (the inverse of :func:`rotation_matrix`).
 
+    Through the unit quaternion (Shepperd's method: the largest of ``4w^2, 4x^2, 4y^2, 4z^2`` from
+    the trace and the diagonal, the others from it; the conversion SciPy's ``Rotation`` makes,
+    without importing ``scipy.spatial``, half a second at a run's start), then
+    ``angle = 2 atan2(|xyz|, w)`` with ``w >= 0`` and a series near 0."""
     R = np.asarray(R, dtype=np.float64)
-    return Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec().reshape(R.shape[:-2] + (3,))
+    m = R.reshape(-1, 3, 3)
+    diagonal = np.stack([m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], axis=1)
+    trace = diagonal.sum(axis=1)
+    choice = np.concatenate([diagonal, trace[:, None]], axis=1).argmax(axis=1)
+    quat = np.empty((len(m), 4))  # (x, y, z, w)
+    w_largest = choice == 3
+    quat[w_largest] = np.stack([m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1],
+                                1.0 + trace], axis=1)[w_largest]
+    for i in range(3):
+        rows = choice == i
+        j, k = (i + 1) % 3, (i + 2) % 3
+        q = np.empty((int(rows.sum()), 4))
+        q[:, i] = 1.0 - trace[rows] + 2.0 * m[rows, i, i]
+        q[:, j] = m[rows, j, i] + m[rows, i, j]
+        q[:, k] = m[rows, k, i] + m[rows, i, k]
+        q[:, 3] = m[rows, k, j] - m[rows, j, k]
+        quat[rows] = q
+    quat /= np.linalg.norm(quat, axis=1, keepdims=True)
+    quat[quat[:, 3] < 0] *= -1.0
+    sin_half = np.linalg.norm(quat[:, :3], axis=1)
+    angle = 2.0 * np.arctan2(sin_half, quat[:, 3])
+    small = angle <= 1e-3
+    scale = np.where(small, 2.0 + angle**2 / 12.0 + 7.0 * angle**4 / 2880.0,
+                     angle / np.sin(np.where(small, 1.0, angle) / 2.0))
+    return (scale[:, None] * quat[:, :3]).reshape(R.shape[:-2] + (3,))

@@ -75,6 +75,8 @@ def adapt_model(model: np.ndarray, image: np.ndarray, camera: np.ndarray) -> np.
 def interpolate_poses(rvec: np.ndarray, tvec: np.ndarray, known: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Fill the frames where ``known (T,)`` is False: rotations ``rvec (T, 3)`` by slerp and
     translations ``tvec (T, 3)`` linearly between the nearest known frames, held at the ends."""
+    if np.all(known):
+        return rvec.copy(), tvec.copy()
     from scipy.spatial.transform import Rotation, Slerp
     frames = np.arange(len(known))
     times = frames[known]

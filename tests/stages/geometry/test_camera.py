@@ -46,3 +46,20 @@ def test_projection_is_opencvs_projectpoints():
     np.testing.assert_allclose(project(points + tvec, skewed)[0], expected, atol=1e-9)
     _, ahead = project(np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 2.0]]), CAMERA)
     np.testing.assert_array_equal(ahead, [False, True])
+
+
+def test_rotation_vector_equals_scipys_conversion():
+    """Against SciPy's ``Rotation`` (an independent implementation): random rotations, angles near
+    0 and near pi, matrices a rounding error off orthogonal, any leading shape."""
+    rng = np.random.default_rng(5)
+    axes = rng.normal(size=(300, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    cases = [Rotation.random(1000, random_state=4).as_matrix(),
+             Rotation.from_rotvec(axes * 1e-7).as_matrix(),
+             Rotation.from_rotvec(axes * (np.pi - 1e-9)).as_matrix(),
+             Rotation.random(300, random_state=6).as_matrix() + rng.normal(size=(300, 3, 3)) * 1e-13]
+    for R in cases:
+        np.testing.assert_allclose(rotation_vector(R), Rotation.from_matrix(R).as_rotvec(), rtol=0, atol=1e-12)
+    R = cases[0][:6].reshape(2, 3, 3, 3)
+    assert rotation_vector(R).shape == (2, 3, 3)
+    assert rotation_vector(np.zeros((0, 3, 3))).shape == (0, 3)
