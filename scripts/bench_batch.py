@@ -15,8 +15,9 @@ output folders), every side with a fresh cache, every command a new process as a
   behind the ratios.
 - The one-job batch's start-up, from its ``--log-json`` events: ``batch_driver_s`` (launch to
   ``ray.init``: Python, the command's imports, the manifest's check, ``import ray``),
-  ``batch_ray_init_s`` (``ray.init`` starting the local Ray), ``batch_job_start_s`` (launch to
-  the job starting on a Ray worker) and ``batch_shutdown_s`` (``ray.shutdown``).
+  ``batch_ray_init_s`` (starting the local Ray, ``runner/batch_ray.py``, and connecting the
+  driver), ``batch_job_start_s`` (launch to the job starting on a Ray worker) and
+  ``batch_shutdown_s`` (disconnecting and stopping the local Ray).
 - ``batch_attached_overhead_ratio``: the one job through ``runner batch --address`` joining a
   local Ray that the bench started beforehand (as a studio keeps one running with ``ray start
   --head``), over ``run_one_job_s``: the batch without Ray's start-up and shut-down;
