@@ -323,8 +323,12 @@ class Runner:
 
     def _import_ahead(self, waiting: list[StageNode]) -> None:
         """Import the modules the ``waiting`` stages declare (:attr:`runner.stage.Stage.imports`),
-        once each, while this thread would only wait (for the streamed section). A module that
-        fails to import is left to the stage, which reports it when it runs."""
+        once each, while this thread would only wait for a streamed section that computes (a
+        chunk of a streamed stage is not stored; a cached run would only be held up by imports
+        its cached stages never use). A module that fails to import is left to the stage, which
+        reports it when it runs."""
+        if not any(chunks.stored(i) is None for chunks in self._producers for i in range(len(chunks.ranges))):
+            return
         for node in waiting:
             for module in node.cls.imports:
                 if module not in self._imported:
