@@ -68,6 +68,9 @@ from runner.stage import FrameStage, StreamInfo
 __all__ = ["Options", "Report", "Runner", "StageFailed", "resolve_device"]
 
 
+IMPORT_POLL_S = 0.05  # how often the scheduling thread looks whether a stream computes (imports ahead)
+
+
 @dataclass
 class Options:
     cache: CacheStore
@@ -263,7 +266,7 @@ class Runner:
                     waiting.remove((setups or ready)[0])
                     node, report, error = visit((setups or ready)[0])
                 elif running or children:
-                    self._import_ahead(waiting)
+                    self._import_ahead(waiting, ended)
                     node, report, error = ended.get()
                     if report is in_child:  # its stage is visited next: its entry is in the cache
                         child, began = children.pop(node.name)
@@ -321,20 +324,25 @@ class Runner:
                 report.seconds = self._in_child[node.name]
         return report
 
-    def _import_ahead(self, waiting: list[StageNode]) -> None:
+    def _import_ahead(self, waiting: list[StageNode], ended: queue.Queue) -> None:
         """Import the modules the ``waiting`` stages declare (:attr:`runner.stage.Stage.imports`),
-        once each, while this thread would only wait for a streamed section that computes (a
-        chunk of a streamed stage is not stored; a cached run would only be held up by imports
-        its cached stages never use). A module that fails to import is left to the stage, which
-        reports it when it runs."""
-        if not any(chunks.stored(i) is None for chunks in self._producers for i in range(len(chunks.ranges))):
-            return
-        for node in waiting:
-            for module in node.cls.imports:
-                if module not in self._imported:
+        once each, while this thread would only wait for a streamed section that computes: once
+        a streamed stage has computed a chunk in this run (a cached run, whose streams are only
+        looked up, would be held up by imports its cached stages never use). Returns when they
+        are imported, the streams are all resolved, or a stage has ended (``ended`` not empty).
+        A module that fails to import is left to the stage, which reports it when it runs."""
+        modules = [m for node in waiting for m in node.cls.imports if m not in self._imported]
+        streams = list(self._producers)
+        while modules and streams and ended.empty():
+            if any(chunks.computed(i) for chunks in streams for i in range(len(chunks.ranges))):
+                for module in dict.fromkeys(modules):
                     self._imported.add(module)
                     with contextlib.suppress(Exception):
                         importlib.import_module(module)
+                return
+            if all(chunks.complete() for chunks in streams):
+                return
+            time.sleep(IMPORT_POLL_S)
 
     def _offloadable(self, node: StageNode) -> bool:
         """Whether ``node`` may run in a child process (:mod:`runner.offload`): a sequence stage,

@@ -13,10 +13,21 @@ from runner.config import load_pipeline
 from runner.execute import Options, Runner
 from runner.registry import Registry
 from runner.stage import SequenceStage
-from tests.runner.test_streaming import Double, Reader, Source
+from tests.runner.test_streaming import N, Double, Reader, Source
 
 MODULE = "tests.runner.imported_ahead"
 SEEN: dict[str, object] = {}
+IMPORTED = threading.Event()
+
+
+class HeldSource(Source):
+    """The ramp clip, its last chunk held until the imports ahead were made (at most 60 s): the
+    stream is still computing while the run waits for it, whatever the machine's speed."""
+
+    def process(self, start, stop, inputs, params, ctx):
+        if stop == N:
+            IMPORTED.wait(60.0)
+        return super().process(start, stop, inputs, params, ctx)
 
 
 class After(SequenceStage):
@@ -43,13 +54,16 @@ def test_declared_modules_are_imported_while_the_stream_runs(tmp_path: Path, mon
           first: {uses: s.reader, inputs: {frames: double.frames}}
           after: {uses: s.after, inputs: {all: first.all}}
     """))
-    registry = Registry(classes=[Source, Double, Reader, After])
+    registry = Registry(classes=[HeldSource, Double, Reader, After])
+    IMPORTED.clear()
     importer = []
     original = Runner._import_ahead
 
-    def spy(self, waiting):
+    def spy(self, waiting, ended):
         importer.append(threading.current_thread())
-        original(self, waiting)
+        original(self, waiting, ended)
+        if MODULE in sys.modules:
+            IMPORTED.set()
 
     monkeypatch.setattr(Runner, "_import_ahead", spy)
     reports = Runner(load_pipeline(pipeline, registry), {}, Options(cache=CacheStore(tmp_path / "cache"))).run()
