@@ -441,9 +441,8 @@ class FrameChunks:
                                 lambda i: None if reader is None else self.passed(reader, i))
         with self._book:
             if port not in self._streams:
-                source = "frames" not in self.node.cls.inputs.values()  # decoding: nothing to drive
                 self._streams[port] = ComputedStream(self.info, self.ranges, lambda i, p=port: self._process(*self.ranges[i])[p],
-                                                     keep=self.run.jobs + 2, read_ahead=source)
+                                                     keep=self.run.jobs + 2, read_ahead=is_source(self.node.cls))
             return self._streams[port]
 
     def _frame_ports(self) -> list[str]:
@@ -497,6 +496,12 @@ class FrameChunks:
             for port, array in frames.items():
                 check_frames(port, array, stop - start, self.info)
         return frames
+
+
+def is_source(cls: type) -> bool:
+    """True for an uncached frame stage that reads no frames (``video.decode``): its chunks are
+    computed as read and depend on nothing another thread drives (read-ahead, runner.offload)."""
+    return issubclass(cls, FrameStage) and not cls.cached and "frames" not in cls.inputs.values()
 
 
 def defines_stream_info(cls: type[FrameStage]) -> bool:

@@ -52,7 +52,7 @@ from typing import Any
 
 from runner.broadcast import unbounded
 from runner.cache import CacheStore, Entry
-from runner.chunks import FrameChunks, RunServices, Value, defines_stream_info, input_digests
+from runner.chunks import FrameChunks, RunServices, Value, defines_stream_info, input_digests, is_source
 from runner.config import ConfigError, Issue, Pipeline, StageNode, Where
 from runner.depends import recording
 from runner.digest import cache_key, input_digest
@@ -350,11 +350,8 @@ class Runner:
         frames: decoding), whose entry is not stored already."""
         if issubclass(node.cls, FrameStage) or node.name in self.opts.force or self.opts.dry_run:
             return False
-        sources = [ref.stage for ref in node.inputs.values() if ref.stage is not None
-                   and issubclass(self.pipeline.stages[ref.stage].cls, FrameStage)
-                   and not self.pipeline.stages[ref.stage].cls.cached
-                   and "frames" not in self.pipeline.stages[ref.stage].cls.inputs.values()]
-        if not sources:
+        if not any(ref.stage is not None and is_source(self.pipeline.stages[ref.stage].cls)
+                   for ref in node.inputs.values()):
             return False
         inputs = self._inputs(node)
         if any(v.known_digest() is None for v in inputs.values()):
