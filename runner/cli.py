@@ -45,7 +45,8 @@ def cli() -> None:
               help="Where `files` outputs are published, one folder per stage.")
 @click.option("--dry-run", is_flag=True, help="Say, per stage, whether it is cached or will run and why; run nothing.")
 @click.option("--force", multiple=True, metavar="STAGE", help="Recompute STAGE even if cached (repeatable).")
-@click.option("--until", metavar="STAGE", help="Run only STAGE and the stages it depends on.")
+@click.option("--until", metavar="STAGE", multiple=True,
+              help="Run only STAGE and the stages it depends on (repeatable).")
 @click.option("--set", "overrides", multiple=True, metavar="STAGE.PARAM=VALUE",
               help="Override a parameter, typed by its schema (repeatable).")
 @click.option("--device", type=click.Choice(["cpu", "cuda", "auto"]), default="auto", show_default=True,
@@ -56,14 +57,14 @@ def cli() -> None:
               help="Write one JSON event per line (stages, chunks, outcome) to this file.")
 @cache_dir_option
 def run(pipeline: Path, clip: Path | None, named: tuple[str, ...], out: Path, dry_run: bool, force: tuple[str, ...],
-        until: str | None, overrides: tuple[str, ...], device: str, jobs: int, log_json: Path | None,
+        until: tuple[str, ...], overrides: tuple[str, ...], device: str, jobs: int, log_json: Path | None,
         cache_dir: Path | None) -> int:
     """Run PIPELINE (a pipeline.yaml)."""
     from runner.execute import Options, Runner, resolve_device  # here: `dag`, `stages` start faster without it
 
     loaded = load_pipeline(pipeline, Registry.from_entry_points(), overrides=list(overrides))
     unknown = [Issue(Where(flag), name, "unknown stage in this pipeline")
-               for flag, names in (("--force", force), ("--until", (until,) if until else ()))
+               for flag, names in (("--force", force), ("--until", until))
                for name in names if name not in loaded.stages]
     if unknown:
         raise ConfigError(unknown)

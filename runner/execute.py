@@ -41,6 +41,8 @@ from __future__ import annotations
 import contextlib
 import importlib
 import importlib.metadata
+import json
+import logging
 import os
 import queue
 import threading
@@ -78,7 +80,7 @@ class Options:
     jobs: int = 1
     producers: int | None = None  # threads computing a streamed lazy stage's chunks; None: os.cpu_count()
     force: frozenset[str] = frozenset()
-    until: str | None = None
+    until: tuple[str, ...] = ()  # run only these stages and those they depend on; empty: every stage
     dry_run: bool = False
     out: Path | None = None
     progress: bool = False
@@ -138,11 +140,12 @@ class Runner:
         self._joined: dict[str, list[tuple[FrameChunks, str, threading.Thread]]] = {}  # per stage, the readers it registered
         self._producers: dict[FrameChunks, None] = {}  # lazy frame stages given a producer thread (ordered set)
         self._bound = bound
-        self._in_child: dict[str, float] = {}  # stages computed by a child process: its seconds
+        self._in_child: dict[str, tuple[float, float]] = {}  # stages a child process ran: (seconds, CPU seconds)
         self._imported: set[str] = set()  # modules imported ahead (_import_ahead)
 
     def selected(self) -> list[StageNode]:
-        names = self.pipeline.ancestors(self.opts.until) if self.opts.until else set(self.pipeline.stages)
+        names = (set().union(*(self.pipeline.ancestors(name) for name in self.opts.until)) if self.opts.until
+                 else set(self.pipeline.stages))
         return [node for name, node in self.pipeline.stages.items() if name in names]
 
     def run(self) -> list[Report]:
@@ -234,24 +237,36 @@ class Runner:
                 thread.start()
             return bool(started)
 
-        children: dict[str, tuple[Any, float]] = {}  # stage -> (child process, start time): runner.offload
+        children: dict[str, Any] = {}  # stage -> the child process computing it (runner.offload)
+        offered: set[str] = set()  # stages given to a child process
         in_child = object()  # put on `ended` when a child process ends
 
         def offload(ready: list[StageNode]) -> bool:
-            """Start a child process for a ready stage that reads a source's frames, when another
-            ready stage keeps this thread busy meanwhile (at most one child per spare core)."""
-            if not self.opts.offload or len(children) >= self.services.producers - 1 or len(ready) < 2:
+            """Start a child process for a ready stage that reads a source's frames, and the
+            sequence stages after it that read nothing else still to compute, when another ready
+            stage keeps this thread busy meanwhile (at most one child per spare core)."""
+            if (not self.opts.offload or len(set(children.values())) >= self.services.producers - 1
+                    or len(ready) < 2):
                 return False
-            node = next((n for n in ready if self._offloadable(n)), None)
+            node = next((n for n in ready if n.name not in offered and self._offloadable(n)), None)
             if node is None:
                 return False
+            stages = self._offload_closure(node, waiting, done)
+            offered.update(stages)  # once: after a failed child, the run computes them
             argument = offload_spec(pipeline=self.pipeline.path, overrides=list(self.opts.overrides),
-                                    bound=self._bound, cache=self.store.root, device=self.opts.device, stage=node.name)
+                                    bound=self._bound, cache=self.store.root, device=self.opts.device, stages=stages)
             child = offload_start(argument)
-            children[node.name] = (child, time.perf_counter())
-            threading.Thread(target=lambda: (child.wait(), ended.put((node, in_child, None))), daemon=True,
-                             name=f"child-{node.name}").start()
-            self.log({"event": "offload", "stage": node.name, "pid": child.pid})
+            children.update(dict.fromkeys(stages, child))
+
+            def relay() -> None:
+                try:
+                    self._relay(child)
+                finally:
+                    child.wait()
+                    ended.put((node, in_child, None))
+
+            threading.Thread(target=relay, daemon=True, name=f"child-{node.name}").start()
+            self.log({"event": "offload", "stage": node.name, "stages": stages, "pid": child.pid})
             return True
 
         try:
@@ -268,10 +283,10 @@ class Runner:
                 elif running or children:
                     self._import_ahead(waiting, ended)
                     node, report, error = ended.get()
-                    if report is in_child:  # its stage is visited next: its entry is in the cache
-                        child, began = children.pop(node.name)
-                        if child.returncode == 0:
-                            self._in_child[node.name] = time.perf_counter() - began
+                    if report is in_child:  # its stages are visited next: their entries are in the cache
+                        child = children[node.name]
+                        for name in [name for name, c in children.items() if c is child]:
+                            children.pop(name)
                         continue
                     running.pop(node.name)
                 else:
@@ -284,7 +299,7 @@ class Runner:
                     emit(report)
         except BaseException:  # interrupted: the stages on threads stop at their next event
             self._stopping.set()
-            for child, _ in children.values():
+            for child in set(children.values()):
                 child.terminate()
                 child.wait()
             for thread in running.values():
@@ -321,7 +336,7 @@ class Runner:
             report.cpu_seconds += spent[0][1]
             if node.name in self._in_child and report.status == "cached":
                 report.status, report.reason = "ran", "in a child process beside the run"
-                report.seconds = self._in_child[node.name]
+                report.seconds, report.cpu_seconds = self._in_child[node.name]
         return report
 
     def _import_ahead(self, waiting: list[StageNode], ended: queue.Queue) -> None:
@@ -343,6 +358,46 @@ class Runner:
             if all(chunks.complete() for chunks in streams):
                 return
             time.sleep(IMPORT_POLL_S)
+
+    def _offload_closure(self, node: StageNode, waiting: list[StageNode], done: set[str]) -> list[str]:
+        """``node`` and the waiting sequence stages (not forced) after it that read it or each
+        other and otherwise only pipeline inputs and stages ``done``: what a child process
+        computes with ``node`` (the performer's branch; the run keeps the rest)."""
+        stages = [node.name]
+        grown = True
+        while grown:
+            grown = False
+            for other in waiting:
+                if (other.name not in stages and not issubclass(other.cls, FrameStage)
+                        and other.name not in self.opts.force
+                        and any(ref.stage in stages for ref in other.inputs.values())
+                        and all(ref.stage is None or ref.stage in done or ref.stage in stages
+                                for ref in other.inputs.values())):
+                    stages.append(other.name)
+                    grown = True
+        return stages
+
+    def _relay(self, child: Any) -> None:
+        """Read a child process's events (one JSON object a line on its standard output, text)
+        until it ends: each is logged as a ``child`` event, a warning is shown, a stage's log
+        record is logged again on its logger, and the seconds of a stage it ran are kept for that
+        stage's report."""
+        for line in child.stdout:
+            try:
+                event = json.loads(line)
+            except ValueError:
+                continue
+            if event.get("event") == "warning":
+                self.opts.warn(event.get("line", ""))
+            if event.get("event") == "log":
+                logging.getLogger(event.get("logger", "runner.stage")).log(event.get("level", logging.WARNING), "%s",
+                                                                          event.get("message", ""))
+            if event.get("event") == "stage" and event.get("status") == "ran":
+                self._in_child[event["stage"]] = (event.get("seconds", 0.0), event.get("cpu_seconds", 0.0))
+            try:
+                self.log({"event": "child", "pid": child.pid, "child": event})
+            except KeyboardInterrupt:  # the run is stopping: it terminates the child
+                break
 
     def _offloadable(self, node: StageNode) -> bool:
         """Whether ``node`` may run in a child process (:mod:`runner.offload`): a sequence stage,

@@ -1,6 +1,7 @@
-"""A sequence stage reading a source's frames runs in a child process beside the run
-(runner.offload): same published outputs as computed in the run itself, the run reports it, a
-second run is all cached, and a child that fails leaves the stage to the run."""
+"""A sequence stage reading a source's frames, and the sequence stages after it that read nothing
+else, run in a child process beside the run (runner.offload): same published outputs as computed
+in the run itself, the run reports them with the child's seconds and logs the child's events, a
+second run is all cached, and a child that fails leaves the stages to the run."""
 
 from __future__ import annotations
 
@@ -43,11 +44,15 @@ def test_stage_in_a_child_gives_the_same_outputs(env, tmp_path, pipeline, plugin
     first = run_cli("run", pipeline, "--in", TINY, "--out", out, "--log-json", tmp_path / "1.jsonl", env=env, cwd=tmp_path)
     assert first.returncode == 0, first.stderr
     events = read_log(tmp_path / "1.jsonl")
-    moved = [e["stage"] for e in events if e["event"] == "offload"]
-    assert moved and set(moved) <= {"mean", "video"}
+    moved = [stage for e in events if e["event"] == "offload" for stage in e["stages"]]
+    assert moved == ["mean", "table"]  # the tracker-like stage and the table that reads only it
     reports = {e["stage"]: e for e in events if e["event"] == "stage"}
+    in_child = {e["child"]["stage"]: e["child"] for e in events
+                if e["event"] == "child" and e["child"]["event"] == "stage"}
     for stage in moved:
         assert (reports[stage]["status"], reports[stage]["reason"]) == ("ran", "in a child process beside the run")
+        assert in_child[stage]["status"] == "ran"
+        assert reports[stage]["seconds"] == in_child[stage]["seconds"]
     assert first.stderr == ""
 
     # The same pipeline computed in this process, without children, publishes the same bytes.
@@ -68,15 +73,15 @@ def test_a_failed_child_leaves_the_stage_to_the_run(tmp_path, pipeline, plugin_s
     started = []
 
     def failing(argument: str) -> subprocess.Popen:
-        started.append(json.loads(argument)["until"])
-        return subprocess.Popen([sys.executable, "-c", "raise SystemExit(1)"])
+        started.extend(json.loads(argument)["until"])
+        return subprocess.Popen([sys.executable, "-c", "raise SystemExit(1)"], stdout=subprocess.PIPE, text=True)
 
     monkeypatch.setattr(execute, "offload_start", failing)
     events = []
     options = Options(cache=CacheStore(tmp_path / "cache"), out=tmp_path / "out", offload=True, log=events.append)
     reports = {r.stage: r for r in Runner(load_pipeline(pipeline, Registry.from_entry_points()), {"clip": TINY},
                                           options).run()}
-    assert started
+    assert started and len(started) == len(set(started))  # each offered to a child once
     for stage in started:
         assert (reports[stage].status, reports[stage].reason) == ("ran", "")  # computed here after all
     assert json.loads((tmp_path / "out" / "table" / "series.json").read_text())

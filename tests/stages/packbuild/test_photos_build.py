@@ -194,7 +194,7 @@ def test_photos_of_another_face_are_named(tmp_path, caplog):
     cv2.imwrite(str(folder / "f.png"), cv2.resize(other[1], (400, 400))[..., ::-1])  # and smaller
     (folder / "h.jpg").write_bytes(b"\xff\xd8\xff broken")
     with caplog.at_level(logging.WARNING):
-        runner, _ = run(folder, tmp_path, until="identity")
+        runner, _ = run(folder, tmp_path, until=("identity",))
     identity = runner.values[("identity", "identity")].get()
     assert identity["names"].tolist() == ["a.png", "b.jpg", "c.png", "d.png", "e.png", "f.png", "g.png"]
     assert identity["differs"].tolist() == [False, False, False, True, False, True, False]
