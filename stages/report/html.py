@@ -70,9 +70,8 @@ def report_html(inputs: Mapping[str, Any], *, title: str) -> str:
     inputs : the stage's inputs: the contact ``sheet`` bundle (:mod:`stages.report.sheet`, which
         also gives the frame count, rate and sizes); bundles ``target``, ``tracked`` (points),
         ``pose``, ``similarity``, ``coefficients``; optional ``displacements`` (its
-        ``neutral_frame``), ``mapped`` (the mapping's points with a per-frame soft-limit
-        flag, see :data:`series.LIMIT_KEYS`, and ``lips_clamped``) and ``figures`` (the
-        timelines drawn ahead, :mod:`stages.report.timelines`; drawn here when absent).
+        ``neutral_frame``) and ``mapped`` (the mapping's points with a per-frame soft-limit
+        flag, see :data:`series.LIMIT_KEYS`, and ``lips_clamped``).
     title : the page's heading.
 
     Returns
@@ -81,39 +80,44 @@ def report_html(inputs: Mapping[str, Any], *, title: str) -> str:
     """
     sheet = inputs["sheet"]
     T, fps = int(sheet["frames"]), float(sheet["fps"])
-    pose, mapped, coefficients = inputs["pose"], inputs.get("mapped"), inputs["coefficients"]
-    geometry = series.geometry_series(tracked=inputs["tracked"], target=inputs["target"], pose=pose,
-                                      similarity=inputs["similarity"], displacements=inputs.get("displacements"),
-                                      mapped=mapped)
-    reference, expression = geometry.reference, geometry.expression
+    tracked, target, pose, similarity = inputs["tracked"], inputs["target"], inputs["pose"], inputs["similarity"]
+    mapped, coefficients = inputs.get("mapped"), inputs["coefficients"]
+    chosen = series.reference_frame(inputs.get("displacements"), pose)
+    reference = 0 if chosen is None else chosen
+    no_face = ~series.frame_valid(tracked)
+    limited = series.limited_frames(mapped)
+    shaded = {"no face": series.spans(no_face), "limited": [] if limited is None else series.spans(limited)}
     warnings = [f"Reference (neutral) frame: {reference}" + (
-        " (recorded by the run)" if geometry.recorded else " (the run records none; the pipeline takes the first frame)")]
+        " (recorded by the run)" if chosen is not None else " (the run records none; the pipeline takes the first frame)")]
+    data: dict[str, Any] = {"frames": T, "fps": fps, "reference_frame": reference, "no_face": no_face,
+                            "limited": limited}
+
+    try:
+        expression = series.expression_series(tracked, target, reference=reference)
+    except ValueError as exc:
+        expression, expression_body = None, not_available(str(exc))
     images = sheet_images(sheet)
-    data: dict[str, Any] = {
-        "frames": T, "fps": fps, "reference_frame": reference, "no_face": geometry.no_face, "limited": geometry.limited,
-        "contact_sheet": [(f, label) for f, label, _ in images], "head_pose": geometry.head_pose,
-        "tracking": geometry.tracking, "residuals": geometry.residuals, "propagation": geometry.propagation}
+    data["contact_sheet"] = [(f, label) for f, label, _ in images]
+    data["head_pose"] = series.head_pose_series(pose)
+    data["tracking"] = series.tracking_series(tracked)
+    data["residuals"] = series.residual_series(pose, similarity)
+    data["propagation"] = series.propagation_series(target)
     dominant = series.dominant_examples(coefficients)
     data["coefficients"] = {**dominant, "subregions": coefficients["subregions"], "examples": coefficients["examples"]}
 
-    from stages.report import sections, timelines  # matplotlib: only when a page is drawn
+    from stages.report import sections  # matplotlib: only when a page is drawn
 
-    if inputs.get("figures") is not None:
-        plots = timelines.bundle_plots(inputs["figures"], frames=T, fps=fps, expression=expression is not None)
-    else:
-        plots = timelines.timeline_plots(geometry, fps=fps)
     if expression is not None:
-        expression_body, data["follow"], poorly = sections.expression_section(expression, plot=plots["expression"])
+        expression_body, data["follow"], poorly = sections.expression_section(
+            expression, reference=reference, shaded=shaded, fps=fps)
         data["expression"] = expression
         warnings += poorly
-    else:
-        expression_body = not_available(str(geometry.expression_error))
-    geometry_body = sections.geometry_section(geometry.propagation, plot=plots["geometry"])
-    coefficient_body = sections.coefficient_section(dominant, coefficients, limited=geometry.limited)
+    geometry_body = sections.geometry_section(data, shaded=shaded, fps=fps)
+    coefficient_body = sections.coefficient_section(dominant, coefficients, limited=limited)
     sheet_body = contact_sheet(images, fps=fps)
 
-    warnings += frame_warnings(no_face=geometry.no_face, pose_valid=pose["valid"], limited=geometry.limited,
-                               mapped=mapped, warp_only=bool((dominant["example"] < 0).all()))
+    warnings += frame_warnings(no_face=no_face, pose_valid=pose["valid"], limited=limited, mapped=mapped,
+                               warp_only=bool((dominant["example"] < 0).all()))
     data["warnings"] = warnings
     parts = [
         Section("Warnings", listing(warnings, css="warn")),

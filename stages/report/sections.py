@@ -1,6 +1,5 @@
-"""The report's plotted sections: expression, head pose / tracking / propagation (their timelines
-come as PNG bytes, :mod:`stages.report.timelines`), and which example drives which subregion
-(drawn here with matplotlib).
+"""The report's plotted sections (matplotlib): expression, head pose / tracking / propagation, and
+which example drives which subregion.
 
 :func:`stages.report.html.report_html` imports this module when it draws a page, so that loading a
 pipeline does not import matplotlib (about 1.4 s of one core).
@@ -9,26 +8,29 @@ pipeline does not import matplotlib (about 1.4 s of one core).
 from __future__ import annotations
 
 from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
 from stages.geometry.signals import SIGNALS, follow
-from stages.report.figures import dominant_heatmap
+from stages.report.figures import Panel, dominant_heatmap, timeline
 from stages.report.page import image, not_available, table
 
 FOLLOW_WARN_R = 0.5  # warn when a target signal correlates less than this with the performer's
 
 
-def expression_section(expression: Mapping[str, Mapping[str, np.ndarray]], *,
-                       plot: bytes) -> tuple[str, dict, list[str]]:
+def expression_section(expression: Mapping[str, Mapping[str, np.ndarray]], *, reference: int,
+                       shaded: Mapping[str, list[tuple[int, int]]], fps: float) -> tuple[str, dict, list[str]]:
     """The expression section's HTML, its ``follow`` numbers and its warnings (a poorly followed
     signal).
 
     Parameters
     ----------
     expression : ``{signal: {"performer": (T,), "target": (T,)}}`` from
-        :func:`stages.report.series.expression_series` (eye distances, change from the reference).
-    plot : their timeline, PNG bytes (:func:`stages.report.timelines.expression_plot`).
+        :func:`stages.report.series.expression_series` (eye distances, change from ``reference``).
+    reference : the reference (neutral) frame, for the panel titles.
+    shaded : span kind -> inclusive frame ranges shaded in every panel.
+    fps : frames per second (the seconds axis).
     """
     follows, rows, warnings = {}, [], []
     for signal in SIGNALS:
@@ -37,22 +39,31 @@ def expression_section(expression: Mapping[str, Mapping[str, np.ndarray]], *,
         rows.append([signal.replace("_", " "), f"{r:.2f}", f"{ratio:.2f}"])
         if np.isfinite(r) and r < FOLLOW_WARN_R:
             warnings.append(f"The target's {signal.replace('_', ' ')} follows the performer's poorly (r = {r:.2f})")
-    body = (image(plot, "image/png", "expression signals")
+    panels = [Panel(f"{s.replace('_', ' ')} (change from frame {reference})", "eye distances",
+                    {"performer": expression[s]["performer"], "target": expression[s]["target"]}, {"target": "--"})
+              for s in SIGNALS]
+    body = (image(timeline(panels, shaded=shaded, fps=fps), "image/png", "expression signals")
             + "<p>How well the target follows (over frames with a face): Pearson r and the amplitude ratio "
             "(target / performer standard deviation).</p>" + table(["signal", "r", "amplitude ratio"], rows))
     return body, follows, warnings
 
 
-def geometry_section(propagation: Mapping[str, np.ndarray], *, plot: bytes) -> str:
+def geometry_section(data: Mapping[str, Any], *, shaded: Mapping[str, list[tuple[int, int]]], fps: float) -> str:
     """The head pose, tracking and propagation section's HTML.
 
     Parameters
     ----------
-    propagation : the propagation series (empty when the target points carry none).
-    plot : the timeline, PNG bytes (:func:`stages.report.timelines.geometry_plot`).
+    data : the page's series: ``head_pose``, ``tracking``, ``residuals``, ``propagation`` (each
+        name -> ``(T,)``, see :mod:`stages.report.series`).
+    shaded, fps : as for :func:`expression_section`.
     """
-    return image(plot, "image/png", "head pose and tracking") + (
-        "" if propagation else not_available("the target points carry no propagation iterations or residual"))
+    panels = [Panel("head pose", "degrees", data["head_pose"]),
+              Panel("tracking: valid points and mean confidence", "fraction", data["tracking"]),
+              Panel("fit residuals", "px", data["residuals"])]
+    panels += [Panel(f"motion propagation: {key}", "px" if key.endswith("_px") else "count", {key: values})
+               for key, values in data["propagation"].items()]
+    return image(timeline(panels, shaded=shaded, fps=fps), "image/png", "head pose and tracking") + (
+        "" if data["propagation"] else not_available("the target points carry no propagation iterations or residual"))
 
 
 def coefficient_section(dominant: Mapping[str, np.ndarray], coefficients: Mapping[str, np.ndarray], *,

@@ -8,7 +8,6 @@ does not exist for a frame (no face, invalid pose) is NaN.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -223,57 +222,3 @@ def spans(flags: np.ndarray) -> list[tuple[int, int]]:
     flags = np.asarray(flags, bool)
     edges = np.diff(np.concatenate([[0], flags.astype(np.int8), [0]]))
     return [(int(a), int(b) - 1) for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1))]
-
-
-@dataclass(frozen=True)
-class GeometrySeries:
-    """The page's series that depend on the geometry alone (known before the synthesis).
-
-    ``reference`` is the neutral frame every expression signal is measured from: the one the run
-    recorded (``recorded`` True) or frame 0. ``no_face (T,)`` and ``limited (T,)`` (None when the
-    run records no soft limit) are the flagged frames, ``shaded`` their spans (see
-    :func:`stages.report.figures.timeline`). ``expression`` is :func:`expression_series` or None,
-    with ``expression_error`` saying why. ``head_pose``, ``tracking``, ``residuals`` and
-    ``propagation`` are name -> ``(T,)`` series of the functions of the same names.
-    """
-
-    reference: int
-    recorded: bool
-    no_face: np.ndarray
-    limited: np.ndarray | None
-    shaded: dict[str, list[tuple[int, int]]]
-    expression: dict[str, dict[str, np.ndarray]] | None
-    expression_error: str | None
-    head_pose: dict[str, np.ndarray]
-    tracking: dict[str, np.ndarray]
-    residuals: dict[str, np.ndarray]
-    propagation: dict[str, np.ndarray]
-
-
-def geometry_series(*, tracked: Mapping[str, np.ndarray], target: Mapping[str, np.ndarray],
-                    pose: Mapping[str, np.ndarray], similarity: Mapping[str, np.ndarray],
-                    displacements: Mapping[str, np.ndarray] | None = None,
-                    mapped: Mapping[str, np.ndarray] | None = None) -> GeometrySeries:
-    """Every series of the page but the coefficients', from the run's geometry bundles.
-
-    Parameters
-    ----------
-    tracked, target : ``points`` bundles (the performer as tracked, the target geometry).
-    pose, similarity : the head pose and the 2D similarity bundles.
-    displacements : read for its ``neutral_frame`` (before the pose's), or None.
-    mapped : the mapping's points, read for its per-frame soft-limit flag, or None.
-    """
-    chosen = reference_frame(displacements, pose)
-    reference = 0 if chosen is None else chosen
-    no_face = ~frame_valid(tracked)
-    limited = limited_frames(mapped)
-    try:
-        expression, error = expression_series(tracked, target, reference=reference), None
-    except ValueError as exc:
-        expression, error = None, str(exc)
-    return GeometrySeries(
-        reference=reference, recorded=chosen is not None, no_face=no_face, limited=limited,
-        shaded={"no face": spans(no_face), "limited": [] if limited is None else spans(limited)},
-        expression=expression, expression_error=error, head_pose=head_pose_series(pose),
-        tracking=tracking_series(tracked), residuals=residual_series(pose, similarity),
-        propagation=propagation_series(target))

@@ -1,6 +1,5 @@
-"""``write.report``: one self-contained HTML page to judge a run (``<out>/<stage>/index.html``);
-``report.sheet``: its contact sheet, picked from the frame streams while they are computed; and
-``report.figures``: its timelines, drawn from the geometry while the result is synthesized.
+"""``write.report``: one self-contained HTML page to judge a run (``<out>/<stage>/index.html``), and
+``report.sheet``: its contact sheet, picked from the frame streams while they are computed.
 
 The page shows a contact sheet (performer | result at evenly spaced frames and at the expression
 peaks), performer vs target expression signals, head pose, tracking validity and fit residuals,
@@ -13,10 +12,6 @@ The contact sheet is a stage of its own because its frames are known from the ge
 ``report.sheet`` reads no synthesis output but the frames, so the runner runs it while the
 result is synthesized and hands it the chosen frames as they pass (nothing synthesized twice);
 ``write.report`` needs the whole run's coefficients, so it runs after the synthesis, from bundles.
-Its two timelines (expression; head pose, tracking, propagation) need the geometry alone, so
-``report.figures`` draws them before, on the scheduling thread while the streamed stages compute;
-``write.report`` then draws only the coefficients' plot and assembles the page (the same bytes as
-when it draws the timelines itself, which it does when no ``figures`` bundle is connected).
 """
 
 from __future__ import annotations
@@ -27,7 +22,7 @@ from typing import Any
 
 from runner.stage import Context, Param, SequenceStage, StageError
 from stages.writers.atomic import atomic_write
-from stages.writers.bundles import check_bundle, first_axis
+from stages.writers.bundles import check_bundle
 
 
 def check_bundles(stage: str, inputs: Mapping[str, Any], kinds: Mapping[str, str], frames: int) -> None:
@@ -77,40 +72,6 @@ class ContactSheet(SequenceStage):
                                             performer_size=sizes[0], result_size=sizes[1])}
 
 
-class ReportFigures(SequenceStage):
-    """``report.figures``: the report's two timelines as PNG bytes (see the module doc)."""
-
-    name = "report.figures"
-    version = "1"
-    doc = "the report's expression and head pose / tracking / propagation plots, drawn from the geometry alone"
-    inputs = {"target": "points", "tracked": "points", "pose": "pose", "similarity": "similarity",
-              "displacements": "displacements", "mapped": "points"}
-    optional_inputs = frozenset({"displacements", "mapped"})
-    outputs = {"figures": "figures"}
-    params = (
-        Param("fps", float, 30.0, "frame rate of the plots' seconds axis when the points carry none; the "
-              "report checks it against the clip's", min=1e-3),
-    )
-
-    def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
-        tracked = inputs["tracked"]
-        frames = first_axis(tracked, "points")
-        check_bundles(self.name, inputs, {"tracked": "points", "target": "points", "pose": "pose",
-                                          "similarity": "similarity", "mapped": "points"}, frames)
-        fps = next((float(b["fps"]) for b in (tracked, inputs["target"]) if "fps" in b), float(params["fps"]))
-        try:
-            from stages.report import series, timelines  # matplotlib: only when run
-
-            geometry = series.geometry_series(
-                tracked=tracked, target=inputs["target"], pose=inputs["pose"], similarity=inputs["similarity"],
-                displacements=inputs.get("displacements"), mapped=inputs.get("mapped"))
-            plots = timelines.timeline_plots(geometry, fps=fps)
-        except (KeyError, ValueError) as exc:
-            raise StageError(f"{self.name}: {exc}") from None
-        ctx.progress(frames)
-        return {"figures": timelines.figures_bundle(plots, frames=frames, fps=fps)}
-
-
 class WriteReport(SequenceStage):
     """``write.report``: ``index.html`` under the ``report`` files output (see the module doc)."""
 
@@ -120,9 +81,9 @@ class WriteReport(SequenceStage):
     inputs = {
         "sheet": "sheet", "target": "points", "tracked": "points", "pose": "pose",
         "similarity": "similarity", "coefficients": "coefficients", "displacements": "displacements",
-        "mapped": "points", "figures": "figures",
+        "mapped": "points",
     }
-    optional_inputs = frozenset({"displacements", "mapped", "figures"})
+    optional_inputs = frozenset({"displacements", "mapped"})
     outputs = {"report": "files"}
     imports = ("stages.report.sections",)  # matplotlib (~1 s of one core): imported while the frames stream
     params = (

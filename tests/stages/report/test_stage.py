@@ -1,6 +1,6 @@
-"""``report.sheet``, ``report.figures`` and ``write.report`` on synthetic inputs: the page's
-embedded series against the ground truth of the inputs, the frames the sheet reads,
-byte-identical pages across runs and processes, input errors."""
+"""``report.sheet`` and ``write.report`` on synthetic inputs: the page's embedded series against the
+ground truth of the inputs, the frames the sheet reads, byte-identical pages across runs and
+processes, input errors."""
 
 import json
 import os
@@ -14,7 +14,7 @@ import pytest
 
 from runner.stage import StageError
 from stages.layout import load_layout
-from stages.report.stage import ContactSheet, ReportFigures, WriteReport
+from stages.report.stage import ContactSheet, WriteReport
 from tests.memory_stream import files_context
 from tests.stages.report import synthetic
 
@@ -34,18 +34,10 @@ def sheet(inputs) -> dict:
     return ContactSheet().run(ports, SHEET_PARAMS, files_context(Path("/nonexistent")))["sheet"]
 
 
-def figures(inputs, **params) -> dict:
-    """``report.figures``' bundle for the stage inputs ``inputs`` (those it reads)."""
-    ports = {port: inputs[port] for port in ReportFigures.inputs if port in inputs}
-    return ReportFigures().run(ports, {"fps": synthetic.FPS, **params}, files_context(Path("/nonexistent")))["figures"]
-
-
-def write(inputs, root: Path, *, ahead: bool = True) -> Path:
-    """``report.sheet``, ``report.figures`` (``ahead``; else ``write.report`` draws the timelines
-    itself) then ``write.report`` on ``inputs``, as a pipeline connects them."""
+def write(inputs, root: Path) -> Path:
+    """``report.sheet`` then ``write.report`` on ``inputs``, as a pipeline connects them."""
     bundles = {port: value for port, value in inputs.items() if port not in ("performer", "result")}
-    drawn = {"figures": figures(inputs)} if ahead else {}
-    WriteReport().run({**bundles, **drawn, "sheet": sheet(inputs)}, PARAMS, files_context(root))
+    WriteReport().run({**bundles, "sheet": sheet(inputs)}, PARAMS, files_context(root))
     return root / "report" / "index.html"
 
 

@@ -1,5 +1,5 @@
 """write.data: the CSV parses back to exactly the npz's numbers, columns named as documented, and
-is what ``csv.writer`` writes; with the cells formatted ahead by data.table, the same bytes."""
+is what ``csv.writer`` writes."""
 
 import csv
 import io
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from runner.stage import StageError
-from stages.writers.data import DataTable, WriteData, data_columns
+from stages.writers.data import WriteData, data_columns
 from tests.memory_stream import MemoryStream, files_context
 
 T, FPS = 5, 24.0
@@ -142,43 +142,3 @@ def test_csv_is_what_csv_writer_writes(tmp_path: Path) -> None:
                     files_context(tmp_path))
     expected = _csv_writer_text(data_columns(bundles, frames=T, fps=FPS))
     assert (tmp_path / "data" / "data.csv").read_bytes() == expected.encode()
-
-
-def _ahead(bundles: dict) -> dict:
-    return DataTable().run({p: bundles[p] for p in DataTable.inputs if p in bundles}, {}, files_context(Path("/x")))
-
-
-@pytest.mark.parametrize("ports", [tuple(DataTable.inputs), ("tracked", "similarity")])
-def test_files_with_the_cells_formatted_ahead_are_the_same(tmp_path: Path, ports: tuple[str, ...]) -> None:
-    """``data.table`` then ``write.data`` (which formats only the coefficients, or nothing) give
-    the bytes ``write.data`` writes alone."""
-    bundles = _bundles(np.random.default_rng(4))
-    chosen = {port: bundles[port] for port in ports}
-    chosen["tracked"] = {**chosen["tracked"], "fps": np.float64(FPS)}  # a tracker records the clip's rate
-    table = _ahead(chosen)["table"]
-    for with_coefficients in (True, False):
-        inputs = {**chosen, **({"coefficients": bundles["coefficients"]} if with_coefficients else {})}
-        WriteData().run(inputs, {}, files_context(tmp_path / "alone"))
-        WriteData().run({**inputs, "table": table}, {}, files_context(tmp_path / "ahead"))
-        for name in ("data.csv", "data.npz"):
-            assert (tmp_path / "ahead" / "data" / name).read_bytes() == (tmp_path / "alone" / "data" / name).read_bytes()
-
-
-def test_a_table_of_other_bundles_is_refused(tmp_path: Path) -> None:
-    bundles = _bundles(np.random.default_rng(5))
-    bundles["tracked"]["fps"] = np.float64(FPS)
-    ahead = {p: bundles[p] for p in ("tracked", "pose")}
-    table = _ahead(ahead)["table"]
-    ctx = files_context(tmp_path)
-    with pytest.raises(StageError, match=r"write.data: input 'table' holds 16 columns of 5 frames at 24 frames/s, "
-                                         r"which are not the first columns of these inputs \(22 columns"):
-        WriteData().run({**ahead, "smoothed": bundles["smoothed"], "table": table}, {}, ctx)
-    with pytest.raises(StageError, match="input 'table' holds .* 5 frames at 24 frames/s, .* at 30 frames/s"):
-        WriteData().run({**ahead, "table": table, "frames": MemoryStream(np.zeros((T, 2, 2, 3), np.uint8), fps=30.0)},
-                        {}, ctx)
-    moved = {**bundles["pose"], "tvec": bundles["pose"]["tvec"][::-1]}
-    with pytest.raises(StageError, match="input 'table' does not hold these inputs' numbers"):
-        WriteData().run({**ahead, "pose": moved, "table": table}, {}, ctx)
-    with pytest.raises(StageError, match="data.table: no frame rate: connect an input bundle carrying 'fps'"):
-        _ahead({"pose": bundles["pose"]})
-    assert not (tmp_path / "data" / "data.csv").exists()
