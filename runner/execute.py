@@ -242,16 +242,18 @@ class Runner:
         in_child = object()  # put on `ended` when a child process ends
 
         def offload(ready: list[StageNode]) -> bool:
-            """Start a child process for a ready stage that reads a source's frames, and the
-            sequence stages after it that read nothing else still to compute, when another ready
-            stage keeps this thread busy meanwhile (at most one child per spare core)."""
-            if (not self.opts.offload or len(set(children.values())) >= self.services.producers - 1
-                    or len(ready) < 2):
+            """Start a child process for a stage that reads a source's frames, the sequence
+            stages it waits for, and the sequence stages after it that read nothing else still to
+            compute, when a ready stage outside them keeps this thread busy meanwhile (at most one
+            child per spare core)."""
+            if not self.opts.offload or len(set(children.values())) >= self.services.producers - 1:
                 return False
-            node = next((n for n in ready if n.name not in offered and self._offloadable(n)), None)
+            choices = ((n, self._offload_stages(n, waiting, done)) for n in waiting
+                       if n.name not in offered and n.name not in children)
+            node, stages = next(((n, s) for n, s in choices if s and any(r.name not in s for r in ready)),
+                                (None, []))
             if node is None:
                 return False
-            stages = self._offload_closure(node, waiting, done)
             offered.update(stages)  # once: after a failed child, the run computes them
             argument = offload_spec(pipeline=self.pipeline.path, overrides=list(self.opts.overrides),
                                     bound=self._bound, cache=self.store.root, device=self.opts.device, stages=stages)
@@ -359,11 +361,19 @@ class Runner:
                 return
             time.sleep(IMPORT_POLL_S)
 
-    def _offload_closure(self, node: StageNode, waiting: list[StageNode], done: set[str]) -> list[str]:
-        """``node`` and the waiting sequence stages (not forced) after it that read it or each
-        other and otherwise only pipeline inputs and stages ``done``: what a child process
-        computes with ``node`` (the performer's branch; the run keeps the rest)."""
-        stages = [node.name]
+    def _offload_stages(self, node: StageNode, waiting: list[StageNode], done: set[str]) -> list[str]:
+        """What a child process computes for ``node`` (:meth:`_offloadable`), in order: the
+        stages ``node`` still waits for (sequence stages, not forced: e.g. the performer's pack),
+        ``node``, and the waiting sequence stages after it (not forced) that read it or each other
+        and otherwise only pipeline inputs and stages ``done`` (the performer's branch; the run
+        keeps the rest). Empty when ``node`` is not for a child or waits for something else."""
+        if not self._offloadable(node, done):
+            return []
+        waiting_names = {other.name for other in waiting}
+        before = self.pipeline.ancestors(node.name) & waiting_names - {node.name}
+        if any(issubclass(self.pipeline.stages[name].cls, FrameStage) or name in self.opts.force for name in before):
+            return []
+        stages = [other.name for other in waiting if other.name in before] + [node.name]
         grown = True
         while grown:
             grown = False
@@ -399,15 +409,18 @@ class Runner:
             except KeyboardInterrupt:  # the run is stopping: it terminates the child
                 break
 
-    def _offloadable(self, node: StageNode) -> bool:
+    def _offloadable(self, node: StageNode, done: set[str]) -> bool:
         """Whether ``node`` may run in a child process (:mod:`runner.offload`): a sequence stage,
-        not forced, reading the frames of a source (an uncached frame stage that reads no
-        frames: decoding), whose entry is not stored already."""
+        not forced, reading the frames of a source that is set up (an uncached frame stage that
+        reads no frames: decoding, ``done``), whose entry is not stored already (or whose inputs
+        are not all computed yet)."""
         if issubclass(node.cls, FrameStage) or node.name in self.opts.force or self.opts.dry_run:
             return False
-        if not any(ref.stage is not None and is_source(self.pipeline.stages[ref.stage].cls)
+        if not any(ref.stage in done and is_source(self.pipeline.stages[ref.stage].cls)
                    for ref in node.inputs.values()):
             return False
+        if any(ref.stage is not None and ref.stage not in done for ref in node.inputs.values()):
+            return True
         inputs = self._inputs(node)
         if any(v.known_digest() is None for v in inputs.values()):
             return True
