@@ -15,7 +15,7 @@ import pytest
 
 from runner import execute
 from runner.cache import CacheStore
-from runner.config import load_pipeline
+from runner.config import bind_inputs, load_pipeline
 from runner.execute import Options, Runner
 from runner.registry import Registry
 from tests.runner.helpers import TINY, read_log, run_cli, stage_status
@@ -85,3 +85,18 @@ def test_a_failed_child_leaves_the_stage_to_the_run(tmp_path, pipeline, plugin_s
     for stage in started:
         assert (reports[stage].status, reports[stage].reason) == ("ran", "")  # computed here after all
     assert json.loads((tmp_path / "out" / "table" / "series.json").read_text())
+
+
+def test_the_child_takes_the_performers_branch(tmp_path):
+    """In the paper's pipeline, once the clip is set up, the child takes the performer's pack the
+    tracker waits for, the tracker, and the sequence stages after it that read nothing of the
+    target's (not `map`, which reads the target's pack; not the frame stages)."""
+    repo = Path(__file__).resolve().parents[2]
+    loaded = load_pipeline(repo / "pipeline_paper.yaml", Registry.from_entry_points())
+    bound = bind_inputs(loaded, clip=None, named=[])
+    runner = Runner(loaded, bound, Options(cache=CacheStore(tmp_path / "cache"), offload=True))
+    waiting = [node for name, node in loaded.stages.items() if name != "decode"]
+    stages = runner._offload_stages(loaded.stages["track"], waiting, {"decode"})
+    assert stages == ["performer_pack", "track", "smooth", "compensate", "pose", "compensate3d"]
+    assert runner._offload_stages(loaded.stages["track"], waiting, set()) == []  # the clip is not set up yet
+    assert runner._offload_stages(loaded.stages["build"], waiting, {"decode"}) == []  # reads no clip
