@@ -1,22 +1,23 @@
 """Many shots on Ray: the jobs of a batch manifest (:mod:`runner.batch_manifest`) run as Ray
 tasks, each one exactly what ``runner run`` does for its command line.
 
-Each job is one Ray task (``num_cpus=1``) that runs the runner's in-process API
+Each job is one Ray task that runs the runner's in-process API
 (:class:`runner.execute.Runner`, as ``runner run`` calls it) in a Ray worker process, against
 the cache shared by all workers (a folder every host sees at the same path; its locks and
 atomic renames hold across processes and hosts, see ``docs/batch.md``). Parallelism is per
 job: the frame chunks of one job are computed one after another by its worker, as in
 ``runner run --jobs 1``, which is what makes the outputs byte-identical to ``runner run``'s.
-A job computes with one thread (Ray sets ``OMP_NUM_THREADS`` to the task's one CPU): a lone job
-given both cores' threads was 1.5x slower at load 10 on 2 cores and, by the idle figures, no
-faster idle (``docs/batch.md``).
+A job's task asks for its share of the CPUs (:func:`job_cpus`: the CPUs over the jobs that run
+at once, so that a batch of fewer jobs than CPUs still uses them all) and computes as
+``runner run`` does on that many cores (:func:`job_options`: producer threads, and with two
+CPUs or more the tracker in a child process; Ray sets ``OMP_NUM_THREADS`` to the task's CPUs).
 
 Start-up: a local Ray is a chain of processes started one after another; the command starts
 only those a batch on one machine uses (:func:`runner.batch_ray.start_local_ray`: the GCS, the
 raylet and its two agents; no dashboard head, autoscaler monitor or log monitor; usage
-statistics off, ``RAY_USAGE_STATS_ENABLED=0`` unless set), with one CPU
-more than the jobs' for the event sink actor, so that the raylet prestarts a worker process for
-it besides one per job and the first jobs start on prestarted workers. ``--address`` joins a
+statistics off, ``RAY_USAGE_STATS_ENABLED=0`` unless set), with a CPU for
+the event sink actor where the jobs' CPUs are one per job (the raylet prestarts one worker
+process per CPU: the sink and each of the first jobs then find a prestarted worker). ``--address`` joins a
 running Ray with ``ray.init``. ``batch_start`` carries ``ray_init_s`` (the seconds until the
 driver is connected) and ``batch_end`` ``shutdown_s`` (those of stopping or leaving the Ray);
 ``docs/batch.md`` gives the measured breakdown.
@@ -40,7 +41,7 @@ import socket
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import ray
 
@@ -51,18 +52,88 @@ from runner.config import ConfigError, bind_inputs, load_pipeline
 from runner.errors import StageFailed
 from runner.registry import Registry
 
+if TYPE_CHECKING:
+    from runner.execute import Options
+
 EXIT_OK, EXIT_FAILED = 0, 1
 PROGRESS_EVERY_S = 2.0  # a job's chunk lines: a stage's first chunk, else at most one this often
 WAIT_S = 0.25
 
 
-def run_job(job: Job, *, cache_dir: Path, device: str, emit: Callable[[dict[str, Any]], None]) -> dict[str, Any]:
-    """Run one job in this process, as ``runner run`` runs its command line.
+def job_cpus(*, jobs: int, cpus: int, at_once: int, node_cpus: int) -> int:
+    """The CPUs each job's Ray task asks for: its share of the CPUs among the jobs that run at
+    once, at most one node's.
+
+    Parameters
+    ----------
+    jobs
+        The batch's jobs.
+    cpus
+        The CPUs the jobs share (a local Ray: this machine's; a cluster: all of its CPUs).
+    at_once
+        The most jobs that may run at once (``--workers``; on a cluster, ``jobs``).
+    node_cpus
+        The CPUs of the smallest node (a task's CPUs are all on one node).
+
+    Returns
+    -------
+    int
+        ``max(1, min(cpus // min(jobs, at_once), node_cpus))``: one job on 2 cores gets 2, three
+        on a 16-core node 5 each, four on 2 cores (``--workers 2``) 1 each. ``at_once`` jobs of
+        this many CPUs fit in ``cpus`` (where it is at least ``at_once``), so ``--workers N``
+        still runs N jobs at once.
+
+    Raises
+    ------
+    ValueError
+        An argument is not a positive int.
+    """
+    for name, value in (("jobs", jobs), ("cpus", cpus), ("at_once", at_once), ("node_cpus", node_cpus)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be a positive int, got {value!r}")
+    return max(1, min(cpus // min(jobs, at_once), node_cpus))
+
+
+def job_options(job: Job, *, cpus: int, cache_dir: Path, device: str, log: Callable[[dict[str, Any]], None],
+                warn: Callable[[str], None]) -> Options:
+    """The :class:`runner.execute.Options` of ``job`` on ``cpus`` CPUs: those ``runner run``
+    uses on a machine of that many cores.
+
+    Parameters
+    ----------
+    job
+        A validated job (its ``out`` and ``overrides`` are used).
+    cpus
+        The CPUs its task holds (:func:`job_cpus`).
+    cache_dir, device
+        The shared cache folder and the resolved device (``cpu`` or ``cuda``).
+    log, warn
+        The runner's event and warning callbacks.
+
+    Returns
+    -------
+    Options
+        ``producers`` ``max(cpus, 2)`` (producer threads; at least two: one-CPU jobs side by
+        side were slower with one each, ``docs/batch.md``), ``offload`` (a tracker in a child
+        process) with two CPUs or more, ``overrides`` the job's ``--set`` (the child loads the
+        pipeline with them); the rest ``runner run``'s defaults.
+    """
+    from runner.execute import Options  # the stages' imports: on the worker only
+
+    return Options(cache=CacheStore(cache_dir), device=device, out=Path(job.out), producers=max(cpus, 2),
+                   offload=cpus >= 2, overrides=tuple(job.overrides), log=log, warn=warn)
+
+
+def run_job(job: Job, *, cpus: int, cache_dir: Path, device: str,
+            emit: Callable[[dict[str, Any]], None]) -> dict[str, Any]:
+    """Run one job in this process, as ``runner run`` runs its command line on ``cpus`` cores.
 
     Parameters
     ----------
     job
         A validated job.
+    cpus
+        The CPUs its task holds (:func:`job_cpus`; the options :func:`job_options`).
     cache_dir
         The shared cache folder.
     device
@@ -78,10 +149,10 @@ def run_job(job: Job, *, cache_dir: Path, device: str, emit: Callable[[dict[str,
         ``cached`` (stage counts), ``error`` (one line) when failed. A failure that is not a
         stage's or the configuration's is raised (Ray retries the task).
     """
-    from runner.execute import Options, Runner, resolve_device  # the stages' imports: on the worker only
+    from runner.execute import Runner, resolve_device  # the stages' imports: on the worker only
 
     started = time.perf_counter()
-    emit({"event": "job_start", "host": socket.gethostname(), "pid": os.getpid()})
+    emit({"event": "job_start", "host": socket.gethostname(), "pid": os.getpid(), "cpus": cpus})
     runner: Runner | None = None
     chunk_frames = 1
 
@@ -95,8 +166,8 @@ def run_job(job: Job, *, cache_dir: Path, device: str, emit: Callable[[dict[str,
         loaded = load_pipeline(Path(job.pipeline), Registry.from_entry_points(), overrides=list(job.overrides))
         chunk_frames = loaded.chunk_frames
         bound = bind_inputs(loaded, clip=None if job.clip is None else Path(job.clip), named=list(job.named))
-        options = Options(cache=CacheStore(cache_dir), device=resolve_device(device), out=Path(job.out), log=log,
-                          warn=lambda line: emit({"event": "warning", "line": line}))
+        options = job_options(job, cpus=cpus, cache_dir=cache_dir, device=resolve_device(device), log=log,
+                              warn=lambda line: emit({"event": "warning", "line": line}))
         runner = Runner(loaded, bound, options)
         reports = runner.run()
     except (StageFailed, ConfigError) as exc:
@@ -126,7 +197,7 @@ class EventSink:
         return events
 
 
-def _job_task(spec: dict[str, Any], cache_dir: str, device: str, sink: Any) -> dict[str, Any]:
+def _job_task(spec: dict[str, Any], cpus: int, cache_dir: str, device: str, sink: Any) -> dict[str, Any]:
     """The Ray task of one job: :func:`run_job` with its events sent to ``sink``. The first and
     the last event are awaited: the last so that every event is with the sink when the task's
     result is, the first so that a try whose worker dies right after starting is still seen
@@ -140,7 +211,7 @@ def _job_task(spec: dict[str, Any], cache_dir: str, device: str, sink: Any) -> d
         if event.get("event") in ("job_start", "run_end"):
             ref.future().result()  # not ray.get/ray.wait: a task blocked in those lends its CPU to another task
 
-    return run_job(job, cache_dir=Path(cache_dir), device=device, emit=emit)
+    return run_job(job, cpus=cpus, cache_dir=Path(cache_dir), device=device, emit=emit)
 
 
 @dataclasses.dataclass
@@ -169,8 +240,8 @@ def run_batch(jobs: list[Job], *, cache_dir: Path, device: str = "auto", workers
     device
         Passed to each job (``--device``).
     workers
-        Jobs at once on a local Ray (default: this machine's CPUs; the Ray gets one CPU more, the
-        event sink's); not with ``address``.
+        Jobs at once on a local Ray (default: this machine's CPUs); each job gets its share of
+        the CPUs (:func:`job_cpus`); not with ``address``.
     address
         A Ray cluster to join (``ray.init(address=...)``) instead of starting a local Ray.
     retries
@@ -192,22 +263,31 @@ def run_batch(jobs: list[Job], *, cache_dir: Path, device: str = "auto", workers
     started = time.perf_counter()
     if address is None:
         os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # read by Ray and the processes it starts
-        sink_cpus = 1  # the event sink's own CPU: the raylet prestarts a worker per CPU, one for the sink
-        stop_ray = start_local_ray((workers or os.cpu_count() or 1) + sink_cpus, note=echo)
+        machine = os.cpu_count() or 1
+        at_once = min(len(jobs), workers or machine)
+        cpus = job_cpus(jobs=len(jobs), cpus=machine, at_once=at_once, node_cpus=machine)
+        # The raylet prestarts a worker per CPU: where the jobs have one each, a CPU of the
+        # sink's own gives it a worker besides theirs (and keeps the jobs at `at_once`).
+        sink_cpus = 1 if cpus == 1 else 0
+        stop_ray = start_local_ray(at_once * cpus + sink_cpus, note=echo)
     else:
         ray.init(address=address, **RAY_OPTIONS)
         stop_ray, sink_cpus = ray.shutdown, 0
+        nodes = [int(node["Resources"].get("CPU", 0)) for node in ray.nodes() if node.get("Alive")]
+        cpus = job_cpus(jobs=len(jobs), cpus=max(1, sum(nodes)), at_once=len(jobs),
+                        node_cpus=max(1, min((n for n in nodes if n > 0), default=1)))
     ray_init_s = time.perf_counter() - started
     states: dict[str, _State] = {job.name: _State(job) for job in jobs}
     try:
         log({"event": "batch_start", "time": time.time(), "jobs": len(jobs), "address": address,
-             "cpus": ray.cluster_resources().get("CPU", 0) - sink_cpus, "ray_init_s": ray_init_s})
+             "cpus": ray.cluster_resources().get("CPU", 0) - sink_cpus, "job_cpus": cpus, "ray_init_s": ray_init_s})
         sink = ray.remote(num_cpus=sink_cpus)(EventSink).remote()
-        ray.get(sink.take.remote())  # created, holding its CPU, before a job can take that CPU
-        task = ray.remote(num_cpus=1, max_retries=retries, retry_exceptions=True)(_job_task)
+        if sink_cpus:  # created, holding its CPU, before a job can take that CPU; else its worker
+            ray.get(sink.take.remote())  # starts beside the first jobs' (joining a Ray: none prestarted)
+        task = ray.remote(num_cpus=cpus, max_retries=retries, retry_exceptions=True)(_job_task)
         pending = {}
         for job in jobs:
-            pending[task.remote(dataclasses.asdict(job), str(cache_dir), device, sink)] = job.name
+            pending[task.remote(dataclasses.asdict(job), cpus, str(cache_dir), device, sink)] = job.name
             _show(states[job.name], {"event": "job_queued"}, log, echo)
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1, timeout=WAIT_S)

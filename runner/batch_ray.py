@@ -8,9 +8,10 @@ before it starts the raylet). On 2 cores each of them delays the others' start, 
 shut-down Ray waits its fixed 1 s grace for the monitor to end. :func:`start_local_ray` starts
 the head node the way ``ray.init`` does (the same ``ray._private.node.Node``, token
 authentication as for a local ``ray.init``, a reaper that ends the processes if this one dies)
-without those three, and with the raylet prestarting its worker processes as it starts
+without those three, with the raylet prestarting its worker processes as it starts
 (``enable_worker_prestart``) rather than when the driver connects (the driver's connection
-then waited for them), then connects this process with the public ``ray.init(address=...)``.
+then waited for them) and its workers at the driver's priority (``worker_niceness`` 0, where Ray
+nices them by 15), then connects this process with the public ``ray.init(address=...)``.
 The node API is Ray's private one (Ray is pinned, and a test pins this behaviour); where it is
 missing the batch falls back to ``ray.init()`` with a note. ``docs/batch.md`` gives the
 measured seconds.
@@ -24,6 +25,10 @@ from collections.abc import Callable
 import ray
 
 RAY_OPTIONS = {"log_to_driver": False, "logging_level": logging.ERROR}  # every ray.init of a batch driver
+# The raylet's settings: workers prestarted as the node registers (not when the driver connects),
+# and at the driver's priority (Ray's default nice 15 gave a job a few per cent of a core beside
+# other processes: a job computes as `runner run` does).
+SYSTEM_CONFIG = {"enable_worker_prestart": True, "worker_niceness": 0}
 
 
 def start_local_ray(cpus: int, *, note: Callable[[str], None]) -> Callable[[], None]:
@@ -64,7 +69,7 @@ def start_local_ray(cpus: int, *, note: Callable[[str], None]) -> Callable[[], N
     enable_token_auth_by_default()  # as ray.init() does for a local Ray: RAY_AUTH_MODE=token unless set
     ensure_token_if_auth_enabled({}, create_token_if_missing=True)
     params = RayParams(num_cpus=cpus, include_dashboard=False, no_monitor=True, include_log_monitor=False,
-                       _system_config={"enable_worker_prestart": True})  # workers start with the raylet
+                       _system_config=SYSTEM_CONFIG)
     node = BatchNode(ray_params=params, head=True, shutdown_at_exit=False, spawn_reaper=True, ray_init_cluster=True)
     try:
         ray.init(address=node.gcs_address, **RAY_OPTIONS)

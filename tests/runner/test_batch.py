@@ -235,6 +235,35 @@ def test_batch_outputs_are_byte_identical_to_runner_run(site, cluster, alone, tm
     assert again.returncode == 0 and again.stdout.splitlines()[-1].startswith("2 jobs: 0 done, 2 cached, 0 failed")
 
 
+OFFLOADED = """inputs: {clip: {type: video}}
+chunk_frames: 8
+stages:
+  decode: {uses: video.decode, inputs: {video: clip}}
+  mean: {uses: test.mean, inputs: {frames: decode.frames}}
+  table: {uses: test.table, inputs: {series: mean.series}}
+  video: {uses: write.video, params: {crf: 20}, inputs: {frames: decode.frames}}
+"""  # `mean` reads a source's frames while `video` computes: a tracker's place (runner.offload)
+
+
+def test_a_lone_job_computes_as_runner_run_on_every_cpu(site, cluster, tmp_path):
+    """One job on the module's 2-CPU Ray gets both CPUs and, as `runner run` on 2 cores, runs
+    `mean` in a child process beside the run: the outputs are still `runner run`'s bytes."""
+    pipeline = tmp_path / "offloaded.yaml"
+    pipeline.write_text(OFFLOADED)
+    alone = run_cli("run", pipeline, "--in", TINY, "--out", tmp_path / "alone", "--log-json", tmp_path / "alone.jsonl",
+                    env=_env(site, tmp_path / "run"), cwd=tmp_path)
+    assert alone.returncode == 0, alone.stderr
+    path = _manifest(tmp_path, {"lone": {"clip": str(TINY)}}, pipeline=pipeline)
+    log = tmp_path / "log.jsonl"
+    done = run_cli("batch", path, "--address", cluster, "--log-json", log, env=_env(site, tmp_path), cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert tree_bytes(tmp_path / "out" / "lone") == tree_bytes(tmp_path / "alone")
+    events = read_log(log)
+    assert events[0]["job_cpus"] == 2 and [e["cpus"] for e in events if e["event"] == "job_start"] == [2]
+    for events in (read_log(tmp_path / "alone.jsonl"), events):  # both offload the same stage
+        assert [e["stage"] for e in events if e["event"] == "offload"] == ["mean"]
+
+
 def test_batch_killed_at_an_observed_event_resumes(site, cluster, alone, tmp_path):
     path = _manifest(tmp_path, TWO_JOBS)
     killed_log, resumed_log = tmp_path / "killed.jsonl", tmp_path / "resumed.jsonl"
@@ -281,8 +310,8 @@ stages:
                    cwd=tmp_path)
     assert done.returncode == 1, done.stderr
     _assert_gone(tag)
-    # One job at a time on the one worker CPU (the event sink has a CPU of its own): in the
-    # workers' events, in time order, another job's events begin only with its job_start.
+    # One job at a time (--workers 1), holding every CPU: in the workers' events, in time order,
+    # another job's events begin only with its job_start.
     worker_events = sorted((e for e in read_log(log) if e.get("job") and e["event"] not in ("job_queued", "job_end")),
                            key=lambda e: e["time"])
     for before, event in zip(worker_events, worker_events[1:]):
@@ -291,7 +320,9 @@ stages:
     assert len(starts) == 2 and (tmp_path / "out" / "crashes_once" / "table" / "series.json").is_file()
     begin, end = (next(e for e in read_log(log) if e["event"] == kind) for kind in ("batch_start", "batch_end"))
     assert 0 < begin["ray_init_s"] < end["seconds"] and 0 < end["shutdown_s"] < end["seconds"] - begin["ray_init_s"]
-    assert begin["cpus"] == 1  # the jobs' CPUs (the local Ray has one more, the event sink's)
+    # The jobs' CPUs: the one job at a time gets the machine's (the sink a CPU of its own on one core)
+    assert begin["cpus"] == begin["job_cpus"] == os.cpu_count()
+    assert {e["cpus"] for e in read_log(log) if e["event"] == "job_start"} == {os.cpu_count()}
     rows = {line.split()[0]: line for line in done.stdout.splitlines()[-4:-1]}
     assert rows["crashes_once"].split()[1] == "done"
     assert rows["bad"].split()[1] == "failed" and f"stage 'decode' (video.decode): {tmp_path / 'bad.mp4'}" in rows["bad"]

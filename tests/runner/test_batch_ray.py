@@ -1,7 +1,8 @@
-"""The local Ray of `runner batch` (runner.batch_ray): it runs tasks on the CPUs asked for
-without the dashboard head, the autoscaler monitor and the log monitor that `ray.init()` starts
-(the same processes found in a `ray.init()` Ray, so the check can fail), leaves no process
-running once stopped, and falls back to `ray.init()` with a note when Ray's node API is missing.
+"""The local Ray of `runner batch` (runner.batch_ray): it runs tasks on the CPUs asked for, in
+workers at the driver's priority (ray.init()'s are niced), without the dashboard head, the
+autoscaler monitor and the log monitor that `ray.init()` starts (the same processes found in a
+`ray.init()` Ray, so the check can fail), leaves no process running once stopped, and falls back
+to `ray.init()` with a note when Ray's node API is missing.
 """
 
 from __future__ import annotations
@@ -41,23 +42,29 @@ def _started(tag: str, start) -> tuple[set[str], float, object]:
 
 
 @ray.remote(num_cpus=1)
-def _pid() -> int:
-    return os.getpid()
+def _pid_and_nice() -> tuple[int, int]:
+    return os.getpid(), os.getpriority(os.PRIO_PROCESS, 0)
 
 
 def test_local_ray_runs_tasks_without_the_unused_processes_and_stops_them_all():
     tag = f"batch-ray-{os.getpid()}"
     running, _, _ = _started(f"{tag}-init", lambda: ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False,
                                                              logging_level=logging.ERROR))
-    ray.shutdown()
+    try:
+        _, nice = ray.get(_pid_and_nice.remote())
+    finally:
+        ray.shutdown()
     assert running == set(UNUSED)  # what ray.init() starts, found by these patterns
+    assert nice == min(19, os.getpriority(os.PRIO_PROCESS, 0) + 15)  # ray.init()'s workers are niced
     _assert_gone(f"{tag}-init")
 
     notes = []
     running, cpus, stop = _started(tag, lambda: start_local_ray(3, note=notes.append))
     try:
         assert running == set() and cpus == 3 and not notes
-        assert ray.get(_pid.remote()) in _tagged_pids(tag)  # a worker of this Ray
+        pid, nice = ray.get(_pid_and_nice.remote())
+        assert pid in _tagged_pids(tag)  # a worker of this Ray
+        assert nice == os.getpriority(os.PRIO_PROCESS, 0)  # at the driver's priority, as `runner run` computes
     finally:
         stop()
     assert not ray.is_initialized()
