@@ -66,6 +66,9 @@ from stages.writers.preview import SideBySide  # noqa: E402
 
 WIDTH, HEIGHT = 600, 800  # the demo target's size (W x H)
 PRESETS = X264_PRESETS[:X264_PRESETS.index("medium") + 1]  # ultrafast .. medium (x264's default)
+# write.video's parameters for the result and the preview in pipeline_paper.yaml (bench.py e2e's run).
+RESULT_PARAMS = {"codec": "h264", "crf": 18, "filename": "result"}
+PREVIEW_PARAMS = {"codec": "h264", "crf": 20, "filename": "preview", "preset": "ultrafast", "threads": 1}
 
 
 def clip_frames(clip: Path, frames: int) -> tuple[np.ndarray, np.ndarray]:
@@ -216,27 +219,28 @@ def exr_rows(result: np.ndarray, work: Path, repeats: int, threads: int) -> list
 def stream_rows(performer: np.ndarray, result: np.ndarray, work: Path, repeats: int) -> list[dict]:
     """The writers of ``bench.py e2e``'s run, stage by stage with ``pipeline_paper.yaml``'s
     parameters and the stage defaults, in 16-frame chunks: CPU ms per frame of ``exr``
-    (``write.exr``, one writer thread), ``video`` (``write.video``, crf 18, of the half-float
-    result) and ``preview`` (``preview.side_by_side`` and ``write.video`` of it, crf 20)."""
+    (``write.exr``, one writer thread), ``video`` (``write.video`` of the half-float result,
+    ``RESULT_PARAMS``) and ``preview`` (``preview.side_by_side`` and ``write.video`` of it,
+    ``PREVIEW_PARAMS``: ``ultrafast``, one thread)."""
     from stages.video import WriteVideo
     alpha = face_mask(len(result))
     video_defaults = {param.name: param.default for param in WriteVideo.params}
     side_defaults = {param.name: param.default for param in SideBySide.params}
     ctx = Context(device="cpu", files_dir=lambda port: work)
 
-    def video(frames: Any, *, crf: int, filename: str) -> None:
-        WriteVideo().run({"frames": frames}, {**video_defaults, "crf": crf, "filename": filename}, ctx)
+    def video(frames: Any, **params: Any) -> None:
+        WriteVideo().run({"frames": frames}, {**video_defaults, **params}, ctx)
 
     def preview() -> None:
         stage, inputs = SideBySide(), {"performer": _stream(performer), "result": _stream(result)}
         info = stage.stream_info(inputs, side_defaults)
         chunks = ((start, stage.process(start, min(start + CHUNK, len(result)), inputs, side_defaults, None)["frames"])
                   for start in range(0, len(result), CHUNK))
-        video(SimpleNamespace(info=info, chunks=lambda: chunks), crf=20, filename="preview")
+        video(SimpleNamespace(info=info, chunks=lambda: chunks), **PREVIEW_PARAMS)
 
     parts = {
         "exr": lambda: write_exr(result, alpha, work / "exr", threads=1, compression="zip"),
-        "video": lambda: video(_stream(result), crf=18, filename="result"),
+        "video": lambda: video(_stream(result), **RESULT_PARAMS),
         "preview": preview,
     }
     ms = {name: 1e3 * best_of(repeats, part)[0] / len(result) for name, part in parts.items()}

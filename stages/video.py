@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from runner.stage import Context, FrameStage, Param, SequenceStage, StageError, StreamInfo
-from stages.color import to_uint8
+from stages.color import rgb_to_ycbcr420, to_uint8
 
 CODECS = {"h264": ("libx264", "yuv420p", ".mp4"), "ffv1": ("ffv1", "bgr0", ".mkv")}
 # x264's presets, fastest first (docs/writers.md, "Encoder settings", measures them).
@@ -225,8 +225,9 @@ class VideoWriter:
         timestamps shifted so that the clip's first video frame is at time 0; None, a clip without
         audio, or (MP4) a codec outside ``MP4_AUDIO``: no audio (the last with a warning).
 
-    H.264 colour: RGB is converted to Y'CbCr with the BT.601 matrix, limited range (swscale's
-    conversion), and the stream says so, with the sRGB primaries (BT.709) and transfer curve
+    H.264 colour: RGB is converted to Y'CbCr 4:2:0 with the BT.601 matrix, limited range
+    (:func:`stages.color.rgb_to_ycbcr420`), and the stream says so, with the sRGB primaries
+    (BT.709) and transfer curve
     (IEC 61966-2-1), so that players do not guess (many take untagged video of 720 lines or more
     as BT.709 and shift its colours).
 
@@ -286,7 +287,6 @@ class VideoWriter:
 
     def write(self, frames: np.ndarray) -> None:
         """Append frames ``(B, H, W, 3)`` uint8 RGB or ``(B, H, W, 1)`` uint8 gray."""
-        import av
         if frames.dtype != np.uint8 or frames.ndim != 4 or frames.shape[1:3] != (self.height, self.width) \
                 or frames.shape[3] not in (1, 3):
             raise StageError(f"{self.path}: expected frames (B, {self.height}, {self.width}, 3 or 1) uint8, "
@@ -294,17 +294,34 @@ class VideoWriter:
         if any(self._pad):
             frames = np.pad(frames, ((0, 0), (0, self._pad[0]), (0, self._pad[1]), (0, 0)), mode="edge")
         for image in frames:
-            if image.shape[2] == 1:
-                frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(image[:, :, 0]), format="gray")
-            else:
-                frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(image), format="rgb24")
-            # Convert here, not inside encode(): PyAV's implicit conversion is not bit-exact
-            # from one run to the next. One swscale thread: the same rows every time.
-            frame = frame.reformat(format=self._stream.pix_fmt, threads=1)
+            frame = self._frame(image)
             frame.pts = self._count
             frame.time_base = self._time_base
             self._count += 1
             self._container.mux(self._stream.encode(frame))
+
+    def _frame(self, image: np.ndarray) -> av.VideoFrame:
+        """One ``(H, W, 3|1)`` uint8 image as a frame of the stream's pixel format.
+
+        H.264: converted by :func:`stages.color.rgb_to_ycbcr420` (OpenCV, outside the GIL)
+        straight into a new frame's planes (no copy); the encoder then converts nothing.
+        (``VideoFrame.from_numpy_buffer`` of an I420 array would save nothing and takes the
+        height of a frame whose height is not a multiple of 4 wrongly, PyAV 18.) FFV1:
+        swscale's RGB -> BGR0, exact, on one thread (the same rows every time; PyAV's implicit
+        conversion inside ``encode()`` is not bit-exact from one run to the next).
+        """
+        import av
+        if self._stream.pix_fmt == "yuv420p":
+            frame = av.VideoFrame(image.shape[1], image.shape[0], "yuv420p")
+            planes = (np.frombuffer(plane, np.uint8).reshape(plane.height, plane.line_size)[:, :plane.width]
+                      for plane in frame.planes)  # views of the frame's padded lines
+            rgb_to_ycbcr420(image, out=tuple(planes))
+            return frame
+        if image.shape[2] == 1:
+            frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(image[:, :, 0]), format="gray")
+        else:
+            frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(image), format="rgb24")
+        return frame.reformat(format=self._stream.pix_fmt, threads=1)
 
     def close(self) -> None:
         """Flush the encoder, copy the audio (if any) and finish the file."""
@@ -346,7 +363,7 @@ class WriteVideo(SequenceStage):
     """Encode a frame stream to one video file (H.264 MP4 or FFV1 MKV)."""
 
     name = "write.video"
-    version = "4"  # 4: default preset superfast (was veryfast)
+    version = "5"  # 5: H.264 frames converted by stages.color.rgb_to_ycbcr420 (was swscale); 4: superfast
     doc = "Encode frames (uint8, or float sRGB in [0, 1]) to a video file: H.264 MP4 or FFV1 MKV; audio copied from 'audio'."
     inputs = {"frames": "frames", "audio": "video"}
     optional_inputs = frozenset({"audio"})
