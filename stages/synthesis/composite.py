@@ -96,12 +96,15 @@ class Workspace:
     label's slices keep the standard image, the face labels' slices are rewritten whole for every
     frame. ``standard`` (1, 4, H, W) channels-last holds the last composited frame; outside
     ``Compositor.box`` it always holds ``Compositor.background``, which is therefore never copied
-    again. A workspace is not thread-safe: one per thread.
+    again. ``face`` (3, h*w) and ``band`` (3, n) receive the gathers over the box and its band
+    pixels. A workspace is not thread-safe: one per thread.
     """
 
     primary: torch.Tensor
     secondary: torch.Tensor
     standard: torch.Tensor
+    face: torch.Tensor
+    band: torch.Tensor
 
 
 def prepare_compositor(
@@ -177,11 +180,16 @@ def prepare_compositor(
 
 
 def workspace(comp: Compositor) -> Workspace:
-    """Buffers for :func:`composite` of single frames (``workspace=``): the templates copied and a
-    frame holding the background, once instead of for every frame (5.8 + 7.7 MB at 600x800)."""
+    """Buffers for :func:`composite` of single frames (``workspace=``): the templates copied, a
+    frame holding the background and the gathers' outputs, once instead of for every frame
+    (5.8 + 7.7 + 2.6 MB at 600x800)."""
+    import torch
     W, H = comp.size
     standard = comp.background.view(1, H, W, 4).clone().permute(0, 3, 1, 2)
-    return Workspace(comp.primary_template.clone(), comp.secondary_template.clone(), standard)
+    device = comp.background.device
+    face = torch.empty(3, len(comp.box_primary_index), device=device)
+    band = torch.empty(3, len(comp.box_band), device=device)
+    return Workspace(comp.primary_template.clone(), comp.secondary_template.clone(), standard, face, band)
 
 
 def _gather(stack: torch.Tensor, candidates: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor:
@@ -294,7 +302,8 @@ def composite(
             if workspace is None:
                 frame.copy_(comp.background)
             inside = frame.view(H, W, 4)[y0:y1, x0:x1, :3].permute(2, 0, 1)  # (3, h, w) view
-            face = primary.index_select(1, comp.box_primary_index)  # (3, h*w)
-            face.index_add_(1, comp.box_band, secondary.index_select(1, comp.box_band_secondary))
+            face = torch.index_select(primary, 1, comp.box_primary_index, out=None if workspace is None else workspace.face)  # (3, h*w)
+            band = torch.index_select(secondary, 1, comp.box_band_secondary, out=None if workspace is None else workspace.band)
+            face.index_add_(1, comp.box_band, band)
             inside.copy_(face.view(inside.shape))
     return out.view(B, 4, H, W)

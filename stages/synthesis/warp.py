@@ -16,10 +16,39 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["border_anchors", "triangulate", "triangle_index_map", "backward_map", "warp_images"]
+__all__ = ["Buffers", "scratch", "border_anchors", "triangulate", "triangle_index_map", "backward_map", "warp_images"]
 
 _SHIFT = 8  # sub-pixel bits for cv2.fillConvexPoly
 _BORDERS = {"border": "BORDER_REPLICATE", "zeros": "BORDER_CONSTANT", "reflection": "BORDER_REFLECT_101"}  # grid_sample padding -> cv2
+
+
+class Buffers:
+    """Arrays one thread keeps between warps (``buffers=`` of :func:`warp_images`).
+
+    A warp of a 600x800 frame needs about 20 MB of temporaries (the triangle index, the gathered
+    coefficients, the map, the output); allocated afresh for every frame, glibc hands such sizes
+    out as new memory mappings (page faults, zeroing, cold caches). :meth:`get` returns the same
+    memory for the same name while shape, dtype and device stay. Not thread-safe: one per thread.
+    """
+
+    def __init__(self) -> None:
+        self._arrays: dict[str, torch.Tensor] = {}
+
+    def get(self, name: str, shape: tuple[int, ...], dtype: torch.dtype, device: str | torch.device = "cpu") -> torch.Tensor:
+        """An uninitialised tensor of ``shape``, ``dtype`` on ``device``: the last one of ``name`` when it fits."""
+        import torch
+        array = self._arrays.get(name)
+        if array is None or tuple(array.shape) != tuple(shape) or array.dtype != dtype or array.device != torch.device(device):
+            array = self._arrays[name] = torch.empty(shape, dtype=dtype, device=device)
+        return array
+
+
+def scratch(
+    buffers: Buffers | None, name: str, shape: tuple[int, ...], dtype: torch.dtype, device: str | torch.device = "cpu"
+) -> torch.Tensor:
+    """A temporary: ``buffers.get(name, shape, dtype, device)``, or a new tensor when ``buffers`` is None."""
+    import torch
+    return torch.empty(shape, dtype=dtype, device=device) if buffers is None else buffers.get(name, shape, dtype, device)
 
 
 def border_anchors(size: tuple[int, int], *, per_side: int = 4, margin: float = 0.0) -> np.ndarray:
@@ -70,7 +99,9 @@ def triangulate(points: np.ndarray) -> np.ndarray:
     return tri[np.abs(area) > 1e-9]
 
 
-def triangle_index_map(points: np.ndarray, triangles: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+def triangle_index_map(
+    points: np.ndarray, triangles: np.ndarray, size: tuple[int, int], *, uncovered: int = -1, out: np.ndarray | None = None
+) -> np.ndarray:
     """Which triangle covers each pixel centre of an image.
 
     Parameters
@@ -79,15 +110,25 @@ def triangle_index_map(points: np.ndarray, triangles: np.ndarray, size: tuple[in
         Vertex positions in this image, px.
     triangles : (K, 3) int array
     size : (W, H)
+    uncovered : int
+        The value of the pixels no triangle covers.
+    out : (H, W) int32 C-contiguous array, optional
+        Written instead of a new array.
 
     Returns
     -------
-    (H, W) int32 array: triangle index, -1 where no triangle covers the pixel. Where triangles
-    overlap (fold-overs) the later one wins; zero-area triangles cover nothing.
+    (H, W) int32 array (``out`` when given): triangle index, ``uncovered`` where no triangle
+    covers the pixel. Where triangles overlap (fold-overs) the later one wins; zero-area
+    triangles cover nothing.
     """
     import cv2
     W, H = size
-    index = np.full((H, W), -1, dtype=np.int32)
+    if out is None:
+        out = np.empty((H, W), dtype=np.int32)
+    elif out.shape != (H, W) or out.dtype != np.int32 or not out.flags.c_contiguous:
+        raise ValueError(f"out must be a C-contiguous ({H}, {W}) int32 array, got {out.shape} {out.dtype}")
+    index = out
+    index.fill(uncovered)
     verts = np.round(np.asarray(points, dtype=np.float64)[triangles] * (1 << _SHIFT))
     verts = np.clip(verts, -(1 << 30), 1 << 30).astype(np.int32)
     e1, e2 = (verts[:, 1] - verts[:, 0]).astype(np.int64), (verts[:, 2] - verts[:, 0]).astype(np.int64)
@@ -145,11 +186,12 @@ def backward_map(
     """
     import torch
     dtype = torch.float32 if dtype is None else dtype
-    x, y, covered = _source_coordinates(src_points, dst_points, triangles, size, dtype=dtype, source_size=source_size)
-    return torch.stack([x, y], -1), covered
+    W, H = size
+    covered = torch.empty(src_points.shape[0], H, W, dtype=torch.bool, device=src_points.device)
+    return _source_map(src_points, dst_points, triangles, size, dtype=dtype, source_size=source_size, covered=covered), covered
 
 
-def _source_coordinates(
+def _source_map(
     src_points: torch.Tensor,
     dst_points: torch.Tensor,
     triangles: np.ndarray,
@@ -157,14 +199,20 @@ def _source_coordinates(
     *,
     dtype: torch.dtype,
     source_size: tuple[int, int] | None,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The backward map as two planes: source x (B, H, W), source y (B, H, W), covered (B, H, W).
+    covered: torch.Tensor | None = None,
+    buffers: Buffers | None = None,
+) -> torch.Tensor:
+    """The backward map, (B, H, W, 2) source (x, y) interleaved (``cv2.remap``'s two-channel map).
 
     Per pixel, the covering triangle's affine ``[[a0, a1, a2], [a3, a4, a5]]`` applied to the
-    pixel centre ``(x, y)``: each of the six coefficients is gathered once from a
-    ``(6, K + 1)`` table per frame (one 1-D ``index_select`` per coefficient, the cheapest gather
-    on the CPU; frame by frame so that the index stays in cache), then ``x_src = a0 x + a1 y + a2``, ``y_src = a3 x + a4 y + a5``.
-    See :func:`backward_map` for the parameters.
+    pixel centre ``(x, y)``: ``x_src = (a2 + a0 x) + a1 y``, ``y_src = (a5 + a3 x) + a4 y``.
+    The coefficients are gathered in pairs, ``(a0, a3)``, ``(a1, a4)``, ``(a2, a5)``, one pair
+    per gathered element (two float32 gathered as one int64: three 1-D gathers of the pixel
+    index instead of six, the pairs landing interleaved as the map is), frame by frame so that
+    the index stays in cache; pixels no triangle covers index an identity row. When given,
+    ``covered`` (B, H, W) bool is filled with whether a triangle covers the pixel. With
+    ``buffers`` the temporaries and the returned map are ``buffers``' arrays. See
+    :func:`backward_map` for the other parameters.
     """
     import torch
     W, H = size
@@ -180,21 +228,24 @@ def _source_coordinates(
         scale = torch.tensor([2.0 / max(sw - 1, 1), 2.0 / max(sh - 1, 1)], dtype=torch.float64, device=device)
         affines = affines * scale[:, None]
         affines[..., 2] -= 1.0
-    table = affines.to(dtype).reshape(B, K + 1, 6).transpose(1, 2).contiguous()  # (B, 6, K + 1)
-    xs = torch.arange(W, dtype=dtype, device=device).view(1, W)
-    ys = torch.arange(H, dtype=dtype, device=device).view(H, 1)
-    planes = torch.empty(2, B, H, W, dtype=dtype, device=device)
-    covered = torch.empty(B, H, W, dtype=torch.bool, device=device)
+    pairs = affines.to(dtype).permute(0, 3, 1, 2).contiguous()  # (B, 3, K + 1, 2): (x, y) coefficient pairs
+    if pairs.element_size() == 4:
+        pairs = pairs.view(torch.int64)[..., 0]  # a float32 pair as one element: (B, 3, K + 1)
+    gathered = scratch(buffers, "gathered", (3, H * W) + pairs.shape[3:], pairs.dtype, device)
+    index_out = scratch(buffers, "index", (H, W), torch.int32).numpy()
+    xs = torch.arange(W, dtype=dtype, device=device).view(1, W, 1).expand(1, W, 2).contiguous()  # (1, W, 2): no stride-0 inner axis
+    ys = torch.arange(H, dtype=dtype, device=device).view(H, 1, 1)
+    maps = scratch(buffers, "map", (B, H, W, 2), dtype, device)
     for b, d in enumerate(dst_points.detach().to(torch.float64).cpu().numpy()):  # frame by frame: the index stays in cache
-        index = triangle_index_map(d, triangles, size)
-        uncovered = index < 0
-        covered[b] = torch.from_numpy(~uncovered)
-        index[uncovered] = K  # uncovered pixels: the identity
+        index = triangle_index_map(d, triangles, size, uncovered=K, out=index_out)  # uncovered pixels: the identity
+        if covered is not None:
+            covered[b] = torch.from_numpy(index != K)
         index = torch.from_numpy(index).to(device).flatten()  # int32: index_select takes it as it is
-        a = [table[b, j].index_select(0, index).view(H, W) for j in range(6)]
-        for axis in range(2):
-            torch.addcmul(a[3 * axis + 2], a[3 * axis], xs, out=planes[axis, b]).addcmul_(a[3 * axis + 1], ys)
-    return planes[0], planes[1], covered
+        for j in range(3):  # 1-D gathers: about half the time of one gather along dim 1 of (3, K + 1)
+            torch.index_select(pairs[b, j], 0, index, out=gathered[j])
+        a0, a1, a2 = gathered.view(dtype).view(3, H, W, 2)
+        torch.addcmul(a2, a0, xs, out=maps[b]).addcmul_(a1, ys)
+    return maps
 
 
 def warp_images(
@@ -205,6 +256,7 @@ def warp_images(
     *,
     size: tuple[int, int] | None = None,
     padding_mode: str = "border",
+    buffers: Buffers | None = None,
 ) -> torch.Tensor:
     """Warp images so that ``src_points`` move to ``dst_points`` (piecewise affine, bilinear).
 
@@ -221,6 +273,9 @@ def warp_images(
     padding_mode : ``"border" | "zeros" | "reflection"``
         ``grid_sample`` padding for source positions outside the image (on the CPU the
         matching ``cv2.BORDER_REPLICATE``, ``BORDER_CONSTANT`` 0, ``BORDER_REFLECT_101``).
+    buffers : Buffers, optional
+        CPU path: this thread's :class:`Buffers` for the temporaries and the output, which the
+        next call with the same buffers overwrites; ignored elsewhere.
 
     Returns
     -------
@@ -240,13 +295,13 @@ def warp_images(
             images = images.expand(grid.shape[0], -1, -1, -1)
         return F.grid_sample(images, grid, mode="bilinear", padding_mode=padding_mode, align_corners=True)
     import cv2
-    x, y, _ = _source_coordinates(src_points, dst_points, triangles, size, dtype=torch.float32, source_size=None)
-    B, (Wo, Ho) = x.shape[0], size
+    maps = _source_map(src_points, dst_points, triangles, size, dtype=torch.float32, source_size=None, buffers=buffers)
+    B, (Wo, Ho) = maps.shape[0], size
     source = images.detach().to(dtype).permute(0, 2, 3, 1)  # (B or 1, H, W, C); no copy when channels-last
-    out = torch.empty(B, Ho, Wo, C, dtype=dtype)
+    out = scratch(buffers, "warped", (B, Ho, Wo, C), dtype)
     planes = out.numpy()
     for b in range(B):
         image = source[b if len(source) > 1 else 0].contiguous().numpy()
-        cv2.remap(image, x[b].numpy(), y[b].numpy(), cv2.INTER_LINEAR, dst=planes[b] if C > 1 else planes[b, ..., 0],
+        cv2.remap(image, maps[b].numpy(), None, cv2.INTER_LINEAR, dst=planes[b] if C > 1 else planes[b, ..., 0],
                   borderMode=getattr(cv2, _BORDERS[padding_mode]))
     return out.permute(0, 3, 1, 2)

@@ -10,6 +10,7 @@ import torch
 from runner.stage import Context, StageError
 from stages.synthesis.build import build_synthesis_model
 from stages.synthesis.synthesize import Synthesize, Synthesizer, half_float_planes, head_motion_frame, head_motion_points
+from stages.synthesis.warp import Buffers
 from tests.stages.synthesis.synthetic import make_pack
 
 
@@ -165,6 +166,15 @@ def test_half_float_planes_write_into_given_arrays():
     np.testing.assert_array_equal(mask, rgba.permute(0, 2, 3, 1)[..., 3:].to(torch.float16).numpy())
     with pytest.raises(ValueError, match="C-contiguous float16"):
         half_float_planes(rgba, out=(frames[:1], mask[:1]))
+
+
+def test_half_float_planes_in_buffers_equal_fresh_memory():
+    buffers = Buffers()
+    for seed in range(2):  # the second call converts in the first one's temporary
+        rgba = torch.rand(2, 4, 7, 5, generator=torch.Generator().manual_seed(seed)) * 1.2 - 0.1
+        fresh = half_float_planes(rgba)
+        for got, want in zip(half_float_planes(rgba, buffers=buffers), fresh):
+            np.testing.assert_array_equal(got.view(np.uint16), want.view(np.uint16))
 
 
 def test_render_rgba_is_render_in_one_tensor(pack, synth):

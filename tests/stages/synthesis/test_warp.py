@@ -2,9 +2,10 @@
 
 import cv2
 import numpy as np
+import pytest
 import torch
 
-from stages.synthesis.warp import backward_map, border_anchors, triangle_index_map, triangulate, warp_images
+from stages.synthesis.warp import Buffers, backward_map, border_anchors, triangle_index_map, triangulate, warp_images
 
 W, H = 96, 80
 
@@ -121,3 +122,61 @@ def test_cpu_remap_matches_grid_sample_for_every_padding():
         assert float((fast - reference).abs().max()) < 5e-3, padding  # 1/32 px fixed-point weights
     alpha = warp_images(img[:, 3:], torch.from_numpy(src)[None], torch.from_numpy(dst[:1]), tri)
     torch.testing.assert_close(alpha, warp_images(img, torch.from_numpy(src)[None], torch.from_numpy(dst[:1]), tri)[:, 3:])
+
+
+def per_triangle_backward_map(src: np.ndarray, dst: np.ndarray, tri: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """(H, W, 2) float64: each pixel's covering triangle's dst -> src affine from cv2.getAffineTransform
+    (identity where ``index`` is -1), an implementation independent of the warp module's."""
+    ys, xs = np.mgrid[0:index.shape[0], 0:index.shape[1]].astype(np.float64)
+    out = np.stack([xs, ys], -1)
+    for k in np.unique(index[index >= 0]):
+        M = cv2.getAffineTransform(dst[tri[k]].astype(np.float32), src[tri[k]].astype(np.float32)).astype(np.float64)
+        at = index == k
+        out[at] = np.stack([xs[at], ys[at], np.ones(at.sum())], 1) @ M.T
+    return out
+
+
+def test_backward_map_equals_per_triangle_affines_and_marks_uncovered_pixels():
+    rng = np.random.default_rng(6)
+    src = np.concatenate([face_points(rng), border_anchors((W, H))])
+    dst = src + np.pad(rng.normal(0, 2, (20, 2)), ((0, 16), (0, 0))) + [3.0, -2.0]  # anchors moved: a border strip uncovered
+    tri = triangulate(src)
+    index = triangle_index_map(dst, tri, (W, H))
+    assert (index < 0).any() and (index >= 0).mean() > 0.9
+    expected = per_triangle_backward_map(src, dst, tri, index)
+    s, d = torch.from_numpy(src)[None], torch.from_numpy(dst)[None]
+    grid, covered = backward_map(s, d, tri, (W, H), dtype=torch.float64)
+    np.testing.assert_array_equal(covered[0].numpy(), index >= 0)
+    np.testing.assert_allclose(grid[0].numpy(), expected, atol=1e-4)  # float32 affines of cv2.getAffineTransform's input
+    grid32, _ = backward_map(s, d, tri, (W, H))
+    assert grid32.dtype == torch.float32
+    np.testing.assert_allclose(grid32[0].numpy(), expected, atol=1e-3)
+
+
+def test_triangle_index_map_fills_given_array_with_the_uncovered_value():
+    rng = np.random.default_rng(7)
+    pts = face_points(rng)
+    tri = triangulate(pts)
+    fresh = triangle_index_map(pts, tri, (W, H))
+    out = np.full((H, W), 123, np.int32)
+    got = triangle_index_map(pts, tri, (W, H), uncovered=len(tri), out=out)
+    assert got is out
+    np.testing.assert_array_equal(got, np.where(fresh < 0, len(tri), fresh))
+    with pytest.raises(ValueError, match="int32"):
+        triangle_index_map(pts, tri, (W, H), out=np.zeros((H, W), np.int64))
+
+
+def test_warp_in_buffers_equals_fresh_memory_and_reuses_it():
+    rng = np.random.default_rng(8)
+    src = np.concatenate([face_points(rng), border_anchors((W, H))])
+    tri = triangulate(src)
+    img = to_tensor(np.concatenate([smooth_image(), smooth_image()[..., :1]], -1))
+    buffers = Buffers()
+    outs = []
+    for _ in range(2):
+        dst = torch.from_numpy(src + np.pad(rng.normal(0, 2, (20, 2)), ((0, 16), (0, 0))))[None]
+        fresh = warp_images(img, torch.from_numpy(src)[None], dst, tri)
+        reused = warp_images(img, torch.from_numpy(src)[None], dst, tri, buffers=buffers)
+        assert torch.equal(reused, fresh)
+        outs.append(reused)
+    assert outs[0].data_ptr() == outs[1].data_ptr()  # the second warp wrote into the first one's memory
