@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.ndimage import gaussian_filter1d
+from scipy.ndimage import convolve1d, gaussian_filter1d
 
 from runner.stage import StageError
 from scripts.bench_smoothing import jitter, opening_face, retention
 from stages.geometry.smooth import (
-    GaussianSmooth, OneEuroSmooth, face_translation, gaussian_smooth, one_euro_smooth, one_euro_smooth_face,
+    GaussianSmooth, OneEuroSmooth, convolve_time, face_translation, gaussian_kernel, gaussian_smooth, one_euro_smooth,
+    one_euro_smooth_face,
 )
 from tests.stages.geometry.synthetic import context
 
@@ -298,3 +299,12 @@ def test_one_euro_in_the_face_frame_smooths_a_still_face_on_a_moving_head():
     assert error(in_face) < 0.85 * error(in_image) and shake(in_face) < 0.6 * shake(in_image)
     with pytest.raises(ValueError, match=r"a mask \(T, N\)"):
         one_euro_smooth_face(noisy, every[:, :3], fps=30.0)
+
+
+def test_time_convolution_matches_scipy_convolve1d():
+    """convolve_time against scipy.ndimage.convolve1d (zero padding), short and long kernels."""
+    values = np.random.default_rng(7).normal(size=(40, 5, 2))
+    for sigma in (0.5, 1.5, 8.0):
+        kernel = gaussian_kernel(sigma, truncate=3.0)
+        np.testing.assert_allclose(convolve_time(values, kernel),
+                                   convolve1d(values, kernel, axis=0, mode="constant", cval=0.0), rtol=0, atol=1e-12)
