@@ -366,13 +366,15 @@ class Runner:
         stages ``node`` still waits for (sequence stages, not forced: e.g. the performer's pack),
         ``node``, and the waiting sequence stages after it (not forced) that read it or each other
         and otherwise only pipeline inputs and stages ``done`` (the performer's branch; the run
-        keeps the rest). Empty when ``node`` is not for a child or waits for something else."""
+        keeps the rest). Empty when ``node`` is not for a child, waits for a frame stage, or waits
+        for a stage whose entry is stored (a cached run visits it at once, then looks ``node`` up)."""
         if not self._offloadable(node, done):
             return []
         waiting_names = {other.name for other in waiting}
         before = self.pipeline.ancestors(node.name) & waiting_names - {node.name}
-        if any(issubclass(self.pipeline.stages[name].cls, FrameStage) or name in self.opts.force for name in before):
-            return []
+        if any(issubclass(self.pipeline.stages[name].cls, FrameStage) or name in self.opts.force
+               or self._stored(self.pipeline.stages[name], done) for name in before):
+            return []  # a stage it waits for is found in the cache: decide once it is visited
         stages = [other.name for other in waiting if other.name in before] + [node.name]
         grown = True
         while grown:
@@ -412,19 +414,23 @@ class Runner:
     def _offloadable(self, node: StageNode, done: set[str]) -> bool:
         """Whether ``node`` may run in a child process (:mod:`runner.offload`): a sequence stage,
         not forced, reading the frames of a source that is set up (an uncached frame stage that
-        reads no frames: decoding, ``done``), whose entry is not stored already (or whose inputs
-        are not all computed yet)."""
+        reads no frames: decoding, ``done``), whose entry is not known to be stored."""
         if issubclass(node.cls, FrameStage) or node.name in self.opts.force or self.opts.dry_run:
             return False
         if not any(ref.stage in done and is_source(self.pipeline.stages[ref.stage].cls)
                    for ref in node.inputs.values()):
             return False
+        return not self._stored(node, done)
+
+    def _stored(self, node: StageNode, done: set[str]) -> bool | None:
+        """Whether ``node``'s entry is in the cache; None while its inputs are not all computed
+        (stages not ``done``, or digests known only once computed)."""
         if any(ref.stage is not None and ref.stage not in done for ref in node.inputs.values()):
-            return True
+            return None
         inputs = self._inputs(node)
         if any(v.known_digest() is None for v in inputs.values()):
-            return True
-        return self.keys.lookup(node, cache_key(self.keys.material(node, input_digests(inputs)))) is None
+            return None
+        return self.keys.lookup(node, cache_key(self.keys.material(node, input_digests(inputs)))) is not None
 
     def _stream_reads(self, node: StageNode) -> tuple[bool, list[tuple[FrameChunks, str]]]:
         """Whether ``node`` runs on a thread of its own (it is a sequence stage or an eager

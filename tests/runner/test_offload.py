@@ -90,7 +90,8 @@ def test_a_failed_child_leaves_the_stage_to_the_run(tmp_path, pipeline, plugin_s
 def test_the_child_takes_the_performers_branch(tmp_path):
     """In the paper's pipeline, once the clip is set up, the child takes the performer's pack the
     tracker waits for, the tracker, and the sequence stages after it that read nothing of the
-    target's (not `map`, which reads the target's pack; not the frame stages)."""
+    target's (not `map`, which reads the target's pack; not the frame stages); nothing while the
+    performer's pack is found in the cache (a cached run must not start a child)."""
     repo = Path(__file__).resolve().parents[2]
     loaded = load_pipeline(repo / "pipeline_paper.yaml", Registry.from_entry_points())
     bound = bind_inputs(loaded, clip=None, named=[])
@@ -100,3 +101,6 @@ def test_the_child_takes_the_performers_branch(tmp_path):
     assert stages == ["performer_pack", "track", "smooth", "compensate", "pose", "compensate3d"]
     assert runner._offload_stages(loaded.stages["track"], waiting, set()) == []  # the clip is not set up yet
     assert runner._offload_stages(loaded.stages["build"], waiting, {"decode"}) == []  # reads no clip
+    # a cached run: the performer's pack is stored, so the run visits it first and looks the tracker up
+    Runner(loaded, bound, Options(cache=CacheStore(tmp_path / "cache"), until=("performer_pack",))).run()
+    assert runner._offload_stages(loaded.stages["track"], waiting, {"decode"}) == []
