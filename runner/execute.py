@@ -60,6 +60,8 @@ from runner.depends import recording
 from runner.digest import cache_key, input_digest
 from runner.errors import StageFailed, stage_errors
 from runner.keys import Keys
+from runner.offload import Forked
+from runner.offload import fork as offload_fork
 from runner.offload import spec as offload_spec
 from runner.offload import start as offload_start
 from runner.outputs import entry_context, load_bundle, read_or_redo, save_outputs, verify_files
@@ -255,9 +257,12 @@ class Runner:
             if node is None:
                 return False
             offered.update(stages)  # once: after a failed child, the run computes them
-            argument = offload_spec(pipeline=self.pipeline.path, overrides=list(self.opts.overrides),
-                                    bound=self._bound, cache=self.store.root, device=self.opts.device, stages=stages)
-            child = offload_start(argument)
+            child = offload_fork(lambda **events: Runner(self.pipeline, self._bound, Options(
+                cache=CacheStore(self.store.root), device=self.opts.device, until=tuple(stages), **events)))
+            if child is None:
+                child = offload_start(offload_spec(pipeline=self.pipeline.path, overrides=list(self.opts.overrides),
+                                                   bound=self._bound, cache=self.store.root, device=self.opts.device,
+                                                   stages=stages))
             children.update(dict.fromkeys(stages, child))
 
             def relay() -> None:
@@ -268,7 +273,8 @@ class Runner:
                     ended.put((node, in_child, None))
 
             threading.Thread(target=relay, daemon=True, name=f"child-{node.name}").start()
-            self.log({"event": "offload", "stage": node.name, "stages": stages, "pid": child.pid})
+            self.log({"event": "offload", "stage": node.name, "stages": stages, "pid": child.pid,
+                      "started": "fork" if isinstance(child, Forked) else "interpreter"})
             return True
 
         try:

@@ -7,7 +7,8 @@ frames of a source (``video.decode``: a tracker, a landmarker) is ready while an
 ready too, the runner starts a child process that runs the pipeline up to that stage and the
 sequence stages after it that read nothing else the run has still to compute (the performer's
 smoothing, compensation and pose: ``Runner`` with ``until``), against the same cache, inputs,
-parameters and device, and goes on with the other stages meanwhile. The child commits the
+parameters and device, and goes on with the other stages meanwhile. The child is a fork of the
+run where that is safe (:func:`fork`: no other thread yet), else a new interpreter (:func:`start`). The child commits the
 stages' entries as the run would (the cache's locks and atomic commits hold across processes, as
 for ``runner batch``); once it has ended, the run visits those stages and finds their entries. A
 child that fails leaves what it committed: the run computes the rest itself and reports its error
@@ -20,15 +21,18 @@ resumable.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
+import signal
 import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import IO, Any, NoReturn
 
 import runner
 
@@ -54,10 +58,60 @@ def start(argument: str) -> subprocess.Popen:
                             text=True, bufsize=1)
 
 
-def _event_line(event: dict[str, Any]) -> None:
-    """Write one event of the child's run to its standard output (read by the parent)."""
-    sys.stdout.write(json.dumps(event, default=str) + "\n")
+class Forked:
+    """A child made by :func:`fork`: what the run uses of :class:`subprocess.Popen` (``pid``,
+    ``stdout`` lines, :meth:`wait`, :meth:`terminate`, ``returncode``)."""
+
+    def __init__(self, pid: int, stdout: IO[str]):
+        self.pid, self.stdout, self.returncode = pid, stdout, None
+        self._lock = threading.Lock()
+
+    def wait(self) -> int:
+        with self._lock:  # the relay thread and an interrupted run may both wait
+            if self.returncode is None:
+                _, status = os.waitpid(self.pid, 0)
+                self.returncode = os.waitstatus_to_exitcode(status)
+        return self.returncode
+
+    def terminate(self) -> None:
+        if self.returncode is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(self.pid, signal.SIGTERM)
+
+
+def fork(make_runner: Callable[..., Any]) -> Forked | None:
+    """Start the child by forking this process, which has imported the runner, NumPy and the
+    clip's decoder already and has loaded the pipeline (a new interpreter took 0.5-0.6 s to get
+    there, on the run's longest path before the stream). The child runs
+    ``make_runner(log=..., warn=...).run()`` with its events on a pipe. None where a fork is not
+    safe: no ``os.fork``, or threads running (a lock another thread holds would stay held in
+    the child); the run then uses :func:`start`."""
+    if not hasattr(os, "fork") or threading.active_count() > 1:
+        return None
+    read, write = os.pipe()
     sys.stdout.flush()
+    sys.stderr.flush()
+    pid = os.fork()
+    if pid == 0:  # the child: never returns
+        os.close(read)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        devnull = os.open(os.devnull, os.O_RDWR)
+        os.dup2(devnull, 0)
+        os.dup2(devnull, 2)
+        global _events
+        _events = os.fdopen(write, "w")
+        _child(make_runner, parent=os.getppid())
+    os.close(write)
+    return Forked(pid, os.fdopen(read, "r"))
+
+
+_events: IO[str] = sys.stdout  # where the child writes its events (a forked child: its pipe)
+
+
+def _event_line(event: dict[str, Any]) -> None:
+    """Write one event of the child's run for the parent, one JSON object a line."""
+    _events.write(json.dumps(event, default=str) + "\n")
+    _events.flush()
 
 
 class _LogEvents(logging.Handler):
@@ -75,31 +129,41 @@ def _exit_when_orphaned(parent: int) -> None:
     os._exit(1)
 
 
-def main(argv: list[str] | None = None) -> None:
-    """The child: run the pipeline up to the spec's stages against the shared cache, publishing
-    nothing, its events on standard output; exit 0 once its entries are committed, 1 on any
-    failure (the parent then computes what is missing itself and reports why)."""
-    from runner.cache import CacheStore
+def _child(make_runner: Callable[..., Any], *, parent: int) -> NoReturn:
+    """The child's run, either way it started: events to the parent, exit 0 once its entries are
+    committed, 1 on any failure (the parent then computes what is missing itself and reports
+    why), without the interpreter's teardown (the run waits for this process's end; 0.2-0.3 s)."""
     from runner.cli import exit_now
+
+    threading.Thread(target=_exit_when_orphaned, args=(parent,), daemon=True).start()
+    logging.getLogger().addHandler(_LogEvents(logging.WARNING))
+    code = 0
+    try:
+        make_runner(log=_event_line, warn=lambda line: _event_line({"event": "warning", "line": line})).run()
+    except KeyboardInterrupt:
+        code = 130
+    except Exception:  # noqa: BLE001 - the parent computes the stages again and reports the error
+        code = 1
+    exit_now(code)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """The child started by :func:`start`: run the pipeline up to the spec's stages against the
+    shared cache, publishing nothing, its events on standard output (:func:`_child`)."""
+    from runner.cache import CacheStore
     from runner.config import load_pipeline
     from runner.execute import Options, Runner
     from runner.registry import Registry
 
     argument, parent = argv or sys.argv[1:]
-    threading.Thread(target=_exit_when_orphaned, args=(int(parent),), daemon=True).start()
     args: dict[str, Any] = json.loads(argument)
     if args.get("version") != SPEC_VERSION:
         sys.exit(2)
-    logging.getLogger().addHandler(_LogEvents(logging.WARNING))
-    code = 0
-    try:
+
+    def make_runner(**events: Any) -> Runner:
         loaded = load_pipeline(Path(args["pipeline"]), Registry.from_entry_points(), overrides=args["overrides"])
         bound = {name: Path(path) for name, path in args["bound"].items()}
-        options = Options(cache=CacheStore(Path(args["cache"])), device=args["device"], until=tuple(args["until"]),
-                          log=_event_line, warn=lambda line: _event_line({"event": "warning", "line": line}))
-        Runner(loaded, bound, options).run()
-    except KeyboardInterrupt:
-        code = 130
-    except Exception:  # noqa: BLE001 - the parent computes the stages again and reports the error
-        code = 1
-    exit_now(code)  # the run waits for this process's end: no interpreter teardown (0.2-0.3 s)
+        return Runner(loaded, bound, Options(cache=CacheStore(Path(args["cache"])), device=args["device"],
+                                             until=tuple(args["until"]), **events))
+
+    _child(make_runner, parent=int(parent))

@@ -66,6 +66,7 @@ class Progress:
     def bar(self, node: StageNode, total: int | None) -> tqdm:
         from tqdm import tqdm  # here: importing it costs start-up time
 
+        tqdm.monitor_interval = 0  # no monitor thread: the run forks child processes (runner.offload)
         return tqdm(total=total, desc=node.name, unit="frame", file=sys.stderr, leave=False,
                     disable=not self.bars, dynamic_ncols=True)
 
