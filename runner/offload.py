@@ -8,7 +8,8 @@ ready too, the runner starts a child process that runs the pipeline up to that s
 sequence stages after it that read nothing else the run has still to compute (the performer's
 smoothing, compensation and pose: ``Runner`` with ``until``), against the same cache, inputs,
 parameters and device, and goes on with the other stages meanwhile. The child is a fork of the
-run where that is safe (:func:`fork`: no other thread yet), else a new interpreter (:func:`start`). The child commits the
+run where that is safe (:func:`can_fork`: no other thread and no torch, OpenCV, Ray... loaded
+yet, as at a run's start), else a new interpreter (:func:`start`). The child commits the
 stages' entries as the run would (the cache's locks and atomic commits hold across processes, as
 for ``runner batch``); once it has ended, the run visits those stages and finds their entries. A
 child that fails leaves what it committed: the run computes the rest itself and reports its error
@@ -79,14 +80,26 @@ class Forked:
                 os.kill(self.pid, signal.SIGTERM)
 
 
+# Libraries whose native threads or runtimes do not survive a fork (a lock held by one of their
+# threads stays held in the child; gRPC, OpenMP and CUDA state are per process).
+FORK_UNSAFE = ("torch", "cv2", "ray", "grpc", "mediapipe", "tensorflow", "jax")
+
+
+def can_fork() -> bool:
+    """Whether :func:`fork` may fork now: ``os.fork`` exists, no other Python thread runs, and no
+    library of :data:`FORK_UNSAFE` is loaded (at a run's start none is: the stages import them
+    when they run)."""
+    return (hasattr(os, "fork") and threading.active_count() == 1
+            and not any(name in sys.modules for name in FORK_UNSAFE))
+
+
 def fork(make_runner: Callable[..., Any]) -> Forked | None:
     """Start the child by forking this process, which has imported the runner, NumPy and the
     clip's decoder already and has loaded the pipeline (a new interpreter took 0.5-0.6 s to get
     there, on the run's longest path before the stream). The child runs
     ``make_runner(log=..., warn=...).run()`` with its events on a pipe. None where a fork is not
-    safe: no ``os.fork``, or threads running (a lock another thread holds would stay held in
-    the child); the run then uses :func:`start`."""
-    if not hasattr(os, "fork") or threading.active_count() > 1:
+    safe (:func:`can_fork`); the run then uses :func:`start`."""
+    if not can_fork():
         return None
     read, write = os.pipe()
     sys.stdout.flush()
