@@ -89,7 +89,7 @@ class Options:
     log: Callable[[dict[str, Any]], None] = lambda event: None
     echo: Callable[[str], None] = lambda line: None
     warn: Callable[[str], None] = lambda line: None  # one line on stderr (a damaged cache entry)
-    offload: bool = False  # a ready stage reading a source's frames runs in a child process (runner.offload)
+    offload: bool = False  # a stage reading a source's frames and its branch run in a child process (runner.offload)
     overrides: tuple[str, ...] = ()  # the pipeline's --set overrides (for those child processes)
 
 
@@ -378,16 +378,15 @@ class Runner:
             return []
         waiting_names = {other.name for other in waiting}
         before = self.pipeline.ancestors(node.name) & waiting_names - {node.name}
-        if any(issubclass(self.pipeline.stages[name].cls, FrameStage) or name in self.opts.force
-               or self._stored(self.pipeline.stages[name], done) for name in before):
-            return []  # a stage it waits for is found in the cache: decide once it is visited
+        if any(not self._child_may_run(self.pipeline.stages[name]) or self._stored(self.pipeline.stages[name], done)
+               for name in before):
+            return []  # e.g. a stage it waits for is found in the cache: decide once it is visited
         stages = [other.name for other in waiting if other.name in before] + [node.name]
         grown = True
         while grown:
             grown = False
             for other in waiting:
-                if (other.name not in stages and not issubclass(other.cls, FrameStage)
-                        and other.name not in self.opts.force
+                if (other.name not in stages and self._child_may_run(other)
                         and any(ref.stage in stages for ref in other.inputs.values())
                         and all(ref.stage is None or ref.stage in done or ref.stage in stages
                                 for ref in other.inputs.values())):
@@ -421,12 +420,16 @@ class Runner:
         """Whether ``node`` may run in a child process (:mod:`runner.offload`): a sequence stage,
         not forced, reading the frames of a source that is set up (an uncached frame stage that
         reads no frames: decoding, ``done``), whose entry is not known to be stored."""
-        if issubclass(node.cls, FrameStage) or node.name in self.opts.force or self.opts.dry_run:
+        if not self._child_may_run(node) or self.opts.dry_run:
             return False
         if not any(ref.stage in done and is_source(self.pipeline.stages[ref.stage].cls)
                    for ref in node.inputs.values()):
             return False
         return not self._stored(node, done)
+
+    def _child_may_run(self, node: StageNode) -> bool:
+        """A sequence stage, not forced: one a child process may compute."""
+        return not issubclass(node.cls, FrameStage) and node.name not in self.opts.force
 
     def _stored(self, node: StageNode, done: set[str]) -> bool | None:
         """Whether ``node``'s entry is in the cache; None while its inputs are not all computed
