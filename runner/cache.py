@@ -214,6 +214,15 @@ class CacheStore:
             return []
         return [(p, self._read_lock(p)) for p in sorted(self.locks_dir.glob("*.lock"))]
 
+    def break_stale_locks(self) -> int:
+        """Remove the locks whose holder is gone from this host; how many. A process killed
+        between an entry's commit and its lock's removal leaves a lock that no run wants again
+        (the entry is complete), so :meth:`locked` alone would never break it."""
+        stale = [(path, holder) for path, holder in self.locks() if holder is not None and holder_is_stale(holder)]
+        for path, holder in stale:
+            self._break(path, holder)
+        return len(stale)
+
     # -- maintenance -----------------------------------------------------------------------
 
     def gc(self, *, older_than_s: float | None = None) -> dict[str, int]:
@@ -231,10 +240,7 @@ class CacheStore:
                     counts["bytes"] += _size(tmp)
                     shutil.rmtree(tmp, ignore_errors=True)
                     counts["tmp"] += 1
-        for path, holder in self.locks():
-            if holder is not None and holder_is_stale(holder):
-                self._break(path, holder)
-                counts["locks"] += 1
+        counts["locks"] = self.break_stale_locks()
         if older_than_s is not None:
             limit = time.time() - older_than_s
             for entry in list(self.iter_entries()):

@@ -193,6 +193,8 @@ class Runner:
                     item = Published(node.name, node.uses, ports, self.entries[node.name], self.redo[node.name])
                     with stage_errors(node):
                         publish(self.opts.out, item, on_damaged=lambda exc, n=node: self.progress.damaged(n, exc))
+        if not self.opts.dry_run:
+            self.store.break_stale_locks()
         return reports
 
     def _schedule(self, emit: Callable[[Report], None]) -> None:

@@ -3,8 +3,10 @@ publishes outputs byte-identical to an uninterrupted run's; concurrent runs shar
 
 from __future__ import annotations
 
+import json
 import os
 import signal
+import socket
 import subprocess
 import time
 from pathlib import Path
@@ -173,6 +175,26 @@ def test_stale_lock_of_killed_run_is_broken(env, tmp_path, reference):
     gc = run_cli("cache", "gc", env=env, cwd=tmp_path)
     assert "temporary folders" in gc.stdout
     assert not any(p.name.split(".")[1] == str(proc.pid) for p in (cache / "tmp").iterdir())
+
+
+def test_run_breaks_stale_locks_of_complete_entries(env, tmp_path, reference):
+    """A process killed between an entry's commit and its lock's removal leaves a lock that no run
+    wants again (the entry is complete): the next run that ends removes it, and leaves the lock
+    of a live process alone."""
+    out, cache = tmp_path / "out", Path(env["RUNNER_CACHE_DIR"])
+    assert run_cli("run", GRAPH, "--out", out, env=env, cwd=tmp_path).returncode == 0
+    store = CacheStore(cache)
+    complete = [entry.key for entry in store.iter_entries()][:2]
+    gone = subprocess.Popen(["true"])
+    gone.wait()
+    holders = {complete[0]: {"pid": gone.pid, "host": socket.gethostname(), "started": None},
+               complete[1]: {"pid": os.getpid(), "host": socket.gethostname(), "started": None}}
+    for key, holder in holders.items():
+        (store.locks_dir / f"{key}.lock").write_text(json.dumps(holder))
+    done = run_cli("run", GRAPH, "--out", out, env=env, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert tree_bytes(out / "write") == reference["write"]
+    assert [path.stem for path, _ in store.locks()] == [complete[1]]
 
 
 def test_two_concurrent_runs_share_the_cache(env, tmp_path, reference):
