@@ -37,7 +37,7 @@ from runner.broadcast import Broadcast
 from runner.cache import CacheStore, Entry
 from runner.config import StageNode
 from runner.depends import recording
-from runner.digest import cache_key, combine
+from runner.digest import array_digest, cache_key, combine
 from runner.errors import stage_errors
 from runner.keys import Keys
 from runner.outputs import check_frames, entry_context, load_bundle, read_or_redo, save_outputs
@@ -465,6 +465,7 @@ class FrameChunks:
             frames = self.broadcast.take(i, port)
             if frames is None:
                 computed = self._process(start, stop)
+                self._check_recomputed(i, computed)
                 self.broadcast.offer(i, computed)
                 frames = computed[port]
         return frames
@@ -479,6 +480,19 @@ class FrameChunks:
         self.resolve_all()
         parts = [self._read(i, lambda entry: load_bundle(entry, port)) for i in range(len(self.ranges))]
         return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+    def _check_recomputed(self, i: int, computed: dict[str, np.ndarray]) -> None:
+        """Compare chunk ``i``'s frames computed again with the digests its entry recorded when
+        they were first computed: the stages downstream were keyed on those digests, so a stage
+        that does not compute the same frames twice (threads, a GPU, an unseeded random number)
+        makes a resumed run's outputs differ from an uninterrupted run's. Reported, not fatal
+        (a ``nondeterministic`` event and one warning line per stage)."""
+        recorded = self.entries[i].record.get("outputs", {})
+        differ = [port for port, frames in computed.items()
+                  if port in recorded and array_digest(frames) != recorded[port]["digest"]]
+        if differ:
+            start, stop = self.ranges[i]
+            self.run.progress.nondeterministic(self.node, start, stop, differ)
 
     def _process(self, start: int, stop: int) -> dict[str, np.ndarray]:
         """The ``frames`` outputs ``(stop - start, H, W, C)`` of frames ``[start, stop)``

@@ -54,6 +54,8 @@ class Progress:
     def __init__(self, *, log: Callable[[dict[str, Any]], None], warn: Callable[[str], None], bars: bool):
         self.log, self.warn, self.bars = log, warn, bars
         self._turn = threading.local()
+        self._lock = threading.Lock()
+        self._nondeterministic: set[str] = set()  # stages warned about (:meth:`nondeterministic`)
 
     @property
     def current(self) -> str | None:
@@ -82,6 +84,19 @@ class Progress:
         recomputed by the caller."""
         self.warn(f"warning: stage {node.name!r}: damaged cache entry ({exc}); recomputing it")
         self.log({"event": "damaged", "stage": node.name, "file": str(exc.path)})
+
+    def nondeterministic(self, node: StageNode, start: int, stop: int, ports: list[str]) -> None:
+        """Frames computed again that differ from their entry's recorded digest: a
+        ``nondeterministic`` event each time, one warning line per stage."""
+        self.log({"event": "nondeterministic", "stage": node.name, "start": start, "stop": stop, "ports": ports})
+        with self._lock:
+            first = node.name not in self._nondeterministic
+            self._nondeterministic.add(node.name)
+        if first:
+            self.warn(f"warning: stage {node.name!r} computed frames {start}-{stop - 1} again and they differ from "
+                      f"those its cache entry recorded ({', '.join(ports)}): the stage is not deterministic, so "
+                      f"outputs of this resumed run may differ from an uninterrupted run's "
+                      f"(`--force {node.name}` computes it again, and what reads it follows its new frames)")
 
 
 _clock = threading.local()

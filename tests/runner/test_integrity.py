@@ -88,7 +88,18 @@ class Parse(SequenceStage):
         return {"value": {"v": np.array([value])}}
 
 
-REGISTRY = Registry(classes=[Ramp, Sums, Table, Parse])
+class Drifting(Ramp):
+    """Ramp whose frames change each time they are computed (a stage that is not deterministic)."""
+
+    name = "i.drifting"
+    computed = 0
+
+    def process(self, start, stop, inputs, params, ctx):
+        Drifting.computed += 1
+        return {"frames": truth()[start:stop] + Drifting.computed}
+
+
+REGISTRY = Registry(classes=[Ramp, Sums, Table, Parse, Drifting])
 CHAIN = """
 chunk_frames: 4
 stages:
@@ -157,6 +168,19 @@ def test_frame_chunks_store_their_digest_and_are_computed_again_when_read_later(
     assert published_sums(tmp_path) == EXPECTED and recorder.warnings == []
     assert [(e["start"], e["stop"]) for e in recorder.events if e.get("event") == "recompute"] == [(0, 4), (4, 8), (8, 12)]
     assert statuses(recorder)["ramp"] == "cached"
+
+
+def test_frames_computed_again_that_differ_from_their_digest_are_reported(tmp_path):
+    """A stage that does not compute the same frames twice: its frames computed again for a
+    later reader differ from the digests its entries recorded; each chunk is a
+    ``nondeterministic`` event, the stage one warning line."""
+    chain = CHAIN.replace("i.ramp", "i.drifting")
+    run(tmp_path, chain)
+    recorder = Recorder()
+    run(tmp_path, chain, overrides=["sums.note=again"], recorder=recorder)
+    assert [(e["stage"], e["start"], e["stop"], e["ports"]) for e in recorder.events
+            if e.get("event") == "nondeterministic"] == [("ramp", s, s + 4, ["frames"]) for s in (0, 4, 8)]
+    assert len(recorder.warnings) == 1 and "'ramp'" in recorder.warnings[0] and "not deterministic" in recorder.warnings[0]
 
 
 def test_damaged_bundle_of_a_sequence_stage_is_recomputed(tmp_path):
