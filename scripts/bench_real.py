@@ -24,7 +24,10 @@ Two kinds of input:
   ``real_pipeline_fps`` (whole pipeline, wall, start-up included), ``real_landmarker_fps`` (the
   landmark stage alone, from the run's stage timings). Aggregates over the clips run:
   ``real_mouth_follow_r_min``, ``real_mouth_amp_ratio_min`` / ``_max``, ``real_brow_follow_r_min``,
-  ``real_brow_amp_ratio_min`` / ``_max``, ``real_image_mouth_follow_r_min``. A contact sheet per
+  ``real_brow_amp_ratio_min`` / ``_max``, ``real_image_mouth_follow_r_min``; and the landmarker's
+  reading of the target face itself, on the pack's annotated images against their points
+  (:func:`pack_image_rows`): ``real_image_mouth_follow_r_pack``, ``real_image_mouth_amp_ratio_pack``
+  (with ``--target``: ``real_cross_image_mouth_*_pack``), what the image rows are read against. A contact sheet per
   clip (performer | output at 6 frames across the clip) is written to
   ``<work>/real/<stem>/sheet.png``.
 - **Real-texture clips** (``scripts/realface``: the astronaut photo of scikit-image moved with
@@ -66,6 +69,7 @@ DEV_CLIPS = REPO.parent / "shared" / "dev-clips"
 BENCH = "real"
 SHEET_FRAMES = 6
 PIPELINE = REPO / "pipeline.yaml"
+TARGET_PACK = REPO / "fixtures" / "packs" / "target"  # pipeline.yaml's default target
 
 
 def row(metric: str, value: float, unit: str) -> dict[str, Any]:
@@ -202,6 +206,23 @@ def clip_rows(clip: Path, work: Path) -> list[dict[str, Any]]:
     return rows
 
 
+def pack_image_rows(pack: Path, prefix: str) -> list[dict[str, Any]]:
+    """The landmarker's own reading of a target face: run on the pack's annotated images (neutral,
+    standard, examples, teeth examples), its inner-lip gap against the annotated points'.
+    ``<prefix>_image_mouth_follow_r_pack`` / ``..._amp_ratio_pack``: what ``_image_`` rows of that
+    target mean, as the landmarker may read this face's mouth open less (or more) than it is."""
+    from stages.actor_pack import load_pack
+    from stages.geometry.signals import expression_signals, follow
+
+    target = load_pack(pack)
+    expressions = [target.neutral, target.standard, *target.examples, *target.teeth_examples]
+    seen, found, _ = landmark_layout_points([e.image for e in expressions])
+    names = list(target.layout.point_names)
+    annotated = expression_signals(np.stack([e.points for e in expressions]), names)["mouth_open"]
+    r, ratio = follow(annotated, expression_signals(seen, names)["mouth_open"], found)
+    return [row(f"{prefix}_image_mouth_follow_r_pack", r, "r"), row(f"{prefix}_image_mouth_amp_ratio_pack", ratio, "ratio")]
+
+
 def layout_polylines(names: list[str]) -> list[tuple[np.ndarray, bool]]:
     """The layout's numbered point runs as polylines: ``(columns, closed)`` per run of names
     ``<part>_<k>`` (``k = 0, 1, ...``); eye, brow and lip outlines are closed, the rest open, and a
@@ -281,6 +302,7 @@ def cross_rows(clips: list[Path], work: Path, target: Path, sheet: Path | None) 
         runs.append((data, folder / "out" / "video" / "result.mp4"))
     for base in ("real_cross_mouth_follow_r", "real_cross_brow_follow_r"):
         rows.append(row(f"{base}_min", min(r["value"] for r in rows if r["metric"].startswith(base + "_")), "r"))
+    rows += pack_image_rows(target, "real_cross")
     if sheet is not None:
         cross_sheet(runs, sheet)
     return rows
@@ -367,6 +389,7 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
         for clip in clips:
             rows += clip_rows(clip, work / clip.stem)
         rows += aggregate(rows, [c.stem for c in clips])
+        rows += pack_image_rows(TARGET_PACK, "real")
     if options.target is not None and clips:
         rows += cross_rows(clips, work, options.target.resolve(), options.cross_sheet)
     return rows
