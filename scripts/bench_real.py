@@ -24,7 +24,12 @@ Two kinds of input:
   ``real_pipeline_fps`` (whole pipeline, wall, start-up included), ``real_landmarker_fps`` (the
   landmark stage alone, from the run's stage timings). Aggregates over the clips run:
   ``real_mouth_follow_r_min``, ``real_mouth_amp_ratio_min`` / ``_max``, ``real_brow_follow_r_min``,
-  ``real_brow_amp_ratio_min`` / ``_max``, ``real_image_mouth_follow_r_min``; and the landmarker's
+  ``real_brow_amp_ratio_min`` / ``_max``, ``real_image_mouth_follow_r_min``. The same follow rows
+  against the performer's geometry with its head rotation (since the reference frame, from the
+  landmarker's own facial transformation matrix) taken out (:func:`frontal_points`):
+  ``real_{mouth,brow}_{follow_r,amp_ratio}_frontal_<stem>``, aggregates
+  ``real_brow_amp_ratio_frontal_min`` / ``_max``: the image-plane brow height above the eye line
+  moves with head pitch, which the pipeline compensates and the target rightly does not copy; and the landmarker's
   reading of the target face itself, on the pack's annotated images against their points
   (:func:`pack_image_rows`): ``real_image_mouth_follow_r_pack``, ``real_image_mouth_amp_ratio_pack``
   (with ``--target``: ``real_cross_image_mouth_*_pack``), what the image rows are read against. A contact sheet per
@@ -135,6 +140,18 @@ def relative_ypr(R: np.ndarray, reference: int) -> np.ndarray:
     return euler_yaw_pitch_roll(R @ R[reference].T)
 
 
+def frontal_points(xy: np.ndarray, z: np.ndarray, R: np.ndarray, reference: int) -> np.ndarray:
+    """The performer's points with the head's rotation since frame ``reference`` taken out:
+    ``(T, N, 2)`` px of ``R[ref] R[t]^T (p_t - mean_t p_t)``, ``p = (x, y, z)`` (``xy (T, N, 2)`` px,
+    ``z (T, N)`` the landmarker's depth, px scale of x, away from the camera; ``R (T, 3, 3)`` the
+    head rotations, camera frame). Weak perspective; a signal in eye distances needs no translation
+    or scale, so none is put back."""
+    p = np.concatenate([xy, z[..., None]], axis=-1)
+    p = p - p.mean(axis=1, keepdims=True)
+    R = R / np.cbrt(np.linalg.det(R))[:, None, None]
+    return np.einsum("ij,tkj,tnk->tni", R[reference], R, p)[..., :2]
+
+
 def jitter(xy: np.ndarray) -> float:
     """Mean |second difference| over frames and points, px."""
     second = xy[2:] - 2 * xy[1:-1] + xy[:-2]
@@ -195,7 +212,12 @@ def clip_rows(clip: Path, work: Path) -> list[dict[str, Any]]:
     rows += [row(f"real_image_mouth_follow_r_{stem}", r, "r"), row(f"real_image_mouth_amp_ratio_{stem}", ratio, "ratio")]
     _, _, matrix = landmark_layout_points(read_frames(clip))
     reference = int(data["pose_neutral_frame"])
-    ours, theirs = relative_ypr(data["pose_R"], reference), relative_ypr(FLIP @ matrix[:, :3, :3] @ FLIP, reference)
+    head = FLIP @ matrix[:, :3, :3] @ FLIP
+    frontal = expression_signals(frontal_points(performer_xy, data["tracked_z"], head, reference), names)
+    for signal, short in (("mouth_open", "mouth"), ("brow_raise", "brow")):
+        r, ratio = follow(frontal[signal], target[signal], valid)
+        rows += [row(f"real_{short}_follow_r_frontal_{stem}", r, "r"), row(f"real_{short}_amp_ratio_frontal_{stem}", ratio, "ratio")]
+    ours, theirs = relative_ypr(data["pose_R"], reference), relative_ypr(head, reference)
     for k, axis in enumerate(("yaw", "pitch", "roll")):
         r, _ = follow(theirs[:, k], ours[:, k], valid)
         rows.append(row(f"real_pose_agree_r_{axis}_{stem}", r, "r"))
@@ -314,7 +336,7 @@ def aggregate(rows: list[dict[str, Any]], stems: list[str]) -> list[dict[str, An
     out = []
     for base, kinds in (("real_mouth_follow_r", ("min",)), ("real_mouth_amp_ratio", ("min", "max")),
                         ("real_brow_follow_r", ("min",)), ("real_brow_amp_ratio", ("min", "max")),
-                        ("real_image_mouth_follow_r", ("min",))):
+                        ("real_image_mouth_follow_r", ("min",)), ("real_brow_amp_ratio_frontal", ("min", "max"))):
         values = [value[f"{base}_{stem}"] for stem in stems]
         for kind in kinds:
             unit = "r" if base.endswith("_r") else "ratio"

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from scripts.bench_real import layout_polylines, points_panel
+from scripts.bench_real import frontal_points, layout_polylines, points_panel
 from stages.layout import load_layout
 
 NAMES = list(load_layout("zhang134").point_names)
@@ -40,3 +40,17 @@ def test_points_panel_draws_the_lines_where_the_points_are():
 def test_points_panel_of_a_frame_without_face_is_plain_grey():
     panel = points_panel(np.full((len(NAMES), 2), np.nan), NAMES, 32, box=np.array([0.0, 0.0, 10.0, 10.0]))
     assert (panel == 128).all()
+
+
+def test_frontal_points_take_the_head_rotation_out():
+    """Points of one rigid face seen under known head rotations come back to the reference
+    frame's view (centred), whatever the rotation; scipy builds the rotations."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(4)
+    face = rng.normal(size=(20, 3)) * [40.0, 50.0, 20.0]
+    R = Rotation.from_euler("YXZ", [[0, 0, 0], [25, -10, 5], [-15, 20, -8]], degrees=True).as_matrix()
+    seen = np.einsum("tij,nj->tni", R, face) + [[[300.0, 200.0, 900.0]]]
+    frontal = frontal_points(seen[..., :2], seen[..., 2], 2.0 * R, reference=1)  # a scaled matrix, as MediaPipe's
+    expected = ((face - face.mean(axis=0)) @ R[1].T)[:, :2]
+    np.testing.assert_allclose(frontal, np.broadcast_to(expected, frontal.shape), atol=1e-9)
