@@ -197,12 +197,38 @@ class Synthesizer:
         self.triangles = np.asarray(model["triangles"])
         self.standard_points = torch.from_numpy(np.concatenate([model["standard_points"], self.anchors])).to(device)
         self.neutral_points = torch.from_numpy(np.concatenate([model["neutral_points"], self.anchors])).to(device)
-        self.neutral = torch.from_numpy(np.asarray(model["neutral"])).to(device).permute(2, 0, 1)[None].float() / 255.0
+        self.neutral_rgba = self._neutral_rgba(model)
         self.center = np.asarray(model["neutral_points"], np.float64).mean(0)
         self._local = threading.local()  # per thread: the compositing workspace, the warp's buffers
         self._memo: OrderedDict[tuple[str, bytes], torch.Tensor] = OrderedDict()  # (mode, points bytes) -> (S, K)
         self._memo_lock = threading.Lock()
         self.memo_frames = int(memo_frames)
+
+    def _neutral_rgba(self, model: Mapping[str, np.ndarray]) -> torch.Tensor:
+        """The neutral image with the face alpha carried into its geometry, the ``warp-only`` source.
+
+        The face alpha ``1 - w_S`` (eq. 7's weight of the outside) lives in the standard geometry;
+        it is warped once, here, from the standard points to the neutral points (same
+        triangulation, anchors fixed), so that a ``warp-only`` frame is one warp of a 4-channel
+        image like the other modes' composite. The composition of the two piecewise-affine maps
+        is the map standard -> frame, so only the resampling differs: the alpha is interpolated
+        twice. It is linear across the blending bands, where bilinear interpolation is exact, so
+        it changes at the face's edge only: at the ends of the ramps and, most, at eq. 7's triple
+        junctions, where it steps within a pixel (figures in docs/synthesis.md, ``warp-only``).
+
+        Returns
+        -------
+        (1, 4, H, W) float32 tensor on the device: sRGB colour (8-bit values / 255) and face alpha
+        in [0, 1]; channels-last memory (``permute(0, 2, 3, 1)`` of it is contiguous).
+        """
+        import torch
+        W, H = self.size
+        alpha = self.compositor.alpha.view(1, 1, H, W)
+        alpha = warp_images(alpha, self.standard_points[None], self.neutral_points[None], self.triangles).clamp_(0, 1)
+        rgba = torch.empty(1, H, W, 4, dtype=torch.float32, device=self.device)
+        rgba[..., :3] = torch.from_numpy(np.asarray(model["neutral"])).to(self.device).float() / 255.0
+        rgba[..., 3] = alpha[:, 0]
+        return rgba.permute(0, 3, 1, 2)
 
     def _workspace(self) -> Workspace:
         """This thread's compositing buffers (:func:`stages.synthesis.composite.workspace`)."""
@@ -228,14 +254,16 @@ class Synthesizer:
         Parameters
         ----------
         points : (B, N, 2) float, px
-        mode : ``"full" | "global"``
+        mode : ``"full" | "warp-only" | "global"``
 
         Returns
         -------
-        (B, S, K) float64 tensor on the synthesizer's device.
+        (B, S, K) float64 tensor on the synthesizer's device; zeros in ``warp-only`` mode (no QP).
         """
         import torch
         points = np.ascontiguousarray(points, np.float64)
+        if mode == "warp-only":
+            return torch.zeros(len(points), self.qp.n_subregions, self.qp.K, dtype=torch.float64, device=self.device)
         keys = [(mode, frame.tobytes()) for frame in points]
         with self._memo_lock:
             rows = [self._memo.get(key) for key in keys]
@@ -294,22 +322,19 @@ class Synthesizer:
         mask : (B, H, W, 1) float16, face alpha
         coeffs : (B, S, K) float64 tensor (zeros in ``warp-only`` mode)
         """
-        import torch
         points = np.asarray(points, np.float64)
-        coeffs = None if mode == "warp-only" else self.coefficients(points, mode=mode)  # the QPs batched
+        coeffs = self.coefficients(points, mode=mode)  # the QPs batched
         W, H = self.size
         frames = np.empty((len(points), H, W, 3), np.float16)
         mask = np.empty((len(points), H, W, 1), np.float16)
-        rows = []
         buffers = self._buffers()
         for i in range(len(points)):
             one = slice(i, i + 1)
-            rgba, row = self.render_rgba(points[one], mode=mode, similarity=None if similarity is None else similarity[one],
-                                         direct=direct, coeffs=None if coeffs is None else coeffs[one], buffers=buffers, **options)
+            rgba, _ = self.render_rgba(points[one], mode=mode, similarity=None if similarity is None else similarity[one],
+                                       direct=direct, coeffs=coeffs[one], buffers=buffers, **options)
             half_float_planes(rgba, out=(frames[one], mask[one]), buffers=buffers)
-            rows.append(row)
             progress(1)
-        return frames, mask, torch.cat(rows) if coeffs is None else coeffs
+        return frames, mask, coeffs
 
     def render_rgba(
         self,
@@ -343,18 +368,23 @@ class Synthesizer:
             Composite every example at every pixel (the paper's implementation; speed baseline).
         coeffs : (B, S, K) tensor, optional
             Composite with these coefficients instead of solving the QPs (``full`` / ``global``
-            modes; e.g. :func:`stages.synthesis.oracle.texture_oracle`).
+            modes; e.g. :func:`stages.synthesis.oracle.texture_oracle`); ``warp-only`` mode
+            composites nothing and returns them as given.
         buffers : Buffers, optional
-            ``full`` and ``global`` modes: warp in these buffers
-            (:func:`stages.synthesis.warp.warp_images`); ``rgba`` is then overwritten by the next
-            call with the same buffers.
+            Warp in these buffers (:func:`stages.synthesis.warp.warp_images`); ``rgba`` is then
+            overwritten by the next call with the same buffers.
 
         Returns
         -------
         rgba : (B, 4, H, W) float32
             sRGB colour and face alpha, in [0, 1]; on the CPU in channels-last memory
-            (``permute(0, 2, 3, 1)`` of it is contiguous) in ``full`` and ``global`` modes.
-        coeffs : (B, S, K) float64 (zeros in ``warp-only`` mode)
+            (``permute(0, 2, 3, 1)`` of it is contiguous).
+        coeffs : (B, S, K) float64 (zeros in ``warp-only`` mode unless given)
+
+        Every mode is one warp of a 4-channel image to the frame's geometry: ``full`` / ``global``
+        the composite in the standard geometry (eq. 6, 7) from the standard points, ``warp-only``
+        the neutral image with the face alpha in its geometry (:meth:`_neutral_rgba`) from the
+        neutral points.
         """
         import torch
         if mode not in MODES:
@@ -367,22 +397,18 @@ class Synthesizer:
             c_s = c_t if source_center is None else np.asarray(source_center, np.float64)
             dst = head_motion_points(dst, np.asarray(similarity, np.float64), source_center=c_s, target_center=c_t, scale=motion_scale)
         dst_t = torch.from_numpy(dst).to(self.device)
+        if coeffs is None:
+            coeffs = self.coefficients(points, mode=mode)
+        elif tuple(coeffs.shape) != (B, self.qp.n_subregions, self.qp.K):
+            raise ValueError(f"coeffs must be (B, S, K) = ({B}, {self.qp.n_subregions}, {self.qp.K}), got {tuple(coeffs.shape)}")
         if mode == "warp-only":
-            coeffs = torch.zeros(B, self.qp.n_subregions, self.qp.K, dtype=torch.float64, device=self.device)
-            rgb = warp_images(self.neutral, self.neutral_points[None].expand(B, -1, -1), dst_t, self.triangles)
-            W, H = self.size
-            alpha = self.compositor.alpha.view(1, 1, H, W)
-            alpha = warp_images(alpha, self.standard_points[None].expand(B, -1, -1), dst_t, self.triangles)
-            out = torch.cat([rgb, alpha], 1).clamp_(0, 1)
+            source, source_points = self.neutral_rgba, self.neutral_points
         else:
-            if coeffs is None:
-                coeffs = self.coefficients(points, mode=mode)
-            elif tuple(coeffs.shape) != (B, self.qp.n_subregions, self.qp.K):
-                raise ValueError(f"coeffs must be (B, S, K) = ({B}, {self.qp.n_subregions}, {self.qp.K}), got {tuple(coeffs.shape)}")
             one = B == 1 and not direct  # one frame: in this thread's workspace (no per-frame buffers)
-            standard = composite(self.compositor, coeffs, min_coeff=min_coeff, direct=direct,
-                                 workspace=self._workspace() if one else None)
-            out = warp_images(standard, self.standard_points[None].expand(B, -1, -1), dst_t, self.triangles, buffers=buffers).clamp_(0, 1)
+            source = composite(self.compositor, coeffs, min_coeff=min_coeff, direct=direct,
+                               workspace=self._workspace() if one else None)
+            source_points = self.standard_points
+        out = warp_images(source, source_points[None].expand(B, -1, -1), dst_t, self.triangles, buffers=buffers).clamp_(0, 1)
         return out, coeffs
 
 
@@ -390,7 +416,7 @@ class Synthesize(FrameStage):
     """``synthesis.synthesize``: target geometry per frame -> expression images (Sec. 6-8, 11)."""
 
     name = "synthesis.synthesize"
-    version = "4"
+    version = "5"  # 5: warp-only's face alpha resampled twice (carried into the neutral's geometry once)
     doc = "per-subregion QP + compositing + blending + warp: target points per frame -> half-float sRGB frames, face mask, coefficients"
     inputs = {
         "model": "synthesis_model",
