@@ -10,7 +10,7 @@ mask, alpha is 1 and the whole frame is kept.
 Per-frame metadata goes into namespaced header attributes (``exmap:frame`` ...; see
 ``docs/writers.md``). Each file is written under a temporary name and renamed into place, so a
 file named ``frame.%06d.exr`` is always complete. The codecs ``zip``, ``zips`` and ``none`` are
-written by :mod:`stages.writers.exr_file` (numpy and ISA-L's deflate), ``piz`` and ``rle`` by
+written by :mod:`stages.writers.exr_file` (numpy and zlib's deflate), ``piz`` and ``rle`` by
 OpenImageIO, with the same header and pixels.
 """
 
@@ -211,7 +211,7 @@ def write_exr(
     """Write one half-float RGBA EXR atomically (temp name in the same folder, then rename).
 
     ``none``, ``zips`` and ``zip`` are written by :mod:`stages.writers.exr_file` (numpy and
-    ISA-L's deflate), ``piz`` and ``rle`` by OpenImageIO (:func:`oiio_write_exr`); both give the
+    zlib's deflate), ``piz`` and ``rle`` by OpenImageIO (:func:`oiio_write_exr`); both give the
     same header attributes with the same EXR types and the same half floats.
 
     Parameters
@@ -222,7 +222,8 @@ def write_exr(
         scene-linear RGBA (see :func:`to_linear_rgba`).
     attributes : extra header attributes (see :func:`frame_attributes`).
     compression : one of ``COMPRESSIONS`` (all lossless).
-    zip_level : ISA-L deflate level 0..3 of ``zip`` / ``zips`` (other codecs ignore it).
+    zip_level : zlib deflate level (``ZIP_LEVELS``: 1 fastest .. 9 smallest) of ``zip`` / ``zips``
+        (other codecs ignore it).
     depth : optional (H, W) camera depth of the surface at each pixel centre, in ``DEPTH_UNIT``
         (mm, z away from the camera; ``inf`` where no surface is): written as a 32-bit float ``Z``
         channel after RGBA, with the header attribute ``exmap:depth_unit``.
@@ -266,14 +267,16 @@ class WriteExr(FrameStage):
     """Writes ``frame.%06d.exr`` per frame: half float, scene-linear, premultiplied RGBA, metadata."""
 
     name = "write.exr"
-    version = "2"  # 2: own zip writer (ISA-L deflate): other bytes, the same pixels
+    # 2: own zip writer (ISA-L's deflate); 3: zlib's deflate, whose bytes do not depend on the thread
+    # (other bytes, the same pixels)
+    version = "3"
     doc = "EXR per frame: half float, scene-linear (sRGB decoded), face mask as associated alpha"
     inputs = {"frames": "frames", "mask": "frames", "pose": "pose", "similarity": "similarity"}
     optional_inputs = frozenset({"mask", "pose", "similarity"})
     outputs = {"exr": "files"}
     params = (
         Param("compression", str, "zip", "lossless EXR compression", choices=COMPRESSIONS),
-        Param("zip_level", int, ZIP_LEVEL, "deflate level of zip/zips (ISA-L: 0 fastest, 3 slowest)",
+        Param("zip_level", int, ZIP_LEVEL, "deflate level of zip/zips (zlib: 1 fastest, 9 smallest)",
               min=ZIP_LEVELS.start, max=ZIP_LEVELS.stop - 1),
         Param("threads", int, 0, "frames written in parallel; 0 = one per CPU core", in_key=False, min=0),
     )

@@ -1,4 +1,4 @@
-"""OpenEXR scanline files in numpy and ISA-L's deflate: the ``none``, ``zips`` and ``zip`` codecs.
+"""OpenEXR scanline files in numpy and zlib's deflate: the ``none``, ``zips`` and ``zip`` codecs.
 
 The file layout is OpenEXR's public one (openexr.com, "OpenEXR File Layout"): the magic number
 20000630, the version field (2, plus the long-names flag 0x400 when a name is longer than 31
@@ -10,12 +10,16 @@ A chunk holds ``LINES_PER_CHUNK[compression]`` scanlines (the last one may hold 
 scanline holds every channel in turn, the channels sorted by name, each as ``width`` values.
 ``zip`` (16 lines) and ``zips`` (1 line) pass the chunk through OpenEXR's ZIP preprocessing
 (``ImfZip.cpp``: the bytes of even index, then those of odd index, then a delta predictor
-``d[i] = (b[i] - b[i-1] + 128) mod 256``) and a zlib stream (RFC 1950) made by ISA-L's deflate
-(``isal.isal_zlib``, 5 to 6 times faster than zlib's level 1 here for files 3 % smaller); a chunk
-that deflate does not shrink is stored raw, as OpenEXR does (a reader tells them apart by the
-size). On one machine the bytes depend only on the arguments and the pinned ``isal`` package;
-ISA-L picks its code path by CPU features, so another CPU family may give other bytes for the
-same pixels (not checked here).
+``d[i] = (b[i] - b[i-1] + 128) mod 256``) and a zlib stream (RFC 1950) made by Python's
+:mod:`zlib` (the zlib library it links: ``zlib.ZLIB_RUNTIME_VERSION``); a chunk that deflate
+does not shrink is stored raw, as OpenEXR does (a reader tells them apart by the size). The
+bytes are a function of the pixels, the attributes, the codec and the level, for one zlib
+release (another release may deflate the same bytes differently; the pixels stay the same).
+
+zlib and not ISA-L's faster deflate (``isal``, used before): ISA-L's level-1 output depends on
+the address of its stream state, which python-isal keeps on the calling thread's C stack, so the
+same chunk could come out as other, equally valid bytes in another thread or process
+(``docs/writers.md``, "Deterministic bytes").
 
 Header attributes are typed as OpenImageIO 3.2 writes them (``exroutput.cpp``), so a file of this
 module and one of OpenImageIO carry the same header bytes: Python ``int`` -> ``int``, ``float``
@@ -27,11 +31,11 @@ from __future__ import annotations
 
 import functools
 import struct
+import zlib
 from collections.abc import Mapping
 from typing import BinaryIO
 
 import numpy as np
-from isal import isal_zlib
 
 Attribute = int | float | str | tuple[float, ...]
 MAGIC = 20000630
@@ -39,8 +43,8 @@ VERSION = 2
 LONG_NAMES = 0x400  # version flag: some attribute or type name is longer than 31 bytes
 COMPRESSION_CODES = {"none": 0, "zips": 2, "zip": 3}  # OpenEXR's Compression enum
 LINES_PER_CHUNK = {"none": 1, "zips": 1, "zip": 16}
-ZIP_LEVELS = range(0, 4)  # ISA-L's deflate levels
-ZIP_LEVEL = 1  # default: level 0 is 1.2 times the size, 2 the same, 3 slower (docs/writers.md)
+ZIP_LEVELS = range(1, 10)  # zlib's deflate levels (0 would only store: the raw chunk is smaller)
+ZIP_LEVEL = 1  # default: the cheapest (docs/writers.md, "Zip level")
 PIXEL_TYPES = {np.dtype(np.float16): 1, np.dtype(np.float32): 2}  # HALF, FLOAT (UINT not used)
 FLOAT_TUPLE_TYPES = {2: "v2f", 3: "v3f", 9: "m33f", 16: "m44f"}  # else "floatvector"
 
@@ -153,7 +157,7 @@ def zip_predictor(blocks: np.ndarray) -> np.ndarray:
 def zero_block_data(size: int, level: int) -> bytes:
     """The ``zip`` chunk data of a block of ``size`` zero bytes: the zlib stream of its
     preprocessed bytes (0, then 128 ``size - 1`` times), or the raw block if that is not smaller."""
-    packed = isal_zlib.compress(zip_predictor(np.zeros((1, size), np.uint8))[0], level)
+    packed = zlib.compress(zip_predictor(np.zeros((1, size), np.uint8))[0], level)
     return packed if len(packed) < size else bytes(size)
 
 
@@ -169,7 +173,7 @@ def _compress_blocks(blocks: np.ndarray, level: int) -> list[bytes | np.ndarray]
     zero = zero_block_data(blocks.shape[1], level)
     chunks: list[bytes | np.ndarray] = [zero] * first
     for block, predicted in zip(blocks[first:last], zip_predictor(blocks[first:last])):
-        packed = isal_zlib.compress(predicted, level)
+        packed = zlib.compress(predicted, level)
         chunks.append(packed if len(packed) < len(block) else block)
     return chunks + [zero] * (len(blocks) - last)
 
@@ -177,7 +181,7 @@ def _compress_blocks(blocks: np.ndarray, level: int) -> list[bytes | np.ndarray]
 def chunk_data(lines: np.ndarray, *, compression: str, level: int) -> list[bytes | np.ndarray]:
     """The data of every chunk of ``lines`` (from :func:`scanlines`), in file order.
 
-    ``zip``/``zips`` chunks are zlib streams at ISA-L ``level`` (0..3) of the preprocessed block, or the
+    ``zip``/``zips`` chunks are zlib streams at ``level`` (``ZIP_LEVELS``) of the preprocessed block, or the
     raw block where that is not smaller; ``none`` chunks are the raw lines.
     """
     height, line_bytes = lines.shape
@@ -205,12 +209,12 @@ def write_scanline_exr(
         top (``INCREASING_Y``).
     attributes : extra header attributes (module docstring for their EXR types).
     compression : ``none``, ``zips`` or ``zip``.
-    level : ISA-L deflate level (``ZIP_LEVELS``: 0 fastest .. 3) for ``zips`` / ``zip``.
+    level : zlib deflate level (``ZIP_LEVELS``: 1 fastest .. 9 smallest) for ``zips`` / ``zip``.
     """
     if compression not in COMPRESSION_CODES:
         raise ValueError(f"EXR compression: expected one of {sorted(COMPRESSION_CODES)}, got {compression!r}")
     if level not in ZIP_LEVELS:
-        raise ValueError(f"EXR zip level: expected 0..3, got {level}")
+        raise ValueError(f"EXR zip level: expected {ZIP_LEVELS.start}..{ZIP_LEVELS.stop - 1}, got {level}")
     lines = scanlines(channels)
     height, width = lines.shape[0], next(iter(channels.values())).shape[1]
     dtypes = {name: channel.dtype for name, channel in channels.items()}

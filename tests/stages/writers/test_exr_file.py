@@ -1,4 +1,4 @@
-"""The numpy + ISA-L OpenEXR writer against two independent implementations: OpenImageIO (reads
+"""The numpy + zlib OpenEXR writer against two independent implementations: OpenImageIO (reads
 the files, writes the reference headers) and the official OpenEXR binding (reads the files)."""
 
 import io
@@ -10,7 +10,6 @@ import numpy as np
 import OpenEXR
 import OpenImageIO as oiio
 import pytest
-from isal import isal_zlib
 
 from stages.writers.exr import COLOR_SPACE, oiio_write_exr
 from stages.writers.exr_file import (
@@ -140,11 +139,11 @@ def test_long_attribute_names_set_the_version_flag(tmp_path: Path) -> None:
 
 def test_incompressible_chunks_are_stored_raw_and_read_back(tmp_path: Path) -> None:
     rng = np.random.default_rng(9)
-    noise = rng.integers(0, 0x7C00, size=(33, 64, 4), dtype=np.uint16).view(np.float16)  # finite halves
+    noise = rng.integers(0, 1 << 16, size=(33, 64, 4), dtype=np.uint16).view(np.float16)  # uniform bytes
     noise[16:32] = 0.25  # the middle chunk compresses
     data = io.BytesIO()
     write_scanline_exr(data, {n: noise[..., c] for c, n in enumerate("RGBA")}, attributes={}, compression="zip",
-                       level=0)
+                       level=1)
     header = header_bytes(64, 33, channels=dict.fromkeys("RGBA", np.float16), compression="zip", attributes={})
     sizes = _chunk_sizes(data.getvalue(), len(header), 3)
     line = 64 * 4 * 2
@@ -191,7 +190,7 @@ def test_bad_arguments_are_rejected() -> None:
     with pytest.raises(ValueError, match="compression"):
         write_scanline_exr(io.BytesIO(), ones, attributes={}, compression="piz")
     with pytest.raises(ValueError, match="level"):
-        write_scanline_exr(io.BytesIO(), ones, attributes={}, level=4)
+        write_scanline_exr(io.BytesIO(), ones, attributes={}, level=0)
     with pytest.raises(ValueError, match="one size"):
         scanlines({"R": np.ones((2, 2), np.float16), "G": np.ones((2, 3), np.float16)})
     with pytest.raises(TypeError, match="float16 or float32"):
@@ -217,7 +216,7 @@ def test_zero_blocks_get_the_bytes_of_compressing_them(tmp_path: Path, height: i
     expected = []
     for rows in blocks:
         for block, predicted in zip(rows, zip_predictor(rows)):
-            packed = isal_zlib.compress(predicted, ZIP_LEVEL)
+            packed = zlib.compress(predicted, ZIP_LEVEL)
             expected.append(packed if len(packed) < len(block) else block.tobytes())
     got = chunk_data(lines, compression="zip", level=ZIP_LEVEL)
     assert [bytes(c) for c in got] == expected
