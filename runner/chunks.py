@@ -173,14 +173,12 @@ class FrameChunks:
     def reads(self, i: int) -> list[Read]:
         """What chunk ``i``'s key reads upstream: every input that is not a frame stream whole;
         of each frame stream, the chunks that frames ``[start - window, stop + window)`` touch
-        (clamped to the clip). A stage that defines its own stream shape may map output frames
-        to any input frames, so each of its chunks reads whole input streams."""
-        own_shape = defines_stream_info(self.node.cls)
+        (clamped to the clip): output frame t is computed from input frames t ± window, whatever
+        size the stage gives its frames (the runner checks that the frame counts agree)."""
         start, stop = self.ranges[i]
         size, window = self.run.keys.chunk_frames, self.node.cls.window
         plain = [Read(port, v) for port, v in self.inputs.items() if v.type != "frames"]
-        streams = [Read(port, v) if own_shape else
-                   Read(port, v, (max(0, start - window) // size, (min(v.info.frames, stop + window) - 1) // size))
+        streams = [Read(port, v, (max(0, start - window) // size, (min(v.info.frames, stop + window) - 1) // size))
                    for port, v in self.inputs.items() if v.type == "frames"]
         return plain + streams
 

@@ -67,7 +67,7 @@ from runner.offload import start as offload_start
 from runner.outputs import entry_context, load_bundle, read_or_redo, save_outputs, verify_files
 from runner.progress import Progress, Report, own_time
 from runner.publish import Published, conflicts, publish, remove_leftovers
-from runner.stage import FrameStage, StreamInfo
+from runner.stage import FrameStage, StageError, StreamInfo
 
 __all__ = ["Options", "Report", "Runner", "StageFailed", "resolve_device"]
 
@@ -534,9 +534,7 @@ class Runner:
         first missing chunk of each pending stream now and compare it with the same chunk in
         the stage's last completed run (or the first one the stream's producer thread computed
         already); run while computed if one differs (the key changes), else resolve everything
-        first and look the entry up. A stream whose chunks read whole streams still being
-        computed (a stage defining its own shape, such as ``preview.side_by_side``) is read while
-        computed: its first chunk's key needs every upstream chunk.
+        first and look the entry up.
         """
         read = (self.keys.memo(node) or {}).get("input_chunks", {})
         for port, v in pending.items():
@@ -547,8 +545,6 @@ class Runner:
                          None)
             if first is None:
                 continue
-            if any(r.value.type == "frames" and r.chunks is None for r in v.chunks.reads(first)):
-                return True  # its chunk reads whole streams (preview.side_by_side): known only once all computed
             # Not waiting for the other readers: they may be waiting for this one, registered at
             # chunk 0; the chunks they computed before (at most the broadcast's keep) are held.
             with unbounded():
@@ -590,6 +586,11 @@ class Runner:
             return Report(node.name, node.uses, "may run", _after(unknown))
         stage = node.cls()
         info = self._stream_info(node, stage, inputs)
+        counts = {port: v.info.frames for port, v in inputs.items() if v.type == "frames" and v.info is not None}
+        if any(count != info.frames for count in counts.values()):
+            with stage_errors(node):
+                raise StageError(f"its output stream has {info.frames} frames, its frames inputs {counts}: a frame "
+                                 f"stage computes output frame t from input frames t ± window (its size may differ)")
         lazy = node.cls.cached and not self.opts.dry_run and self._is_read(node)
         chunks = FrameChunks(self.services, node, stage, inputs, info, forced=forced, lazy=lazy, keep=self._keep(node))
         self.entries[node.name], self.redo[node.name] = chunks.entries, chunks.redo

@@ -166,7 +166,10 @@ class FrameStage(Stage):
     """Maps over chunks of frames (decode, synthesize, write); cached chunk by chunk.
 
     ``window`` is the number of neighbouring frames each side that ``process`` may read from
-    its ``frames`` inputs (their ``read`` clamps at the clip ends).
+    its ``frames`` inputs (their ``read`` clamps at the clip ends): output frame t is computed
+    from input frames t ± window. :meth:`stream_info` may give the output frames another size,
+    channel count or rate, not another count (the runner checks it): a chunk's key reads the
+    upstream chunks of its window only, so its frames are streamed through in bounded memory.
 
     Each output frame must depend only on the inputs, not on which range ``[start, stop)`` it
     is computed in: the cache keeps the digests of ``frames`` outputs, not the frames, and the

@@ -75,3 +75,18 @@ def test_pipeline_3d_is_pipeline_yaml_plus_the_3d_stages():
     for name, stage in base["stages"].items():
         assert three["stages"].get(name) == stage, f"pipeline_3d.yaml's stage {name!r} differs from pipeline.yaml's"
     assert {"texture", "mesh3d", "head3d", "render3d", "usd"} <= set(three["stages"]) - set(base["stages"])
+
+
+def test_more_chunks_than_kept_ahead_stream_through(tmp_path):
+    """`render3d` gives its frames another size than `texture`'s: its chunks read `texture`'s
+    chunk by chunk, so a clip of more chunks than are computed ahead of the slowest reader (here
+    12 chunks of 4 frames, `texture` read by `render3d` and `usd` at once) streams through; it
+    waited forever when each `render3d` chunk's key read the whole `texture` stream."""
+    text = (REPO / "pipeline_3d.yaml").read_text().replace("chunk_frames: 16", "chunk_frames: 4")
+    text = text.replace("default: fixtures/", f"default: {REPO}/fixtures/")
+    (tmp_path / "pipeline.yaml").write_text(text)
+    result = run_cli("run", str(tmp_path / "pipeline.yaml"), "--until", "video3d", "--until", "usd",
+                     "--out", str(tmp_path / "out"), "--cache-dir", str(tmp_path / "cache"))
+    assert result.returncode == 0, result.stderr
+    assert len(list((tmp_path / "out" / "render3d").glob("frame.*.exr"))) == clip_frames() > 4 * 5
+    assert (tmp_path / "out" / "video3d" / "result3d.mp4").stat().st_size > 0

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from runner.stage import Context, FrameStage, Param, SequenceStage
+from runner.stage import Context, FrameStage, Param, SequenceStage, StreamInfo
 from stages.video import WriteVideo
 
 REPO = Path(__file__).resolve().parents[2]
@@ -37,6 +37,8 @@ ENTRY_POINTS = {
     "test.mean": "tests.runner.helpers:MeanSeries",
     "test.table": "tests.runner.helpers:SeriesTable",
     "test.slow_write": "tests.runner.helpers:SlowWriteVideo",
+    "test.every_other": "tests.runner.helpers:EveryOtherFrame",
+    "test.half_size": "tests.runner.helpers:HalfSize",
 }
 
 
@@ -59,6 +61,41 @@ class AddFrames(FrameStage):
         added = np.arange(start, stop)[:, None, None, None] >= params["start_at"]
         frames = frames.astype(np.int16) + params["value"] * added
         return {"frames": np.clip(frames, 0, 255).astype(np.uint8)}
+
+
+class HalfSize(FrameStage):
+    """Every other pixel of each row and column: a stage giving its frames another size (as
+    ``render3d``, ``preview.side_by_side``), frame t from input frame t."""
+
+    name = "test.half_size"
+    version = "1"
+    inputs = {"frames": "frames"}
+    outputs = {"frames": "frames"}
+
+    def stream_info(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> StreamInfo:
+        info = inputs["frames"].info
+        return StreamInfo(frames=info.frames, fps=info.fps, width=(info.width + 1) // 2, height=(info.height + 1) // 2)
+
+    def process(self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any],
+                ctx: Context) -> dict[str, Any]:
+        return {"frames": np.ascontiguousarray(inputs["frames"].read(start, stop)[:, ::2, ::2])}
+
+
+class EveryOtherFrame(FrameStage):
+    """A stage that would re-time its input (half the frames): the runner refuses it."""
+
+    name = "test.every_other"
+    version = "1"
+    inputs = {"frames": "frames"}
+    outputs = {"frames": "frames"}
+
+    def stream_info(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> StreamInfo:
+        info = inputs["frames"].info
+        return StreamInfo(frames=info.frames // 2, fps=info.fps / 2, width=info.width, height=info.height)
+
+    def process(self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any],
+                ctx: Context) -> dict[str, Any]:
+        return {"frames": inputs["frames"].read(2 * start, 2 * stop)[::2]}
 
 
 class MeanSeries(SequenceStage):
