@@ -16,6 +16,7 @@ the expression in the target's own frame, whose feature points are the mesh's ``
 
 from __future__ import annotations
 
+import threading
 from typing import Any, Mapping
 
 import numpy as np
@@ -131,7 +132,9 @@ class Render3D(FrameStage):
     )
 
     def __init__(self) -> None:
-        self._renderer: tuple[tuple[int, int, int], MeshRenderer] | None = None
+        # One renderer (GL context) per thread: the runner computes chunks on several producer
+        # threads, and a GL context is current on one thread at a time.
+        self._renderers = threading.local()
 
     def _size(self, mesh: Mapping[str, np.ndarray], params: Mapping[str, Any]) -> tuple[int, int]:
         W, H = (int(v) for v in mesh["size"])
@@ -144,13 +147,15 @@ class Render3D(FrameStage):
         return StreamInfo(frames=info.frames, fps=info.fps, width=W, height=H)
 
     def _get_renderer(self, size: tuple[int, int], samples: int) -> MeshRenderer:
+        """This thread's renderer for ``size`` and ``samples``, made on first use."""
         key = (*size, samples)
-        if self._renderer is None or self._renderer[0] != key:
+        made = getattr(self._renderers, "made", None)
+        if made is None or made[0] != key:
             try:
-                self._renderer = (key, MeshRenderer(size, samples=samples))
+                self._renderers.made = made = (key, MeshRenderer(size, samples=samples))
             except RuntimeError as exc:
                 raise StageError(f"{self.name}: {exc}") from None
-        return self._renderer[1]
+        return made[1]
 
     def process(self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         mesh, head, stream = inputs["mesh"], inputs.get("head"), inputs["texture"]

@@ -117,3 +117,33 @@ def test_missing_egl_is_a_stage_error_naming_the_packages(chain, tmp_path, monke
     params = {"samples": 4, "resolution_scale": 1.5, "geometry": "synthesized", "compression": "zip"}
     with pytest.raises(StageError, match="install-egl"):
         Render3D().process(0, 1, {"texture": texture, "mesh": mesh, "head": head}, params, files_context(tmp_path))
+
+
+def test_chunks_rendered_on_two_threads_at_once_equal_one_thread(chain, tmp_path):
+    """The runner computes a stage's chunks on several producer threads: the two frames rendered
+    at the same time on two threads (one stage instance) equal those rendered on one."""
+    import threading
+
+    root, _, mesh, head, texture, out = chain
+    params = {"samples": 4, "resolution_scale": 1.0, "geometry": "synthesized", "compression": "zip"}
+    stage, results, errors = Render3D(), {}, []
+    start = threading.Barrier(2)
+
+    def render(frame: int) -> None:
+        try:
+            start.wait(10)
+            for _ in range(3):
+                results[frame] = stage.process(frame, frame + 1, {"texture": texture, "mesh": mesh, "head": head},
+                                               params, files_context(tmp_path / str(frame)))
+        except Exception as exc:  # noqa: BLE001 - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=render, args=(frame,)) for frame in (0, 1)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert errors == []
+    for frame in (0, 1):
+        for port in ("frames", "mask", "depth"):
+            np.testing.assert_array_equal(results[frame][port][0], out[port][frame])
