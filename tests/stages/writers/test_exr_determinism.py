@@ -1,7 +1,7 @@
 """The EXR writer's bytes are a function of the pixels and parameters only: the same frame gives
 the same file whatever thread, stack, process or order writes it.
 
-The regression case: ISA-L's level-1 deflate (the writer's deflater before zlib) gave other,
+The regression case: ISA-L's level-1 deflate (the writer's deflater before zlib and zlib-ng) gave other,
 equally valid bytes for some chunks when its stream state lay in certain 64 KiB windows of the
 address space; python-isal keeps that state on the calling thread's C stack, so which thread of
 which process wrote a frame could change its bytes (docs/writers.md, "Deterministic bytes").
