@@ -243,7 +243,12 @@ _INTERRUPTED = threading.Event()
 def _interrupt(signum: int, frame: object) -> None:
     """SIGINT / SIGTERM: interrupt the run. The flag is kept because the KeyboardInterrupt raised
     here can be swallowed when the signal lands inside a C callback (a codec's); the run then stops
-    at its next event (a chunk, a stage), still exit 130."""
+    at its next event (a chunk, a stage), still exit 130. A second signal ends the process at once
+    (exit 130), for a run whose stop waits on work that does not end: what it committed stays,
+    its locks are broken by the next run (the cache's commits are atomic)."""
+    if _INTERRUPTED.is_set():
+        os.write(2, b"interrupted again: exiting now\n")
+        os._exit(EXIT_INTERRUPTED)
     _INTERRUPTED.set()
     raise KeyboardInterrupt
 

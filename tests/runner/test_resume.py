@@ -216,6 +216,27 @@ def test_two_concurrent_runs_share_the_cache(env, tmp_path, reference):
         p.name == ".break" for p in (Path(env["RUNNER_CACHE_DIR"]) / "locks").iterdir())
 
 
+def test_second_interrupt_exits_at_once(env, tmp_path, reference):
+    """The first signal stops the run cleanly, which waits for the chunks being computed (here
+    30 s each); a second one ends the process at once, exit 130, and the next run completes."""
+    log = tmp_path / "interrupted.jsonl"
+    proc = subprocess.Popen(runner_cmd("run", GRAPH, "--out", tmp_path / "out", "--log-json", log),
+                            env={**env, "RUNNER_TEST_SLEEP": "30"}, cwd=tmp_path,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    _wait_for(log, proc, lambda events: any(e.get("event") == "stage_start" and e["stage"] == "add" for e in events))
+    time.sleep(0.5)  # add's chunks are sleeping
+    proc.send_signal(signal.SIGTERM)
+    with pytest.raises(subprocess.TimeoutExpired):
+        proc.wait(timeout=1.5)  # still stopping: waiting for the sleeping chunks
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=10)
+    assert proc.returncode == 130 and "interrupted again: exiting now" in err
+    done = run_cli("run", GRAPH, "--out", tmp_path / "out", env=env, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    for stage in PUBLISHED:
+        assert tree_bytes(tmp_path / "out" / stage) == reference[stage]
+
+
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
 def test_interrupt_exits_130_and_resumes(env, tmp_path, reference, signum):
     log = tmp_path / "interrupted.jsonl"
