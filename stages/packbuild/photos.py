@@ -21,6 +21,7 @@ A photo point ``(x, y)`` lands at ``(sx x + tx, sy y + ty)`` (:func:`photo_to_fr
 
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -132,23 +133,40 @@ def letterbox(rgb: np.ndarray, frame: tuple[int, int]) -> np.ndarray:
 
 
 def scan_photos(folder: Path, *, max_side: int = DEFAULT_MAX_SIDE) -> PhotoSet:
-    """Decode every image file of ``folder`` once: which are readable, their upright sizes and
-    the frame size. Raises ValueError when the folder holds no readable photo (naming the
-    unreadable files, or the suffixes looked for)."""
-    readable, sizes, unreadable = [], [], []
-    for path in list_photos(folder):
-        rgb = read_photo(path)
-        if rgb is None:
-            unreadable.append(path)
-        else:
-            readable.append(path)
-            sizes.append((rgb.shape[1], rgb.shape[0]))
+    """Which image files of ``folder`` are readable, their upright sizes and the frame size.
+    Every file is decoded once per process while it is unchanged (name, size and modification
+    time): ``photos.decode`` and ``photos.identity`` both scan the folder. Raises ValueError
+    when the folder holds no readable photo (naming the unreadable files, or the suffixes
+    looked for)."""
+    state = tuple((path, *_stamp(path)) for path in list_photos(folder))
+    readable, sizes, unreadable = _decode_all(state)
     if not readable:
         if unreadable:
             raise ValueError(f"{folder}: none of its {len(unreadable)} image files could be read "
                              f"({', '.join(p.name for p in unreadable)})")
         raise ValueError(f"{folder}: no photos in it (looked for {' '.join(PHOTO_SUFFIXES)})")
     return PhotoSet(tuple(readable), tuple(sizes), tuple(unreadable), frame_size(sizes, max_side=max_side))
+
+
+def _stamp(path: Path) -> tuple[int, int]:
+    """``(size, mtime_ns)`` of a file: a photo changed in place is decoded again."""
+    stat = path.stat()
+    return stat.st_size, stat.st_mtime_ns
+
+
+@functools.lru_cache(maxsize=4)
+def _decode_all(state: tuple[tuple[Path, int, int], ...]) -> tuple[tuple[Path, ...], tuple[tuple[int, int], ...], tuple[Path, ...]]:
+    """Decode the files of ``state`` (path, size, mtime_ns): the readable ones, their upright
+    ``(width, height)`` and the unreadable ones."""
+    readable, sizes, unreadable = [], [], []
+    for path, _, _ in state:
+        rgb = read_photo(path)
+        if rgb is None:
+            unreadable.append(path)
+        else:
+            readable.append(path)
+            sizes.append((rgb.shape[1], rgb.shape[0]))
+    return tuple(readable), tuple(sizes), tuple(unreadable)
 
 
 def _scan(stage: str, folder: Path, max_side: int) -> PhotoSet:

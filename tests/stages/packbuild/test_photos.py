@@ -141,6 +141,22 @@ def test_scan_sizes_are_upright(tmp_path):
     assert photos.sizes == ((40, 60), (30, 30)) and photos.frame_size == (40, 60) and not photos.unreadable
 
 
+def test_a_folder_is_decoded_once_while_unchanged(tmp_path, monkeypatch):
+    """photos.decode and photos.identity both scan the folder: the second scan decodes nothing,
+    a photo changed in place is decoded again."""
+    from stages.packbuild import photos as module
+
+    save(tmp_path / "a.jpg", asymmetric_image())
+    save(tmp_path / "b.png", asymmetric_image(30, 30))
+    decoded = []
+    monkeypatch.setattr(module, "read_photo", lambda path, read=module.read_photo: decoded.append(path.name) or read(path))
+    first = scan_photos(tmp_path, max_side=1920)
+    assert scan_photos(tmp_path, max_side=64).sizes == first.sizes and sorted(decoded) == ["a.jpg", "b.png"]
+    save(tmp_path / "b.png", asymmetric_image(20, 30))  # changed in place: another size
+    assert scan_photos(tmp_path, max_side=1920).sizes == ((60, 40), (30, 20))  # (width, height)
+    assert sorted(decoded) == ["a.jpg", "a.jpg", "b.png", "b.png"]
+
+
 def test_signature_ignores_a_similarity_and_sees_other_proportions():
     rng = np.random.default_rng(1)
     mesh = rng.normal(size=(478, 3)) * 50
