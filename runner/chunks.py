@@ -174,21 +174,11 @@ class FrameChunks:
         """What chunk ``i``'s key reads upstream: every input that is not a frame stream whole;
         of each frame stream, the chunks that frames ``[start - window, stop + window)`` touch
         (clamped to the clip): output frame t is computed from input frames t ± window, whatever
-        size the stage gives its frames (the runner checks that the frame counts agree).
-
-        Except an uncached stage that gives its frames another size (``preview.side_by_side``):
-        its chunks are computed as read, without their key, which only names its frames for the
-        stages downstream; its key reads whole streams, and its readers run while it is computed
-        without probing its first chunk (:meth:`Runner._read_while_computed`): with windowed keys
-        the end-to-end demo run measured 1-2 s slower. A cached stage's key decides whether its
-        chunk is computed, so it must not wait for a whole stream still being computed
-        (``render3d`` waited forever for ``texture``, docs/runner.md)."""
+        size the stage gives its frames (the runner checks that the frame counts agree)."""
         start, stop = self.ranges[i]
         size, window = self.run.keys.chunk_frames, self.node.cls.window
-        whole = not self.node.cls.cached and defines_stream_info(self.node.cls)
         plain = [Read(port, v) for port, v in self.inputs.items() if v.type != "frames"]
-        streams = [Read(port, v) if whole else
-                   Read(port, v, (max(0, start - window) // size, (min(v.info.frames, stop + window) - 1) // size))
+        streams = [Read(port, v, (max(0, start - window) // size, (min(v.info.frames, stop + window) - 1) // size))
                    for port, v in self.inputs.items() if v.type == "frames"]
         return plain + streams
 

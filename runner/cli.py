@@ -247,8 +247,12 @@ def _interrupt(signum: int, frame: object) -> None:
     (exit 130), for a run whose stop waits on work that does not end: what it committed stays,
     its locks are broken by the next run (the cache's commits are atomic)."""
     if _INTERRUPTED.is_set():
-        os.write(2, b"interrupted again: exiting now\n")
-        os._exit(EXIT_INTERRUPTED)
+        try:
+            os.write(2, b"interrupted again: exiting now\n")
+        except OSError:  # a closed stderr (a pipe whose reader the first Ctrl-C ended)
+            pass
+        finally:
+            os._exit(EXIT_INTERRUPTED)
     _INTERRUPTED.set()
     raise KeyboardInterrupt
 

@@ -534,9 +534,9 @@ class Runner:
         first missing chunk of each pending stream now and compare it with the same chunk in
         the stage's last completed run (or the first one the stream's producer thread computed
         already); run while computed if one differs (the key changes), else resolve everything
-        first and look the entry up. A stream whose chunks read whole streams still being
-        computed (``preview.side_by_side``, :meth:`FrameChunks.reads`) is read while computed: its
-        first chunk's key needs every upstream chunk.
+        first and look the entry up. The stream of an uncached stage that gives its frames
+        another size (``preview.side_by_side``) is read while computed without that probe: with
+        it the end-to-end demo run measured 1-2 s slower (docs/runner.md, "Scheduling").
         """
         read = (self.keys.memo(node) or {}).get("input_chunks", {})
         for port, v in pending.items():
@@ -547,8 +547,8 @@ class Runner:
                          None)
             if first is None:
                 continue
-            if any(r.value.type == "frames" and r.chunks is None for r in v.chunks.reads(first)):
-                return True  # its chunk reads whole streams (preview.side_by_side): known only once all computed
+            if not v.chunks.node.cls.cached and defines_stream_info(v.chunks.node.cls):
+                return True  # preview.side_by_side: no probe (measured: the e2e run 1-2 s slower with it)
             # Not waiting for the other readers: they may be waiting for this one, registered at
             # chunk 0; the chunks they computed before (at most the broadcast's keep) are held.
             with unbounded():

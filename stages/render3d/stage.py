@@ -132,9 +132,12 @@ class Render3D(FrameStage):
     )
 
     def __init__(self) -> None:
-        # One renderer (GL context) per thread: the runner computes chunks on several producer
-        # threads, and a GL context is current on one thread at a time.
-        self._renderers = threading.local()
+        # One renderer (GL context) for the stage, used by one thread at a time and made current
+        # on it for each frame: the runner computes chunks on several producer threads, and a GL
+        # context is current on one thread at a time (a context per thread would never be freed:
+        # moderngl does not release one when it is collected).
+        self._renderer: tuple[tuple[int, int, int], MeshRenderer] | None = None
+        self._gl = threading.Lock()
 
     def _size(self, mesh: Mapping[str, np.ndarray], params: Mapping[str, Any]) -> tuple[int, int]:
         W, H = (int(v) for v in mesh["size"])
@@ -147,15 +150,17 @@ class Render3D(FrameStage):
         return StreamInfo(frames=info.frames, fps=info.fps, width=W, height=H)
 
     def _get_renderer(self, size: tuple[int, int], samples: int) -> MeshRenderer:
-        """This thread's renderer for ``size`` and ``samples``, made on first use."""
+        """The renderer for ``size`` and ``samples``, made on first use (the one of another size
+        released); call with ``self._gl`` held."""
         key = (*size, samples)
-        made = getattr(self._renderers, "made", None)
-        if made is None or made[0] != key:
+        if self._renderer is None or self._renderer[0] != key:
+            if self._renderer is not None:
+                self._renderer[1].release()
             try:
-                self._renderers.made = made = (key, MeshRenderer(size, samples=samples))
+                self._renderer = (key, MeshRenderer(size, samples=samples))
             except RuntimeError as exc:
                 raise StageError(f"{self.name}: {exc}") from None
-        return made[1]
+        return self._renderer[1]
 
     def process(self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         mesh, head, stream = inputs["mesh"], inputs.get("head"), inputs["texture"]
@@ -166,7 +171,6 @@ class Render3D(FrameStage):
         masks = inputs["mask"].read(start, stop) if inputs.get("mask") is not None else None
         size = self._size(mesh, params)
         A = scaled_intrinsics(mesh["camera"], float(params["resolution_scale"]))
-        renderer = self._get_renderer(size, int(params["samples"]))
         folder = ctx.files_dir("exr")
         folder.mkdir(parents=True, exist_ok=True)
         frames, alphas, depths = [], [], []
@@ -177,8 +181,11 @@ class Render3D(FrameStage):
                 v = apply_head(v, np.asarray(head["R"][frame]), np.asarray(head["t"][frame]))
                 attrs["exmap:head_R"] = tuple(float(x) for x in np.asarray(head["R"][frame]).ravel())
                 attrs["exmap:head_t_mm"] = tuple(float(x) for x in np.asarray(head["t"][frame]))
-            rgba, depth = render_textured(renderer, v, mesh["triangles"], mesh["uv"][frame], textures[i], A,
-                                          mask=None if masks is None else masks[i])
+            with self._gl:
+                renderer = self._get_renderer(size, int(params["samples"]))
+                with renderer.ctx:  # current on this thread for this frame
+                    rgba, depth = render_textured(renderer, v, mesh["triangles"], mesh["uv"][frame], textures[i], A,
+                                                  mask=None if masks is None else masks[i])
             write_exr(folder / exr_name(frame), rgba, attributes=attrs, compression=params["compression"], depth=depth)
             rgb, alpha = to_display(rgba)
             frames.append(rgb)

@@ -39,6 +39,7 @@ ENTRY_POINTS = {
     "test.slow_write": "tests.runner.helpers:SlowWriteVideo",
     "test.every_other": "tests.runner.helpers:EveryOtherFrame",
     "test.half_size": "tests.runner.helpers:HalfSize",
+    "test.half_size_on_demand": "tests.runner.helpers:HalfSizeOnDemand",
 }
 
 
@@ -79,6 +80,13 @@ class HalfSize(FrameStage):
     def process(self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any],
                 ctx: Context) -> dict[str, Any]:
         return {"frames": np.ascontiguousarray(inputs["frames"].read(start, stop)[:, ::2, ::2])}
+
+
+class HalfSizeOnDemand(HalfSize):
+    """:class:`HalfSize` uncached (computed as read, as ``preview.side_by_side``)."""
+
+    name = "test.half_size_on_demand"
+    cached = False
 
 
 class EveryOtherFrame(FrameStage):

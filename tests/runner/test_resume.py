@@ -223,13 +223,17 @@ def test_second_interrupt_exits_at_once(env, tmp_path, reference):
     proc = subprocess.Popen(runner_cmd("run", GRAPH, "--out", tmp_path / "out", "--log-json", log),
                             env={**env, "RUNNER_TEST_SLEEP": "30"}, cwd=tmp_path,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    _wait_for(log, proc, lambda events: any(e.get("event") == "stage_start" and e["stage"] == "add" for e in events))
-    time.sleep(0.5)  # add's chunks are sleeping
-    proc.send_signal(signal.SIGTERM)
-    with pytest.raises(subprocess.TimeoutExpired):
-        proc.wait(timeout=1.5)  # still stopping: waiting for the sleeping chunks
-    proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=10)
+    try:
+        _wait_for(log, proc, lambda events: any(e.get("event") == "stage_start" and e["stage"] == "add" for e in events))
+        time.sleep(0.5)  # add's chunks are sleeping
+        proc.send_signal(signal.SIGTERM)
+        with pytest.raises(subprocess.TimeoutExpired):
+            proc.wait(timeout=1.5)  # still stopping: waiting for the sleeping chunks
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=10)
+    finally:
+        proc.kill()
+        proc.wait()
     assert proc.returncode == 130 and "interrupted again: exiting now" in err
     done = run_cli("run", GRAPH, "--out", tmp_path / "out", env=env, cwd=tmp_path)
     assert done.returncode == 0, done.stderr
