@@ -20,10 +20,10 @@ wall time. Each figure is the best of ``--repeats`` runs. Rows (all per frame):
   1 thread) at scale 1.0 with ``medium`` (before) and at the stage defaults (after).
 - ``writers_exr_ms_<compression>``, ``writers_exr_mb_<compression>``: ``write.exr`` (sRGB decode,
   premultiply, half conversion, compression, atomic rename) with one writer thread and OpenEXR's
-  own pool off: CPU ms and MB per frame (``zip``, ``zips``, ``none``: the numpy + zlib writer at
+  own pool off: CPU ms and MB per frame (``zip``, ``zips``, ``none``: the numpy + zlib-ng writer at
   the default level; ``piz``, ``rle``: OpenImageIO).
 - ``writers_exr_ms_zip_level<L>``, ``writers_exr_mb_zip_level<L>``: the same with ``zip`` at each
-  zlib level L.
+  deflate level L (1-9).
 - ``writers_exr_ms_<zip|none>_oiio``, ``writers_exr_mb_zip_oiio``: the writer before, OpenImageIO
   for every codec, on the same frames in the same run; ``writers_exr_cpu_ratio_<zip|none>``: the
   stage's CPU ms over that.

@@ -10,7 +10,7 @@ mask, alpha is 1 and the whole frame is kept.
 Per-frame metadata goes into namespaced header attributes (``exmap:frame`` ...; see
 ``docs/writers.md``). Each file is written under a temporary name and renamed into place, so a
 file named ``frame.%06d.exr`` is always complete. The codecs ``zip``, ``zips`` and ``none`` are
-written by :mod:`stages.writers.exr_file` (numpy and zlib's deflate), ``piz`` and ``rle`` by
+written by :mod:`stages.writers.exr_file` (numpy and zlib-ng's deflate), ``piz`` and ``rle`` by
 OpenImageIO, with the same header and pixels.
 """
 
@@ -211,7 +211,7 @@ def write_exr(
     """Write one half-float RGBA EXR atomically (temp name in the same folder, then rename).
 
     ``none``, ``zips`` and ``zip`` are written by :mod:`stages.writers.exr_file` (numpy and
-    zlib's deflate), ``piz`` and ``rle`` by OpenImageIO (:func:`oiio_write_exr`); both give the
+    zlib-ng's deflate), ``piz`` and ``rle`` by OpenImageIO (:func:`oiio_write_exr`); both give the
     same header attributes with the same EXR types and the same half floats.
 
     Parameters
