@@ -459,13 +459,15 @@ class FrameChunks:
         if hi - lo < stop - start:
             return self._process(start + lo, start + hi)[port]
         self.broadcast.wait_room(i)  # before taking a lock that a slower reader may need
+        computed = None
         with self._locks[i]:
             frames = self.broadcast.take(i, port)
             if frames is None:
                 computed = self._process(start, stop)
-                self._check_recomputed(i, computed)
                 self.broadcast.offer(i, computed)
                 frames = computed[port]
+        if computed is not None:  # hashed outside the lock: the other readers take the frames meanwhile
+            self._check_recomputed(i, computed)
         return frames
 
     def _read(self, i: int, read: Callable[[Entry], Any]) -> Any:
