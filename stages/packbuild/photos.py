@@ -145,7 +145,7 @@ def scan_photos(folder: Path, *, max_side: int = DEFAULT_MAX_SIDE) -> PhotoSet:
             raise ValueError(f"{folder}: none of its {len(unreadable)} image files could be read "
                              f"({', '.join(p.name for p in unreadable)})")
         raise ValueError(f"{folder}: no photos in it (looked for {' '.join(PHOTO_SUFFIXES)})")
-    return PhotoSet(tuple(readable), tuple(sizes), tuple(unreadable), frame_size(sizes, max_side=max_side))
+    return PhotoSet(readable, sizes, unreadable, frame_size(sizes, max_side=max_side))
 
 
 def _stamp(path: Path) -> tuple[int, int]:
