@@ -22,7 +22,7 @@ from runner.config import ConfigError, Issue, Where, bind_inputs, load_pipeline
 from runner.dag import to_dot, to_mermaid
 from runner.errors import StageFailed
 from runner.registry import Registry, RegistryError
-from runner.stage import FrameStage
+from runner.stage import FrameStage, console_log
 
 EXIT_OK, EXIT_STAGE, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 
@@ -76,6 +76,7 @@ def run(pipeline: Path, clip: Path | None, named: tuple[str, ...], out: Path, dr
         if not torch.cuda.is_available():
             raise click.UsageError("--device cuda: CUDA is not available on this machine")
     _INTERRUPTED.clear()
+    console_log(sys.stderr)
     log_file = open(log_json, "w", encoding="utf-8") if log_json else None
 
     def log(event: dict) -> None:

@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import IO, Any, NoReturn
 
 import runner
+from runner.stage import SUMMARY
 
 SPEC_VERSION = 2
 
@@ -149,7 +150,10 @@ def _child(make_runner: Callable[..., Any], *, parent: int) -> NoReturn:
     from runner.cli import exit_now
 
     threading.Thread(target=_exit_when_orphaned, args=(parent,), daemon=True).start()
-    logging.getLogger().addHandler(_LogEvents(logging.WARNING))
+    stage_log = logging.getLogger("runner.stage")  # the parent shows what the child logs (a fork inherits its console)
+    stage_log.handlers.clear()
+    stage_log.setLevel(SUMMARY)
+    logging.getLogger().addHandler(_LogEvents(SUMMARY))
     code = 0
     try:
         make_runner(log=_event_line, warn=lambda line: _event_line({"event": "warning", "line": line})).run()

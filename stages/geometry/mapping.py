@@ -24,19 +24,24 @@ linear part ``S`` of a normalization: the target geometry is ``y_i + S_i d_i``.
   their scales; a point in none, or a set with fewer than 3 tracked points, the global scale.
 - ``none``: ``S = I``, displacements in px as they are.
 
-Two guards then keep the target's face plausible (:class:`ExpressionMap`):
+Then the states and guards (:class:`ExpressionMap`):
 
-- ``range_limit: soft`` (default): each component of each mapped displacement ``S_i d_i`` is
-  passed through :func:`soft_limit` against the range the target pack's captured geometries
-  span about its neutral at that point (Sec. 10, 14: the 30-40 geometries that also train motion
-  propagation), saturating smoothly ``margin`` beyond it (a performer opening the mouth to 46% of
-  the eye distance where the pack spans -1 to 13% gets a widely open mouth, not a torn face);
-  ``none`` leaves the displacements alone.
-- the inner lips never cross (:func:`separate_lips`): where a mapped upper inner-lip point comes
-  below the lower one facing it (:data:`INNER_LIP_PAIRS`), both move apart by half the overlap
-  each, to touching (or to the target neutral's own slight overlap of closed lips). A
-  performer whose neutral frame has the mouth slightly open otherwise pushes the target's lips
-  through each other whenever they close more than in that frame.
+- ``lids: ratio`` (default): each eye closes by the performer's fraction of its own open gap
+  (:func:`lid_ratio`): shut is shut and a wink a wink on any pair of faces, whatever their eye
+  shapes; ``displacement`` scales the lids like every point.
+- ``close_lips`` (default): the target's neutral is taken with its inner lips closed, as the
+  performer's (``compensate.rigid3d``), so a performer's sealed lips seal the target's even when
+  the pack's neutral has them apart.
+- ``range``: displacements beyond the range the target pack's captured geometries span about its
+  neutral (Sec. 10, 14) are ``none`` (default: kept as they are, the warp makes the geometry
+  the pack never showed), ``limit`` (each component passed through :func:`soft_limit`,
+  saturating smoothly ``range_margin`` beyond the range) or ``relative`` (the performer's own
+  range scaled onto the pack's, :func:`relative_range`).
+- the inner lips, and the lids, never cross (:func:`separate_lips`): where a mapped upper point
+  comes below the lower one facing it (:data:`INNER_LIP_PAIRS`, :data:`LID_PAIRS`), both move
+  apart by half the overlap each, to touching (or to the target neutral's own slight overlap).
+- the states the mapped geometry demands beyond what the pack's example expressions show
+  (:mod:`stages.geometry.states`) are flagged per frame and named in one warning line.
 """
 
 from __future__ import annotations
@@ -46,12 +51,16 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
+from stages.geometry.rigid3d import close_reference_lips
+from stages.geometry.signals import eye_line_frame
 from stages.geometry.similarity import fit_similarity
+from stages.geometry.states import STATE_NAMES, beyond_coverage, coverage, lid_columns, state_values
 from stages.geometry.subset import named_columns, rigid_columns
 from stages.pack.bundles import layout_and_geometry
 
 MODES = ("eyes_nose", "similarity", "region", "none")
-RANGE_LIMITS = ("soft", "none")
+RANGES = ("limit", "relative", "none")
+LIDS = ("ratio", "displacement")
 NORMALIZATION_POINTS = ("eye_l_0", "eye_l_6", "eye_r_0", "eye_r_6", "nose_tip", "nose_base")
 EYE_CORNERS = (("eye_l_0", "eye_l_6"), ("eye_r_0", "eye_r_6"))  # (inner, outer) of each eye
 # (upper, lower) inner-lip points facing each other: the layout's inner lip line runs 1-4 left to
@@ -227,31 +236,140 @@ def separate_lips(xy: np.ndarray, valid: np.ndarray, neutral: np.ndarray,
     return xy, clamped
 
 
+def relative_range(displacement: np.ndarray, valid: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The performer's own range of each point's mapped displacement scaled onto the pack's.
+
+    Per point and component, the displacements on each side of 0 are scaled by
+    ``min(1, hi / top)`` (above) and ``min(1, lo / bottom)`` (below), with ``top`` / ``bottom``
+    the largest / smallest valid displacement of the clip: a performance that reaches beyond the
+    pack is compressed linearly (its peaks keep their shape and timing), one within it is left as
+    it is.
+
+    Parameters
+    ----------
+    displacement : (T, n, 2) float
+        Mapped displacements, px.
+    valid : (T, n) bool
+    lo, hi : (n, 2) float
+        The pack's range per point (:func:`captured_range`), px; ``lo <= 0 <= hi``.
+
+    Returns
+    -------
+    scaled : (T, n, 2) float64
+    outside : (T, n) bool
+        Valid displacements that were scaled down.
+    """
+    d = np.asarray(displacement, np.float64)
+    masked = np.where(valid[..., None], d, 0.0)
+    top, bottom = masked.max(axis=0), masked.min(axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        up = np.where(top > hi, hi / top, 1.0)
+        down = np.where(bottom < lo, lo / bottom, 1.0)
+    scaled = np.where(d > 0, d * up[None], d * down[None])
+    outside = ((d > hi[None]) | (d < lo[None])).any(axis=2) & valid
+    return scaled, outside
+
+
+def lid_gaps(xy: np.ndarray, names: Sequence[str]) -> np.ndarray:
+    """Each eye's lid gap ``(2,)`` px (image-left, image-right eye) of one geometry ``(N, 2)``:
+    the mean over the facing lid pairs of :data:`stages.geometry.states.EYE_PAIRS` along the
+    face's down direction."""
+    _, _, down, _ = eye_line_frame(np.asarray(xy, np.float64)[None], names)
+    gaps = []
+    for side in "lr":
+        upper, lower = lid_columns(names, side)
+        gaps.append(float(np.mean((xy[lower] - xy[upper]) @ down[0])))
+    return np.array(gaps)
+
+
+def lid_ratio(displacement: np.ndarray, names: Sequence[str], performer: np.ndarray, target: np.ndarray,
+              transforms: np.ndarray, *, performer_open: np.ndarray | None = None) -> np.ndarray:
+    """Mapped lid displacements rescaled so that each eye closes by the performer's fraction.
+
+    A size-scaled displacement closes the target's eye only when both faces' eyes are open alike
+    relative to their size: a target with rounder eyes stays ajar when the performer shuts hers,
+    one with narrower eyes has its lids pushed through each other. Here the component along the
+    target's down direction of every lid point's mapped displacement (``eye_*_1..5``, ``_7..11``)
+    is scaled by ``(G_t / G_p) / s``, with ``G_t``, ``G_p`` the eye's neutral lid gap on the target
+    and on the performer (:func:`lid_gaps`) and ``s`` the scale of that point's transform: a lid
+    gap ``g`` of the performer becomes ``G_t g / G_p`` on the target — shut is shut, half-shut is
+    half-shut, wide is as wide, on any pair of faces.
+
+    Parameters
+    ----------
+    displacement : (T, n, 2) float
+        Mapped displacements ``S_i d_i`` of the performer's points ``names (n,)``, px.
+    performer, target : (n, 2) float
+        The two neutrals at those points, px.
+    transforms : (n, 2, 2) float
+        The ``S_i`` (:func:`displacement_transforms`).
+    performer_open : (2,) float, optional
+        The performer's open lid gaps (px) to use instead of its neutral's (an eye never seen
+        open).
+
+    Returns
+    -------
+    (T, n, 2) float64
+    """
+    d = np.array(displacement, np.float64)
+    names = [str(n) for n in names]
+    g_p = lid_gaps(performer, names) if performer_open is None else np.asarray(performer_open, np.float64)
+    g_t = lid_gaps(target, names)
+    _, _, down, _ = eye_line_frame(np.asarray(target, np.float64)[None], names)
+    n = down[0]
+    for k, side in enumerate("lr"):
+        if g_p[k] <= 0 or g_t[k] <= 0:
+            continue
+        columns = named_columns(np.array(names), tuple(f"eye_{side}_{i}" for i in (1, 2, 3, 4, 5, 7, 8, 9, 10, 11)))
+        scale = np.sqrt(np.abs(np.linalg.det(transforms[columns])))
+        factor = (g_t[k] / g_p[k]) / scale
+        normal = d[:, columns] @ n
+        d[:, columns] += ((factor - 1.0)[None, :] * normal)[..., None] * n
+    return d
+
+
+#: Facing lid points (upper, lower) of each eye, kept apart like the lips.
+LID_PAIRS = tuple((f"eye_{side}_{u}", f"eye_{side}_{lw}") for side in "lr"
+                  for u, lw in ((1, 11), (2, 10), (3, 9), (4, 8), (5, 7)))
+#: A typical open lid gap, eye distances (the open level of the dev clips' performers is 0.08-0.14):
+#: the reference for an eye that is never seen open.
+TYPICAL_EYE_OPEN = 0.11
+
+
 class ExpressionMap(SequenceStage):
     """``map.expression``: performer displacements -> target geometry of the tracked subset.
 
     The output covers the whole layout of the target's pack, as motion propagation (Sec. 10)
     expects: ``xy (T, N, 2)`` with the mapped tracked points valid and every other point at the
     target's neutral position, flagged invalid (propagation infers it). Besides the ``points``
-    keys it carries ``range_limited (T,) bool`` (frames where a valid displacement lay more than
-    the margin outside the pack's captured range; always False with ``range_limit: none``) and
-    ``lips_clamped (T,) bool`` (frames where :func:`separate_lips` moved the inner lips apart);
-    both counts go to the log.
+    keys it carries ``range_limited (T,) bool`` (frames where a valid displacement lay outside the
+    pack's captured range, more than the margin for ``range=limit``; what was limited or scaled),
+    ``lips_clamped (T,) bool`` (frames where :func:`separate_lips` moved the inner lips or lids
+    apart), and the states the pack cannot show (:mod:`stages.geometry.states`):
+    ``state_names (S,)``, ``beyond_pack (T, S) bool``, ``coverage (S, 2)`` (the pack's range of
+    each state's relative value over its example expressions) and ``state_values (T, S)`` (the
+    mapped geometry's).
     """
 
     name = "map.expression"
-    version = "3"
-    doc = "performer displacements onto the target's neutral (Sec. 11): size-normalized, range-limited, lips apart"
+    version = "4"  # 4: lid ratio, the target's lips closed in its neutral, range modes, states beyond the pack
+    doc = ("performer displacements onto the target's neutral (Sec. 11): size-normalized, eyes closing by the "
+           "performer's fraction, range mode, lips and lids never crossing; states beyond the pack listed")
     inputs = {"displacements": "displacements", "layout": "layout", "geometry": "pack_geometry"}
     outputs = {"points": "points"}
     params = (
         Param("mode", str, "eyes_nose", "displacement normalization (eyes_nose | similarity | region | none)",
               choices=MODES),
-        Param("range_limit", str, "soft", "saturate displacements beyond the pack's captured range (soft | none)",
-              choices=RANGE_LIMITS),
+        Param("range", str, "none", "displacements beyond the pack's captured range: limit (saturate softly past the "
+              "range + margin), relative (the performer's own range scaled onto the pack's), none (as they are)",
+              choices=RANGES),
         Param("range_margin", float, 0.05,
-              "how far beyond the captured range a displacement may go, fraction of the target's eye distance",
-              min=0.0),
+              "range=limit: how far beyond the captured range a displacement may go, fraction of the target's eye "
+              "distance", min=0.0, max=1.0),
+        Param("lids", str, "ratio", "eyelids: ratio (each eye closes by the performer's fraction of its own open "
+              "gap) or displacement (size-scaled like every point)", choices=LIDS),
+        Param("close_lips", bool, True, "the target's neutral taken with its inner lips closed, as the performer's "
+              "(a pack whose neutral has the lips apart otherwise never seals them)"),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
@@ -275,33 +393,76 @@ class ExpressionMap(SequenceStage):
             for fps in layout.feature_point_sets if fps.level == 1
         ]
         neutral_all = geometry.neutral
+        if params["close_lips"]:
+            try:
+                neutral_all = close_reference_lips(neutral_all, np.zeros((0,) + neutral_all.shape), layout.point_names)[0]
+            except KeyError as exc:
+                raise StageError(f"{self.name}: close_lips needs the layout point {exc}; set close_lips=false") from None
         target = neutral_all[rows]
-        transforms = displacement_transforms(np.asarray(bundle["neutral"], dtype=np.float64), target, reference,
-                                             mode=params["mode"], regions=regions)
+        performer = np.asarray(bundle["neutral"], dtype=np.float64)
+        transforms = displacement_transforms(performer, target, reference, mode=params["mode"], regions=regions)
         valid_in = np.asarray(bundle["valid"], bool)
         displacement = map_expression(np.asarray(bundle["d"], dtype=np.float64), target, transforms) - target[None]
+        if params["lids"] == "ratio":
+            displacement = self._lid_ratio(displacement, names, performer, target, transforms, bundle, ctx)
         n_frames = len(displacement)
-        outside = np.zeros(valid_in.shape, bool)  # (T, n): beyond the captured range by more than the margin
-        if params["range_limit"] == "soft":
-            lo, hi = captured_range(geometry.captured, neutral_all)
-            displacement, outside = limit_displacements(displacement, valid_in, lo[rows], hi[rows],
-                                                        margin=margin * eye_distance(neutral_all, layout.point_names))
+        outside = np.zeros(valid_in.shape, bool)  # (T, n): beyond the captured range
+        if params["range"] != "none":
+            lo, hi = captured_range(geometry.captured, geometry.neutral)
+            if params["range"] == "limit":
+                displacement, outside = limit_displacements(
+                    displacement, valid_in, lo[rows], hi[rows], margin=margin * eye_distance(neutral_all, layout.point_names))
+            else:
+                displacement, outside = relative_range(displacement, valid_in, lo[rows], hi[rows])
         limited = outside.any(axis=1)
         xy = np.repeat(neutral_all[None], n_frames, axis=0)
         xy[:, rows] = target[None] + displacement
         valid = np.zeros((n_frames, layout.n_points), bool)
         valid[:, rows] = valid_in
-        pairs = [(layout.index(u), layout.index(lw)) for u, lw in INNER_LIP_PAIRS
+        pairs = [(layout.index(u), layout.index(lw)) for u, lw in INNER_LIP_PAIRS + LID_PAIRS
                  if u in layout.point_names and lw in layout.point_names]
         xy, clamped = separate_lips(xy, valid, neutral_all, pairs)
         per_point = outside.sum(axis=0)
         most = ", ".join(f"{names[i]} {per_point[i]}"
                          for i in np.argsort(-per_point, kind="stable")[:3] if per_point[i])
-        ctx.log.info(f"{self.name}: displacements beyond the pack's captured range (+{margin:g} eye distance) in "
-                     f"{int(limited.sum())} of {n_frames} frames ({params['range_limit']} limit)"
-                     + (f", most often (frames): {most}" if most else "")
-                     + f"; inner lips kept apart in {int(clamped.sum())} frames")
+        ctx.log.info(f"{self.name}: displacements beyond the pack's captured range in {int(limited.sum())} of "
+                     f"{n_frames} frames (range={params['range']})" + (f", most often (frames): {most}" if most else "")
+                     + f"; lips or lids kept apart in {int(clamped.sum())} frames")
         out = {"xy": xy, "valid": valid, "names": np.array(layout.point_names),
                "range_limited": limited, "lips_clamped": clamped}
+        out.update(self._states_beyond_pack(xy, valid, neutral_all, geometry, layout, ctx))
         out.update({k: np.asarray(bundle[k]) for k in ("fps", "size") if k in bundle})
         return {"points": out}
+
+    def _lid_ratio(self, displacement: np.ndarray, names: np.ndarray, performer: np.ndarray, target: np.ndarray,
+                   transforms: np.ndarray, bundle: Mapping[str, np.ndarray], ctx: Context) -> np.ndarray:
+        """:func:`lid_ratio`, with a typical open gap for an eye the displacements say was never open."""
+        try:
+            lid_columns(names, "l"), lid_columns(names, "r")
+        except ValueError:
+            return displacement  # a subset without the lids (the paper's tracked points): size-scaled as the rest
+        known = np.asarray(bundle.get("eye_open_known", np.ones(2, bool)), bool)
+        open_gaps = lid_gaps(performer, names)
+        if not known.all():
+            typical = TYPICAL_EYE_OPEN * eye_distance(performer, names)
+            open_gaps = np.where(known, open_gaps, typical)
+        return lid_ratio(displacement, names, performer, target, transforms, performer_open=open_gaps)
+
+    def _states_beyond_pack(self, xy: np.ndarray, valid: np.ndarray, neutral: np.ndarray, geometry: Any,
+                            layout: Any, ctx: Context) -> dict[str, np.ndarray]:
+        """The states the mapped geometry demands beyond the pack's example expressions, and one
+        warning line naming them with their frame counts."""
+        try:
+            values = state_values(xy, layout.point_names, neutral)
+        except ValueError:
+            return {}  # a layout without the state points
+        covered = coverage(geometry.examples, layout.point_names, neutral)
+        beyond = beyond_coverage(values, covered, valid.any(axis=1))
+        counted = [(name, int(flags.sum())) for name, flags in beyond.items() if flags.any()]
+        if counted:
+            ctx.log.warning("%s: the performance goes beyond what the target pack's examples show (the warp still "
+                            "makes the geometry; the texture is the nearest example's): %s", self.name,
+                            ", ".join(f"{name.replace('_', ' ')} {n} frames" for name, n in counted))
+        return {"state_names": np.array(STATE_NAMES), "beyond_pack": np.stack([beyond[n] for n in STATE_NAMES], axis=1),
+                "coverage": np.array([covered[n] for n in STATE_NAMES]),
+                "state_values": np.stack([values[n] for n in STATE_NAMES], axis=1)}

@@ -13,10 +13,16 @@ Every point of frame ``t`` is then taken back into the reference frame,
 ``X'_i = R(t)^T (X_i(t) - t(t)) / s(t)``, and its compensated displacement is the image-plane part
 of ``X'_i - X_i(r)`` — the 3D counterpart of the paper's ``T^-1(x') - x``.
 
-The reference frame is chosen, not assumed (:func:`choose_reference`): the most frontal, least
-expressive frame near the start of the clip, from the landmarker's blendshapes and head matrix.
-Its inner lips are closed before the displacements are taken (:func:`close_reference_lips`), so a
-reference with the lips slightly apart does not cost the target that much of its mouth opening.
+Two references, neither assumed. The *head frame* (:func:`choose_reference`: the most frontal,
+least expressive frame of the clip, from the landmarker's blendshapes and head matrix) is the frame
+every frame is aligned to, so pose and the 2D similarity are relative to it. The *neutral* the
+displacements are taken from is estimated over the whole clip, region by region
+(:mod:`stages.geometry.neutral`): a clip that starts mid-expression, or never shows a neutral
+moment, still has one. A user may name a frame instead (``neutral_frame``). The neutral's inner
+lips are closed before the displacements are taken (:func:`close_reference_lips`), so a neutral
+with the lips slightly apart does not cost the target that much of its mouth opening. Regions an
+occluder hides (an ``occlusion`` bundle) are held from the frames around them
+(:func:`hold_occluded`) and never enter the neutral.
 
 Coordinates: x right, y down (px, origin at the centre of the top-left pixel), z away from the
 camera (px): a right-handed camera frame as OpenCV's. Angles: ``R = Ry(yaw) Rx(pitch) Rz(roll)``,
@@ -30,9 +36,10 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from runner.stage import Context, Param, SequenceStage, StageError
+from runner.stage import SUMMARY, Context, Param, SequenceStage, StageError
 from stages.geometry.camera import rotation_vector
 from stages.geometry.compensate import compensate as similarity_2d
+from stages.geometry.neutral import REST, NeutralEstimate, estimate_neutral
 from stages.geometry.signals import expression_signals
 from stages.geometry.subset import named_columns
 
@@ -178,6 +185,8 @@ def close_reference_lips(neutral: np.ndarray, d: np.ndarray, names: np.ndarray) 
     neutral = np.asarray(neutral, np.float64)
     columns = {str(n): i for i, n in enumerate(names)}
     left, right = (neutral[columns[n]] for n in ("eye_l_6", "eye_r_6"))
+    if not np.linalg.norm(right - left) > 0:  # no eye line (a placeholder geometry): no face to close
+        return neutral.copy(), np.asarray(d, np.float64), 0.0
     along = (right - left) / np.linalg.norm(right - left)
     down = np.array([-along[1], along[0]])  # x right, y down: the eye line turned a quarter, pointing down
     closed = neutral.copy()
@@ -250,29 +259,93 @@ def head_angle_deg(R: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(cos))
 
 
+def hold_occluded(d: np.ndarray, occluded: np.ndarray, columns: np.ndarray) -> np.ndarray:
+    """Displacements of occluded points interpolated in time from the frames around them.
+
+    For each run of occluded frames, the displacements ``d (T, N, 2)`` of ``columns`` go linearly
+    from the last frame before the run to the first frame after it; a run at the clip's start or
+    end holds the one neighbour it has, and a region occluded in every frame stays at the neutral
+    (zero displacement). Returns a copy.
+
+    Parameters
+    ----------
+    d : (T, N, 2) float
+        Compensated displacements, px.
+    occluded : (T,) bool
+        Frames where the region is hidden.
+    columns : (K,) int
+        The region's points.
+    """
+    d = np.array(d, np.float64)
+    occluded = np.asarray(occluded, bool)
+    if not occluded.any() or len(columns) == 0:
+        return d
+    if occluded.all():
+        d[:, columns] = 0.0
+        return d
+    edges = np.diff(np.concatenate([[0], occluded.astype(np.int8), [0]]))
+    for first, end in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)):
+        before, after = first - 1, end
+        if before < 0:
+            d[first:end][:, columns] = d[after, columns]
+        elif after >= len(d):
+            d[first:end][:, columns] = d[before, columns]
+        else:
+            w = ((np.arange(first, end) - before) / (after - before))[:, None, None]
+            d[first:end][:, columns] = (1 - w) * d[before, columns] + w * d[after, columns]
+    return d
+
+
+def occluded_regions(occlusion: Mapping[str, np.ndarray] | None, names: np.ndarray,
+                     n_frames: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """``{region: (occluded (T,) bool, columns (K,) int)}`` from an ``occlusion`` bundle
+    (``regions (R,)``, ``occluded (T, R)``, ``region_points (R, M)`` over its ``names (M,)``),
+    the columns among this bundle's ``names``; empty without one."""
+    if occlusion is None:
+        return {}
+    flags = np.asarray(occlusion["occluded"], bool)
+    if flags.shape[0] != n_frames:
+        raise ValueError(f"the occlusion bundle has {flags.shape[0]} frames, the points {n_frames}")
+    where = {str(n): i for i, n in enumerate(names)}
+    theirs = [str(n) for n in occlusion["names"]]
+    out = {}
+    for r, region in enumerate(occlusion["regions"]):
+        members = np.asarray(occlusion["region_points"], bool)[r]
+        columns = np.array([where[theirs[m]] for m in np.flatnonzero(members) if theirs[m] in where], np.int64)
+        out[str(region)] = (flags[:, r], columns)
+    return out
+
+
 class CompensateRigid3D(SequenceStage):
     """``compensate.rigid3d``: head motion removed by 3D alignment of the landmarker's points to a
-    chosen reference frame (an extension of Sec. 12 for real footage)."""
+    head frame, displacements from the performer's neutral estimated over the whole clip (an
+    extension of Sec. 12 for real footage)."""
 
     name = "compensate.rigid3d"
-    version = "2"
-    doc = "reference (neutral) frame chosen from blendshapes and pose; 3D similarity of the rigid points; displacements, pose, 2D similarity"
-    inputs = {"points": "points", "landmarks": "landmarks"}
+    version = "3"  # 3: the neutral estimated region by region over the clip (stages.geometry.neutral); occlusion held
+    doc = ("neutral estimated from the whole clip (or a named frame); 3D similarity of the rigid points; "
+           "displacements, pose, 2D similarity; occluded regions held")
+    inputs = {"points": "points", "landmarks": "landmarks", "occlusion": "occlusion"}
+    optional_inputs = frozenset({"occlusion"})
     outputs = {"displacements": "displacements", "similarity": "similarity", "pose": "pose"}
     params = (
-        Param("neutral_frame", int, -1, "the reference (neutral) frame; -1: chosen as the most frontal, least "
-              "expressive frame among the first search_frames"),
-        Param("search_frames", int, 125, "frames searched for the reference (from the first frame with a face)"),
+        Param("neutral_frame", int, -1, "the reference (neutral) frame; -1: the neutral is estimated region by region "
+              "from the whole clip, and the head frame chosen as the most frontal, least expressive frame", min=-1),
+        Param("search_frames", int, 0, "frames searched for the head frame, from the first with a face (0: the whole "
+              "clip)", min=0),
+        Param("max_turn_deg", float, 20.0, "frames turned more than this from the head frame do not enter the "
+              "estimated neutral", min=1.0, max=90.0),
         Param("rigid_points", list, list(RIGID_POINTS), "layout points aligned in 3D (they move with the skull)"),
-        Param("huber_px", float, 2.0, "Huber threshold of the robust 3D fit, px"),
-        Param("warn_angle_deg", float, 12.0, "warn when the reference frame's head is turned more than this"),
-        Param("warn_expression", float, 2.0, "warn when the reference frame's expressiveness (sum of blendshapes) "
-              "exceeds this"),
-        Param("close_lips", bool, True, "displacements from the reference with its inner lips closed (a reference "
-              "with the lips apart would cost the target that much mouth opening)"),
+        Param("huber_px", float, 2.0, "Huber threshold of the robust 3D fit, px", min=0.01, max=100.0),
+        Param("warn_angle_deg", float, 12.0, "warn when the head frame is turned more than this", min=0.0, max=90.0),
+        Param("warn_expression", float, 2.0, "warn when a named reference frame's expressiveness (sum of blendshapes) "
+              "exceeds this", min=0.0),
+        Param("close_lips", bool, True, "displacements from the neutral with its inner lips closed (a neutral with "
+              "the lips apart would cost the target that much mouth opening)"),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
+        params = {p.name: p.default for p in self.params} | dict(params)
         points, marks = inputs["points"], inputs["landmarks"]
         if "z" not in points:
             raise StageError(f"{self.name}: input 'points' carries no depth 'z' (use landmark points)")
@@ -283,15 +356,20 @@ class CompensateRigid3D(SequenceStage):
         if len(marks["valid"]) != n_frames:
             raise StageError(f"{self.name}: {n_frames} frames of points but {len(marks['valid'])} of landmarks")
         frame_ok = np.asarray(marks["valid"], bool) & valid.any(axis=1)
-        reference = int(params["neutral_frame"])
-        if reference >= n_frames or (reference >= 0 and not frame_ok[reference]):
-            raise StageError(f"{self.name}: neutral_frame={reference}: the clip has {n_frames} frames and that "
+        named = int(params["neutral_frame"])
+        if named >= n_frames or (named >= 0 and not frame_ok[named]):
+            raise StageError(f"{self.name}: neutral_frame={named}: the clip has {n_frames} frames and that "
                              "frame must show the face")
         try:
+            occlusion = occluded_regions(inputs.get("occlusion"), names, n_frames)
+            hidden = np.any([flags for flags, _ in occlusion.values()], axis=0) if occlusion else np.zeros(n_frames, bool)
+            reference = named
             if reference < 0:
                 mouth = expression_signals(xy, names)["mouth_open"]
+                search = int(params["search_frames"]) or n_frames
                 reference = choose_reference(marks["blendshapes"], marks["blendshape_names"], marks["matrix"], mouth,
-                                             frame_ok, search_frames=int(params["search_frames"]))
+                                             frame_ok & ~hidden if (frame_ok & ~hidden).any() else frame_ok,
+                                             search_frames=search)
             rigid = named_columns(names, tuple(params["rigid_points"]))
             # Frames without a face hold the nearest frame with one: the target keeps that expression
             # (displacements valid, ``held`` True) while the points and pose stay flagged invalid.
@@ -299,26 +377,48 @@ class CompensateRigid3D(SequenceStage):
             xy, valid = xy[held], valid[held]
             xyz = np.concatenate([xy, np.asarray(points["z"], np.float64)[held][..., None]], axis=-1)
             fit = compensate_rigid3d(xyz, valid, reference, rigid, huber_px=float(params["huber_px"]))
+            aligned = xy[reference][None] + fit["d"]
+            if named >= 0:
+                estimate = None
+                neutral = xy[reference].copy()
+            else:
+                turned = head_angle_deg(fit["R"]) > float(params["max_turn_deg"])
+                estimate = estimate_neutral(
+                    np.where(valid[..., None], aligned, np.nan), names, frame_ok & fit["frame_valid"] & ~turned,
+                    np.asarray(marks["blendshapes"])[held], marks["blendshape_names"],
+                    occluded={region: flags for region, (flags, _) in occlusion.items()})
+                neutral = estimate.neutral
         except (KeyError, ValueError) as exc:
             raise StageError(f"{self.name}: {exc}") from None
-        self._warn_reference(ctx, reference, marks, params)
+        self._log_reference(ctx, reference, estimate, marks, params, names)
         frame_valid = fit["frame_valid"] & frame_ok
-        d_valid = valid & valid[reference][None] & fit["frame_valid"][:, None]
+        d_valid = valid & np.isfinite(neutral).all(axis=1)[None] & fit["frame_valid"][:, None]
         if (~frame_ok).any():
             ctx.log.warning("%s: no face in %d of %d frames; each holds the expression of the nearest frame with "
                             "one", self.name, int((~frame_ok).sum()), n_frames)
-        neutral, d = xy[reference].copy(), fit["d"]
+        d = aligned - neutral[None]
         if params["close_lips"]:
             try:
                 neutral, d, gap = close_reference_lips(neutral, d, names)
             except KeyError as exc:
                 raise StageError(f"{self.name}: close_lips needs the layout point {exc}; set close_lips=false") from None
             if gap > 0:
-                ctx.log.info("%s: the reference frame's lips are apart (up to %.1f px): displacements are taken from "
-                             "the reference with its lips closed", self.name, gap)
+                ctx.log.info("%s: the neutral's lips are apart (up to %.1f px): displacements are taken from the "
+                             "neutral with its lips closed", self.name, gap)
+        occluded_any = np.zeros(n_frames, bool)
+        for region, (flags, columns) in occlusion.items():
+            d = hold_occluded(d, flags, columns)
+            occluded_any |= flags
+        if occluded_any.any():
+            counts = ", ".join(f"{region} {int(flags.sum())}" for region, (flags, _) in occlusion.items() if flags.any())
+            ctx.log.warning("%s: occluded regions held from the frames around them (frames: %s)", self.name, counts)
         extra = {k: np.asarray(points[k]) for k in ("fps", "size") if k in points}
+        known = (np.array([estimate.eye_open_known.get(f"eye_{s}", True) for s in "lr"]) if estimate is not None
+                 else np.ones(2, bool))
         displacements = {"d": d, "valid": d_valid, "names": names, "neutral": neutral,
-                         "neutral_frame": np.array(reference), "held": ~frame_ok, **extra}
+                         "neutral_frame": np.array(reference), "neutral_estimated": np.array(estimate is not None),
+                         "neutral_nearest_frame": np.array(reference if estimate is None else estimate.nearest_frame),
+                         "eye_open_known": known, "held": ~frame_ok, "occluded": occluded_any, **extra}
         planar = similarity_2d(xy, valid, xy[reference], rigid)
         similarity = {"params": planar["params"], "residual_px": planar["residual_px"],
                       "valid": planar["frame_valid"] & frame_ok}
@@ -328,14 +428,30 @@ class CompensateRigid3D(SequenceStage):
                 "ypr_deg": euler_yaw_pitch_roll(fit["R"]), "neutral_frame": np.array(reference)}
         return {"displacements": displacements, "similarity": similarity, "pose": pose}
 
-    def _warn_reference(self, ctx: Context, reference: int, marks: Mapping[str, np.ndarray],
-                        params: Mapping[str, Any]) -> None:
-        """One warning line when the reference frame is turned or expressive."""
+    def _log_reference(self, ctx: Context, reference: int, estimate: NeutralEstimate | None,
+                       marks: Mapping[str, np.ndarray], params: Mapping[str, Any], names: np.ndarray) -> None:
+        """The console's line on the reference: a named frame, or the estimate and its head frame;
+        a warning when the head frame is turned, when a named frame is expressive, or when an eye
+        is never open (no open level to measure its closure from)."""
         angle = float(head_angle_deg(np.asarray(marks["matrix"], np.float64)[[reference], :3, :3])[0])
         score = float(expressiveness(np.asarray(marks["blendshapes"])[[reference]], marks["blendshape_names"])[0])
-        ctx.log.info("%s: reference (neutral) frame %d: head turned %.1f deg, expressiveness %.2f",
-                     self.name, reference, angle, score)
-        if angle > float(params["warn_angle_deg"]) or score > float(params["warn_expression"]):
-            ctx.log.warning("%s: the reference (neutral) frame %d is not a frontal neutral face (head turned "
-                            "%.1f deg, expressiveness %.2f); set neutral_frame=N to choose one", self.name,
-                            reference, angle, score)
+        if estimate is None:
+            ctx.log.log(SUMMARY, "%s: reference (neutral): frame %d as set (head turned %.1f deg, expressiveness %.2f)",
+                         self.name, reference, angle, score)
+            if angle > float(params["warn_angle_deg"]) or score > float(params["warn_expression"]):
+                ctx.log.warning("%s: the reference frame %d set by neutral_frame is not a frontal neutral face (head "
+                                "turned %.1f deg, expressiveness %.2f); neutral_frame=-1 estimates the neutral from "
+                                "the whole clip", self.name, reference, angle, score)
+            return
+        per_region = ", ".join(f"{region} {len(frames)}" for region, frames in estimate.frames.items() if region != REST)
+        ctx.log.log(SUMMARY, "%s: reference (neutral) estimated from the clip, each region from its least active "
+                    "frames (%s); head frame %d (turned %.1f deg); nearest single frame %d", self.name, per_region,
+                    reference, angle, estimate.nearest_frame)
+        if angle > float(params["warn_angle_deg"]):
+            ctx.log.warning("%s: the most frontal frame of the clip, %d, is turned %.1f deg: displacements are "
+                            "measured in a turned head frame", self.name, reference, angle)
+        for eye, known in estimate.eye_open_known.items():
+            if not known:
+                ctx.log.warning("%s: the %s eye is shut or nearly shut in every frame: there is no open level to "
+                                "measure its closure from; it is mapped against a typical open eye", self.name,
+                                "image-left" if eye == "eye_l" else "image-right")

@@ -27,12 +27,26 @@ BROWS = tuple(f"brow_{side}_{k}" for side in "lr" for k in range(8))
 SIGNALS = ("mouth_open", "mouth_width", "brow_raise")
 
 
-def _columns(names: Sequence[str], wanted: Sequence[str]) -> list[int]:
+def named_points(names: Sequence[str], wanted: Sequence[str]) -> list[int]:
+    """Columns of the ``wanted`` layout points among ``names``, in ``wanted`` order; ValueError
+    naming the missing ones."""
     where = {str(n): i for i, n in enumerate(names)}
     missing = [w for w in wanted if w not in where]
     if missing:
         raise ValueError(f"expression signals need layout points {missing}, which the geometry does not have")
     return [where[w] for w in wanted]
+
+
+def eye_line_frame(xy: np.ndarray, names: Sequence[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The eye-line frame of each geometry ``(T, N, 2)`` px: the midpoint of the outer eye corners
+    ``(T, 2)`` px, the unit vector along the eye line ``(T, 2)`` and its normal pointing down the
+    face ``(T, 2)`` (x right, y down: ``(x, y) -> (-y, x)``), and the eye distance ``(T,)`` px."""
+    left, right = (xy[:, c] for c in named_points(names, EYE_OUTER))
+    axis = right - left
+    eye = np.linalg.norm(axis, axis=-1)
+    along = axis / eye[:, None]
+    down = np.stack([-along[:, 1], along[:, 0]], axis=-1)
+    return (left + right) / 2, along, down, eye
 
 
 def expression_signals(xy: np.ndarray, names: Sequence[str]) -> dict[str, np.ndarray]:
@@ -51,16 +65,11 @@ def expression_signals(xy: np.ndarray, names: Sequence[str]) -> dict[str, np.nda
         ``mouth_open``, ``mouth_width``, ``brow_raise``, ``eye_distance_px``: each ``(T,)``.
     """
     xy = np.asarray(xy, np.float64)
-    left, right = (xy[:, c] for c in _columns(names, EYE_OUTER))
-    axis = right - left
-    eye = np.linalg.norm(axis, axis=-1)
-    along = axis / eye[:, None]
-    down = np.stack([-along[:, 1], along[:, 0]], axis=-1)  # x right, y down: (x, y) -> (-y, x) points down
-    upper = xy[:, _columns(names, UPPER_INNER_LIP)].mean(axis=1)
-    lower = xy[:, _columns(names, LOWER_INNER_LIP)].mean(axis=1)
-    corners = xy[:, _columns(names, MOUTH_CORNERS)]
-    brows = xy[:, _columns(names, BROWS)].mean(axis=1)
-    centre = (left + right) / 2
+    centre, _, down, eye = eye_line_frame(xy, names)
+    upper = xy[:, named_points(names, UPPER_INNER_LIP)].mean(axis=1)
+    lower = xy[:, named_points(names, LOWER_INNER_LIP)].mean(axis=1)
+    corners = xy[:, named_points(names, MOUTH_CORNERS)]
+    brows = xy[:, named_points(names, BROWS)].mean(axis=1)
     return {
         "mouth_open": np.sum((lower - upper) * down, axis=-1) / eye,
         "mouth_width": np.linalg.norm(corners[:, 1] - corners[:, 0], axis=-1) / eye,

@@ -9,7 +9,8 @@ port             type                keys
 ``layout``       ``layout``          ``name ()`` str, ``document ()`` str: the layout as JSON
                                      in the layout file's schema (names, not indices)
 ``geometry``     ``pack_geometry``   ``names (N,)``, ``neutral (N, 2)`` px, ``captured (K, N, 2)``
-                                     px, ``size (2,)`` ``[W, H]``
+                                     px, ``examples (E, N, 2)`` px (the example expressions'
+                                     points), ``size (2,)`` ``[W, H]``
 ``images``       ``pack_images``     ``pack ()`` name, ``names (N,)``, ``size (2,)``,
                                      ``{neutral,standard}_{image,points,name}``,
                                      ``{examples,teeth}_{images,points,names}``
@@ -107,11 +108,12 @@ def layout_from_bundle(bundle: Bundle) -> Layout:
 # -- geometry, 3D model, camera ------------------------------------------------------------------
 
 def geometry_to_bundle(pack: ActorPack) -> dict[str, np.ndarray]:
-    """The ``pack_geometry`` bundle: the neutral and captured feature points (Sec. 10, 14)."""
+    """The ``pack_geometry`` bundle: the neutral, captured and example feature points (Sec. 10, 14)."""
     return {
         "names": np.array(pack.layout.point_names),
         "neutral": np.asarray(pack.neutral.points, np.float64),
         "captured": np.asarray(pack.captured_points, np.float64),
+        "examples": np.stack([np.asarray(e.points, np.float64) for e in pack.examples]),
         "size": np.array(pack.image_size, np.int64),
     }
 
@@ -119,11 +121,12 @@ def geometry_to_bundle(pack: ActorPack) -> dict[str, np.ndarray]:
 @dataclass(frozen=True)
 class PackGeometry:
     """A ``pack_geometry`` bundle read back: point ``names (N,)``, ``neutral (N, 2)`` px,
-    ``captured (K, N, 2)`` px, ``size`` ``(W, H)``."""
+    ``captured (K, N, 2)`` px, ``examples (E, N, 2)`` px, ``size`` ``(W, H)``."""
 
     names: tuple[str, ...]
     neutral: np.ndarray
     captured: np.ndarray
+    examples: np.ndarray
     size: tuple[int, int]
 
     def rows(self, names: Any) -> list[int]:
@@ -137,6 +140,7 @@ def geometry_from_bundle(bundle: Bundle) -> PackGeometry:
     n = len(names)
     return PackGeometry(names, _field(bundle, "neutral", "pack_geometry", (n, 2), np.float64),
                         _field(bundle, "captured", "pack_geometry", (None, n, 2), np.float64),
+                        _field(bundle, "examples", "pack_geometry", (None, n, 2), np.float64),
                         _size(bundle, "pack_geometry"))
 
 

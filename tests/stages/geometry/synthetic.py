@@ -72,5 +72,6 @@ def pack_inputs(layout, *, model3d: np.ndarray | None = None, camera: np.ndarray
         "layout": layout_to_bundle(layout),
         "model3d": {"names": names, "xyz": np.zeros((n, 3)) if model3d is None else model3d},
         "camera": {"intrinsics": np.eye(3) if camera is None else camera, "size": np.array(size)},
-        "geometry": {"names": names, "neutral": neutral, "captured": captured, "size": np.array(size)},
+        "geometry": {"names": names, "neutral": neutral, "captured": captured, "examples": neutral[None],
+                     "size": np.array(size)},
     }

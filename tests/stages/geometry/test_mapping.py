@@ -9,6 +9,7 @@ import pytest
 from runner.stage import StageError
 from stages.geometry.similarity import apply_similarity
 from stages.geometry.mapping import (
+    relative_range,
     NORMALIZATION_POINTS, ExpressionMap, captured_range, displacement_transforms, eye_distance, map_expression,
     separate_lips, soft_limit,
 )
@@ -62,17 +63,21 @@ def test_stage_maps_onto_the_pack_neutral(tmp_path):
     d = rng.normal(0, 3.0, (4, len(names), 2))
     bundle = {"d": d, "valid": np.ones((4, len(names)), bool), "names": names, "neutral": performer}
     bundle["valid"][2, 5] = False
-    out = ExpressionMap().run({"displacements": bundle, **pack}, {}, context(tmp_path))["points"]
+    affine = {"lids": "displacement", "close_lips": False}  # every point size-scaled, the neutral as it is
+    out = ExpressionMap().run({"displacements": bundle, **pack}, affine, context(tmp_path))["points"]
     tracked = list(layout.tracked)
     assert out["xy"].shape == (4, layout.n_points, 2) and list(out["names"]) == list(layout.point_names)
-    np.testing.assert_allclose(out["xy"][:, tracked], target + d / 1.5, atol=1e-9)
+    guarded = [k for k, n in enumerate(names) if n.startswith(("eye_", "mouth_inner"))]  # random lids and lips cross
+    free = [tracked[k] for k in range(len(tracked)) if k not in guarded]
+    free_d = np.delete(d, guarded, axis=1)
+    np.testing.assert_allclose(out["xy"][:, free], target_all[free] + free_d / 1.5, atol=1e-9)
     others = np.setdiff1d(np.arange(layout.n_points), tracked)
     np.testing.assert_array_equal(out["xy"][:, others], np.broadcast_to(target_all[others], (4, len(others), 2)))
     assert out["valid"][:, tracked].sum() == 4 * len(tracked) - 1 and not out["valid"][:, others].any()
     assert not out["valid"][2, tracked[5]]
-    region = ExpressionMap().run({"displacements": bundle, **pack}, {"mode": "region"},
+    region = ExpressionMap().run({"displacements": bundle, **pack}, {"mode": "region", **affine},
                                  context(tmp_path))["points"]
-    np.testing.assert_allclose(region["xy"][:, tracked], target + d / 1.5, atol=1e-9)  # one scale for all here
+    np.testing.assert_allclose(region["xy"][:, free], target_all[free] + free_d / 1.5, atol=1e-9)  # one scale here
     del bundle["neutral"]
     with pytest.raises(StageError, match="neutral"):
         ExpressionMap().run({"displacements": bundle, **pack}, {}, context(tmp_path))
@@ -113,10 +118,10 @@ def test_eyes_nose_mode_ignores_a_low_stand_in_hairline(tmp_path):
     bundle = {"d": d, "valid": np.ones((3, len(names)), bool), "names": names, "neutral": performer}
     tracked = list(layout.tracked)
     mapped = {mode: ExpressionMap().run({"displacements": bundle, **pack},
-                                        {"mode": mode, "range_limit": "none"}, context(tmp_path))["points"]
+                                        {"mode": mode, "lids": "displacement"}, context(tmp_path))["points"]
               for mode in ("eyes_nose", "similarity")}
-    lips = [list(names).index(n) for n in ("mouth_inner_2", "mouth_inner_7")]
-    others = np.setdiff1d(np.arange(len(names)), lips)  # the lip guard may move the lips apart
+    lips = [list(names).index(n) for n in ("mouth_inner_2", "mouth_inner_7", "eye_l_3", "eye_l_9", "eye_r_3", "eye_r_9")]
+    others = np.setdiff1d(np.arange(len(names)), lips)  # the lip and lid guards may move them apart
     np.testing.assert_allclose(mapped["eyes_nose"]["xy"][:, tracked][:, others], (target + 1.5 * d)[:, others],
                                atol=1e-9)
     inflated = np.linalg.norm(mapped["similarity"]["xy"][:, tracked] - target, axis=2).mean()
@@ -161,12 +166,12 @@ def test_stage_range_limit_against_a_hand_computed_case(tmp_path):
     d[:, 2, 1] = [2.0, 12.0, -10.0, 8.0]  # 8 px: 4 beyond the range, inside the margin
     bundle = {"d": d, "valid": np.ones((4, 3), bool), "names": names,
               "neutral": neutral[[layout.index(n) for n in names]]}
-    out = ExpressionMap().run({"displacements": bundle, **pack}, {"mode": "none"},
+    out = ExpressionMap().run({"displacements": bundle, **pack}, {"mode": "none", "range": "limit"},
                               context(tmp_path))["points"]
     expected = [2.0, 4.0 + 5.0 * np.tanh(8 / 5), -1.0 - 5.0 * np.tanh(9 / 5), 4.0 + 5.0 * np.tanh(4 / 5)]
     np.testing.assert_allclose(out["xy"][:, chin, 1] - neutral[chin, 1], expected, rtol=1e-12)
     np.testing.assert_array_equal(out["range_limited"], [False, True, True, False])
-    off = ExpressionMap().run({"displacements": bundle, **pack}, {"mode": "none", "range_limit": "none"},
+    off = ExpressionMap().run({"displacements": bundle, **pack}, {"mode": "none", "range": "none"},
                               context(tmp_path))["points"]
     np.testing.assert_allclose(off["xy"][:, chin, 1] - neutral[chin, 1], d[:, 2, 1])
     assert not off["range_limited"].any()
@@ -230,9 +235,107 @@ def test_the_log_names_the_points_limited_most(tmp_path, caplog):
     bundle = {"d": d, "valid": np.ones((5, 4), bool), "names": names,
               "neutral": neutral[[layout.index(n) for n in names]]}
     with caplog.at_level("INFO"):
-        out = ExpressionMap().run({"displacements": bundle, **pack}, {"mode": "none"},
+        out = ExpressionMap().run({"displacements": bundle, **pack}, {"mode": "none", "range": "limit"},
                                   context(tmp_path))["points"]
     np.testing.assert_array_equal(out["range_limited"], [False, True, True, True, True])
-    assert "in 4 of 5 frames (soft limit), most often (frames): chin 4, nose_tip 1;" in caplog.text
+    assert "in 4 of 5 frames (range=limit), most often (frames): chin 4, nose_tip 1;" in caplog.text
     assert out["xy"][4, layout.index("nose_tip"), 0] - neutral[layout.index("nose_tip"), 0] == pytest.approx(
         5.0 * np.tanh(4.0 / 5.0))
+
+
+def eyed_face(layout, *, eye_gap: float) -> np.ndarray:
+    """:func:`face` with each eye's lids placed ``eye_gap`` px apart about the eye line (upper
+    lid points 1-5 above, lower 7-11 below), the brows 40 px above the eye line with their inner
+    ends (points 0 and 7) 50 px apart, and the outer lips an ellipse 60 x 16 px about the touching
+    inner lips: a face whose states (:mod:`stages.geometry.states`) are defined."""
+    xy = face(layout)
+    for side, x0, sign in (("l", 125.0, -1.0), ("r", 175.0, 1.0)):
+        for k in range(8):
+            xy[layout.index(f"brow_{side}_{k}")] = (x0 + sign * 10 * min(k, 7 - k), 60.0)
+    for side, (inner, outer) in (("l", (125, 75)), ("r", (175, 225))):
+        for k in range(1, 6):
+            x = inner + (outer - inner) * k / 6
+            xy[layout.index(f"eye_{side}_{k}")] = (x, 100 - eye_gap / 2)
+            xy[layout.index(f"eye_{side}_{12 - k}")] = (x, 100 + eye_gap / 2)
+    for k in range(16):
+        angle = np.pi * k / 8
+        xy[layout.index(f"mouth_outer_{k}")] = (150 - 30 * np.cos(angle), 220 - 8 * np.sin(angle))
+    return xy
+
+
+def test_lids_close_by_the_performers_fraction_on_any_target(tmp_path):
+    """The performer's eyes are 10 px open with the outer eye corners 150 px apart (0.067), the
+    target's 16 px with them 225 px apart (0.071): a size-scaled closing leaves the target 1 px ajar; the lid ratio shuts it, halves
+    it, widens it by the performer's fraction, and lids pushed past shut stop where they touch."""
+    from stages.geometry.states import state_signals
+    layout = load_layout("zhang134")
+    performer = eyed_face(layout, eye_gap=10.0)
+    target = apply_similarity(np.array([1.5, 0.0, -20.0, 10.0]), eyed_face(layout, eye_gap=16.0 / 1.5))
+    pack = fake_pack(layout, target)
+    names = np.array(layout.point_names)
+    lids = np.array([n.startswith(("eye_l_", "eye_r_")) and n[6:] not in ("0", "6") for n in names])
+    upper = np.array([n.startswith(("eye_l_", "eye_r_")) and n[6:] in ("1", "2", "3", "4", "5") for n in names])
+    d = np.zeros((5, len(names), 2))
+    for t, fraction in enumerate((1.0, 0.0, 0.5, 1.3, -0.4)):  # open, shut, half, wide, past shut
+        d[t, upper, 1] = (1.0 - fraction) * 10.0  # the upper lid comes down
+    bundle = {"d": d, "valid": np.ones(d.shape[:2], bool), "names": names, "neutral": performer}
+
+    def gaps(params):
+        out = ExpressionMap().run({"displacements": bundle, **pack}, params, context(tmp_path))["points"]
+        return state_signals(out["xy"], names)["eye_open_l"] * 225.0  # px of the target
+
+    np.testing.assert_allclose(gaps({}), [16.0, 0.0, 8.0, 16.0 * 1.3, 0.0], atol=1e-9)
+    scaled = gaps({"lids": "displacement"})
+    assert scaled[1] == pytest.approx(1.0) and scaled[4] == pytest.approx(0.0)  # ajar; the guard still holds
+    assert lids.sum() == 20
+
+
+def test_the_targets_neutral_lips_are_closed_before_mapping(tmp_path):
+    """A pack neutral with the inner lips 6 px apart: a performer at rest (lips closed, no
+    displacement) seals the target's lips; close_lips=false keeps the pack's gap."""
+    from stages.geometry.states import state_signals
+    layout = load_layout("zhang134")
+    target = eyed_face(layout, eye_gap=10.0)
+    for k in range(6, 10):
+        target[layout.index(f"mouth_inner_{k}"), 1] += 6.0
+    pack = fake_pack(layout, target)
+    names = np.array(layout.point_names)
+    bundle = {"d": np.zeros((2, len(names), 2)), "valid": np.ones((2, len(names)), bool), "names": names,
+              "neutral": eyed_face(layout, eye_gap=10.0)}
+    out = ExpressionMap().run({"displacements": bundle, **pack}, {}, context(tmp_path))["points"]
+    np.testing.assert_allclose(state_signals(out["xy"], names)["mouth_open"], 0.0, atol=1e-12)
+    kept = ExpressionMap().run({"displacements": bundle, **pack}, {"close_lips": False}, context(tmp_path))["points"]
+    np.testing.assert_allclose(state_signals(kept["xy"], names)["mouth_open"], 6.0 / 150.0, atol=1e-12)
+
+
+def test_relative_range_scales_the_performers_range_onto_the_packs():
+    """The pack spans [-1, 4] px at a point; the clip goes to 8 and -0.5: the positive side is
+    halved, the negative side (inside) kept, and only the frames beyond count."""
+    d = np.zeros((4, 1, 2))
+    d[:, 0, 1] = [2.0, 8.0, -0.5, 4.0]
+    scaled, outside = relative_range(d, np.ones((4, 1), bool), np.array([[0.0, -1.0]]), np.array([[0.0, 4.0]]))
+    np.testing.assert_allclose(scaled[:, 0, 1], [1.0, 4.0, -0.5, 2.0])
+    np.testing.assert_array_equal(outside[:, 0], [False, True, False, False])
+
+
+def test_states_beyond_the_pack_are_flagged_and_named(tmp_path, caplog):
+    """A pack whose examples never shut the eyes: a performer who shuts them is flagged in those
+    frames, named once in the log; a pack with a shut-eye example covers it."""
+    layout = load_layout("zhang134")
+    neutral = eyed_face(layout, eye_gap=10.0)
+    names = np.array(layout.point_names)
+    upper = np.array([n.startswith(("eye_l_", "eye_r_")) and n[6:] in ("1", "2", "3", "4", "5") for n in names])
+    d = np.zeros((4, len(names), 2))
+    d[2:, upper, 1] = 10.0
+    bundle = {"d": d, "valid": np.ones(d.shape[:2], bool), "names": names, "neutral": neutral}
+    pack = fake_pack(layout, neutral)
+    with caplog.at_level("WARNING"):
+        out = ExpressionMap().run({"displacements": bundle, **pack}, {}, context(tmp_path))["points"]
+    states = list(out["state_names"])
+    np.testing.assert_array_equal(out["beyond_pack"][:, states.index("eye_l_shut")], [False, False, True, True])
+    assert "eye l shut 2 frames" in caplog.text and "eye r shut 2 frames" in caplog.text
+    shut = neutral.copy()
+    shut[upper, 1] += 10.0
+    pack["geometry"] = dict(pack["geometry"], examples=np.stack([neutral, shut]))
+    covered = ExpressionMap().run({"displacements": bundle, **pack}, {}, context(tmp_path))["points"]
+    assert not covered["beyond_pack"][:, states.index("eye_l_shut")].any()

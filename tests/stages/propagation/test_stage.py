@@ -40,7 +40,8 @@ def toy_layout() -> Layout:
 def test_train_reads_layout_and_geometry_and_returns_a_model_bundle(tmp_path):
     captured = toy_neutral() + expressions(low_rank_modes(6, seed=71), 35, seed=72)
     layout = layout_to_bundle(toy_layout())
-    geometry = {"names": np.array(NAMES), "neutral": toy_neutral(), "captured": captured, "size": np.array([64, 64])}
+    geometry = {"names": np.array(NAMES), "neutral": toy_neutral(), "captured": captured, "examples": captured[:3],
+                "size": np.array([64, 64])}
     params = {"n_components": 6, "variance_kept": 1.0}
     check_stage_class(TrainHierarchicalPCA)
     out = TrainHierarchicalPCA().run({"layout": layout, "geometry": geometry}, params, context(tmp_path))
