@@ -1,6 +1,8 @@
 """Runtime expression synthesis (Sec. 6-8, 11): target geometry per frame -> expression images.
 
-Per chunk of frames: the batched convex-hull QP (eq. 2-5) for every frame and subregion, the
+Per chunk of frames: the batched convex-hull QP (eq. 2-5) for every frame and subregion, made
+coherent in time by a joint bilateral filter over the frames around (:mod:`stages.synthesis.coherence`:
+no texture pops while a subregion holds still, no lag while it moves), the
 compositing and boundary blending of the aligned examples (eq. 6, 7; teeth from the teeth
 examples, Sec. 8) in the standard geometry, then the triangulation-based warp of the whole image
 from the standard geometry to the frame's geometry (Sec. 7, last paragraph).
@@ -22,6 +24,8 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from runner.stage import Context, FrameStage, Param, StageError, StreamInfo
+from stages.geometry.mapping import rms_radius
+from stages.synthesis.coherence import coherent_coefficients
 from stages.synthesis.composite import Compositor, Workspace, composite, prepare_compositor, workspace
 from stages.synthesis.coefficients import SubregionQP, target_geometry
 from stages.synthesis.warp import Buffers, scratch, warp_images
@@ -33,6 +37,8 @@ DETAIL_POWER = 1.0  # band-pass blending defaults (docs/synthesis.md, "Fine text
 DETAIL_SIGMA_PX = 2.0
 FLOW_MAX_PX = 0.0  # optical-flow refinement of the examples' alignment (0: off)
 RIDGE_PX = 0.0  # coefficient regularisation of the QPs (docs/synthesis.md, "Per-subregion vs global on real faces")
+COHERENCE_FRAMES = 2.0  # example weights coherent in time (stages.synthesis.coherence)
+COHERENCE_SIZE = 0.025
 MEMO_FRAMES = 2048  # frames whose QP coefficients a Synthesizer keeps (about 4 KB each)
 
 
@@ -296,6 +302,7 @@ class Synthesizer:
         mode: str = "full",
         similarity: np.ndarray | None = None,
         direct: bool = False,
+        coeffs: torch.Tensor | None = None,
         progress: Callable[[int], None] = lambda n: None,
         **options: Any,
     ) -> tuple[np.ndarray, np.ndarray, torch.Tensor]:
@@ -310,6 +317,9 @@ class Synthesizer:
         ----------
         points, mode, similarity, direct
             As :meth:`render_rgba`; ``similarity`` (B, 4) is sliced per frame.
+        coeffs : (B, S, K) tensor, optional
+            Composite with these coefficients (e.g. :func:`stages.synthesis.coherence.coherent_coefficients`)
+            instead of each frame's own QP solution.
         progress : callable
             Called with 1 after each frame.
         **options
@@ -323,7 +333,8 @@ class Synthesizer:
         coeffs : (B, S, K) float64 tensor (zeros in ``warp-only`` mode)
         """
         points = np.asarray(points, np.float64)
-        coeffs = self.coefficients(points, mode=mode)  # the QPs batched
+        if coeffs is None:
+            coeffs = self.coefficients(points, mode=mode)  # the QPs batched
         W, H = self.size
         frames = np.empty((len(points), H, W, 3), np.float16)
         mask = np.empty((len(points), H, W, 1), np.float16)
@@ -416,7 +427,7 @@ class Synthesize(FrameStage):
     """``synthesis.synthesize``: target geometry per frame -> expression images (Sec. 6-8, 11)."""
 
     name = "synthesis.synthesize"
-    version = "5"  # 5: warp-only's face alpha resampled twice (carried into the neutral's geometry once)
+    version = "6"  # 6: example weights coherent in time (stages.synthesis.coherence)
     doc = "per-subregion QP + compositing + blending + warp: target points per frame -> half-float sRGB frames, face mask, coefficients"
     inputs = {
         "model": "synthesis_model",
@@ -437,6 +448,11 @@ class Synthesize(FrameStage):
         Param("detail_sigma_px", float, DETAIL_SIGMA_PX, "band-pass blending: Gaussian sigma separating the detail band, px", min=0.1),
         Param("flow_max_px", float, FLOW_MAX_PX, "refine the examples' alignment by optical flow (DIS) to the neutral, flow bounded to this many px (0 = off)", min=0.0),
         Param("ridge_px", float, RIDGE_PX, "coefficient regularisation of the QPs: n_R tau^2 ||c||^2 with tau this many px (0 = plain eq. 2)", min=0.0),
+        Param("coherence_frames", float, COHERENCE_FRAMES, "example weights coherent in time: sigma of the bilateral filter over frames "
+              "(stages.synthesis.coherence; 0 = each frame's own QP solution)", min=0.0, max=10.0),
+        Param("coherence_size", float, COHERENCE_SIZE, "example weights coherent in time: sigma of the filter's geometry term, "
+              "fraction of the face size (RMS distance of the target neutral's points from their centroid; a subregion "
+              "that moves more than this between frames keeps its own weights)", min=1e-4, max=1.0),
     )
 
     def __init__(self) -> None:
@@ -481,8 +497,20 @@ class Synthesize(FrameStage):
                 )
                 scale *= ratio
         synth = self._synthesizer(model, ctx.device, params)
+        coeffs = None
+        if params["mode"] != "warp-only":
+            import torch
+            sigma_px = float(params["coherence_size"]) * rms_radius(np.asarray(model["neutral_points"], np.float64))
+            members = np.array(model["subregion_points"], bool)
+            if params["mode"] == "global":  # one combination for the face: one geometry term over all its points
+                face = ~np.asarray(model["subregion_teeth"], bool)
+                members[face] = members[face].any(axis=0)
+            coeffs = torch.from_numpy(coherent_coefficients(
+                lambda p: synth.coefficients(p, mode=params["mode"]).cpu().numpy(), xy, start, stop, members,
+                sigma_frames=float(params["coherence_frames"]), sigma_px=sigma_px,
+            )).to(synth.device)
         frames, mask, coeffs = synth.render_half(
             points, mode=params["mode"], similarity=similarity, source_center=source_center, target_center=target_center,
-            motion_scale=scale, min_coeff=params["min_coeff"], progress=ctx.progress,
+            motion_scale=scale, min_coeff=params["min_coeff"], coeffs=coeffs, progress=ctx.progress,
         )
         return {"frames": frames, "mask": mask, "coeffs": {"coeffs": coeffs.cpu().numpy()}}

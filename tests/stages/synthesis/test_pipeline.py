@@ -16,7 +16,9 @@ from stages.actor_pack import load_pack
 from stages.pack.stage import LoadPack
 from stages.synthesis.build import BuildSynthesis
 from stages.synthesis.coefficients import NameCoefficients
-from stages.synthesis.synthesize import Synthesize, Synthesizer
+from stages.geometry.mapping import rms_radius
+from stages.synthesis.coherence import coherent_coefficients
+from stages.synthesis.synthesize import COHERENCE_FRAMES, COHERENCE_SIZE, Synthesize, Synthesizer
 from tests.stages.synthesis.test_fixture_pack import PACK
 
 
@@ -54,7 +56,8 @@ stages:
   pack: {uses: pack.load, inputs: {pack: target}}
   build: {uses: synthesis.build, inputs: {layout: pack.layout, images: pack.images}}
   geometry: {uses: t.pack_points, inputs: {pack: target}}
-  synth: {uses: synthesis.synthesize, inputs: {model: build.model, points: geometry.points}}
+  synth: {uses: synthesis.synthesize, params: {coherence_frames: 0.0}, inputs: {model: build.model, points: geometry.points}}
+  coherent: {uses: synthesis.synthesize, inputs: {model: build.model, points: geometry.points}}
   coeffs: {uses: synthesis.coefficients, inputs: {model: build.model, coeffs: synth.coeffs}}
   gather: {uses: t.gather, inputs: {frames: synth.frames, mask: synth.mask}}
 """
@@ -81,3 +84,10 @@ def test_runner_pipeline_matches_direct_synthesis(tmp_path: Path):
     assert table["coeff"].shape == (5, len(pack.layout.subregions), len(pack.examples) + len(pack.teeth_examples))
     np.testing.assert_array_equal(np.nan_to_num(table["coeff"])[:, :, : len(pack.examples)].sum(-1)[:, 0], chunked[:, 0].sum(-1))
     assert len(runner.entries["synth"]) == 3  # ceil(5 / 2) chunks
+    # With the weights coherent in time (the default), chunk by chunk equals the whole clip at once.
+    xy = np.stack([e.points for e in pack.examples][:5])
+    synthesizer = Synthesizer(model)
+    whole = coherent_coefficients(lambda p: synthesizer.coefficients(p).numpy(), xy, 0, 5, model["subregion_points"],
+                                  sigma_frames=COHERENCE_FRAMES,
+                                  sigma_px=COHERENCE_SIZE * rms_radius(np.asarray(model["neutral_points"])))
+    np.testing.assert_allclose(runner.values[("coherent", "coeffs")].get()["coeffs"], whole, atol=1e-12)
