@@ -196,6 +196,26 @@ def coverage(xy: np.ndarray, names: Sequence[str], neutral: np.ndarray) -> dict[
             for name, v in values.items()}
 
 
+def shown(covered: Mapping[str, tuple[float, float]]) -> dict[str, bool]:
+    """Per state of :data:`STATES`: does a covered range ``(lo, hi)`` (:func:`coverage`) reach
+    into the state (an example shows it)?"""
+    return {s.name: bool(s.present(np.array([covered[s.name][0] if s.below is not None else covered[s.name][1]]))[0])
+            for s in STATES if s.name in covered}
+
+
+def coverage_record(covered: Mapping[str, tuple[float, float]]) -> dict[str, object]:
+    """A pack's coverage as ``pack.yaml`` records it: the states an example shows and those none
+    shows, and the range of each state signal's relative value over the examples."""
+    flags = shown(covered)
+    ranges: dict[str, list[float]] = {}
+    for s in STATES:
+        lo, hi = covered.get(s.name, (np.nan, np.nan))
+        if np.isfinite(lo) and s.signal not in ranges:
+            ranges[s.signal] = [round(float(lo), 4), round(float(hi), 4)]
+    return {"shows": [n for n, f in flags.items() if f], "does_not_show": [n for n, f in flags.items() if not f],
+            "range": ranges}
+
+
 def beyond_coverage(values: Mapping[str, np.ndarray], covered: Mapping[str, tuple[float, float]],
                     valid: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Per state, ``(T,)`` bool: frames whose demanded state lies beyond the covered range

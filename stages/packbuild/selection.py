@@ -21,6 +21,14 @@ After ``k`` picks the *coverage radius* — the largest distance of any candidat
 chosen one — is at most twice the optimum, and no two chosen frames are closer than it. The 30-40
 captured geometries of Sec. 10 continue the same sequence from the examples (so they include
 them).
+
+Distance alone does not make a pack that shows what a performer will do: a wink or a frown held
+for a few frames is close to the neutral in RMS terms and easily left out, and the pack then cannot
+show shut eyes or a furrow however the geometry moves. So the k-center sequence starts from the
+neutral and one frame per *expression state* the footage shows (:data:`STATE_PRIORITY`, the most
+extreme frame of each: :mod:`stages.geometry.states`), then continues by distance. The neutral
+has both eyes open and, when the footage ever seals them, the lips sealed; the standard image
+(mouth open widest, Sec. 8) has both eyes open: never a blink or a wink.
 """
 
 from __future__ import annotations
@@ -33,7 +41,14 @@ from stages.geometry.compensate import apply_similarity, fit_similarity
 from stages.geometry.mapping import NORMALIZATION_POINTS
 from stages.geometry.rigid3d import RIGID_POINTS, choose_reference, compensate_rigid3d
 from stages.geometry.signals import EYE_OUTER, expression_signals
+from stages.geometry.states import SEALED_GAP, STATES, state_signals, state_values
 from stages.layout import Layout
+
+#: The states whose most extreme frame seeds the examples, most wanted first (a blink before each
+#: eye alone: a frame with both eyes shut covers both).
+STATE_PRIORITY = ("eye_l_shut", "eye_r_shut", "jaw_open", "smile", "brow_furrow", "brow_raise", "pucker",
+                  "lips_pressed", "eye_l_wide", "eye_r_wide", "eye_l_squint", "eye_r_squint")
+EYES_OPEN_FRACTION = 0.7  # of each eye's open level (90th percentile): the neutral's and standard's eyes
 
 
 def compose_similarity(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
@@ -179,6 +194,7 @@ class Selection:
     captured_radius_px: float
     mouth_open: np.ndarray
     warnings: list[str] = field(default_factory=list)
+    states: dict[str, int] = field(default_factory=dict)  # state -> the frame that seeded it
 
 
 def select_frames(xy: np.ndarray, keep: np.ndarray, *, layout: Layout, blendshapes: np.ndarray,
@@ -189,17 +205,18 @@ def select_frames(xy: np.ndarray, keep: np.ndarray, *, layout: Layout, blendshap
                   min_teeth_fraction: float = 0.1, depth: np.ndarray | None = None) -> Selection:
     """Choose the pack's frames among the usable ones.
 
-    - **neutral**: the least expressive usable frame
-      (:func:`stages.geometry.rigid3d.choose_reference`: blendshape activity, head angle, lip gap);
+    - **neutral**: the least expressive usable frame with both eyes open (and the lips sealed when
+      any usable frame seals them) (:func:`stages.geometry.rigid3d.choose_reference`: blendshape
+      activity, head angle, lip gap);
     - **candidates** for everything else: the usable frames whose yaw and pitch are within
       ``pose_deg`` of the neutral's (roll is in the image plane: the similarity removes it). A 2D
       similarity cannot undo a turn or a nod, and the geometry of a nodding head would otherwise
       count as a distinct expression; all usable frames, with a warning, if fewer than 2 are;
-    - **examples**: :func:`k_center` over the aligned candidate geometries from the neutral,
-      ``n_examples`` in all, stopping early when no candidate is ``min_distinct_px`` from the
-      chosen ones;
+    - **examples**: :func:`k_center` over the aligned candidate geometries from the neutral and the
+      most extreme frame of each state the candidates show (:data:`STATE_PRIORITY`), ``n_examples``
+      in all, stopping early when no candidate is ``min_distinct_px`` from the chosen ones;
     - **captured**: the same sequence continued to ``n_captured`` (examples included);
-    - **standard**: the candidate with the widest mouth opening;
+    - **standard**: the candidate with the widest mouth opening and both eyes open;
     - **teeth**: candidates with the lips apart (``>= min_teeth_open`` eye distances) and teeth
       visible (``teeth_fraction >= min_teeth_fraction``), ``n_teeth`` different openings by
       :func:`k_center` on the opening from the widest; the widest opening alone if none shows teeth.
@@ -234,7 +251,11 @@ def select_frames(xy: np.ndarray, keep: np.ndarray, *, layout: Layout, blendshap
     warnings: list[str] = []
     safe = np.where(keep[:, None, None], xy, xy[np.flatnonzero(keep)[0]])
     mouth_open = expression_signals(safe, layout.point_names)["mouth_open"]
-    neutral = choose_reference(blendshapes, blendshape_names, matrix, mouth_open, keep, search_frames=len(xy))
+    eyes_open = both_eyes_open(safe, keep, layout.point_names)
+    rest = keep & eyes_open if (keep & eyes_open).any() else keep
+    if (rest & (mouth_open < SEALED_GAP)).any():
+        rest &= mouth_open < SEALED_GAP
+    neutral = choose_reference(blendshapes, blendshape_names, matrix, mouth_open, rest, search_frames=len(xy))
     near = keep & (np.abs(angles[:, :2] - angles[neutral, :2]) <= pose_deg).all(axis=1)
     if near.sum() < 2:
         warnings.append(f"fewer than 2 usable frames within {pose_deg:g} degrees of the neutral's yaw and pitch; "
@@ -254,7 +275,9 @@ def select_frames(xy: np.ndarray, keep: np.ndarray, *, layout: Layout, blendshap
     features = apply_similarity(canvas, in_neutral).reshape(len(usable), -1)
     features /= np.sqrt(layout.n_points)  # Euclidean distance = RMS point distance, px
     seed = int(np.searchsorted(usable, neutral))
-    order, radii = k_center(features, n_captured, seeds=[seed], min_distance=min_distinct_px)
+    states = state_seeds(safe, usable, neutral, layout.point_names, limit=n_examples - 1)
+    seeds = [seed] + [int(np.searchsorted(usable, t)) for t in dict.fromkeys(states.values()) if t != neutral]
+    order, radii = k_center(features, n_captured, seeds=seeds, min_distance=min_distinct_px)
     examples = order[:n_examples]
     if len(examples) < n_examples:
         warnings.append(f"only {len(examples)} distinct expressions (>= {min_distinct_px:g} px apart) among "
@@ -265,7 +288,8 @@ def select_frames(xy: np.ndarray, keep: np.ndarray, *, layout: Layout, blendshap
         radii = [radii[0], 0.0]
     if len(order) < n_captured:
         warnings.append(f"{len(order)} captured geometries instead of {n_captured}: no more distinct expressions")
-    standard = int(usable[np.argmax(mouth_open[usable])])
+    open_eyed = usable[eyes_open[usable]] if eyes_open[usable].any() else usable
+    standard = int(open_eyed[np.argmax(mouth_open[open_eyed])])
     shows_teeth = near & (mouth_open >= min_teeth_open) & (np.asarray(teeth_fraction) >= min_teeth_fraction)
     if shows_teeth.any():
         candidates = np.flatnonzero(shows_teeth)
@@ -281,5 +305,45 @@ def select_frames(xy: np.ndarray, keep: np.ndarray, *, layout: Layout, blendshap
         examples=[int(usable[j]) for j in examples], teeth=teeth,
         captured=[int(usable[j]) for j in order], to_pack=to_pack,
         example_radius_px=float(radii[len(examples) - 1]), captured_radius_px=float(radii[len(order) - 1]),
-        mouth_open=mouth_open, warnings=warnings,
+        mouth_open=mouth_open, warnings=warnings, states=states,
     )
+
+
+def both_eyes_open(xy: np.ndarray, keep: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
+    """``(T,)`` bool: both eyes at least :data:`EYES_OPEN_FRACTION` of their open level (the 90th
+    percentile of each eye's lid gap over the ``keep`` frames)."""
+    signals = state_signals(xy, names)
+    out = np.ones(len(xy), bool)
+    for side in "lr":
+        gap = signals[f"eye_open_{side}"]
+        out &= gap >= EYES_OPEN_FRACTION * np.percentile(gap[keep], 90)
+    return out
+
+
+def state_seeds(xy: np.ndarray, candidates: np.ndarray, neutral: int, names: tuple[str, ...], *,
+                limit: int) -> dict[str, int]:
+    """The most extreme candidate frame of each expression state the candidates show (relative to
+    the neutral frame), in :data:`STATE_PRIORITY` order; a state that a frame already chosen shows
+    takes that frame; at most ``limit`` distinct frames; both eyes shut at once (a blink) is
+    preferred for either eye's shut state. Returns ``{state: frame}`` for the states shown."""
+    values = state_values(xy[candidates], names, xy[neutral])
+    by_name = {s.name: s for s in STATES}
+    present = {name: by_name[name].present(values[name]) for name in STATE_PRIORITY}
+    blink = present["eye_l_shut"] & present["eye_r_shut"]
+    chosen: dict[str, int] = {}
+    picked: list[int] = []  # positions in ``candidates``
+    for name in STATE_PRIORITY:
+        if not present[name].any():
+            continue
+        shown = [k for k in picked if present[name][k]]
+        if shown:
+            chosen[name] = int(candidates[shown[0]])
+            continue
+        if len(picked) >= limit:
+            continue
+        score = values[name] if by_name[name].below is not None else -values[name]
+        if name.endswith("_shut") and blink.any():
+            score = np.where(blink, np.maximum(values["eye_l_shut"], values["eye_r_shut"]), np.inf)
+        picked.append(int(np.nanargmin(score)))
+        chosen[name] = int(candidates[picked[-1]])
+    return chosen

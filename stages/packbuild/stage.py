@@ -8,11 +8,12 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.depends import not_recording
-from runner.stage import Context, Param, SequenceStage, StageError
+from runner.stage import SUMMARY, Context, Param, SequenceStage, StageError
 from stages.geometry.pose import default_intrinsics
 from stages.landmarks.stage import layout_and_correspondence
 from stages.layout import load_layout
 from stages.packbuild.filters import CAUSES, KEEP, cause_counts, classify_frames, head_angles, measure_frames
+from stages.geometry.states import SEALED_GAP, coverage_record
 from stages.packbuild.selection import Selection, select_frames
 from stages.packbuild.writing import write_pack
 
@@ -84,7 +85,8 @@ class PackFilter(SequenceStage):
             max_colour_change=params["max_colour_change"],
         )
         keep = cause == KEEP
-        ctx.log.info("%s: %d of %d frames usable; rejected: %s", self.name, int(keep.sum()), len(keep), summary(cause))
+        ctx.log.log(SUMMARY, "%s: %d of %d frames usable; rejected: %s", self.name, int(keep.sum()), len(keep),
+                    summary(cause))
         if keep.sum() < 2:
             raise StageError(f"{self.name}: {int(keep.sum())} of {len(keep)} frames passed the filters (a pack needs 2); "
                              f"rejected: {summary(cause)}")
@@ -115,7 +117,7 @@ class PackSelect(SequenceStage):
     """
 
     name = "pack.select"
-    version = "2"
+    version = "3"  # 3: examples seeded by the footage's expression states; neutral and standard with open eyes
     doc = "choose a pack's neutral, standard, examples (greedy k-center), teeth examples and captured geometries"
     inputs = {"points": "points", "landmarks": "landmarks", "filter": "frame_filter"}
     outputs = {"selection": "pack_selection"}
@@ -165,9 +167,18 @@ class PackSelect(SequenceStage):
             raise StageError(f"{self.name}: {exc}") from None
         for line in chosen.warnings:
             ctx.log.warning("%s: %s", self.name, line)
-        ctx.log.info("%s: neutral frame %d, standard %d, %d examples (coverage radius %.2f px), %d teeth, "
-                     "%d captured (radius %.2f px)", self.name, chosen.neutral, chosen.standard, len(chosen.examples),
-                     chosen.example_radius_px, len(chosen.teeth), len(chosen.captured), chosen.captured_radius_px)
+        shown = ", ".join(f"{state.replace('_', ' ')} f{frame}" for state, frame in chosen.states.items())
+        ctx.log.log(SUMMARY, "%s: neutral frame %d, standard %d; %d examples (coverage radius %.2f px) seeded by the "
+                    "states the footage shows: %s; %d teeth, %d captured (radius %.2f px)", self.name, chosen.neutral,
+                    chosen.standard, len(chosen.examples), chosen.example_radius_px, shown or "none",
+                    len(chosen.teeth), len(chosen.captured), chosen.captured_radius_px)
+        missing = [name for name in ("eye_l_shut", "eye_r_shut") if name not in chosen.states]
+        if not (chosen.mouth_open[keep] < SEALED_GAP).any():
+            missing.append("lips_sealed")
+        if missing:
+            ctx.log.warning("%s: no usable frame shows %s: the pack cannot show it (a run still warps the geometry "
+                            "there, with the nearest example's texture)", self.name,
+                            " or ".join(m.replace("_", " ") for m in missing))
         return {"selection": selection_bundle(chosen, (params["width"], params["height"]))}
 
 
@@ -203,7 +214,7 @@ class PackWrite(SequenceStage):
     :func:`stages.actor_pack.load_pack` before the stage returns (:mod:`stages.packbuild.writing`)."""
 
     name = "pack.write"
-    version = "1"
+    version = "2"  # 2: pack.yaml records the examples' coverage of each expression state
     doc = "write the actor pack: aligned, exposure-matched images, points, captured.npz, model3d, pack.yaml, sheet.png"
     inputs = {"frames": "frames", "points": "points", "selection": "pack_selection"}
     outputs = {"pack": "files"}
@@ -231,6 +242,10 @@ class PackWrite(SequenceStage):
                             "to its border", self.name, done["clipped_points"], *size)
         for label, g in done["gains"].items():
             ctx.log.info("%s: %s exposure gains (linear R, G, B) %.3f %.3f %.3f", self.name, label, *g)
+        record = coverage_record(done["coverage"])
+        ctx.log.log(SUMMARY, "%s: the examples show %s; none shows %s (pack.yaml: coverage)", self.name,
+                    ", ".join(n.replace("_", " ") for n in record["shows"]) or "no expression state",
+                    ", ".join(n.replace("_", " ") for n in record["does_not_show"]) or "-")
         with not_recording():  # a check of what was just written, not an input
             load_pack(folder)
         ctx.progress(len(xy))

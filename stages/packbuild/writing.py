@@ -28,6 +28,7 @@ import yaml
 
 from stages.color import linear_to_srgb, srgb_to_linear
 from stages.geometry.compensate import apply_similarity
+from stages.geometry.states import coverage, coverage_record
 from stages.landmarks.canonical import canonical_mesh
 from stages.landmarks.correspondence import Correspondence, layout_from_mesh
 from stages.layout import Layout, subregion_mask
@@ -206,6 +207,8 @@ def write_pack(folder: Path, *, name: str, layout: Layout, correspondence: Corre
         "teeth_examples": [entry(f"teeth_f{t:05d}", t) for t in selection.teeth],
         "captured": "captured.npz",
     }
+    covered = coverage(np.stack([points_in_pack[t] for t in selection.examples]), names, points_in_pack[selection.neutral])
+    manifest["coverage"] = coverage_record(covered)
     write_rows(folder / "model3d.csv", names, generic_model3d(layout, correspondence), ("x", "y", "z"))
     captured = np.stack([points_in_pack[t] for t in selection.captured])
     np.savez(folder / "captured.npz", points=captured, frames=np.array(selection.captured, np.int64))
@@ -213,4 +216,4 @@ def write_pack(folder: Path, *, name: str, layout: Layout, correspondence: Corre
         "# Actor pack built from footage by stages.packbuild (docs/packbuild.md)\n"
         + yaml.safe_dump(manifest, sort_keys=False, default_flow_style=None, width=120), encoding="utf-8")
     write_png(folder / "sheet.png", contact_sheet(sheet, columns=6, thumb_height=160))
-    return {"gains": gains, "clipped_points": clipped}
+    return {"gains": gains, "clipped_points": clipped, "coverage": covered}

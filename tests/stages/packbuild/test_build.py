@@ -62,6 +62,23 @@ def test_the_published_pack_loads_with_what_was_chosen(built):
     np.testing.assert_allclose(pack.intrinsics, [[512, 0, 191.5], [0, 512, 255.5], [0, 0, 1]])
 
 
+def test_pack_yaml_records_what_the_examples_cover(built):
+    """The coverage record is the examples' own (stages.geometry.states.coverage of the written
+    points), and every state in ``shows`` reaches into its state in some example."""
+    from stages.geometry.states import STATES, coverage, state_values
+    from stages.layout import read_yaml
+    folder, _ = built
+    pack = load_pack(folder)
+    record = read_yaml(folder / "pack.yaml", what="actor pack", noun="manifest", error=ValueError)["coverage"]
+    examples = np.stack([e.points for e in pack.examples])
+    covered = coverage(examples, pack.layout.point_names, pack.neutral.points)
+    assert set(record["shows"]) | set(record["does_not_show"]) == {s.name for s in STATES}
+    values = state_values(examples, pack.layout.point_names, pack.neutral.points)
+    for state in STATES:
+        assert (state.name in record["shows"]) == bool(state.present(values[state.name]).any()), state.name
+        np.testing.assert_allclose(record["range"][state.signal], covered[state.name], atol=1e-4)
+
+
 def test_pack_points_agree_with_the_truth(built):
     folder, runner = built
     pack = load_pack(folder)

@@ -189,3 +189,37 @@ def test_with_depth_a_nod_or_a_turn_is_not_an_expression(pack):
     solid = select(pack, xy, cluster, n_examples=distinct, n_captured=distinct, depth=depth)
     assert sorted(cluster[solid.examples]) == list(range(distinct))
     assert solid.example_radius_px < 0.3 * flat.example_radius_px, (solid.example_radius_px, flat.example_radius_px)
+
+
+def shut_eyes(pack, points: np.ndarray, sides: str) -> np.ndarray:
+    """``points`` with the upper lid of each eye in ``sides`` moved onto the lower lid."""
+    out = points.copy()
+    for side in sides:
+        for upper, lower in ((1, 11), (2, 10), (3, 9), (4, 8), (5, 7)):
+            out[pack.layout.index(f"eye_{side}_{upper}")] = out[pack.layout.index(f"eye_{side}_{lower}")]
+    return out
+
+
+def test_states_seed_the_examples_and_never_a_blink_or_wink_as_neutral_or_standard(pack):
+    """30 frames: the neutral, the pack's widest mouth opening with a wink, a blink scored least
+    expressive by the blendshapes, and repeats of two other examples. Three examples by distance
+    alone would pass the blink by (it moves only the lids); seeded by the states, the blink is one,
+    the neutral has open eyes, the standard is the widest opening with both eyes open."""
+    from stages.geometry.signals import expression_signals
+    opening = expression_signals(np.stack([e.points for e in pack.examples]), pack.layout.point_names)["mouth_open"]
+    order = np.argsort(-opening)
+    widest, second = (pack.examples[k].points for k in order[:2])
+    others = [pack.examples[k].points for k in order[-2:]]  # the two smallest openings
+    shapes = [pack.neutral.points, shut_eyes(pack, widest, "l"), shut_eyes(pack, pack.neutral.points, "lr"), second]
+    xy = np.stack([shapes[k % 4] for k in range(28)] + others)
+    cluster = np.array([k % 4 for k in range(28)] + [4, 5])
+    blendshapes = np.full((len(xy), len(BLENDSHAPE_NAMES)), 0.3, np.float32)
+    blendshapes[cluster == 2] = 0.0  # the blink looks least expressive to the blendshapes
+    chosen = select_frames(xy, np.ones(len(xy), bool), layout=pack.layout, blendshapes=blendshapes,
+                           blendshape_names=np.array(BLENDSHAPE_NAMES), matrix=np.tile(np.eye(4), (len(xy), 1, 1)),
+                           angles=np.zeros((len(xy), 3)), teeth_fraction=np.full(len(xy), 0.5), size=(240, 320),
+                           n_examples=3, n_captured=6, n_teeth=1)
+    assert cluster[chosen.neutral] in (0, 3, 4, 5)  # eyes open (the blink scored best)
+    np.testing.assert_array_equal(xy[chosen.standard], second)  # the widest opening with both eyes open, not the wink
+    assert 2 in cluster[chosen.examples]  # the blink: eyes shut are shown
+    assert cluster[chosen.states["eye_l_shut"]] == 2 and cluster[chosen.states["eye_r_shut"]] == 2
