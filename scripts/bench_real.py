@@ -75,19 +75,23 @@ BENCH = "real"
 SHEET_FRAMES = 6
 PIPELINE = REPO / "pipeline.yaml"
 TARGET_PACK = REPO / "fixtures" / "packs" / "target"  # pipeline.yaml's default target
+# the state rows' packs: one from a clip of many expressions, one from a talking head
+PACK_CLIPS = ("LP_d18.mp4", "WDA_AlexandriaOcasioCortez_000.mp4")
 
 
 def row(metric: str, value: float, unit: str) -> dict[str, Any]:
     return {"bench": BENCH, "metric": metric, "value": float(value), "unit": unit}
 
 
-def run_pipeline(clip: Path, work: Path, *extra: str) -> tuple[float, dict[str, float]]:
-    """Run ``pipeline.yaml`` on ``clip`` into ``work/out`` from an empty cache; return the wall
-    time (s) and each stage's own seconds (from ``--log-json``)."""
+def run_pipeline(clip: Path, work: Path, *extra: str, cache: Path | None = None,
+                 pipeline: Path = PIPELINE) -> tuple[float, dict[str, float]]:
+    """Run ``pipeline`` on ``clip`` into ``work/out``, from an empty cache ``work/cache`` unless
+    ``cache`` is given; return the wall time (s) and each stage's own seconds (from ``--log-json``)."""
+    work.mkdir(parents=True, exist_ok=True)
     log = work / "log.jsonl"
     log.unlink(missing_ok=True)
-    command = [sys.executable, "-c", "from runner.cli import main; main()", "run", str(PIPELINE),
-               "--in", str(clip), "--out", str(work / "out"), "--cache-dir", str(work / "cache"),
+    command = [sys.executable, "-c", "from runner.cli import main; main()", "run", str(pipeline),
+               "--in", str(clip), "--out", str(work / "out"), "--cache-dir", str(cache or work / "cache"),
                "--log-json", str(log), *extra]
     start = time.perf_counter()
     result = subprocess.run(command, cwd=REPO, env=dict(os.environ, PYTHONPATH=str(REPO)), capture_output=True,
@@ -391,6 +395,64 @@ def realtex_rows(work: Path, frames: int, seeds: list[int]) -> list[dict[str, An
     return rows
 
 
+def build_pack(clip: Path, work: Path, cache: Path) -> Path:
+    """An actor pack built from ``clip`` by ``pack_build.yaml``: its folder."""
+    run_pipeline(clip, work / "packs" / clip.stem, cache=cache, pipeline=REPO / "pack_build.yaml")
+    return work / "packs" / clip.stem / "out" / "pack"
+
+
+WORST = {"recall": min, "precision": min, "_r": min, "amp_ratio": min, "frames": max, "frac": max}
+
+
+def states_rows(clips: list[Path], work: Path, pack_clips: list[Path]) -> list[dict[str, Any]]:
+    """The expression-state rows (:mod:`scripts.real_states`): every clip onto the bundled target and
+    onto packs built from ``pack_clips`` (never onto its own), pops onto the first such pack, the
+    cut-start variant onto the bundled target; per clip the worst over its targets, then the
+    aggregates over the clips."""
+    from scripts import real_states as states
+
+    cache = work / "states_cache"
+    targets: dict[str, Path | None] = {"bundled": None}
+    targets |= {clip.stem: build_pack(clip, work, cache) for clip in pack_clips}
+    rows: list[dict[str, Any]] = []
+    per_clip: dict[str, dict[str, float]] = {}
+    amp_onto: dict[str, dict[str, float]] = {}
+    for clip in clips:
+        stem, folder = clip.stem, work / "states" / clip.stem
+        measured: dict[str, dict[str, float]] = {}
+        for name, pack in targets.items():
+            if name == stem:
+                continue
+            extra = ("--input", f"target={pack}") if pack is not None else ()
+            run_pipeline(clip, folder / name, *extra, cache=cache)
+            data = np.load(folder / name / "out" / "data" / "data.npz")
+            measured[name] = states.state_measures(data) | states.coverage_measures(data)
+            rows += [row(f"real_{key}_{stem}_onto_{name}", value, states.unit_of(key))
+                     for key, value in measured[name].items() if np.isfinite(value)]
+            amp_onto.setdefault(name, {})[stem] = measured[name]["mouth_amp_ratio"]
+        worst: dict[str, float] = {}
+        for key in set().union(*measured.values()):
+            values = [m[key] for m in measured.values() if key in m and np.isfinite(m[key])]
+            pick = next((f for ending, f in WORST.items() if key.endswith(ending)), None)
+            if values and pick is not None:
+                worst[key] = pick(values)
+        pops_target = next(name for name in targets if name not in ("bundled", stem))
+        for mode in ("full", "warp-only"):
+            run_pipeline(clip, folder / f"pops_{mode}", "--input", f"target={targets[pops_target]}", "--set",
+                         "synthesize.head_motion=false", "--set", f"synthesize.mode={mode}", cache=cache)
+        worst |= states.pops_measures(folder / "pops_full" / "out", folder / "pops_warp-only" / "out")
+        worst |= states.cutstart_measures(clip, folder / "bundled" / "out", folder,
+                                          lambda c, f: run_pipeline(c, f, cache=cache))
+        rows += [row(f"real_{key}_{stem}", value, states.unit_of(key)) for key, value in sorted(worst.items())
+                 if np.isfinite(value)]
+        per_clip[stem] = worst
+    rows += states.aggregate(per_clip)
+    for name, amps in amp_onto.items():
+        if name != "bundled":
+            rows.append(row(f"real_mouth_amp_ratio_onto_{name}_min", min(amps.values()), "ratio"))
+    return rows
+
+
 def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     parser = argparse.ArgumentParser(prog="bench.py real")
     parser.add_argument("--clip", action="append", type=Path, default=[], help="a real clip (repeatable)")
@@ -400,6 +462,10 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     parser.add_argument("--no-clips", action="store_true", help="skip the real clips' own rows (--target still maps them)")
     parser.add_argument("--target", type=Path, help="also map each clip onto this actor pack (real_cross_ rows)")
     parser.add_argument("--cross-sheet", type=Path, help="with --target: write the points | result sheet here (.png, or .jpg at quality 88)")
+    parser.add_argument("--no-states", action="store_true", help="skip the expression-state rows (scripts/real_states.py)")
+    parser.add_argument("--pack-from", action="append", type=Path, default=[],
+                        help="state rows: also map onto a pack built from this clip (repeatable; default: the dev "
+                             f"clips {', '.join(PACK_CLIPS)})")
     options = parser.parse_args(args.extra)
     work = Path(args.work) / BENCH
     rows: list[dict[str, Any]] = []
@@ -414,4 +480,7 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
         rows += pack_image_rows(TARGET_PACK, "real")
     if options.target is not None and clips:
         rows += cross_rows(clips, work, options.target.resolve(), options.cross_sheet)
+    if not options.no_states and clips:
+        pack_clips = options.pack_from or [DEV_CLIPS / name for name in PACK_CLIPS if (DEV_CLIPS / name).is_file()]
+        rows += states_rows(clips, work, pack_clips)
     return rows

@@ -161,7 +161,7 @@ STATES = (
     State("pucker", "mouth_width", "ratio", below=0.88, margin=0.05),
     State("jaw_open", "mouth_open", "absolute", above=0.15, margin=0.05),
     State("smile", "smile", "change", above=0.04, margin=0.03),
-    State("brow_furrow", "brow_furrow", "change", below=-0.03, margin=0.02),
+    State("brow_furrow", "brow_furrow", "change", below=-0.012, margin=0.008),
     State("brow_raise", "brow_raise", "change", above=0.04, margin=0.03),
 )
 STATE_NAMES = tuple(s.name for s in STATES)

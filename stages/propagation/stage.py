@@ -48,6 +48,12 @@ class TrainHierarchicalPCA(SequenceStage):
         return {"pca_model": model.to_bundle()}
 
 
+#: Keys of the input bundle passed on as they are: its clip's frame rate and size, and the
+#: mapping's per-frame flags (``map.expression``: range limited, lips kept apart, states beyond the
+#: pack), so that the run's data file records them beside the geometry they describe.
+PASSED_ON = ("fps", "size", "range_limited", "lips_clamped", "state_names", "beyond_pack", "coverage", "state_values")
+
+
 class HierarchicalPropagation(SequenceStage):
     """Runtime: displacements of all feature points from a tracked subset (Sec. 10.1).
 
@@ -58,7 +64,7 @@ class HierarchicalPropagation(SequenceStage):
     """
 
     name = "propagate.hierarchical"
-    version = "2"
+    version = "3"  # 3: the mapping's per-frame flags passed on
     doc = "hierarchical-PCA motion propagation of a tracked subset to all feature points"
     inputs = {"pca_model": "pca_model", "displacements": "displacements", "points": "points"}
     optional_inputs = frozenset({"displacements", "points"})
@@ -110,9 +116,9 @@ class HierarchicalPropagation(SequenceStage):
             "iterations": result.iterations,
             "input_error_px": result.input_error_px,
         }
-        for scalar in ("fps", "size"):
-            if scalar in bundle:
-                out[scalar] = np.asarray(bundle[scalar])
+        for key in PASSED_ON:
+            if key in bundle:
+                out[key] = np.asarray(bundle[key])
         geometry = {key: value for key, value in out.items() if key != "d"}
         geometry["xy"] = model.neutral[None] + result.displacements
         return {"displacements": out, "points": geometry}

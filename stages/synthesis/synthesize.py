@@ -38,7 +38,7 @@ DETAIL_SIGMA_PX = 2.0
 FLOW_MAX_PX = 0.0  # optical-flow refinement of the examples' alignment (0: off)
 RIDGE_PX = 0.0  # coefficient regularisation of the QPs (docs/synthesis.md, "Per-subregion vs global on real faces")
 COHERENCE_FRAMES = 2.0  # example weights coherent in time (stages.synthesis.coherence)
-COHERENCE_SIZE = 0.025
+COHERENCE_SIZE = 0.035
 MEMO_FRAMES = 2048  # frames whose QP coefficients a Synthesizer keeps (about 4 KB each)
 
 
