@@ -87,8 +87,13 @@ def report_html(inputs: Mapping[str, Any], *, title: str) -> str:
     no_face = ~series.frame_valid(tracked)
     limited = series.limited_frames(mapped)
     shaded = {"no face": series.spans(no_face), "limited": [] if limited is None else series.spans(limited)}
-    warnings = [f"Reference (neutral) frame: {reference}" + (
-        " (recorded by the run)" if chosen is not None else " (the run records none; the pipeline takes the first frame)")]
+    displacements = inputs.get("displacements") or {}
+    if bool(np.asarray(displacements.get("neutral_estimated", False))):
+        warnings = [f"Reference (neutral): estimated from the clip, region by region; the nearest single frame, "
+                    f"{reference}, is in the contact sheet and the curves are read from it"]
+    else:
+        warnings = [f"Reference (neutral) frame: {reference}" + (
+            " (recorded by the run)" if chosen is not None else " (the run records none; the pipeline takes the first frame)")]
     data: dict[str, Any] = {"frames": T, "fps": fps, "reference_frame": reference, "no_face": no_face,
                             "limited": limited}
 
@@ -112,6 +117,13 @@ def report_html(inputs: Mapping[str, Any], *, title: str) -> str:
             expression, reference=reference, shaded=shaded, fps=fps)
         data["expression"] = expression
         warnings += poorly
+    try:
+        states = series.state_series(tracked, target)
+        states_body, beyond = sections.states_section(states, mapped, shaded=shaded, fps=fps, frame_list=frame_list)
+        data["states"] = states
+        warnings += beyond
+    except ValueError as exc:
+        states_body = not_available(str(exc))
     geometry_body = sections.geometry_section(data, shaded=shaded, fps=fps)
     coefficient_body = sections.coefficient_section(dominant, coefficients, limited=limited)
     sheet_body = contact_sheet(images, fps=fps)
@@ -123,6 +135,7 @@ def report_html(inputs: Mapping[str, Any], *, title: str) -> str:
         Section("Warnings", listing(warnings, css="warn")),
         Section("Contact sheet: performer | result", sheet_body),
         Section("Expression: performer vs target (mouth opening, mouth width, brow raise)", expression_body),
+        Section("States: eyes, lip seal, and what the pack cannot show", states_body),
         Section("Head pose, tracking and propagation", geometry_body),
         Section("Which example drives which subregion", coefficient_body),
         Section("Stage timings", not_available(TIMINGS_NOTE)),

@@ -48,6 +48,52 @@ def expression_section(expression: Mapping[str, Mapping[str, np.ndarray]], *, re
     return body, follows, warnings
 
 
+def states_section(states: Mapping[str, Mapping[str, np.ndarray]], mapped: Mapping[str, np.ndarray] | None, *,
+                   shaded: Mapping[str, list[tuple[int, int]]], fps: float,
+                   frame_list: Any) -> tuple[str, list[str]]:
+    """The expression-states section: eye and lip-seal curves, and the states the performance
+    demands beyond what the target pack's examples show, with their frames.
+
+    Parameters
+    ----------
+    states : :func:`stages.report.series.state_series`.
+    mapped : the mapping's points bundle (``state_names (S,)``, ``beyond_pack (T, S)``,
+        ``coverage (S, 2)``) or None.
+    shaded, fps : as for :func:`expression_section`.
+    frame_list : ``(T,) bool -> str``, frame ranges as the page writes them.
+    """
+    from stages.geometry.states import SEALED_GAP
+
+    panels = [Panel(f"{'image-left' if side == 'l' else 'image-right'} eye: lid gap", "eye distances",
+                    {"performer": states[f"eye_open_{side}"]["performer"], "target": states[f"eye_open_{side}"]["target"]},
+                    {"target": "--"}) for side in "lr"]
+    panels.append(Panel(f"inner-lip gap (lips sealed below {SEALED_GAP:g})", "eye distances",
+                        {"performer": states["mouth_open"]["performer"], "target": states["mouth_open"]["target"],
+                         "sealed": np.full(len(states["mouth_open"]["target"]), SEALED_GAP)},
+                        {"target": "--", "sealed": ":"}))
+    body = image(timeline(panels, shaded=shaded, fps=fps), "image/png", "eye and lip states")
+    warnings: list[str] = []
+    if mapped is None or "beyond_pack" not in mapped:
+        return body + not_available("the run records no states beyond the pack (connect the mapping's points to "
+                                    "'mapped')"), warnings
+    names = [str(n) for n in mapped["state_names"]]
+    beyond = np.asarray(mapped["beyond_pack"], bool)
+    covered = np.asarray(mapped["coverage"], np.float64)
+    rows = []
+    for k, name in enumerate(names):
+        rows.append([name.replace("_", " "), f"{covered[k, 0]:.2f} .. {covered[k, 1]:.2f}", str(int(beyond[:, k].sum())),
+                     frame_list(beyond[:, k]) if beyond[:, k].any() else ""])
+        if beyond[:, k].any():
+            warnings.append(f"Beyond what the target pack's examples show: {name.replace('_', ' ')} in "
+                            f"{int(beyond[:, k].sum())} frames (the warp makes the geometry, the texture is the "
+                            f"nearest example's)")
+    body += ("<p>What the target pack's example expressions cover of each state (the range of its relative value: "
+             "lid gap over the neutral's, mouth opening in eye distances, change from the neutral) and the frames "
+             "where the performance goes beyond it.</p>"
+             + table(["state", "pack covers", "frames beyond", "frames"], rows))
+    return body, warnings
+
+
 def geometry_section(data: Mapping[str, Any], *, shaded: Mapping[str, list[tuple[int, int]]], fps: float) -> str:
     """The head pose, tracking and propagation section's HTML.
 

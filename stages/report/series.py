@@ -86,11 +86,30 @@ def signals_over(xy: np.ndarray, names: Sequence[str], keep: Sequence[str]) -> d
 
 
 def reference_frame(*bundles: Mapping[str, np.ndarray] | None) -> int | None:
-    """The ``neutral_frame`` the first bundle that carries one records, else None."""
+    """The frame the expression curves are read from: the first bundle's
+    ``neutral_nearest_frame`` (the frame closest to a neutral estimated from the clip), else its
+    ``neutral_frame``; None when no bundle records one."""
     for bundle in bundles:
-        if bundle is not None and "neutral_frame" in bundle:
-            return int(np.asarray(bundle["neutral_frame"]))
+        for key in ("neutral_nearest_frame", "neutral_frame"):
+            if bundle is not None and key in bundle:
+                return int(np.asarray(bundle[key]))
     return None
+
+
+def state_series(performer: Mapping[str, np.ndarray], target: Mapping[str, np.ndarray]) -> dict[str, dict[str, np.ndarray]]:
+    """Each eye's lid gap and the inner-lip gap of performer and target, in each face's eye
+    distances (:func:`stages.geometry.states.state_signals`), NaN on frames without a face;
+    ``{signal: {"performer": (T,), "target": (T,)}}`` for ``eye_open_l``, ``eye_open_r``,
+    ``mouth_open``. Raises ValueError when a geometry lacks the lid or lip points."""
+    from stages.geometry.states import state_signals
+
+    out: dict[str, dict[str, np.ndarray]] = {k: {} for k in ("eye_open_l", "eye_open_r", "mouth_open")}
+    for role, bundle in (("performer", performer), ("target", target)):
+        values = state_signals(np.asarray(bundle["xy"], np.float64), [str(n) for n in bundle["names"]])
+        face = frame_valid(bundle)
+        for key in out:
+            out[key][role] = np.where(face, values[key], np.nan)
+    return out
 
 
 def frame_valid(points: Mapping[str, np.ndarray]) -> np.ndarray:

@@ -48,13 +48,15 @@ def sheet_frames(frames: int, *, evenly: int, peaks: Sequence[tuple[int, str]]) 
 
 def chosen_frames(tracked: Mapping[str, np.ndarray], target: Mapping[str, np.ndarray], *, reference: int,
                   frames: int, evenly: int) -> list[tuple[int, str]]:
-    """:func:`sheet_frames` with the peaks of the performer's (else the target's) expression
-    signals relative to frame ``reference``; evenly spaced frames only when the geometries have
-    no expression signal (:func:`stages.report.series.expression_series` refuses them)."""
+    """:func:`sheet_frames` with the reference frame (labelled ``reference``) and the peaks of the
+    performer's (else the target's) expression signals relative to it; evenly spaced frames and
+    the reference only when the geometries have no expression signal
+    (:func:`stages.report.series.expression_series` refuses them)."""
     try:
         peaks = series.peak_frames(series.expression_series(tracked, target, reference=reference))
     except ValueError:
         peaks = []
+    peaks = [(f, label) for f, label in peaks if f != reference] + [(reference, "reference")]
     return sheet_frames(frames, evenly=evenly, peaks=peaks)
 
 

@@ -36,7 +36,7 @@ class ContactSheet(SequenceStage):
     """``report.sheet``: performer | result JPEGs at the contact sheet's frames (see the module doc)."""
 
     name = "report.sheet"
-    version = "1"
+    version = "2"  # 2: the reference frame in the sheet
     doc = "the report's contact sheet: performer | result JPEGs at evenly spaced frames and the expression peaks"
     inputs = {"performer": "frames", "result": "frames", "target": "points", "tracked": "points", "pose": "pose",
               "displacements": "displacements"}
@@ -76,7 +76,7 @@ class WriteReport(SequenceStage):
     """``write.report``: ``index.html`` under the ``report`` files output (see the module doc)."""
 
     name = "write.report"
-    version = "3"  # 3: the contact sheet from report.sheet
+    version = "4"  # 4: the states section (eyes, lip seal, beyond the pack)
     doc = "an HTML page to judge the run: contact sheet, expression/pose/tracking curves, coefficients, warnings"
     inputs = {
         "sheet": "sheet", "target": "points", "tracked": "points", "pose": "pose",

@@ -20,7 +20,7 @@ def test_page_loads_cleanly_in_chromium(browser, tmp_path: Path):
     outside = [url for url in seen.requests if not (url.startswith(folder) or url.startswith("data:"))]
     assert outside == [], outside
     sheet = len(embedded(page)["contact_sheet"])
-    assert len(seen.images) == sheet + 3  # the contact sheet, the two timelines and the heatmap
+    assert len(seen.images) == sheet + 4  # the contact sheet, the three timelines and the heatmap
     assert all(width > 0 and height > 0 for width, height in seen.images), seen.images
     assert seen.images[0][1] == SHEET_PARAMS["thumb_height"]
     assert shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and shot.stat().st_size < 400_000

@@ -155,3 +155,27 @@ def test_warp_only_and_missing_signal_points_are_said(tmp_path: Path):
 def test_enabled_false_writes_nothing(tmp_path: Path):
     WriteReport().run({"sheet": {}}, {**PARAMS, "enabled": False}, files_context(tmp_path))
     assert not (tmp_path / "report" / "index.html").exists()
+
+
+def test_states_section_curves_and_the_states_beyond_the_pack(tmp_path: Path):
+    """The lip-seal curve is the inner-lip gap (the synthetic neutral's 2 px over 60 px of eye
+    distance, plus the opening); frames the mapping flagged beyond the pack are listed by state;
+    an estimated neutral is said so, its nearest frame the curves' reference and in the sheet."""
+    from stages.geometry.states import STATE_NAMES
+    truth = synthetic.inputs()
+    inputs = {k: v for k, v in truth.items() if not k.startswith("truth")}
+    T = len(truth["truth_target_open"])
+    beyond = np.zeros((T, len(STATE_NAMES)), bool)
+    beyond[[3, 4, 30], STATE_NAMES.index("eye_l_shut")] = True
+    inputs["mapped"] = dict(inputs["mapped"], state_names=np.array(STATE_NAMES), beyond_pack=beyond,
+                            coverage=np.zeros((len(STATE_NAMES), 2)))
+    inputs["displacements"] = {"neutral_frame": np.array(2), "neutral_estimated": np.array(True),
+                               "neutral_nearest_frame": np.array(12)}
+    data = embedded(write(inputs, tmp_path))
+    np.testing.assert_allclose(data["states"]["mouth_open"]["target"], 2.0 / 60.0 + truth["truth_target_open"],
+                               atol=1e-9)
+    warnings = "\n".join(data["warnings"])
+    assert "Beyond what the target pack's examples show: eye l shut in 3 frames" in warnings
+    assert "estimated from the clip, region by region; the nearest single frame, 12" in warnings
+    assert data["reference_frame"] == 12 and dict(data["contact_sheet"])[12] == "reference"
+    assert "3-4, 30" in (tmp_path / "report" / "index.html").read_text()
