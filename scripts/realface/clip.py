@@ -12,10 +12,10 @@ from scripts.facegen.io import save_npz
 from scripts.facegen.render import rotation
 from stages.video import CODECS, VideoWriter
 
-from .expression import EXPRESSIONS, deform, expression_basis
+from .expression import EXPRESSIONS, STATE_EXPRESSIONS, deform, expression_basis, state_basis
 from .landmarks import MODEL_PATH, N_LANDMARKS, detect, open_landmarker
 from .mesh import RealFaceMesh, build_mesh, mouth_texture
-from .motion import make_motion
+from .motion import make_motion, state_motion
 from .photo import CROP, source_photo
 from .render import Frame, render
 
@@ -61,15 +61,27 @@ def render_state(face: RealFace, params: np.ndarray, angles: np.ndarray, shift: 
 
 
 def make_clip(out: Path, *, frames: int, seed: int, size: int = 512, fps: int = 25, codec: str = "h264", crf: int = 12,
-              supersample: int = 2, name: str = "astro", model_path: Path | str = MODEL_PATH) -> tuple[Path, Path]:
+              supersample: int = 2, name: str = "astro", model_path: Path | str = MODEL_PATH,
+              script: str | None = None) -> tuple[Path, Path]:
     """Write ``out/<name>.mp4`` (or ``.mkv`` for ``codec="ffv1"``, lossless) and ``out/<name>_truth.npz``.
+
+    ``script`` (:data:`scripts.realface.motion.STATE_SCRIPTS`): a states clip instead of the seeded
+    events, whose length is the script's (``frames`` is ignored) and whose truth also holds the
+    held spans (``state_names (S,)``, ``state_spans (S, 2)`` inclusive frames).
 
     Returns the two paths. Same arguments, same truth file bytes.
     """
     if codec not in CODECS:
         raise ValueError(f"codec: expected one of {', '.join(CODECS)}, got {codec!r}")
     face = fit_real_face(size, model_path=model_path)
-    params, angles, shift = make_motion(frames, seed=seed, fps=fps)
+    spans: list[tuple[str, int, int]] = []
+    names = EXPRESSIONS
+    if script is None:
+        params, angles, shift = make_motion(frames, seed=seed, fps=fps)
+    else:
+        params, angles, shift, spans = state_motion(script, seed=seed, fps=fps)
+        face = RealFace(face.photo, face.landmarks, face.mesh, state_basis(face.mesh), face.textures)
+        frames, names = len(params), STATE_EXPRESSIONS
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     clip_path = out / f"{name}{CODECS[codec][2]}"
@@ -82,9 +94,11 @@ def make_clip(out: Path, *, frames: int, seed: int, size: int = 512, fps: int = 
                 truth[key].append(value)
     arrays = {k: np.stack(v) for k, v in truth.items()}
     arrays.update(rvec=np.stack([cv2.Rodrigues(R)[0].ravel() for R in arrays["R"]]), angles_deg=angles, expression=params,
-                  expression_names=np.array(EXPRESSIONS), intrinsics=face.mesh.intrinsics, head_centre=face.mesh.head_centre,
+                  expression_names=np.array(names), intrinsics=face.mesh.intrinsics, head_centre=face.mesh.head_centre,
                   fps=np.array(float(fps)), frame_size=np.array([size, size]), seed=np.array(seed), crop=np.array(CROP),
                   source_landmarks=face.landmarks, mm_per_px=np.array(face.mesh.mm_per_px))
+    if spans:
+        arrays.update(state_names=np.array([n for n, _, _ in spans]), state_spans=np.array([(a, b) for _, a, b in spans]))
     truth_path = out / f"{name}_truth.npz"
     save_npz(truth_path, arrays)
     return clip_path, truth_path

@@ -1,4 +1,5 @@
-"""Expression deformations of the fitted mesh: mouth opening, brow raise, smile.
+"""Expression deformations of the fitted mesh: mouth opening, brow raise, smile, and the states a
+viewer judges a performance by: each eye shut, eyes wide, brow furrow, pucker, lip press.
 
 Each expression ``k`` is a parameter ``p_k`` in [0, 1] and a displacement field ``B_k`` ``(V, 3)``
 mm per unit parameter, applied in the head frame before the pose:
@@ -16,6 +17,20 @@ lengths in units of the outer-eye-corner distance ``D``:
   eyelids to 1 at the brows, fading into the hair and beyond the temples.
 - ``smile``: mouth corners up and out by :data:`SMILE_CORNER_MAX` ``D`` (Gaussian falloff), cheeks
   up by :data:`SMILE_CHEEK_MAX` ``D``.
+
+The state expressions (:data:`STATE_EXPRESSIONS`, :func:`state_basis`; the default clips keep the
+three above, so their truth files stay the same):
+
+- ``blink_l`` / ``blink_r`` (the image-left / image-right eye): the upper lid comes down onto the
+  lower one. Inside the eye opening a vertex moves to the lower lid below it; above the opening
+  the lid's skin follows, from 1 at the lid margin to 0 at the brow (the skin stretches over the
+  eye as a lid does); the lower lid stays. ``0.5`` is a squint, ``1`` shut.
+- ``eye_wide``: both upper lids and their skin up by :data:`EYE_WIDE_MAX` of each eye's opening.
+- ``brow_furrow``: the inner brow ends towards the face's midline by :data:`FURROW_IN_MAX` ``D``
+  and down by :data:`FURROW_DOWN_MAX` ``D`` (Gaussian falloff about each inner end).
+- ``pucker``: the mouth narrows towards its centre by :data:`PUCKER_MAX` of each point's
+  distance to it (Gaussian falloff); with ``mouth_open`` an "O".
+- ``lip_press``: each lip's red part thinned by :data:`LIP_PRESS_MAX` towards the inner lip line.
 """
 
 from __future__ import annotations
@@ -28,6 +43,19 @@ from .landmarks import (BROWS, CHEEKS, CHIN, FACE_OVAL, FOREHEAD, LIPS_INNER_LOW
 from .mesh import MOUTH_OPEN_MAX, RealFaceMesh
 
 EXPRESSIONS = ("mouth_open", "brow_raise", "smile")
+STATE_EXPRESSIONS = EXPRESSIONS + ("blink_l", "blink_r", "eye_wide", "brow_furrow", "pucker", "lip_press")
+EYE_WIDE_MAX = 0.35
+FURROW_IN_MAX = 0.06
+FURROW_DOWN_MAX = 0.05
+PUCKER_MAX = 0.3
+LIP_PRESS_MAX = 0.6
+# MediaPipe mesh indices of each eye's lids (outer corner to inner), irises, and the inner brow ends:
+# the image-left eye is the subject's right
+EYE_LIDS = {
+    "l": ((33, 246, 161, 160, 159, 158, 157, 173, 133), (33, 7, 163, 144, 145, 153, 154, 155, 133), range(468, 473)),
+    "r": ((263, 466, 388, 387, 386, 385, 384, 398, 362), (263, 249, 390, 373, 374, 380, 381, 382, 362), range(473, 478)),
+}
+INNER_BROW_ENDS = ((55, 107), (285, 336))
 BROW_RAISE_MAX = 0.12
 SMILE_CORNER_MAX = 0.13
 SMILE_CHEEK_MAX = 0.07
@@ -36,7 +64,8 @@ JAW_BACK = 0.15  # backward (z) motion of the jaw per unit of downward motion
 
 def smoothstep(lo: float, hi: float, x: np.ndarray) -> np.ndarray:
     """0 below ``lo``, 1 above ``hi``, ``3u^2 - 2u^3`` between (``lo > hi`` gives the falling step)."""
-    u = np.clip((np.asarray(x, dtype=np.float64) - lo) / (hi - lo), 0.0, 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):  # lo == hi: a step (NaN where x == lo, taken as 0)
+        u = np.nan_to_num(np.clip((np.asarray(x, dtype=np.float64) - lo) / (hi - lo), 0.0, 1.0))
     return u * u * (3.0 - 2.0 * u)
 
 
@@ -109,9 +138,71 @@ def expression_basis(mesh: RealFaceMesh) -> np.ndarray:
     return basis
 
 
+def _lid(px: np.ndarray, contour: tuple[int, ...], x: np.ndarray) -> np.ndarray:
+    """The lid line through landmarks ``contour`` evaluated at ``x`` (linear, held past the corners)."""
+    points = px[list(contour)]
+    order = np.argsort(points[:, 0])
+    return np.interp(x, points[order, 0], points[order, 1])
+
+
+def _eye_fields(px: np.ndarray, side: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(V,)`` px each: the downward move of a blink of eye ``side`` and the upward move of a
+    wide eye (module docstring)."""
+    upper_ids, lower_ids, iris = EYE_LIDS[side]
+    lm = px[:N_LANDMARKS]
+    x, y = px[:, 0], px[:, 1]
+    upper, lower = _lid(lm, upper_ids, x), _lid(lm, lower_ids, x)
+    corners = lm[[upper_ids[0], upper_ids[-1]]]
+    across = (x >= corners[:, 0].min()) & (x <= corners[:, 0].max())
+    gap = np.where(across, np.maximum(lower - upper, 0.0), 0.0)
+    span = np.ptp(corners[:, 0])
+    near = [b for b in BROWS if abs(lm[b, 0] - corners[:, 0].mean()) < 0.7 * span]
+    brow = lm[near, 1].max()  # the brow's lowest point over this eye: the lid's skin ends there
+    opening = across & (y > upper - 1e-6) & (y < lower - 1e-6)
+    opening[list(iris)] = True
+    skin = across & (y <= upper) & (y > brow)
+    lid_weight = np.where(skin, smoothstep(brow, upper, y), 0.0)
+    down = np.where(opening, np.maximum(lower - y, 0.0), gap * lid_weight)
+    up = EYE_WIDE_MAX * gap * np.where(opening, smoothstep(lower, upper, y), lid_weight)
+    return down, up
+
+
+def state_basis(mesh: RealFaceMesh) -> np.ndarray:
+    """Displacement fields ``(9, V, 3)`` mm per unit parameter, in :data:`STATE_EXPRESSIONS`
+    order: :func:`expression_basis`'s three, then the states (module docstring)."""
+    px, D, mm = mesh.source_px, mesh.eye_px, mesh.mm_per_px
+    skin = (np.arange(len(px)) < len(px) - mesh.n_cavity)[:, None]
+    lm = px[:N_LANDMARKS]
+    fields = np.zeros((6, len(px), 3))
+    wide = np.zeros(len(px))
+    for k, side in enumerate("lr"):
+        down, up = _eye_fields(px, side)
+        fields[k, :, 1] = down * mm
+        wide += up
+    fields[2, :, 1] = -wide * mm
+    centre_x = lm[list(FACE_OVAL), 0].mean()
+    for ends in INNER_BROW_ENDS:
+        end = lm[list(ends)].mean(axis=0)
+        g = _gaussian(px, end, 0.25 * D)
+        fields[3, :, 0] += -np.sign(end[0] - centre_x) * FURROW_IN_MAX * D * mm * g
+        fields[3, :, 1] += FURROW_DOWN_MAX * D * mm * g
+    corners = lm[list(MOUTH_CORNERS)]
+    mouth_centre = corners.mean(axis=0)
+    half = np.linalg.norm(corners[1] - corners[0]) / 2.0
+    g = _gaussian(px, mouth_centre, 0.8 * half)
+    fields[4, :, 0] = -PUCKER_MAX * (px[:, 0] - mouth_centre[0]) * mm * g
+    fields[4, :, 2] = -0.15 * half * mm * g  # the lips come forward
+    upper, lower = _lip_sides(px)
+    inner_up, inner_low = _lid(lm, LIPS_INNER_UPPER, px[:, 0]), _lid(lm, LIPS_INNER_LOWER, px[:, 0])
+    press = np.where(upper, inner_up - px[:, 1], np.where(lower, inner_low - px[:, 1], 0.0))
+    fields[5, :, 1] = LIP_PRESS_MAX * press * mm
+    return np.concatenate([expression_basis(mesh), fields * skin[None]])
+
+
 def deform(mesh: RealFaceMesh, basis: np.ndarray, params: np.ndarray) -> np.ndarray:
-    """Head-frame vertices ``(V, 3)`` mm of expression ``params`` ``(3,)`` in [0, 1]."""
+    """Head-frame vertices ``(V, 3)`` mm of expression ``params`` ``(K,)`` in [0, 1], one per
+    field of ``basis`` ``(K, V, 3)`` (:func:`expression_basis` or :func:`state_basis`)."""
     params = np.asarray(params, dtype=np.float64)
-    if params.shape != (len(EXPRESSIONS),) or np.any(params < 0) or np.any(params > 1):
-        raise ValueError(f"params: expected ({len(EXPRESSIONS)},) values in [0, 1], got {params!r}")
+    if params.shape != (len(basis),) or np.any(params < 0) or np.any(params > 1):
+        raise ValueError(f"params: expected ({len(basis)},) values in [0, 1], got {params!r}")
     return mesh.vertices + np.tensordot(params, basis, axes=1)

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .expression import EXPRESSIONS, smoothstep
+from .expression import EXPRESSIONS, STATE_EXPRESSIONS, smoothstep
 
 ANGLE_LIMITS_DEG = (20.0, 10.0, 10.0)  # yaw, pitch, roll
 SHIFT_LIMITS_MM = (8.0, 6.0, 15.0)  # x, y, z
@@ -67,3 +67,51 @@ def make_motion(frames: int, *, seed: int, fps: float) -> tuple[np.ndarray, np.n
     angles = np.column_stack([_slow(rng, seconds, lim) for lim in ANGLE_LIMITS_DEG])
     shift = np.column_stack([_slow(rng, seconds, lim) for lim in SHIFT_LIMITS_MM])
     return np.clip(params, 0.0, 1.0), angles, shift
+
+
+#: The states clip: each state held in turn (``{expression: parameter}``), ramped in over
+#: :data:`STATE_RAMP` frames, held :data:`STATE_HOLD`, ramped out, then :data:`STATE_REST` neutral
+#: frames. ``no_neutral`` alternates shut eyes with an open mouth, so that no frame is a neutral face,
+#: from frame 0 on (a clip cut into the middle of an expression).
+STATE_SCRIPTS = {
+    "states": (("blink", {"blink_l": 1.0, "blink_r": 1.0}), ("wink_l", {"blink_l": 1.0}), ("wink_r", {"blink_r": 1.0}),
+               ("squint", {"blink_l": 0.5, "blink_r": 0.5}), ("wide", {"eye_wide": 1.0}), ("jaw_open", {"mouth_open": 1.0}),
+               ("smile", {"smile": 1.0}), ("o_mouth", {"pucker": 1.0, "mouth_open": 0.5}), ("pucker", {"pucker": 1.0}),
+               ("lip_press", {"lip_press": 1.0}), ("brow_raise", {"brow_raise": 1.0}), ("brow_furrow", {"brow_furrow": 1.0})),
+    "no_neutral": (("blink", {"blink_l": 1.0, "blink_r": 1.0}), ("jaw_open", {"mouth_open": 0.6})) * 4,
+}
+STATE_RAMP, STATE_HOLD, STATE_REST = 3, 8, 4
+STATE_ANGLE_LIMITS_DEG = (8.0, 5.0, 4.0)
+
+
+def state_motion(script: str, *, seed: int, fps: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[tuple[str, int, int]]]:
+    """The motion of a states clip (:data:`STATE_SCRIPTS`): parameters ``(T, 9)`` in
+    :data:`STATE_EXPRESSIONS` order, head angles ``(T, 3)`` degrees within
+    :data:`STATE_ANGLE_LIMITS_DEG` and translations ``(T, 3)`` mm (slow, from ``seed``), and the
+    held spans ``[(state, first, last)]`` (inclusive frames at full parameter). ``no_neutral`` has no
+    rest frames: it starts and ends holding a state, and each state ramps straight into the next."""
+    if script not in STATE_SCRIPTS:
+        raise ValueError(f"script: expected one of {', '.join(STATE_SCRIPTS)}, got {script!r}")
+    rest = 0 if script == "no_neutral" else STATE_REST
+    length = 2 * STATE_RAMP + STATE_HOLD
+    steps = STATE_SCRIPTS[script]
+    overlap = STATE_RAMP if rest == 0 else 0
+    frames = rest + len(steps) * (length + rest) - overlap * (len(steps) - 1) - overlap
+    params = np.zeros((frames, len(STATE_EXPRESSIONS)))
+    f = np.arange(frames, dtype=np.float64)
+    spans = []
+    start = rest - overlap
+    for name, values in steps:
+        shape = smoothstep(start - 1, start + STATE_RAMP - 1, f) * smoothstep(start + length, start + length - STATE_RAMP, f)
+        for expression, value in values.items():
+            k = STATE_EXPRESSIONS.index(expression)
+            params[:, k] = np.maximum(params[:, k], value * shape)
+        spans.append((name, max(start + STATE_RAMP, 0), start + STATE_RAMP + STATE_HOLD - 1))
+        start += length + rest - overlap
+    if rest == 0:  # ends holding its last state too
+        params, f = params[:spans[-1][2] + 1], f[:spans[-1][2] + 1]
+    rng = np.random.default_rng(seed)
+    seconds = f / float(fps)
+    angles = np.column_stack([_slow(rng, seconds, lim) for lim in STATE_ANGLE_LIMITS_DEG])
+    shift = np.column_stack([_slow(rng, seconds, lim / 2) for lim in SHIFT_LIMITS_MM])
+    return np.clip(params, 0.0, 1.0), angles, shift, spans
