@@ -290,10 +290,10 @@ def lid_ratio(displacement: np.ndarray, names: Sequence[str], performer: np.ndar
     relative to their size: a target with rounder eyes stays ajar when the performer shuts hers,
     one with narrower eyes has its lids pushed through each other. Here the component along the
     target's down direction of every lid point's mapped displacement (``eye_*_1..5``, ``_7..11``)
-    is scaled by ``(G_t / G_p) / s``, with ``G_t``, ``G_p`` the eye's neutral lid gap on the target
-    and on the performer (:func:`lid_gaps`) and ``s`` the scale of that point's transform: a lid
-    gap ``g`` of the performer becomes ``G_t g / G_p`` on the target — shut is shut, half-shut is
-    half-shut, wide is as wide, on any pair of faces.
+    is scaled by ``(G_t / G_p) / s``, with ``G_t``, ``G_p`` the eye's open lid gap on the target
+    and on the performer (:func:`lid_gaps` of the neutrals) and ``s`` the scale of that point's
+    transform: a lid gap ``g`` of the performer becomes ``G_t g / G_p`` on the target — shut is
+    shut, half-shut is half-shut, wide is as wide, on any pair of faces.
 
     Parameters
     ----------
@@ -304,8 +304,9 @@ def lid_ratio(displacement: np.ndarray, names: Sequence[str], performer: np.ndar
     transforms : (n, 2, 2) float
         The ``S_i`` (:func:`displacement_transforms`).
     performer_open : (2,) float, optional
-        The performer's open lid gaps (px) to use instead of its neutral's (an eye never seen
-        open).
+        The performer's open lid gaps (px) when its neutral's are not (an eye never seen open):
+        the neutral's own gap ``g_0`` is then a fraction ``g_0 / G_p`` of open, and the target's
+        upper lids come down to that fraction of its gap before the displacements are added.
 
     Returns
     -------
@@ -313,7 +314,8 @@ def lid_ratio(displacement: np.ndarray, names: Sequence[str], performer: np.ndar
     """
     d = np.array(displacement, np.float64)
     names = [str(n) for n in names]
-    g_p = lid_gaps(performer, names) if performer_open is None else np.asarray(performer_open, np.float64)
+    g_rest = lid_gaps(performer, names)
+    g_p = g_rest if performer_open is None else np.asarray(performer_open, np.float64)
     g_t = lid_gaps(target, names)
     _, _, down, _ = eye_line_frame(np.asarray(target, np.float64)[None], names)
     n = down[0]
@@ -325,6 +327,11 @@ def lid_ratio(displacement: np.ndarray, names: Sequence[str], performer: np.ndar
         factor = (g_t[k] / g_p[k]) / scale
         normal = d[:, columns] @ n
         d[:, columns] += ((factor - 1.0)[None, :] * normal)[..., None] * n
+        closed = 1.0 - min(max(g_rest[k], 0.0) / g_p[k], 1.0)
+        if closed > 0:  # the neutral's eye is shut by this fraction: so is the target's at rest
+            for u, lw in ((1, 11), (2, 10), (3, 9), (4, 8), (5, 7)):
+                upper, lower = (names.index(f"eye_{side}_{i}") for i in (u, lw))
+                d[:, upper] += closed * float((target[lower] - target[upper]) @ n) * n
     return d
 
 
@@ -352,7 +359,7 @@ class ExpressionMap(SequenceStage):
     """
 
     name = "map.expression"
-    version = "4"  # 4: lid ratio, the target's lips closed in its neutral, range modes, states beyond the pack
+    version = "5"  # 5: lid ratio (an eye never seen open against a typical open eye), the target's lips closed in its neutral, range modes, states beyond the pack
     doc = ("performer displacements onto the target's neutral (Sec. 11): size-normalized, eyes closing by the "
            "performer's fraction, range mode, lips and lids never crossing; states beyond the pack listed")
     inputs = {"displacements": "displacements", "layout": "layout", "geometry": "pack_geometry"}

@@ -322,7 +322,7 @@ class CompensateRigid3D(SequenceStage):
     extension of Sec. 12 for real footage)."""
 
     name = "compensate.rigid3d"
-    version = "3"  # 3: the neutral estimated region by region over the clip (stages.geometry.neutral); occlusion held
+    version = "4"  # 4: the neutral estimated region by region over the clip (stages.geometry.neutral); occlusion held
     doc = ("neutral estimated from the whole clip (or a named frame); 3D similarity of the rigid points; "
            "displacements, pose, 2D similarity; occluded regions held")
     inputs = {"points": "points", "landmarks": "landmarks", "occlusion": "occlusion"}
@@ -382,9 +382,15 @@ class CompensateRigid3D(SequenceStage):
                 estimate = None
                 neutral = xy[reference].copy()
             else:
-                turned = head_angle_deg(fit["R"]) > float(params["max_turn_deg"])
+                faces = frame_ok & fit["frame_valid"]
+                eligible = faces & (head_angle_deg(fit["R"]) <= float(params["max_turn_deg"]))
+                if not eligible.any():
+                    ctx.log.warning("%s: every frame is turned more than %g deg from the head frame %d; the neutral "
+                                    "is estimated from all frames with a face", self.name, params["max_turn_deg"],
+                                    reference)
+                    eligible = faces
                 estimate = estimate_neutral(
-                    np.where(valid[..., None], aligned, np.nan), names, frame_ok & fit["frame_valid"] & ~turned,
+                    np.where(valid[..., None], aligned, np.nan), names, eligible,
                     np.asarray(marks["blendshapes"])[held], marks["blendshape_names"],
                     occluded={region: flags for region, (flags, _) in occlusion.items()})
                 neutral = estimate.neutral

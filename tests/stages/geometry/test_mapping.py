@@ -339,3 +339,21 @@ def test_states_beyond_the_pack_are_flagged_and_named(tmp_path, caplog):
     pack["geometry"] = dict(pack["geometry"], examples=np.stack([neutral, shut]))
     covered = ExpressionMap().run({"displacements": bundle, **pack}, {}, context(tmp_path))["points"]
     assert not covered["beyond_pack"][:, states.index("eye_l_shut")].any()
+
+
+def test_an_eye_never_seen_open_is_mapped_against_a_typical_open_eye(tmp_path):
+    """The performer's neutral has both eyes shut (a clip with the eyes shut throughout, told by
+    ``eye_open_known``): displacements of zero keep the target's eyes shut, not at its open rest."""
+    from stages.geometry.states import state_signals
+    layout = load_layout("zhang134")
+    performer = eyed_face(layout, eye_gap=1.0)  # shut
+    pack = fake_pack(layout, eyed_face(layout, eye_gap=12.0))
+    names = np.array(layout.point_names)
+    bundle = {"d": np.zeros((2, len(names), 2)), "valid": np.ones((2, len(names)), bool), "names": names,
+              "neutral": performer, "eye_open_known": np.array([False, False])}
+    out = ExpressionMap().run({"displacements": bundle, **pack}, {}, context(tmp_path))["points"]
+    gap = state_signals(out["xy"], names)["eye_open_l"] * 150.0
+    assert (gap < 0.15 * 12.0).all()  # 1 px of the performer's 0.11 * 150 px typical gap: 12 px * 1 / 16.5
+    bundle["eye_open_known"] = np.array([True, True])
+    opened = ExpressionMap().run({"displacements": bundle, **pack}, {}, context(tmp_path))["points"]
+    np.testing.assert_allclose(state_signals(opened["xy"], names)["eye_open_l"] * 150.0, 12.0, atol=1e-9)
