@@ -463,6 +463,7 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     parser.add_argument("--target", type=Path, help="also map each clip onto this actor pack (real_cross_ rows)")
     parser.add_argument("--cross-sheet", type=Path, help="with --target: write the points | result sheet here (.png, or .jpg at quality 88)")
     parser.add_argument("--no-states", action="store_true", help="skip the expression-state rows (scripts/real_states.py)")
+    parser.add_argument("--states-sheet", type=Path, help="write the real-texture states contact sheet here (.png or .jpg)")
     parser.add_argument("--pack-from", action="append", type=Path, default=[],
                         help="state rows: also map onto a pack built from this clip (repeatable; default: the dev "
                              f"clips {', '.join(PACK_CLIPS)})")
@@ -480,6 +481,9 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
         rows += pack_image_rows(TARGET_PACK, "real")
     if options.target is not None and clips:
         rows += cross_rows(clips, work, options.target.resolve(), options.cross_sheet)
+    if options.states_sheet is not None:
+        from scripts.real_states import states_sheet
+        states_sheet(work / "states_sheet", options.states_sheet, lambda c, f: run_pipeline(c, f))
     if not options.no_states and clips:
         pack_clips = options.pack_from or [DEV_CLIPS / name for name in PACK_CLIPS if (DEV_CLIPS / name).is_file()]
         rows += states_rows(clips, work, pack_clips)

@@ -305,3 +305,46 @@ def aggregate(per_clip: dict[str, dict[str, float]]) -> list[dict[str, Any]]:
         if values:
             rows.append(row(f"real_{name}_{kind}", (min if kind == "min" else max)(values.values()), unit_of(name)))
     return rows
+
+
+def states_sheet(work: Path, path: Path, run: Callable[..., Any], *, size: int = 512, height: int = 150) -> None:
+    """A contact sheet of the states: the real-texture ``states`` clip (scripts/realface: the
+    astronaut photo's face holding each state in turn) mapped by the default pipeline onto its
+    bundled target; one column per state at the middle of its hold, performer over result,
+    labelled. Public-domain and generated material only, so the sheet may be committed."""
+    import av
+    import cv2
+
+    from scripts.realface.clip import make_clip
+
+    clip, truth_path = make_clip(work / "states_clip", frames=0, seed=3, size=size, script="states")
+    run(clip, work / "states_run")
+    truth = np.load(truth_path)
+    middle = {str(n): (int(a) + int(b)) // 2 for n, (a, b) in zip(truth["state_names"], truth["state_spans"])}
+
+    def frames_of(video: Path) -> dict[int, np.ndarray]:
+        wanted, out = set(middle.values()), {}
+        with av.open(str(video)) as container:
+            for k, frame in enumerate(container.decode(video=0)):
+                if k in wanted:
+                    out[k] = frame.to_ndarray(format="rgb24")
+        return out
+
+    performer, result = frames_of(clip), frames_of(work / "states_run" / "out" / "video" / "result.mp4")
+    points = truth["points"][list(middle.values())]  # the performer's face, cropped
+    (x0, y0), (x1, y1) = np.nanmin(points, axis=(0, 1)), np.nanmax(points, axis=(0, 1))
+    pad = 0.15 * max(x1 - x0, y1 - y0)
+    box = [int(max(v, 0)) for v in (y0 - pad, y1 + pad, x0 - pad, x1 + pad)]
+    performer = {f: image[box[0]:box[1], box[2]:box[3]] for f, image in performer.items()}
+    columns = []
+    for name, f in middle.items():
+        cells = [cv2.resize(image, (int(round(image.shape[1] * height / image.shape[0])), height),
+                            interpolation=cv2.INTER_AREA) for image in (performer[f], result[f])]
+        width = max(c.shape[1] for c in cells)
+        cells = [np.pad(c, ((0, 0), (0, width - c.shape[1]), (0, 0)), constant_values=255) for c in cells]
+        label = np.full((22, width, 3), 255, np.uint8)
+        cv2.putText(label, name.replace("_", " "), (4, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+        columns.append(np.concatenate([label, *cells], axis=0))
+    sheet = np.concatenate([np.pad(c, ((0, 0), (0, 3), (0, 0)), constant_values=255) for c in columns], axis=1)
+    jpeg = path.suffix.lower() in (".jpg", ".jpeg")
+    cv2.imwrite(str(path), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 88] if jpeg else [])
