@@ -39,6 +39,7 @@ from runner.config import StageNode
 from runner.depends import recording
 from runner.digest import array_digest, cache_key, combine
 from runner.errors import stage_errors
+from runner.inputs import Inputs
 from runner.keys import Keys
 from runner.outputs import check_frames, entry_context, load_bundle, read_or_redo, save_outputs
 from runner.progress import Progress, Report, own_time
@@ -52,13 +53,15 @@ if TYPE_CHECKING:
 @dataclass(frozen=True)
 class RunServices:
     """What frame chunks use of the run: its keys, the cache store, progress reporting, how
-    many chunks are computed at once where a stage resolves its own chunks (``jobs``), and by
-    how many producer threads for a stage whose readers stream it (``producers``)."""
+    many chunks are computed at once where a stage resolves its own chunks (``jobs``), the
+    pipeline inputs (checked unchanged before an entry is committed), and by how many producer
+    threads for a stage whose readers stream it (``producers``)."""
 
     keys: Keys
     store: CacheStore
     progress: Progress
     jobs: int
+    inputs: Inputs
     producers: int = 1
 
 
@@ -365,6 +368,8 @@ class FrameChunks:
                 with self._book:  # a stage may read such a file once, for all its chunks
                     self._depends |= files
                     files = set(self._depends)
+                with stage_errors(node):
+                    self.run.inputs.check(node.name)
                 entry = store.commit(key, tmp, {"stage": node.name, "uses": node.uses, "range": [start, stop],
                                                 **record, "depends": keys.depends(files)},
                                      replace=self.forced)

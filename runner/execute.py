@@ -57,8 +57,9 @@ from runner.cache import CacheStore, Entry
 from runner.chunks import FrameChunks, RunServices, Value, defines_stream_info, input_digests, is_source
 from runner.config import ConfigError, Issue, Pipeline, StageNode, Where
 from runner.depends import recording
-from runner.digest import cache_key, input_digest
+from runner.digest import cache_key
 from runner.errors import StageFailed, stage_errors
+from runner.inputs import Inputs
 from runner.keys import Keys
 from runner.offload import Forked
 from runner.offload import fork as offload_fork
@@ -117,9 +118,10 @@ class Runner:
         self.opts = options
         self.store = options.cache
         self.values: dict[tuple[str | None, str], Value] = {}
+        self.inputs = Inputs(pipeline, bound)
         for name, path in bound.items():
-            kind = pipeline.inputs[name].type
-            self.values[(None, name)] = Value(kind, input_digest(kind, path), load=lambda p=path: Path(p))
+            self.values[(None, name)] = Value(pipeline.inputs[name].type, self.inputs.digest(name),
+                                              load=lambda p=path: Path(p))
         self.entries: dict[str, list[Entry]] = {}  # per stage, its entries (one per chunk of a frame stage)
         self.redo: dict[str, Callable[[int], Entry]] = {}  # per stage, recompute its entry i (found damaged)
         self.keys = Keys(self.store, pipeline.path, device=options.device, chunk_frames=pipeline.chunk_frames,
@@ -136,7 +138,7 @@ class Runner:
 
         self.log = log
         self.progress = Progress(log=log, warn=options.warn, bars=options.progress)
-        self.services = RunServices(self.keys, self.store, self.progress, options.jobs,
+        self.services = RunServices(self.keys, self.store, self.progress, options.jobs, self.inputs,
                                     producers=options.producers or os.cpu_count() or 1)
         self._lazy: list[FrameChunks] = []  # lazy frame stages not reported yet
         self._joined: dict[str, list[tuple[FrameChunks, str, threading.Thread]]] = {}  # per stage, the readers it registered
@@ -576,6 +578,7 @@ class Runner:
                 record = save_outputs(node.cls.outputs, result, tmp, frames=None)
                 if key is None:
                     key = cache_key(self.keys.material(node, input_digests(inputs)))
+                self.inputs.check(node.name)
                 return self.store.commit(key, tmp, {"stage": node.name, "uses": node.uses, **record,
                                                     "depends": self.keys.depends(files)}, replace=forced), True
 
@@ -652,6 +655,7 @@ class Runner:
             info = stage.stream_info({port: v.get() for port, v in inputs.items()}, dict(node.params))
             if self.opts.dry_run:
                 return info
+            self.inputs.check(node.name)
             with self.store.writing(key) as tmp:
                 entry = self.store.commit(key, tmp, {"stage": node.name, "uses": node.uses, "info": asdict(info)})
         return StreamInfo(**entry.record["info"])
