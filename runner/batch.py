@@ -37,7 +37,9 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import signal
 import socket
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -255,12 +257,14 @@ def run_batch(jobs: list[Job], *, cache_dir: Path, device: str = "auto", workers
     ------
     KeyboardInterrupt
         Interrupted: Ray is shut down (a local Ray's workers end; a cluster ends this driver's
-        tasks) and the cache is left resumable.
+        tasks) and the cache is left resumable. The SIGTERM handler in place when it is called
+        (``runner``'s: an interrupt, as SIGINT) is put back after Ray's start-up replaced it.
     """
     if address is not None and workers is not None:
         raise ValueError(f"workers is for a local Ray only, got workers={workers} with address={address!r}")
     cache_dir = Path(cache_dir).resolve()
     started = time.perf_counter()
+    on_sigterm = signal.getsignal(signal.SIGTERM)
     if address is None:
         os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # read by Ray and the processes it starts
         machine = os.cpu_count() or 1
@@ -276,6 +280,8 @@ def run_batch(jobs: list[Job], *, cache_dir: Path, device: str = "auto", workers
         nodes = [int(node["Resources"].get("CPU", 0)) for node in ray.nodes() if node.get("Alive")]
         cpus = job_cpus(jobs=len(jobs), cpus=max(1, sum(nodes)), at_once=len(jobs),
                         node_cpus=max(1, min((n for n in nodes if n > 0), default=1)))
+    if on_sigterm is not None and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, on_sigterm)  # ray.init replaced it (an exit with a native stack dump)
     ray_init_s = time.perf_counter() - started
     states: dict[str, _State] = {job.name: _State(job) for job in jobs}
     try:

@@ -5,6 +5,7 @@ Layout under the cache root (``--cache-dir``, ``$RUNNER_CACHE_DIR``, default ``.
     entries/<key[:2]>/<key>/           one entry: data files + complete.json (written last)
     tmp/<key>.<pid>.<token>/           an entry being written; moved into place with os.replace
     locks/<key>.lock                   JSON {pid, host, started}: who is computing <key>
+    published/<sha256 of a folder>.json   stat records of the files last published in an --out folder
 
 An entry is written in ``tmp/``; its completion record ``complete.json`` is written last and
 the folder is then renamed into ``entries/`` in one ``os.replace``, so an entry is whole or
@@ -87,6 +88,7 @@ class CacheStore:
         self.entries_dir = self.root / "entries"
         self.tmp_dir = self.root / "tmp"
         self.locks_dir = self.root / "locks"
+        self.published_dir = self.root / "published"  # stat records of files published to --out (runner.publish)
         self._me = {"pid": os.getpid(), "host": socket.gethostname(), "started": _process_start(os.getpid())}
 
     # -- entries ---------------------------------------------------------------------------

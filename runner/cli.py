@@ -292,7 +292,9 @@ def main(argv: list[str] | None = None) -> None:
     except StageFailed as exc:
         click.echo(f"error: {exc}", err=True)
         code = EXIT_STAGE
-    except (KeyboardInterrupt, click.Abort):
+    except (KeyboardInterrupt, click.Abort) as exc:
+        if isinstance(exc.__cause__, EOFError) and not _INTERRUPTED.is_set():
+            raise exc.__cause__  # click turns an EOFError into Abort: a fault of ours, not an interrupt
         click.echo("interrupted", err=True)
         code = EXIT_INTERRUPTED
     except OSError as exc:  # an unusable --cache-dir, --out or --log-json path

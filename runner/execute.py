@@ -67,7 +67,7 @@ from runner.offload import spec as offload_spec
 from runner.offload import start as offload_start
 from runner.outputs import entry_context, load_bundle, read_or_redo, save_outputs, verify_files
 from runner.progress import Progress, Report, own_time
-from runner.publish import Published, conflicts, publish, remove_leftovers
+from runner.publish import Published, conflicts, publish, remove_leftovers, unwritable
 from runner.stage import FrameStage, StageError, StreamInfo
 
 __all__ = ["Options", "Report", "Runner", "StageFailed", "resolve_device"]
@@ -158,15 +158,16 @@ class Runner:
         Raises
         ------
         ConfigError
-            ``--out`` holds something at a stage's folder that no earlier publish wrote
-            (checked before anything runs).
+            ``--out`` cannot be written, or holds something at a stage's folder that no
+            earlier publish wrote (checked before anything runs).
         StageFailed
             A stage failed, or writing the cache or ``--out`` failed (disk full: the message
             names the stage and the file).
         """
         publishing = [node for node in self.selected() if "files" in node.cls.outputs.values()]
-        if not self.opts.dry_run and self.opts.out is not None:
-            problems = conflicts(self.opts.out, [node.name for node in publishing])
+        if not self.opts.dry_run and self.opts.out is not None and publishing:
+            problem = unwritable(self.opts.out)
+            problems = [problem] if problem else conflicts(self.opts.out, [node.name for node in publishing])
             if problems:
                 raise ConfigError([Issue(Where("--out"), str(self.opts.out), p) for p in problems])
             remove_leftovers(self.opts.out)
@@ -194,7 +195,8 @@ class Runner:
                 if self.entries.get(node.name):
                     item = Published(node.name, node.uses, ports, self.entries[node.name], self.redo[node.name])
                     with stage_errors(node):
-                        publish(self.opts.out, item, on_damaged=lambda exc, n=node: self.progress.damaged(n, exc))
+                        publish(self.opts.out, item, records=self.store.published_dir,
+                                on_damaged=lambda exc, n=node: self.progress.damaged(n, exc))
         if not self.opts.dry_run:
             self.store.break_stale_locks()
         return reports

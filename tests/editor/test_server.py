@@ -180,3 +180,15 @@ def test_an_allowed_remote_address_is_warned_about(tmp_path):
                             cwd=REPO, capture_output=True, text=True, timeout=60)
     assert "WARNING: binding 0.0.0.0" in result.stderr
     assert result.returncode == 2 and "no pack.yaml" in result.stderr
+
+
+@pytest.mark.parametrize("content", [b"", b"PK\x03\x04 truncated"])
+def test_an_empty_or_truncated_performance_is_one_line_exit_2(tmp_path, content):
+    performance = tmp_path / "data.npz"
+    performance.write_bytes(content)
+    result = subprocess.run([sys.executable, "-m", "editor.cli", "--pack", str(PACK), "--performance", str(performance)],
+                            cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 2, result.stderr
+    assert "Traceback" not in result.stderr
+    assert result.stderr.strip().splitlines()[-1] == (f"expression-editor: {performance}: not a readable .npz "
+                                                      "(File is not a zip file)")

@@ -6,6 +6,8 @@ import contextlib
 import importlib.metadata
 import io
 import json
+import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -17,7 +19,8 @@ import pytest
 from runner.cache import CacheStore
 from runner.cli import main
 from stages.video import VideoDecode, to_gray
-from tests.runner.helpers import DATA, TINY, chunk_status, read_log, run_cli, stage_status, tree_bytes
+from tests.runner.helpers import (DATA, REPO, TINY, chunk_status, read_log, run_cli, runner_cmd, stage_status,
+                                  tree_bytes)
 
 GRAPH = DATA / "graph.yaml"
 CHAIN = DATA / "chain.yaml"
@@ -219,3 +222,34 @@ def test_exit_now_waits_for_threads_and_flushes(tmp_path):
                           cwd=Path(__file__).resolve().parents[2])
     assert (done.returncode, done.stdout) == (3, "partial")
     assert marker.read_text() == "done"
+
+
+def test_empty_npz_in_a_pack_is_a_stage_failure_not_an_interrupt(tmp_path):
+    """A zero-byte ``captured.npz``: one line naming the stage and the file, exit 1 (its
+    EOFError was taken by click for an interrupt: "interrupted", exit 130)."""
+    pack = tmp_path / "pack"
+    shutil.copytree(REPO / "fixtures" / "packs" / "target", pack)
+    (pack / "captured.npz").write_bytes(b"")
+    pipeline = tmp_path / "p.yaml"
+    pipeline.write_text("inputs: {pack: {type: dir}}\nstages:\n  load: {uses: pack.load, inputs: {pack: pack}}\n")
+    env = {**{k: v for k, v in os.environ.items() if not k.startswith("RUNNER_")}, "PYTHONPATH": str(REPO)}
+    done = subprocess.run(runner_cmd("run", pipeline, "--input", f"pack={pack}", "--cache-dir", tmp_path / "cache",
+                                     "--out", tmp_path / "out"), env=env, cwd=tmp_path, capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 1, done.stderr
+    assert done.stderr.count("\n") == 1 and done.stderr.startswith("error: stage 'load' (pack.load): actor pack ")
+    assert f"{pack / 'captured.npz'}: field 'captured'" in done.stderr and "not a readable .npz" in done.stderr
+
+
+def test_an_eof_error_of_a_stage_is_not_reported_as_an_interrupt(tmp_path, monkeypatch):
+    from runner import execute
+
+    def eof(self):
+        raise EOFError("Ran out of input")
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(execute.Runner, "run", eof)
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), pytest.raises(EOFError):
+        main(["run", str(CHAIN), "--cache-dir", str(tmp_path / "cache")])
+    assert "interrupted" not in err.getvalue()
