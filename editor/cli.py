@@ -19,6 +19,7 @@ import logging
 import os
 import re
 import secrets
+import signal
 import subprocess
 import sys
 import time
@@ -79,6 +80,10 @@ async def serve(args: argparse.Namespace, engine: EditorEngine) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The command; exit 0, 1 (the server failed), 2 (a bad command line, ``--pack`` or
+    ``--performance``), 130 (interrupted: SIGINT, also when the process was started in the
+    background of a script, which starts it with SIGINT ignored)."""
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     if not is_loopback(args.host):

@@ -251,7 +251,7 @@ class ExpressionMap(SequenceStage):
               choices=RANGE_LIMITS),
         Param("range_margin", float, 0.05,
               "how far beyond the captured range a displacement may go, fraction of the target's eye distance",
-              min=0.0),
+              min=0.0, max=10.0),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:

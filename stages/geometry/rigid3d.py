@@ -261,13 +261,13 @@ class CompensateRigid3D(SequenceStage):
     outputs = {"displacements": "displacements", "similarity": "similarity", "pose": "pose"}
     params = (
         Param("neutral_frame", int, -1, "the reference (neutral) frame; -1: chosen as the most frontal, least "
-              "expressive frame among the first search_frames"),
-        Param("search_frames", int, 125, "frames searched for the reference (from the first frame with a face)"),
+              "expressive frame among the first search_frames", min=-1, max=10_000_000),
+        Param("search_frames", int, 125, "frames searched for the reference (from the first frame with a face)", min=1, max=10_000_000),
         Param("rigid_points", list, list(RIGID_POINTS), "layout points aligned in 3D (they move with the skull)"),
-        Param("huber_px", float, 2.0, "Huber threshold of the robust 3D fit, px"),
-        Param("warn_angle_deg", float, 12.0, "warn when the reference frame's head is turned more than this"),
+        Param("huber_px", float, 2.0, "Huber threshold of the robust 3D fit, px", min=0.01, max=1000.0),
+        Param("warn_angle_deg", float, 12.0, "warn when the reference frame's head is turned more than this", min=0.0, max=180.0),
         Param("warn_expression", float, 2.0, "warn when the reference frame's expressiveness (sum of blendshapes) "
-              "exceeds this"),
+              "exceeds this", min=0.0, max=100.0),
         Param("close_lips", bool, True, "displacements from the reference with its inner lips closed (a reference "
               "with the lips apart would cost the target that much mouth opening)"),
     )

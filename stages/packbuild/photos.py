@@ -230,7 +230,7 @@ class PhotosDecode(FrameStage):
     inputs = {"photos": "dir"}
     outputs = {"frames": "frames"}
     cached = False
-    params = (Param("max_side", int, DEFAULT_MAX_SIDE, "longest side of the frames, px (larger photos are shrunk)", min=64),)
+    params = (Param("max_side", int, DEFAULT_MAX_SIDE, "longest side of the frames, px (larger photos are shrunk)", min=64, max=16384),)
 
     def __init__(self) -> None:
         self._scanned: tuple[Path, int, PhotoSet] | None = None
@@ -280,7 +280,7 @@ class PhotoIdentity(SequenceStage):
     inputs = {"photos": "dir", "landmarks": "landmarks"}
     outputs = {"identity": "photo_identity"}
     params = (Param("max_distance", float, DIFFERENT_FACE_DISTANCE,
-                    "signature distance above which a face is named as another person's", min=1e-6),)
+                    "signature distance above which a face is named as another person's", min=1e-6, max=10.0),)
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         # which photos are frames does not depend on photos.decode's max_side (the frame size does)

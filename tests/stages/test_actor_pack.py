@@ -13,6 +13,7 @@ from runner.depends import recording
 from runner.stage import StageError
 from stages.actor_pack import PackError, load_pack
 from stages.layout import LAYOUT_DIR, load_layout
+from tests.stages.image_files import big_png
 
 REPO = Path(__file__).resolve().parents[2]
 W, H = 40, 30
@@ -161,26 +162,10 @@ def test_yaml_aliases_in_a_manifest_are_refused_with_their_position(pack_dir):
 
 # -- bounds checked before anything large is read -------------------------------------------
 
-def _big_png(path: Path, width: int, height: int) -> None:
-    """A valid 1-bit grey PNG of ``width`` x ``height`` (all black): a few kB on disk for
-    millions of pixels, as a decompression bomb is."""
-    import struct
-    import zlib
-
-    def chunk(kind: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
-
-    packer = zlib.compressobj(9)
-    row = b"\0" * (1 + (width + 7) // 8)
-    body = b"".join(packer.compress(row) for _ in range(height)) + packer.flush()
-    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 1, 0, 0, 0, 0))
-                     + chunk(b"IDAT", body) + chunk(b"IEND", b""))
-
-
 def test_an_image_larger_than_its_manifest_says_is_refused_undecoded(pack_dir, monkeypatch):
     pack_dir = pack_dir[0]
     """A 12000x12000 PNG as the neutral image: refused from its header, never decoded."""
-    _big_png(pack_dir / "images" / "neutral.png", 12000, 12000)
+    big_png(pack_dir / "images" / "neutral.png", 12000, 12000)
     decoded = []
     real = cv2.imread
     monkeypatch.setattr(cv2, "imread", lambda path, *args: decoded.append(Path(path).name) or real(path, *args))
