@@ -21,6 +21,7 @@ from runner.cache import DEFAULT_DIR, ENV_VAR, CacheStore, default_cache_dir, ho
 from runner.config import ConfigError, Issue, Where, bind_inputs, load_pipeline
 from runner.dag import to_dot, to_mermaid
 from runner.errors import StageFailed
+from runner.notes import one_line_warnings
 from runner.registry import Registry, RegistryError
 from runner.stage import FrameStage
 
@@ -267,6 +268,7 @@ def _unraisable(args: object) -> None:
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point: maps errors to exit codes, one line each, no traceback.
 
+    Python warnings of the libraries are one line each (:func:`runner.notes.one_line_warnings`).
     SIGINT and SIGTERM both interrupt the run (exit 130, the cache left resumable). SIGINT is set
     explicitly: a process started in the background of a non-interactive shell inherits it
     ignored, and Python then keeps ignoring it.
@@ -277,6 +279,7 @@ def main(argv: list[str] | None = None) -> None:
     signal.signal(signal.SIGTERM, _interrupt)
     signal.signal(signal.SIGINT, _interrupt)
     sys.unraisablehook = _unraisable
+    one_line_warnings()
     try:
         code = cli.main(args=argv, prog_name="runner", standalone_mode=False)
     except click.ClickException as exc:

@@ -52,6 +52,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from runner import notes
 from runner.broadcast import unbounded
 from runner.cache import CacheStore, Entry
 from runner.chunks import FrameChunks, RunServices, Value, defines_stream_info, input_digests, is_source
@@ -66,7 +67,8 @@ from runner.offload import fork as offload_fork
 from runner.offload import spec as offload_spec
 from runner.offload import start as offload_start
 from runner.outputs import entry_context, load_bundle, read_or_redo, save_outputs, verify_files
-from runner.progress import Progress, Report, own_time
+from runner.progress import Progress, Report
+from runner.timing import own_time
 from runner.publish import Published, conflicts, publish, remove_leftovers, unwritable
 from runner.stage import FrameStage, StageError, StreamInfo
 
@@ -164,6 +166,10 @@ class Runner:
             A stage failed, or writing the cache or ``--out`` failed (disk full: the message
             names the stage and the file).
         """
+        with notes.showing():  # each distinct warning line once on stderr
+            return self._run()
+
+    def _run(self) -> list[Report]:
         publishing = [node for node in self.selected() if "files" in node.cls.outputs.values()]
         if not self.opts.dry_run and self.opts.out is not None and publishing:
             problem = unwritable(self.opts.out)
@@ -519,6 +525,8 @@ class Runner:
         if entry is None:
             entry, ran = self._run_sequence(node, inputs, key, forced)
             report.status = "ran" if ran else "cached"
+        if report.status == "cached":
+            self.progress.replay(node.name, entry.record)
         if streaming:
             names = ", ".join(dict.fromkeys(node.inputs[port].stage for port in pending))
             report.reason = f"read {names} while it was computed"
@@ -574,7 +582,7 @@ class Runner:
                 return entry, False
             with self.store.writing(key or f"pending-{node.name}") as tmp:
                 values = {port: v.get(node.name) for port, v in inputs.items()}
-                with recording(set()) as files:
+                with recording(set()) as files, notes.recording() as warned:
                     result = node.cls().run(values, dict(node.params),
                                             entry_context(tmp, device=self.opts.device, progress=bar.update))
                 record = save_outputs(node.cls.outputs, result, tmp, frames=None)
@@ -582,7 +590,8 @@ class Runner:
                     key = cache_key(self.keys.material(node, input_digests(inputs)))
                 self.inputs.check(node.name)
                 return self.store.commit(key, tmp, {"stage": node.name, "uses": node.uses, **record,
-                                                    "depends": self.keys.depends(files)}, replace=forced), True
+                                                    "depends": self.keys.depends(files), "warnings": warned},
+                                         replace=forced), True
 
     # -- frame stages ----------------------------------------------------------------------
 
@@ -654,12 +663,16 @@ class Runner:
         key = cache_key({**self.keys.material(node, input_digests(inputs)), "stream_info": True})
         entry = self.store.lookup(key)
         if entry is None:
-            info = stage.stream_info({port: v.get() for port, v in inputs.items()}, dict(node.params))
+            with notes.recording() as warned:
+                info = stage.stream_info({port: v.get() for port, v in inputs.items()}, dict(node.params))
             if self.opts.dry_run:
                 return info
             self.inputs.check(node.name)
             with self.store.writing(key) as tmp:
-                entry = self.store.commit(key, tmp, {"stage": node.name, "uses": node.uses, "info": asdict(info)})
+                entry = self.store.commit(key, tmp, {"stage": node.name, "uses": node.uses, "info": asdict(info),
+                                                     "warnings": warned})
+        else:
+            self.progress.replay(node.name, entry.record)
         return StreamInfo(**entry.record["info"])
 
     # -- outputs ---------------------------------------------------------------------------

@@ -147,9 +147,11 @@ def _child(make_runner: Callable[..., Any], *, parent: int) -> NoReturn:
     committed, 1 on any failure (the parent then computes what is missing itself and reports
     why), without the interpreter's teardown (the run waits for this process's end; 0.2-0.3 s)."""
     from runner.cli import exit_now
+    from runner.notes import one_line_warnings
 
     threading.Thread(target=_exit_when_orphaned, args=(parent,), daemon=True).start()
     logging.getLogger().addHandler(_LogEvents(logging.WARNING))
+    one_line_warnings()  # relayed as log events too
     code = 0
     try:
         make_runner(log=_event_line, warn=lambda line: _event_line({"event": "warning", "line": line})).run()

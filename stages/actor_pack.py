@@ -270,7 +270,7 @@ class _PackReader:
     def image(self, path: Path, field: str) -> np.ndarray:
         import cv2
         try:
-            header = image_size(path, max_pixels=MAX_PACK_PIXELS)
+            header = image_size(path, max_pixels=MAX_PACK_PIXELS, verify=True)
         except ImageTooLarge as exc:
             raise self.fail(path, field, f"image is {exc}") from None
         if header is None:

@@ -17,9 +17,12 @@ class ImageTooLarge(ValueError):
     how many (``"30000x30000 px"``) and the limit."""
 
 
-def image_size(path: str | Path, *, max_pixels: int) -> tuple[int, int] | None:
+def image_size(path: str | Path, *, max_pixels: int, verify: bool = False) -> tuple[int, int] | None:
     """``(width, height)`` in px as stored in the header of image file ``path`` (before any
-    EXIF rotation), or None when it is not an image file whose header Pillow reads.
+    EXIF rotation), or None when it is not an image file whose header Pillow reads. With
+    ``verify``, a PNG's chunks are also checked (Pillow's ``verify``: their CRCs, a truncated
+    file) and a damaged one gives None: libpng prints its own ``libpng error:`` line on the
+    process's stderr when OpenCV decodes it.
 
     Raises
     ------
@@ -34,6 +37,8 @@ def image_size(path: str | Path, *, max_pixels: int) -> tuple[int, int] | None:
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # the limit here is the caller's
             with Image.open(path) as image:
                 width, height = int(image.size[0]), int(image.size[1])
+                if verify and image.format == "PNG" and width * height <= max_pixels:
+                    image.verify()
     except Image.DecompressionBombError:
         raise ImageTooLarge(f"more than {2 * Image.MAX_IMAGE_PIXELS} px, the limit is {max_pixels} px") from None
     except (OSError, UnidentifiedImageError, ValueError, SyntaxError):

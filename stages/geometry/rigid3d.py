@@ -336,6 +336,8 @@ class CompensateRigid3D(SequenceStage):
         ctx.log.info("%s: reference (neutral) frame %d: head turned %.1f deg, expressiveness %.2f",
                      self.name, reference, angle, score)
         if angle > float(params["warn_angle_deg"]) or score > float(params["warn_expression"]):
+            chosen = int(params["neutral_frame"]) >= 0
+            advice = ("it is the one neutral_frame names: name another" if chosen
+                      else "set neutral_frame=N to choose one")
             ctx.log.warning("%s: the reference (neutral) frame %d is not a frontal neutral face (head turned "
-                            "%.1f deg, expressiveness %.2f); set neutral_frame=N to choose one", self.name,
-                            reference, angle, score)
+                            "%.1f deg, expressiveness %.2f); %s", self.name, reference, angle, score, advice)

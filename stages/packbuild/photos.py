@@ -100,7 +100,7 @@ def read_photo(path: Path) -> np.ndarray | None:
         Its header declares more than :data:`MAX_PHOTO_PIXELS` pixels (nothing is decoded).
     """
     import cv2
-    if image_size(path, max_pixels=MAX_PHOTO_PIXELS) is None:
+    if image_size(path, max_pixels=MAX_PHOTO_PIXELS, verify=True) is None:
         return None
     try:
         data = np.fromfile(path, dtype=np.uint8)

@@ -253,3 +253,33 @@ def test_an_eof_error_of_a_stage_is_not_reported_as_an_interrupt(tmp_path, monke
     with contextlib.redirect_stderr(err), pytest.raises(EOFError):
         main(["run", str(CHAIN), "--cache-dir", str(tmp_path / "cache")])
     assert "interrupted" not in err.getvalue()
+
+
+WARNED = """inputs: {clip: {type: video}}
+chunk_frames: 8
+stages:
+  decode: {uses: video.decode, inputs: {video: clip}}
+  mean: {uses: test.warn_mean, inputs: {frames: decode.frames}}
+  table: {uses: test.table, inputs: {series: mean.series}}
+  video: {uses: write.video, params: {crf: 20}, inputs: {frames: decode.frames}}
+"""  # `mean` reads a source's frames while `video` computes: it runs in a child process (runner.offload)
+
+
+def test_warnings_are_one_line_each_once_and_given_again_by_a_cached_run(env, tmp_path):
+    """A stage's own warning and a numpy RuntimeWarning of its computation: one line each on
+    stderr (the stage ran in a child process and was then looked up by the run: still once),
+    and a fully cached rerun says them again (recorded with the entry)."""
+    pipeline = tmp_path / "warned.yaml"
+    pipeline.write_text(WARNED)
+    expected = ["warning: test.warn_mean: the series is made of test frames",
+                "warning: overflow encountered in scalar multiply (RuntimeWarning, runner/helpers.py:"]
+    for run in ("first", "cached"):
+        done = run_cli("run", pipeline, "--in", TINY, "--out", tmp_path / "out", "--log-json", tmp_path / f"{run}.jsonl",
+                       env=env, cwd=tmp_path)
+        assert done.returncode == 0, done.stderr
+        lines = done.stderr.splitlines()
+        assert len(lines) == 2 and lines[0] == expected[0] and lines[1].startswith(expected[1]), done.stderr
+        assert lines[1].endswith(")") and "RuntimeWarning:" not in done.stderr
+        events = read_log(tmp_path / f"{run}.jsonl")
+        assert stage_status(events)["mean"] == ("ran" if run == "first" else "cached")
+        assert [e["stage"] for e in events if e["event"] == "offload"] == (["mean"] if run == "first" else [])
