@@ -46,6 +46,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import ray
+from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
 from runner.batch_manifest import Job
 from runner.batch_ray import RAY_OPTIONS, start_local_ray
@@ -186,7 +187,8 @@ def run_job(job: Job, *, cpus: int, cache_dir: Path, device: str,
 
 class EventSink:
     """A Ray actor collecting the workers' events for the driver (``add`` from the workers,
-    ``take`` from the driver); one caller's calls arrive in order."""
+    ``take`` from the driver); one caller's calls arrive in order. It lives on the driver's
+    node: a cluster node lost mid-batch does not take the batch's events with it."""
 
     def __init__(self) -> None:
         self._events: list[dict[str, Any]] = []
@@ -287,7 +289,8 @@ def run_batch(jobs: list[Job], *, cache_dir: Path, device: str = "auto", workers
     try:
         log({"event": "batch_start", "time": time.time(), "jobs": len(jobs), "address": address,
              "cpus": ray.cluster_resources().get("CPU", 0) - sink_cpus, "job_cpus": cpus, "ray_init_s": ray_init_s})
-        sink = ray.remote(num_cpus=sink_cpus)(EventSink).remote()
+        here = NodeAffinitySchedulingStrategy(node_id=ray.get_runtime_context().get_node_id(), soft=False)
+        sink = ray.remote(num_cpus=sink_cpus, scheduling_strategy=here)(EventSink).remote()  # lost with the driver only
         if sink_cpus:  # created, holding its CPU, before a job can take that CPU; else its worker
             ray.get(sink.take.remote())  # starts beside the first jobs' (joining a Ray: none prestarted)
         task = ray.remote(num_cpus=cpus, max_retries=retries, retry_exceptions=True)(_job_task)
