@@ -68,9 +68,9 @@ from runner.offload import spec as offload_spec
 from runner.offload import start as offload_start
 from runner.outputs import entry_context, load_bundle, read_or_redo, save_outputs, verify_files
 from runner.progress import Progress, Report
-from runner.timing import own_time
 from runner.publish import Published, conflicts, publish, remove_leftovers, unwritable
 from runner.stage import FrameStage, StageError, StreamInfo
+from runner.timing import own_time
 
 __all__ = ["Options", "Report", "Runner", "StageFailed", "resolve_device"]
 
@@ -671,7 +671,7 @@ class Runner:
             with self.store.writing(key) as tmp:
                 entry = self.store.commit(key, tmp, {"stage": node.name, "uses": node.uses, "info": asdict(info),
                                                      "warnings": warned})
-        else:
+        elif not self.opts.dry_run:
             self.progress.replay(node.name, entry.record)
         return StreamInfo(**entry.record["info"])
 

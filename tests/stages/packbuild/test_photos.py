@@ -213,3 +213,17 @@ def test_skipped_photos_are_counted_and_the_first_five_named(tmp_path, caplog):
     assert len(warnings) == 1 and warnings[0].endswith(
         "40 unreadable image files skipped: broken00.jpg, broken01.jpg, broken02.jpg, broken03.jpg, broken04.jpg "
         "and 35 more")
+
+
+def test_a_damaged_png_is_skipped_without_libpng_printing(tmp_path, capfd):
+    """A PNG whose data chunk is damaged: skipped as unreadable, found by its chunks' check
+    before OpenCV decodes it (libpng prints its own `libpng error:` line on stderr)."""
+    import cv2
+
+    save(tmp_path / "a.png", asymmetric_image())
+    data = bytearray(cv2.imencode(".png", asymmetric_image())[1].tobytes())
+    data[60:70] = bytes(10)  # inside IDAT
+    (tmp_path / "b.png").write_bytes(bytes(data))
+    photos = scan_photos(tmp_path, max_side=1920)
+    assert [p.name for p in photos.paths] == ["a.png"] and [p.name for p in photos.unreadable] == ["b.png"]
+    assert "libpng" not in capfd.readouterr().err
