@@ -35,7 +35,7 @@ class _StageWarnings(logging.Handler):
     """The warning lines of the ``runner.stage`` loggers: appended to this thread's recording,
     and written to stderr, each once while a run goes on (:func:`showing`), unless the
     application has its own logging handlers (an editor, pytest), which then show them: as
-    Python's last-resort handler did before this one was installed."""
+    Python's last-resort handler does where no handler is installed."""
 
     def emit(self, record: logging.LogRecord) -> None:
         line = bounded(record.getMessage())

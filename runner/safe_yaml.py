@@ -7,7 +7,7 @@ need aliases, so :class:`StrictLoader` refuses them where they appear, and refus
 safe constructor does not build (``!!python/object`` and friends) with its position, instead of
 failing later while the value is built. It also refuses, with the position of the offending
 node: collections nested deeper than :data:`MAX_DEPTH` (PyYAML composes them recursively, and
-``[[[[...`` 100,000 deep ended in a ``RecursionError``), and a key given twice in one mapping
+``[[[[...`` 100,000 deep ends in a ``RecursionError``), and a key given twice in one mapping
 (PyYAML keeps the last value silently). :func:`read_text` refuses a file that is not UTF-8 with
 the line and column of the first bad byte.
 """

@@ -1,7 +1,7 @@
 """An image file's size from its header, checked against a pixel limit before anything is decoded.
 
 OpenCV allocates the whole image a file's header declares when it decodes it (up to 2^30
-pixels by default): a 2.6 MB PNG declaring 30000x30000 pixels took 102 s and 5.5 GB. Readers of
+pixels by default): a 2.6 MB PNG declaring 30000x30000 pixels takes 102 s and 5.5 GB. Readers of
 user images (a photo folder, a pack's images) call :func:`image_size` first, with their limit.
 Pillow reads the header only (``Image.open`` is lazy) of PNG, JPEG, TIFF and WebP files.
 """

@@ -2,9 +2,9 @@
 files, a points file, a run's ``data.npz`` given to the editor).
 
 ``numpy.load`` builds an array from whatever shape its header states: a 3 MB file of
-compressed zeros declaring a million geometries took 8 GB and minutes before any check could
-look at it, and an empty or truncated file raised ``EOFError`` or ``BadZipFile``, which no
-caller expected. :func:`read_npz` reads each array's header first and refuses, before
+compressed zeros declaring a million geometries takes 8 GB and minutes before any check can
+look at it, and an empty or truncated file raises ``EOFError`` or ``BadZipFile``, which no
+caller expects. :func:`read_npz` reads each array's header first and refuses, before
 decompressing anything, an array of more values than the caller allows or one that needs pickle;
 every problem is one :class:`NpzError` naming the file (and the array).
 """

@@ -241,7 +241,7 @@ def test_points_that_all_coincide_are_refused_naming_the_pack(pack_dir, where):
 
 
 def test_image_size_of_booleans_is_refused(pack_dir):
-    """YAML's `true` is no size (Python's True is an int: it read as "TruexTrue")."""
+    """YAML's `true` is no size (Python's True is an int: it would read as "TruexTrue")."""
     pack_dir = pack_dir[0]
     _replace(pack_dir / "pack.yaml", f"image_size: [{W}, {H}]", "image_size: [true, true]")
     with pytest.raises(PackError, match=r"field 'image_size': expected \[W, H\] positive integers, got \[True, True\]"):
