@@ -19,14 +19,20 @@ import logging
 import os
 import re
 import secrets
+import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from aiohttp import web
 
 from runner.stage import StageError
+
+if TYPE_CHECKING:
+    from editor.engine import EditorEngine
+
 
 def is_loopback(host: str) -> bool:
     """True for a loopback address or ``localhost``."""
@@ -56,12 +62,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
-async def serve(args: argparse.Namespace) -> None:
-    from editor.engine import EditorEngine
+async def serve(args: argparse.Namespace, engine: EditorEngine) -> None:
     from editor.server import make_app
 
-    engine = EditorEngine(args.pack, device=args.device, jpeg_quality=args.jpeg_quality, preview_scale=args.preview_scale,
-                          performance=args.performance)
     token = secrets.token_urlsafe(24)
     runner = web.AppRunner(make_app(engine, token=token, processes=args.processes), access_log=None)
     await runner.setup()
@@ -77,6 +80,10 @@ async def serve(args: argparse.Namespace) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The command; exit 0, 1 (the server failed), 2 (a bad command line, ``--pack`` or
+    ``--performance``), 130 (interrupted: SIGINT, also when the process was started in the
+    background of a script, which starts it with SIGINT ignored)."""
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     if not is_loopback(args.host):
@@ -91,10 +98,18 @@ def main(argv: list[str] | None = None) -> int:
     import cv2
     import torch
 
+    from editor.engine import EditorEngine
+
     torch.set_num_threads(max(args.threads, 1))
     cv2.setNumThreads(max(args.threads, 1))
+    try:  # what --pack and --performance name: exit 2, as a bad command line
+        engine = EditorEngine(args.pack, device=args.device, jpeg_quality=args.jpeg_quality,
+                              preview_scale=args.preview_scale, performance=args.performance)
+    except (ValueError, OSError, StageError) as exc:
+        print(f"expression-editor: {exc}", file=sys.stderr)
+        return 2
     try:
-        asyncio.run(serve(args))
+        asyncio.run(serve(args, engine))
     except KeyboardInterrupt:
         return 130
     except (ValueError, OSError, StageError) as exc:

@@ -17,12 +17,14 @@ import cv2
 import numpy as np
 import torch
 
+from editor.points_file import MAX_POINT_VALUES
 from editor.preview import PreviewSynthesizer
 from stages.propagation.pinned import PinnedPropagation
 from runner.stage import Context, SequenceStage, StageError
 from stages.actor_pack import load_pack
 from stages.pack.bundles import pack_to_bundles
 from stages.layout import Layout
+from stages.npz_file import read_npz
 from stages.propagation.hierarchical_pca import HierarchicalPCA
 from stages.propagation.stage import TrainHierarchicalPCA
 from stages.synthesis.build import BuildSynthesis
@@ -96,14 +98,16 @@ def read_performance(path: Path, layout: Layout) -> np.ndarray:
     Raises
     ------
     ValueError
-        The file has no ``target_xy`` of the layout's shape, its names differ from the layout's,
-        or it holds non-finite values (the message names the file and the field).
+        The file is not a readable ``.npz`` (:class:`stages.npz_file.NpzError`: empty,
+        truncated, an array of more than :data:`editor.points_file.MAX_POINT_VALUES` values), has
+        no ``target_xy`` of the layout's shape, its names differ from the layout's, or it holds
+        non-finite values (the message names the file and the field).
     """
-    with np.load(path, allow_pickle=False) as data:
-        if "target_xy" not in data.files:
-            raise ValueError(f"{path}: field 'target_xy' is missing (a run's data/data.npz has it)")
-        xy = np.asarray(data["target_xy"], np.float64)
-        names = tuple(str(n) for n in data["target_names"]) if "target_names" in data.files else layout.point_names
+    data = read_npz(path, ("target_xy", "target_names"), max_values=MAX_POINT_VALUES)
+    if "target_xy" not in data:
+        raise ValueError(f"{path}: field 'target_xy' is missing (a run's data/data.npz has it)")
+    xy = np.asarray(data["target_xy"], np.float64)
+    names = tuple(str(n) for n in data["target_names"]) if "target_names" in data else layout.point_names
     if xy.ndim != 3 or xy.shape[1:] != (layout.n_points, 2) or len(xy) == 0:
         raise ValueError(f"{path}: field 'target_xy' is {xy.shape}, the pack's layout needs (T, {layout.n_points}, 2)")
     if names != layout.point_names:

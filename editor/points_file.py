@@ -15,6 +15,9 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import Context, SequenceStage, StageError
+from stages.npz_file import NpzError, read_npz
+
+MAX_POINT_VALUES = 100_000_000  # values of one array (800 MB as float64: ~1.7 h of 134 points at 60 fps)
 
 
 def points_file_bytes(xy: np.ndarray, names: tuple[str, ...] | np.ndarray, *, fps: float) -> bytes:
@@ -54,10 +57,9 @@ def read_points_file(path: Path) -> dict[str, np.ndarray]:
         (the message names the file and the field).
     """
     try:
-        with np.load(path, allow_pickle=False) as data:
-            fields = {key: data[key] for key in ("xy", "names", "fps") if key in data.files}
-    except (OSError, ValueError) as exc:
-        raise StageError(f"{path}: not a points file (.npz without pickle): {exc}") from None
+        fields = read_npz(path, ("xy", "names", "fps"), max_values=MAX_POINT_VALUES)
+    except NpzError as exc:
+        raise StageError(f"not a points file: {exc}") from None
     for key in ("xy", "names", "fps"):
         if key not in fields:
             raise StageError(f"{path}: field '{key}' is missing")

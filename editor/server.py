@@ -18,7 +18,8 @@ API (POST bodies are JSON)
                            pack's size, lossless (PNG)
 ``POST /api/inbetweens``   ``{client, seq, from, to}`` -> the five in-between images (Sec. 14.2,
                            JPEG) and the image of ``to`` (PNG)
-``POST /api/export``       ``{fps, keyframes: [{time_s, points}]}`` -> the points file (.npz)
+``POST /api/export``       ``{fps, keyframes: [{time_s, points}]}`` -> the points file (.npz), at
+                           most ``MAX_EXPORT_FRAMES`` frames, built on a thread, one at a time
 
 Image answers are ``application/octet-stream``: a little-endian uint32 byte count, that many
 bytes of UTF-8 JSON (``points``, ``seq``, ``work_ms``: wall-clock time of propagation,
@@ -64,6 +65,8 @@ TOKEN = web.AppKey("token", str)
 NEWEST = web.AppKey("newest", OrderedDict)
 EXECUTOR = web.AppKey("executor", ThreadPoolExecutor)
 RENDERER = web.AppKey("renderer", Renderers)
+EXPORTS = web.AppKey("exports", asyncio.Semaphore)
+EXPORTS_AT_ONCE = 1  # exports built at once (each up to ~77 MB): the others wait their turn
 
 
 def json_error(status: int, message: str) -> web.Response:
@@ -75,7 +78,8 @@ async def guard(request: web.Request, handler: Callable[[web.Request], Awaitable
     """Token check, errors as JSON, no caching, a restrictive content policy."""
     token = request.app[TOKEN]
     given = request.headers.get(TOKEN_HEADER) or request.query.get("token", "")
-    if not hmac.compare_digest(given.encode(), token.encode()):
+    # a header's bytes that are not UTF-8 come as surrogate escapes: compared as the bytes sent
+    if not hmac.compare_digest(given.encode("utf-8", "surrogateescape"), token.encode()):
         return json_error(403, "missing or wrong token")
     try:
         response = await handler(request)
@@ -96,11 +100,15 @@ async def guard(request: web.Request, handler: Callable[[web.Request], Awaitable
 
 
 async def read_json(request: web.Request) -> Any:
-    """The request's JSON body; 413 past MAX_BODY (aiohttp's client_max_size), 415 if not JSON."""
+    """The request's JSON body; 413 past MAX_BODY (aiohttp's client_max_size), 415 if not JSON,
+    400 if it does not parse (nested too deep for the parser included)."""
     if request.content_type != "application/json":
         raise web.HTTPUnsupportedMediaType(reason=f"expected Content-Type application/json, got {request.content_type!r}")
     text = await request.text()
-    return json.loads(text)
+    try:
+        return json.loads(text)
+    except RecursionError:
+        raise ValueError("the JSON body is nested too deeply") from None
 
 
 def claim(app: web.Application, client: str, seq: int) -> bool:
@@ -156,10 +164,19 @@ async def handle_inbetweens(request: web.Request) -> web.Response:
     return await render_images(request, client, seq, {"op": "inbetweens", "from": previous.tolist(), "to": current.tolist()})
 
 
+def export_bytes(engine: EditorEngine, body: Any) -> bytes:
+    """The points file of an export request ``body`` (validated: at most
+    :data:`editor.validate.MAX_EXPORT_FRAMES` frames)."""
+    times, geometries, fps = validate.export_request(body, n_points=engine.pca.n_points, limit=_limit(engine))
+    return points_file_bytes(interpolate_keyframes(times, geometries, fps=fps), engine.layout.point_names, fps=fps)
+
+
 async def handle_export(request: web.Request) -> web.Response:
-    engine = request.app[ENGINE]
-    times, geometries, fps = validate.export_request(await read_json(request), n_points=engine.pca.n_points, limit=_limit(engine))
-    data = points_file_bytes(interpolate_keyframes(times, geometries, fps=fps), engine.layout.point_names, fps=fps)
+    """The export, validated and built on a thread (``EXPORTS`` at once), not the event loop:
+    the other requests go on being answered meanwhile."""
+    body = await read_json(request)
+    async with request.app[EXPORTS]:
+        data = await asyncio.get_running_loop().run_in_executor(None, export_bytes, request.app[ENGINE], body)
     return web.Response(body=data, content_type="application/octet-stream",
                         headers={"Content-Disposition": 'attachment; filename="keyframes.npz"'})
 
@@ -199,6 +216,7 @@ def make_app(engine: EditorEngine, *, token: str, processes: int = RENDERERS) ->
     app[NEWEST] = OrderedDict()
     app[EXECUTOR] = ThreadPoolExecutor(max_workers=processes or RENDERERS, thread_name_prefix="editor-render")
     app[RENDERER] = Renderers(engine, processes=processes)
+    app[EXPORTS] = asyncio.Semaphore(EXPORTS_AT_ONCE)
     app.on_cleanup.append(_shutdown)
     app.router.add_get("/", handle_index)
     app.router.add_get("/api/describe", handle_describe)

@@ -16,6 +16,7 @@ import numpy as np
 MAX_KEYFRAMES = 1000
 MAX_FPS = 240.0
 MAX_SECONDS = 600.0  # longest exported performance
+MAX_EXPORT_FRAMES = 36_000  # frames of one export (10 min at 60 fps; 77 MB of 134 points)
 
 
 def _field(body: Any, name: str) -> Any:
@@ -27,11 +28,19 @@ def _field(body: Any, name: str) -> Any:
 
 
 def _number(value: Any, where: str, *, low: float, high: float) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise ValueError(f"{where}: expected a finite number, got {value!r}")
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not _finite(value):
+        raise ValueError(f"{where}: expected a finite number, got {value!r:.40}")
     if not low <= value <= high:
         raise ValueError(f"{where}: expected a number in [{low:g}, {high:g}], got {value!r}")
     return float(value)
+
+
+def _finite(value: int | float) -> bool:
+    """Whether ``value`` is a finite number a float can hold (JSON integers have any length)."""
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
 
 
 def _integer(value: Any, where: str, *, low: int, high: int) -> int:
@@ -102,7 +111,8 @@ def inbetween_request(body: Any, *, n_points: int, limit: float) -> tuple[np.nda
 
 def export_request(body: Any, *, n_points: int, limit: float) -> tuple[np.ndarray, np.ndarray, float]:
     """``{"fps": F, "keyframes": [{"time_s": t, "points": [[x, y] * N]}, ...]}``
-    -> (times (K,), geometries (K, N, 2), fps); times increase strictly from >= 0."""
+    -> (times (K,), geometries (K, N, 2), fps); times increase strictly from >= 0, and span at
+    most :data:`MAX_EXPORT_FRAMES` frames at ``fps``."""
     fps = _number(_field(body, "fps"), "field 'fps'", low=1e-3, high=MAX_FPS)
     keys = _field(body, "keyframes")
     if not isinstance(keys, list) or not 1 <= len(keys) <= MAX_KEYFRAMES:
@@ -110,5 +120,9 @@ def export_request(body: Any, *, n_points: int, limit: float) -> tuple[np.ndarra
     times = np.array([_number(_field(k, "time_s"), f"keyframes[{i}].time_s", low=0.0, high=MAX_SECONDS) for i, k in enumerate(keys)])
     if (np.diff(times) <= 0).any():
         raise ValueError(f"field 'keyframes': times must increase strictly, got {times.tolist()}")
+    frames = math.floor((times[-1] - times[0]) * fps) + 1
+    if frames > MAX_EXPORT_FRAMES:
+        raise ValueError(f"the export would have {frames} frames ({times[-1] - times[0]:g} s at {fps:g} fps), at most "
+                         f"{MAX_EXPORT_FRAMES}: lower fps or export a shorter span")
     geoms = np.stack([geometry(_field(k, "points"), f"keyframes[{i}].points", n_points=n_points, limit=limit) for i, k in enumerate(keys)])
     return times, geoms, fps

@@ -37,13 +37,16 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import signal
 import socket
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import ray
+from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
 from runner.batch_manifest import Job
 from runner.batch_ray import RAY_OPTIONS, start_local_ray
@@ -184,7 +187,8 @@ def run_job(job: Job, *, cpus: int, cache_dir: Path, device: str,
 
 class EventSink:
     """A Ray actor collecting the workers' events for the driver (``add`` from the workers,
-    ``take`` from the driver); one caller's calls arrive in order."""
+    ``take`` from the driver); one caller's calls arrive in order. It lives on the driver's
+    node: a cluster node lost mid-batch does not take the batch's events with it."""
 
     def __init__(self) -> None:
         self._events: list[dict[str, Any]] = []
@@ -255,12 +259,14 @@ def run_batch(jobs: list[Job], *, cache_dir: Path, device: str = "auto", workers
     ------
     KeyboardInterrupt
         Interrupted: Ray is shut down (a local Ray's workers end; a cluster ends this driver's
-        tasks) and the cache is left resumable.
+        tasks) and the cache is left resumable. The SIGTERM handler in place when it is called
+        (``runner``'s: an interrupt, as SIGINT) is put back after Ray's start-up replaced it.
     """
     if address is not None and workers is not None:
         raise ValueError(f"workers is for a local Ray only, got workers={workers} with address={address!r}")
     cache_dir = Path(cache_dir).resolve()
     started = time.perf_counter()
+    on_sigterm = signal.getsignal(signal.SIGTERM)
     if address is None:
         os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # read by Ray and the processes it starts
         machine = os.cpu_count() or 1
@@ -276,12 +282,15 @@ def run_batch(jobs: list[Job], *, cache_dir: Path, device: str = "auto", workers
         nodes = [int(node["Resources"].get("CPU", 0)) for node in ray.nodes() if node.get("Alive")]
         cpus = job_cpus(jobs=len(jobs), cpus=max(1, sum(nodes)), at_once=len(jobs),
                         node_cpus=max(1, min((n for n in nodes if n > 0), default=1)))
+    if on_sigterm is not None and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, on_sigterm)  # ray.init replaced it (an exit with a native stack dump)
     ray_init_s = time.perf_counter() - started
     states: dict[str, _State] = {job.name: _State(job) for job in jobs}
     try:
         log({"event": "batch_start", "time": time.time(), "jobs": len(jobs), "address": address,
              "cpus": ray.cluster_resources().get("CPU", 0) - sink_cpus, "job_cpus": cpus, "ray_init_s": ray_init_s})
-        sink = ray.remote(num_cpus=sink_cpus)(EventSink).remote()
+        here = NodeAffinitySchedulingStrategy(node_id=ray.get_runtime_context().get_node_id(), soft=False)
+        sink = ray.remote(num_cpus=sink_cpus, scheduling_strategy=here)(EventSink).remote()  # lost with the driver only
         if sink_cpus:  # created, holding its CPU, before a job can take that CPU; else its worker
             ray.get(sink.take.remote())  # starts beside the first jobs' (joining a Ray: none prestarted)
         task = ray.remote(num_cpus=cpus, max_retries=retries, retry_exceptions=True)(_job_task)

@@ -89,7 +89,7 @@ def load_manifest(path: Path, registry: Registry) -> list[Job]:
     path = Path(path)
     shown = str(path)
     try:
-        root = safe_yaml.compose(path.read_text(encoding="utf-8"))
+        root = safe_yaml.compose(safe_yaml.read_text(path))
     except OSError as exc:
         raise ConfigError([Issue(Where(shown), "file", f"cannot read: {exc.strerror}")]) from None
     except yaml.YAMLError as exc:

@@ -33,6 +33,8 @@ from collections import Counter
 from collections.abc import Callable, Iterator
 from typing import Any
 
+from runner.timing import waiting
+
 _unbounded = threading.local()
 
 
@@ -99,7 +101,7 @@ class Broadcast:
         """Wait until ``chunk`` lies less than ``keep`` chunks past the position of every
         reader that the calling thread does not drive (at once inside :func:`unbounded`)."""
         me = threading.current_thread()
-        with self._changed:
+        with waiting(), self._changed:
             self._changed.wait_for(lambda: self._room(chunk, me))
 
     def _room(self, chunk: int, me: threading.Thread | None) -> bool:
@@ -139,7 +141,7 @@ class Broadcast:
         reader counted) while the calling thread can (it drives the readers holding them back,
         or computes inside :func:`unbounded`)."""
         me = threading.current_thread()
-        with self._changed:
+        with waiting(), self._changed:
             self._changed.wait_for(lambda: resolved() or not self._producers or me in self._producers
                                    or (not self._room(chunk, None) and self._room(chunk, me)))
 

@@ -5,6 +5,7 @@ Layout under the cache root (``--cache-dir``, ``$RUNNER_CACHE_DIR``, default ``.
     entries/<key[:2]>/<key>/           one entry: data files + complete.json (written last)
     tmp/<key>.<pid>.<token>/           an entry being written; moved into place with os.replace
     locks/<key>.lock                   JSON {pid, host, started}: who is computing <key>
+    published/<sha256 of a folder>.json   stat records of the files last published in an --out folder
 
 An entry is written in ``tmp/``; its completion record ``complete.json`` is written last and
 the folder is then renamed into ``entries/`` in one ``os.replace``, so an entry is whole or
@@ -14,6 +15,14 @@ A lock names its holder's PID, host and process start time. A lock whose holder 
 is gone (or whose PID now belongs to a younger process) is stale and is removed by the next
 process that wants the entry; stale locks are broken under a host-wide ``flock`` so that two
 processes never both break one and steal a fresh lock.
+
+A lock of another host (a cluster node) cannot be judged by its PID: its holder refreshes it, a
+heartbeat, every quarter of the lease (``lease_s``, ``$RUNNER_LOCK_LEASE_S``, default
+:data:`LEASE_S`), by setting the lock file's mtime, and a process waiting for it breaks it when
+it has seen no change of the file (its mtime and bytes) for a whole lease, timed on its own
+monotonic clock. So a node killed mid-chunk (its holder gone with its host) holds up the others
+for one lease, and no two hosts' clocks are ever compared: a node whose clock is off neither
+breaks a live lock nor keeps a dead one.
 """
 
 from __future__ import annotations
@@ -25,6 +34,7 @@ import os
 import secrets
 import shutil
 import socket
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -34,8 +44,10 @@ from typing import Any
 
 COMPLETE = "complete.json"
 ENV_VAR = "RUNNER_CACHE_DIR"
+LEASE_ENV_VAR = "RUNNER_LOCK_LEASE_S"
 DEFAULT_DIR = Path(".cache/runner")
 POLL_S = 0.05
+LEASE_S = 60.0  # a lock of another host unchanged this long (no heartbeat) is stale
 
 
 def default_cache_dir() -> Path:
@@ -81,12 +93,68 @@ def holder_is_stale(holder: dict[str, Any]) -> bool:
     return started is not None and _process_start(pid) not in (None, started)
 
 
+def lease_seconds() -> float:
+    """The lock lease: ``$RUNNER_LOCK_LEASE_S`` if set (a positive number), else :data:`LEASE_S`."""
+    text = os.environ.get(LEASE_ENV_VAR)
+    try:
+        value = float(text) if text else LEASE_S
+    except ValueError:
+        value = LEASE_S
+    return value if value > 0 else LEASE_S
+
+
+class _Heartbeat:
+    """One thread per process refreshing the mtime of every lock the process holds, every
+    quarter of the shortest lease among them; it ends when the process holds none (a run forks
+    its child process only where no other thread runs: :func:`runner.offload.can_fork`)."""
+
+    def __init__(self) -> None:
+        self._held: dict[Path, float] = {}  # lock file -> its lease
+        self._changed = threading.Condition()
+        self._thread: threading.Thread | None = None
+        self._ended: threading.Thread | None = None  # the thread that ended with the last lock
+
+    def hold(self, path: Path, lease_s: float) -> None:
+        with self._changed:
+            self._held[path] = lease_s
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._beat, name="lock-heartbeat", daemon=True)
+                self._thread.start()
+            self._changed.notify_all()
+
+    def release(self, path: Path) -> None:
+        with self._changed:
+            self._held.pop(path, None)
+            self._changed.notify_all()
+            self._changed.wait_for(lambda: self._thread is None or bool(self._held))
+            ended, self._ended = self._ended, None
+        if ended is not None:
+            ended.join()  # gone when the last lock is: a fork right after finds no other thread
+
+    def _beat(self) -> None:
+        with self._changed:
+            while self._held:
+                self._changed.wait(timeout=min(self._held.values()) / 4)
+                for path in list(self._held):
+                    try:
+                        os.utime(path)
+                    except OSError:
+                        pass
+            self._thread, self._ended = None, threading.current_thread()
+            self._changed.notify_all()
+
+
+_heartbeat = _Heartbeat()
+
+
 class CacheStore:
-    def __init__(self, root: Path):
+    def __init__(self, root: Path, *, lease_s: float | None = None):
         self.root = Path(root)
+        self.lease_s = lease_seconds() if lease_s is None else lease_s
         self.entries_dir = self.root / "entries"
         self.tmp_dir = self.root / "tmp"
         self.locks_dir = self.root / "locks"
+        self.published_dir = self.root / "published"  # stat records of files published to --out (runner.publish)
         self._me = {"pid": os.getpid(), "host": socket.gethostname(), "started": _process_start(os.getpid())}
 
     # -- entries ---------------------------------------------------------------------------
@@ -168,6 +236,7 @@ class CacheStore:
         path = self.locks_dir / f"{key}.lock"
         mine = json.dumps({**self._me, "time": time.time(), "token": secrets.token_hex(8)})
         waited = False
+        seen: tuple[Any, float] | None = None  # the lock's (state, monotonic time it was first seen in)
         while True:
             tmp = path.with_name(f"{path.name}.{os.getpid()}.{secrets.token_hex(4)}")
             tmp.write_text(mine)
@@ -179,16 +248,22 @@ class CacheStore:
             finally:
                 tmp.unlink()
             holder = self._read_lock(path)
-            if holder is not None and holder_is_stale(holder):
+            state = _lock_state(path)
+            if seen is None or seen[0] != state:
+                seen = (state, time.monotonic())
+            expired = time.monotonic() - seen[1] >= self.lease_s  # no heartbeat for a whole lease
+            if holder is not None and (holder_is_stale(holder) or expired):
                 self._break(path, holder)
                 continue
             if not waited and on_wait is not None and holder is not None:
                 on_wait(holder)
             waited = True
             time.sleep(POLL_S)
+        _heartbeat.hold(path, self.lease_s)
         try:
             yield
         finally:
+            _heartbeat.release(path)
             try:
                 if path.read_text() == mine:
                     path.unlink()
@@ -275,6 +350,15 @@ class CacheStore:
         except OSError:
             return
         shutil.rmtree(gone, ignore_errors=True)
+
+
+def _lock_state(path: Path) -> tuple[int, bytes] | None:
+    """What a heartbeat changes: the lock file's mtime (ns) and its bytes; None if it is gone."""
+    try:
+        with open(path, "rb") as f:
+            return os.fstat(f.fileno()).st_mtime_ns, f.read()
+    except OSError:
+        return None
 
 
 def _size(path: Path) -> int:

@@ -25,6 +25,7 @@ import contextlib
 import json
 import logging
 import threading
+import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
@@ -33,17 +34,20 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from runner import notes
 from runner.broadcast import Broadcast
 from runner.cache import CacheStore, Entry
 from runner.config import StageNode
 from runner.depends import recording
 from runner.digest import array_digest, cache_key, combine
 from runner.errors import stage_errors
+from runner.inputs import Inputs
 from runner.keys import Keys
 from runner.outputs import check_frames, entry_context, load_bundle, read_or_redo, save_outputs
-from runner.progress import Progress, Report, own_time
+from runner.progress import Progress, Report
 from runner.stage import FrameStage, StreamInfo
 from runner.streams import ChunkedStream, ComputedStream, SharedStream, chunk_ranges
+from runner.timing import own_time, waiting
 
 if TYPE_CHECKING:
     from tqdm import tqdm
@@ -52,13 +56,15 @@ if TYPE_CHECKING:
 @dataclass(frozen=True)
 class RunServices:
     """What frame chunks use of the run: its keys, the cache store, progress reporting, how
-    many chunks are computed at once where a stage resolves its own chunks (``jobs``), and by
-    how many producer threads for a stage whose readers stream it (``producers``)."""
+    many chunks are computed at once where a stage resolves its own chunks (``jobs``), the
+    pipeline inputs (checked unchanged before an entry is committed), and by how many producer
+    threads for a stage whose readers stream it (``producers``)."""
 
     keys: Keys
     store: CacheStore
     progress: Progress
     jobs: int
+    inputs: Inputs
     producers: int = 1
 
 
@@ -162,6 +168,8 @@ class FrameChunks:
         self.report = Report(node.name, node.uses, "cached", chunks=len(self.ranges), frames=info.frames)
         self._locks = [threading.Lock() for _ in self.ranges]
         self._book = threading.Lock()  # guards the report, the bar and the dicts below
+        self._own_seconds = 0.0  # summed own time of the chunks computed under _busy
+        self._intervals: list[tuple[float, float]] = []  # their wall intervals (perf_counter)
         self._upstream: dict[str, Any] | None = None
         self._streams: dict[str, ComputedStream] = {}
         self._readers: list[str] = []
@@ -255,7 +263,7 @@ class FrameChunks:
         without computing anything; None if it is missing or its key is not known until an
         upstream stage runs."""
         if self.entries[i] is None and not self.forced:
-            with self._locks[i]:
+            with _holding(self._locks[i]):
                 key = self.known_key(i) if self.entries[i] is None else None
                 found = None if key is None else self.run.keys.lookup(self.node, key)
                 if found is not None:
@@ -272,7 +280,7 @@ class FrameChunks:
                 self.broadcast.wait_turn(i, lambda: self.entries[i] is not None)  # the producer's
                 if self.entries[i] is None:
                     self.broadcast.wait_room(i)  # before taking a lock that a slower reader may need
-            with self._locks[i]:
+            with _holding(self._locks[i]):
                 if self.entries[i] is None:
                     if self.run.keys.dry_run:
                         raise RuntimeError(f"a dry run computes nothing, yet chunk {i} of {self.node.name} was needed")
@@ -355,25 +363,27 @@ class FrameChunks:
             entry = None if self.forced else keys.lookup(node, key)
             if entry is not None:
                 return entry, False
-            timing = own_time(self._spent) if self.lazy else contextlib.nullcontext()
+            timing = self._busy() if self.lazy else contextlib.nullcontext()
             with timing, store.writing(key) as tmp:
                 with stage_errors(node):
-                    with recording(set()) as files:
+                    with recording(set()) as files, notes.recording() as warned:
                         result = self.stage.process(start, stop, self._inputs(), dict(node.params),
                                                     entry_context(tmp, device=keys.device, progress=lambda n: None))
                     record = save_outputs(node.cls.outputs, result, tmp, frames=(stop - start, self.info))
                 with self._book:  # a stage may read such a file once, for all its chunks
                     self._depends |= files
                     files = set(self._depends)
+                with stage_errors(node):
+                    self.run.inputs.check(node.name)
                 entry = store.commit(key, tmp, {"stage": node.name, "uses": node.uses, "range": [start, stop],
-                                                **record, "depends": keys.depends(files)},
+                                                **record, "depends": keys.depends(files), "warnings": warned},
                                      replace=self.forced)
         self.broadcast.offer(i, {port: np.asarray(result[port]) for port in self._frame_ports()})
         return entry, True
 
     def redo(self, i: int) -> Entry:
         """Recompute chunk ``i``, whose stored entry was found damaged; the new entry."""
-        with self._locks[i]:
+        with _holding(self._locks[i]):
             damaged = self.entries[i]
             if damaged is not None:
                 self.run.store.discard(damaged)
@@ -393,6 +403,8 @@ class FrameChunks:
             start, stop = self.ranges[i]
             progress.log({"event": "chunk", "stage": self.node.name, "start": start, "stop": stop,
                           "status": "ran" if ran else "cached"})
+            if not ran:
+                progress.replay(self.node.name, entry.record)
             if self._bar is None:
                 self._bar = progress.bar(self.node, self.info.frames)
             self._bar.update(stop - start)
@@ -402,10 +414,30 @@ class FrameChunks:
         self.broadcast.resolved()
         self.run.store.touch(entry)
 
+    @contextlib.contextmanager
+    def _busy(self) -> Iterator[None]:
+        """Time one chunk computed by this stage on whichever thread (:func:`own_time`): its own
+        seconds and CPU seconds are summed, and the wall interval kept (:meth:`finish`)."""
+        started = time.perf_counter()
+        with own_time(self._spent):
+            yield
+        with self._book:
+            self._intervals.append((started, time.perf_counter()))
+
     def _spent(self, seconds: float, cpu_seconds: float) -> None:
         with self._book:
-            self.report.seconds += seconds
+            self._own_seconds += seconds
             self.report.cpu_seconds += cpu_seconds
+
+    def _seconds(self) -> float:
+        """The stage's seconds: the sum of its chunks' own times, but no more than the wall time
+        during which one of its chunks was computing (several threads computing its chunks at
+        once)."""
+        busy, end = 0.0, float("-inf")
+        for start, stop in sorted(self._intervals):
+            busy += max(0.0, stop - max(start, end))
+            end = max(end, stop)
+        return min(self._own_seconds, busy)
 
     def _inputs(self) -> dict[str, Any]:
         """What ``process`` is handed: frame streams, loaded bundles, paths (loaded once)."""
@@ -416,6 +448,7 @@ class FrameChunks:
     def finish(self) -> Report:
         """The stage's report once every chunk is resolved; remembers its key material."""
         report, count = self.report, len(self.ranges)
+        report.seconds = self._seconds()
         report.status = "cached" if report.chunks_cached == count else "ran" if report.chunks_cached == 0 else "partial"
         if self._readers:
             report.reason = f"computed while {', '.join(self._readers)} read it"
@@ -460,7 +493,7 @@ class FrameChunks:
             return self._process(start + lo, start + hi)[port]
         self.broadcast.wait_room(i)  # before taking a lock that a slower reader may need
         computed = None
-        with self._locks[i]:
+        with _holding(self._locks[i]):
             frames = self.broadcast.take(i, port)
             if frames is None:
                 computed = self._process(start, stop)
@@ -499,7 +532,7 @@ class FrameChunks:
         computed without storing anything (an uncached stage's chunk, or a cached stage's frames
         needed again: a ``recompute`` event); the stage's ``files`` outputs, if any, are written
         to a folder dropped at once."""
-        timing = own_time(self._spent) if self.node.cls.cached else contextlib.nullcontext()
+        timing = self._busy() if self.node.cls.cached else contextlib.nullcontext()
         if self.node.cls.cached:
             self.run.progress.log({"event": "recompute", "stage": self.node.name, "start": start, "stop": stop})
         with timing, self.run.store.writing(f"again-{self.node.name}") as tmp, stage_errors(self.node):
@@ -510,6 +543,18 @@ class FrameChunks:
             for port, array in frames.items():
                 check_frames(port, array, stop - start, self.info)
         return frames
+
+
+@contextlib.contextmanager
+def _holding(lock: threading.Lock) -> Iterator[None]:
+    """Hold ``lock``; the time spent getting it (another thread computing the chunk under it)
+    is waiting (:func:`runner.timing.waiting`), not the caller's own time."""
+    with waiting():
+        lock.acquire()
+    try:
+        yield
+    finally:
+        lock.release()
 
 
 def is_source(cls: type) -> bool:

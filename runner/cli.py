@@ -21,8 +21,9 @@ from runner.cache import DEFAULT_DIR, ENV_VAR, CacheStore, default_cache_dir, ho
 from runner.config import ConfigError, Issue, Where, bind_inputs, load_pipeline
 from runner.dag import to_dot, to_mermaid
 from runner.errors import StageFailed
+from runner.notes import one_line_warnings
 from runner.registry import Registry, RegistryError
-from runner.stage import FrameStage, console_log
+from runner.stage import FrameStage
 
 EXIT_OK, EXIT_STAGE, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 
@@ -76,7 +77,6 @@ def run(pipeline: Path, clip: Path | None, named: tuple[str, ...], out: Path, dr
         if not torch.cuda.is_available():
             raise click.UsageError("--device cuda: CUDA is not available on this machine")
     _INTERRUPTED.clear()
-    console_log(sys.stderr)
     log_file = open(log_json, "w", encoding="utf-8") if log_json else None
 
     def log(event: dict) -> None:
@@ -268,6 +268,7 @@ def _unraisable(args: object) -> None:
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point: maps errors to exit codes, one line each, no traceback.
 
+    Python warnings of the libraries are one line each (:func:`runner.notes.one_line_warnings`).
     SIGINT and SIGTERM both interrupt the run (exit 130, the cache left resumable). SIGINT is set
     explicitly: a process started in the background of a non-interactive shell inherits it
     ignored, and Python then keeps ignoring it.
@@ -278,6 +279,7 @@ def main(argv: list[str] | None = None) -> None:
     signal.signal(signal.SIGTERM, _interrupt)
     signal.signal(signal.SIGINT, _interrupt)
     sys.unraisablehook = _unraisable
+    one_line_warnings()
     try:
         code = cli.main(args=argv, prog_name="runner", standalone_mode=False)
     except click.ClickException as exc:
@@ -293,7 +295,9 @@ def main(argv: list[str] | None = None) -> None:
     except StageFailed as exc:
         click.echo(f"error: {exc}", err=True)
         code = EXIT_STAGE
-    except (KeyboardInterrupt, click.Abort):
+    except (KeyboardInterrupt, click.Abort) as exc:
+        if isinstance(exc.__cause__, EOFError) and not _INTERRUPTED.is_set():
+            raise exc.__cause__  # click turns an EOFError into Abort: a fault of ours, not an interrupt
         click.echo("interrupted", err=True)
         code = EXIT_INTERRUPTED
     except OSError as exc:  # an unusable --cache-dir, --out or --log-json path

@@ -154,21 +154,17 @@ class _Reader:
         return self._constructor.construct_object(node, deep=True)
 
     def mapping(self, node: yaml.Node, key: str, allowed: tuple[str, ...] | None) -> list[tuple[str, yaml.Node, yaml.Node]]:
-        """Entries ``(name, key node, value node)`` of a mapping node; reports non-mappings,
-        duplicate keys and, when ``allowed`` is given, unknown keys."""
+        """Entries ``(name, key node, value node)`` of a mapping node; reports non-mappings and,
+        when ``allowed`` is given, unknown keys."""
         if isinstance(node, yaml.ScalarNode) and node.tag == "tag:yaml.org,2002:null":
             return []
         if not isinstance(node, yaml.MappingNode):
             self.error(node, key, "expected a mapping")
             return []
-        entries, seen = [], set()
-        for knode, vnode in node.value:
+        entries = []
+        for knode, vnode in node.value:  # no key twice: refused by runner.safe_yaml
             name = str(self.value(knode))
             sub = f"{key}.{name}" if key else name
-            if name in seen:
-                self.error(knode, sub, "duplicate name")
-                continue
-            seen.add(name)
             if allowed is not None and name not in allowed:
                 self.error(knode, sub, f"unknown key (expected one of: {', '.join(allowed)})")
                 continue
@@ -197,11 +193,9 @@ def load_pipeline(path: Path, registry: Registry, *, overrides: list[str] = ()) 
     path = Path(path)
     shown = str(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        root = safe_yaml.compose(safe_yaml.read_text(path))
     except OSError as exc:
         raise ConfigError([Issue(Where(shown), "file", f"cannot read: {exc.strerror}")]) from None
-    try:
-        root = safe_yaml.compose(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
         where = Where(shown, mark.line + 1, mark.column + 1) if mark else Where(shown)

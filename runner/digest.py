@@ -11,6 +11,7 @@ import functools
 import hashlib
 import importlib.metadata
 import json
+import os
 import platform
 from collections.abc import Mapping
 from pathlib import Path
@@ -82,11 +83,29 @@ def file_digest(path: Path) -> str:
     return h.hexdigest()
 
 
+def tree_files(folder: Path) -> list[Path]:
+    """Every file under ``folder`` (sub-folders included), sorted: what :func:`tree_digest`
+    covers."""
+    return sorted(p for p in Path(folder).rglob("*") if p.is_file())
+
+
 def tree_digest(folder: Path) -> str:
     """sha256 over the relative paths (POSIX, sorted) and byte digests of every file under
-    ``folder``; empty folders and file times do not count."""
-    files = sorted(p for p in Path(folder).rglob("*") if p.is_file())
-    return cache_key([[p.relative_to(folder).as_posix(), file_digest(p)] for p in files])
+    ``folder``; empty folders and file times do not count. A path that is not valid UTF-8 (a
+    file name in another encoding) counts by its bytes (:func:`path_text`)."""
+    return cache_key([[path_text(p.relative_to(folder)), file_digest(p)] for p in tree_files(folder)])
+
+
+def path_text(path: Path) -> str | list[str]:
+    """``path`` as POSIX text for a canonical JSON document; a path whose bytes are not UTF-8
+    (decoded by Python with surrogate escapes) as ``["bytes", HEX]`` of those bytes, so that
+    distinct names never collide."""
+    text = path.as_posix()
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return ["bytes", os.fsencode(text).hex()]
+    return text
 
 
 def combine(parts: list[str]) -> str:

@@ -52,22 +52,25 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from runner import notes
 from runner.broadcast import unbounded
 from runner.cache import CacheStore, Entry
 from runner.chunks import FrameChunks, RunServices, Value, defines_stream_info, input_digests, is_source
 from runner.config import ConfigError, Issue, Pipeline, StageNode, Where
 from runner.depends import recording
-from runner.digest import cache_key, input_digest
+from runner.digest import cache_key
 from runner.errors import StageFailed, stage_errors
+from runner.inputs import Inputs
 from runner.keys import Keys
 from runner.offload import Forked
 from runner.offload import fork as offload_fork
 from runner.offload import spec as offload_spec
 from runner.offload import start as offload_start
 from runner.outputs import entry_context, load_bundle, read_or_redo, save_outputs, verify_files
-from runner.progress import Progress, Report, own_time
-from runner.publish import Published, conflicts, publish, remove_leftovers
+from runner.progress import Progress, Report
+from runner.publish import Published, conflicts, publish, remove_leftovers, unwritable
 from runner.stage import FrameStage, StageError, StreamInfo
+from runner.timing import own_time
 
 __all__ = ["Options", "Report", "Runner", "StageFailed", "resolve_device"]
 
@@ -117,9 +120,10 @@ class Runner:
         self.opts = options
         self.store = options.cache
         self.values: dict[tuple[str | None, str], Value] = {}
+        self.inputs = Inputs(pipeline, bound)
         for name, path in bound.items():
-            kind = pipeline.inputs[name].type
-            self.values[(None, name)] = Value(kind, input_digest(kind, path), load=lambda p=path: Path(p))
+            self.values[(None, name)] = Value(pipeline.inputs[name].type, self.inputs.digest(name),
+                                              load=lambda p=path: Path(p))
         self.entries: dict[str, list[Entry]] = {}  # per stage, its entries (one per chunk of a frame stage)
         self.redo: dict[str, Callable[[int], Entry]] = {}  # per stage, recompute its entry i (found damaged)
         self.keys = Keys(self.store, pipeline.path, device=options.device, chunk_frames=pipeline.chunk_frames,
@@ -136,7 +140,7 @@ class Runner:
 
         self.log = log
         self.progress = Progress(log=log, warn=options.warn, bars=options.progress)
-        self.services = RunServices(self.keys, self.store, self.progress, options.jobs,
+        self.services = RunServices(self.keys, self.store, self.progress, options.jobs, self.inputs,
                                     producers=options.producers or os.cpu_count() or 1)
         self._lazy: list[FrameChunks] = []  # lazy frame stages not reported yet
         self._joined: dict[str, list[tuple[FrameChunks, str, threading.Thread]]] = {}  # per stage, the readers it registered
@@ -156,15 +160,20 @@ class Runner:
         Raises
         ------
         ConfigError
-            ``--out`` holds something at a stage's folder that no earlier publish wrote
-            (checked before anything runs).
+            ``--out`` cannot be written, or holds something at a stage's folder that no
+            earlier publish wrote (checked before anything runs).
         StageFailed
             A stage failed, or writing the cache or ``--out`` failed (disk full: the message
             names the stage and the file).
         """
+        with notes.showing():  # each distinct warning line once on stderr
+            return self._run()
+
+    def _run(self) -> list[Report]:
         publishing = [node for node in self.selected() if "files" in node.cls.outputs.values()]
-        if not self.opts.dry_run and self.opts.out is not None:
-            problems = conflicts(self.opts.out, [node.name for node in publishing])
+        if not self.opts.dry_run and self.opts.out is not None and publishing:
+            problem = unwritable(self.opts.out)
+            problems = [problem] if problem else conflicts(self.opts.out, [node.name for node in publishing])
             if problems:
                 raise ConfigError([Issue(Where("--out"), str(self.opts.out), p) for p in problems])
             remove_leftovers(self.opts.out)
@@ -192,7 +201,8 @@ class Runner:
                 if self.entries.get(node.name):
                     item = Published(node.name, node.uses, ports, self.entries[node.name], self.redo[node.name])
                     with stage_errors(node):
-                        publish(self.opts.out, item, on_damaged=lambda exc, n=node: self.progress.damaged(n, exc))
+                        publish(self.opts.out, item, records=self.store.published_dir,
+                                on_damaged=lambda exc, n=node: self.progress.damaged(n, exc))
         if not self.opts.dry_run:
             self.store.break_stale_locks()
         return reports
@@ -515,6 +525,8 @@ class Runner:
         if entry is None:
             entry, ran = self._run_sequence(node, inputs, key, forced)
             report.status = "ran" if ran else "cached"
+        if report.status == "cached":
+            self.progress.replay(node.name, entry.record)
         if streaming:
             names = ", ".join(dict.fromkeys(node.inputs[port].stage for port in pending))
             report.reason = f"read {names} while it was computed"
@@ -570,14 +582,16 @@ class Runner:
                 return entry, False
             with self.store.writing(key or f"pending-{node.name}") as tmp:
                 values = {port: v.get(node.name) for port, v in inputs.items()}
-                with recording(set()) as files:
+                with recording(set()) as files, notes.recording() as warned:
                     result = node.cls().run(values, dict(node.params),
                                             entry_context(tmp, device=self.opts.device, progress=bar.update))
                 record = save_outputs(node.cls.outputs, result, tmp, frames=None)
                 if key is None:
                     key = cache_key(self.keys.material(node, input_digests(inputs)))
+                self.inputs.check(node.name)
                 return self.store.commit(key, tmp, {"stage": node.name, "uses": node.uses, **record,
-                                                    "depends": self.keys.depends(files)}, replace=forced), True
+                                                    "depends": self.keys.depends(files), "warnings": warned},
+                                         replace=forced), True
 
     # -- frame stages ----------------------------------------------------------------------
 
@@ -649,11 +663,16 @@ class Runner:
         key = cache_key({**self.keys.material(node, input_digests(inputs)), "stream_info": True})
         entry = self.store.lookup(key)
         if entry is None:
-            info = stage.stream_info({port: v.get() for port, v in inputs.items()}, dict(node.params))
+            with notes.recording() as warned:
+                info = stage.stream_info({port: v.get() for port, v in inputs.items()}, dict(node.params))
             if self.opts.dry_run:
                 return info
+            self.inputs.check(node.name)
             with self.store.writing(key) as tmp:
-                entry = self.store.commit(key, tmp, {"stage": node.name, "uses": node.uses, "info": asdict(info)})
+                entry = self.store.commit(key, tmp, {"stage": node.name, "uses": node.uses, "info": asdict(info),
+                                                     "warnings": warned})
+        elif not self.opts.dry_run:
+            self.progress.replay(node.name, entry.record)
         return StreamInfo(**entry.record["info"])
 
     # -- outputs ---------------------------------------------------------------------------

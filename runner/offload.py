@@ -148,12 +148,13 @@ def _child(make_runner: Callable[..., Any], *, parent: int) -> NoReturn:
     committed, 1 on any failure (the parent then computes what is missing itself and reports
     why), without the interpreter's teardown (the run waits for this process's end; 0.2-0.3 s)."""
     from runner.cli import exit_now
+    from runner.notes import one_line_warnings
 
     threading.Thread(target=_exit_when_orphaned, args=(parent,), daemon=True).start()
-    stage_log = logging.getLogger("runner.stage")  # the parent shows what the child logs (a fork inherits its console)
-    stage_log.handlers.clear()
-    stage_log.setLevel(SUMMARY)
+    stage_log = logging.getLogger("runner.stage")  # its SUMMARY lines reach the parent too
+    stage_log.setLevel(logging.INFO)
     logging.getLogger().addHandler(_LogEvents(SUMMARY))
+    one_line_warnings()  # relayed as log events too
     code = 0
     try:
         make_runner(log=_event_line, warn=lambda line: _event_line({"event": "warning", "line": line})).run()

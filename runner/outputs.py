@@ -12,6 +12,7 @@ are handed to the stages reading them as they are computed, :mod:`runner.broadca
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import hashlib
 import io
 import json
@@ -28,7 +29,8 @@ from runner.digest import array_digest, bundle_digest, cache_key, file_digest
 from runner.stage import Context, StageError, StreamInfo
 
 BUNDLE_FILE = "{port}.npz"
-VERIFIED = "verified.json"  # stat records of files found intact (see link_verified)
+VERIFIED = "verified.json"  # stat records of files found intact (see copy_verified)
+FICLONE = 0x40049409  # Linux ioctl: make the destination a copy-on-write clone of the source
 
 
 class Damaged(Exception):
@@ -190,18 +192,15 @@ def save_verified_stats(entry: Entry, stats: dict[str, list[int]]) -> None:
         tmp.unlink(missing_ok=True)
 
 
-def link_verified(source: Path, dest: Path, sha256: str, *, stat: list[int] | None = None) -> list[int]:
-    """Publish cache file ``source`` at ``dest`` after checking its bytes against ``sha256``:
-    as a hard link (the bytes are stored once), or as a copy where ``dest`` cannot link to it
-    (another filesystem). Returns ``source``'s :func:`file_stat`. :class:`Damaged` if ``source``
-    is missing or its bytes differ.
+def copy_verified(source: Path, dest: Path, sha256: str, *, stat: list[int] | None = None) -> list[int]:
+    """Publish cache file ``source`` at ``dest`` after checking its bytes against ``sha256``,
+    as a file of its own (:func:`clone_or_copy`): a published file and its entry never share
+    their bytes, so a tool that rewrites one in place cannot damage the other. Returns
+    ``source``'s :func:`file_stat`. :class:`Damaged` if ``source`` is missing or its bytes
+    differ.
 
     ``stat``, the file's stat record when it was last verified: if the file's stat is still that
     one, its bytes are not hashed again (as DVC does: writing a file changes its mtime).
-
-    A published file shares its bytes with the cache entry: a tool that rewrites it in place
-    changes the entry too (and its mtime), which its sha256 catches on the next read or publish
-    (the entry is recomputed).
     """
     try:
         now = file_stat(source)
@@ -209,11 +208,24 @@ def link_verified(source: Path, dest: Path, sha256: str, *, stat: list[int] | No
             raise Damaged(source, "sha256 differs from the one recorded when it was stored")
     except FileNotFoundError:
         raise Damaged(source, "missing") from None
-    try:
-        os.link(source, dest)
-    except OSError:
-        shutil.copyfile(source, dest)
+    clone_or_copy(source, dest)
     return now
+
+
+def clone_or_copy(source: Path, dest: Path) -> None:
+    """Write a copy of ``source`` at ``dest``: a copy-on-write clone (``FICLONE``: the two share
+    their blocks until one is written; Btrfs, XFS, bcachefs) where the filesystem makes one, else
+    a copy of the bytes. An :class:`OSError` (a full disk) names ``dest``."""
+    try:
+        with open(source, "rb") as src, open(dest, "wb") as dst:
+            try:
+                fcntl.ioctl(dst.fileno(), FICLONE, src.fileno())
+                return
+            except OSError:
+                pass
+        shutil.copyfile(source, dest)  # in the kernel (sendfile)
+    except OSError as exc:  # shutil names the source of a failed copy
+        raise OSError(exc.errno, exc.strerror or str(exc), str(dest)) from exc
 
 
 def read_or_redo(read: Callable[[Entry], Any], entry: Entry, *, redo: Callable[[], Entry],

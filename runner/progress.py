@@ -1,17 +1,16 @@
 """What a run tells its user while it goes: per-stage reports, chunk and warning events,
-progress bars, and each stage's own time."""
+progress bars (each stage's own time: :mod:`runner.timing`)."""
 
 from __future__ import annotations
 
-import contextlib
 import sys
 import threading
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from runner.config import StageNode
+from runner.notes import Replay
 from runner.outputs import Damaged
 
 if TYPE_CHECKING:
@@ -56,6 +55,7 @@ class Progress:
         self._turn = threading.local()
         self._lock = threading.Lock()
         self._nondeterministic: set[str] = set()  # stages warned about (:meth:`nondeterministic`)
+        self.replay = Replay().entry  # (stage, completion record): its recorded warnings, once each
 
     @property
     def current(self) -> str | None:
@@ -97,24 +97,3 @@ class Progress:
                       f"those its cache entry recorded ({', '.join(ports)}): the stage is not deterministic, so "
                       f"outputs of this resumed run may differ from an uninterrupted run's "
                       f"(`--force {node.name}` computes it again, and what reads it follows its new frames)")
-
-
-_clock = threading.local()
-
-
-@contextlib.contextmanager
-def own_time(add: Callable[[float, float], None]) -> Iterator[None]:
-    """Time the block and pass ``add`` its wall seconds and this thread's CPU seconds, each
-    minus those of timed blocks nested in it on this thread (chunks of an upstream stage
-    computed while this one reads them), so that each stage's summary counts its own time only.
-    The CPU seconds are of the Python thread: threads a library starts (x264's, OpenMP's) are
-    not counted."""
-    outer = getattr(_clock, "nested", (0.0, 0.0))
-    _clock.nested = (0.0, 0.0)
-    started, cpu = time.perf_counter(), time.thread_time()
-    try:
-        yield
-    finally:
-        elapsed, used = time.perf_counter() - started, time.thread_time() - cpu
-        add(elapsed - _clock.nested[0], used - _clock.nested[1])
-        _clock.nested = (outer[0] + elapsed, outer[1] + used)

@@ -1,10 +1,15 @@
-"""One YAML reader for every file a user hands the tool (pipelines, layouts, pack manifests).
+"""One YAML reader for every file a user hands the tool (pipelines, batch manifests, layouts,
+pack manifests).
 
 PyYAML's safe loader still expands aliases: a few lines of nested ``&a [*b, *b, ...]`` (an
 "alias bomb") grow to billions of nodes and run the process out of memory. These files never
 need aliases, so :class:`StrictLoader` refuses them where they appear, and refuses any tag the
 safe constructor does not build (``!!python/object`` and friends) with its position, instead of
-failing later while the value is built.
+failing later while the value is built. It also refuses, with the position of the offending
+node: collections nested deeper than :data:`MAX_DEPTH` (PyYAML composes them recursively, and
+``[[[[...`` 100,000 deep ends in a ``RecursionError``), and a key given twice in one mapping
+(PyYAML keeps the last value silently). :func:`read_text` refuses a file that is not UTF-8 with
+the line and column of the first bad byte.
 """
 
 from __future__ import annotations
@@ -14,20 +19,68 @@ from typing import Any
 
 import yaml
 
+MAX_DEPTH = 64  # collections inside collections; the tool's files nest fewer than 10 deep
+
 
 class StrictLoader(yaml.SafeLoader):
-    """:class:`yaml.SafeLoader` without aliases and without unknown tags; both raise
-    :class:`yaml.MarkedYAMLError` at the offending node (``problem_mark``: line, column)."""
+    """:class:`yaml.SafeLoader` without aliases, unknown tags, duplicate keys or collections
+    nested deeper than :data:`MAX_DEPTH`; each raises :class:`yaml.MarkedYAMLError` at the
+    offending node (``problem_mark``: line, column)."""
+
+    def __init__(self, stream: Any) -> None:
+        super().__init__(stream)
+        self._depth = 0
 
     def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node:
         if self.check_event(yaml.AliasEvent):
             event = self.peek_event()
             raise yaml.composer.ComposerError(None, None, f"alias *{event.anchor} is not allowed (aliases are refused)",
                                               event.start_mark)
-        node = super().compose_node(parent, index)
+        if self.check_event(yaml.SequenceStartEvent, yaml.MappingStartEvent) and self._depth >= MAX_DEPTH:
+            raise yaml.composer.ComposerError(None, None, f"nested deeper than {MAX_DEPTH} levels",
+                                              self.peek_event().start_mark)
+        self._depth += 1
+        try:
+            node = super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
         if node.tag not in self.yaml_constructors:
             raise yaml.constructor.ConstructorError(None, None, f"tag {node.tag!r} is not allowed", node.start_mark)
         return node
+
+    def compose_mapping_node(self, anchor: str | None) -> yaml.MappingNode:
+        node = super().compose_mapping_node(anchor)
+        first: dict[tuple[str, str], yaml.Node] = {}
+        for key, _ in node.value:
+            if not isinstance(key, yaml.ScalarNode):
+                continue
+            seen = first.setdefault((key.tag, key.value), key)
+            if seen is not key:
+                mark = seen.start_mark
+                raise yaml.composer.ComposerError(
+                    None, None, f"duplicate key {key.value!r} (first at line {mark.line + 1}, column {mark.column + 1})",
+                    key.start_mark)
+        return node
+
+
+def read_text(path: str | Path) -> str:
+    """The text of the YAML file ``path``, which must be UTF-8.
+
+    Raises
+    ------
+    OSError
+        The file cannot be read.
+    yaml.MarkedYAMLError
+        A byte sequence is not UTF-8; ``problem_mark`` is its line and column (bytes).
+    """
+    data = Path(path).read_bytes()
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line_start = data.rfind(b"\n", 0, exc.start) + 1
+        mark = yaml.Mark(str(path), exc.start, data.count(b"\n", 0, exc.start), exc.start - line_start, None, None)
+        raise yaml.MarkedYAMLError(problem=f"not UTF-8 text (byte 0x{data[exc.start]:02x}: {exc.reason})",
+                                   problem_mark=mark) from None
 
 
 def compose(text: str) -> yaml.Node | None:

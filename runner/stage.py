@@ -113,22 +113,10 @@ class FrameStream(Protocol):
 
 #: The log level of a stage's lines that the console shows beside its warnings: what a stage
 #: decided that its user should know (``ctx.log.log(SUMMARY, ...)``: the reference it took, what a
-#: pack covers). ``ctx.log.info`` goes to ``--log-json`` only.
+#: pack covers); kept with the entry and given again by a cached run as warnings are
+#: (:mod:`runner.notes`). ``ctx.log.info`` is not shown.
 SUMMARY = 25
 logging.addLevelName(SUMMARY, "SUMMARY")
-
-
-def console_log(stream: Any) -> None:
-    """Show the stage loggers' SUMMARY and WARNING lines on ``stream`` (the message alone, one
-    line each), replacing a handler an earlier call installed."""
-    log = logging.getLogger("runner.stage")
-    log.setLevel(SUMMARY)
-    for handler in [h for h in log.handlers if getattr(h, "console", False)]:
-        log.removeHandler(handler)
-    handler = logging.StreamHandler(stream)
-    handler.setFormatter(logging.Formatter("%(message)s"))
-    handler.console = True  # type: ignore[attr-defined]
-    log.addHandler(handler)
 
 
 @dataclass

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from runner.stage import StreamInfo
+from runner.timing import waiting
 
 
 def chunk_ranges(frames: int, chunk_frames: int) -> list[tuple[int, int]]:
@@ -131,7 +132,7 @@ class ComputedStream(ChunkedStream):
         self._ahead: threading.Thread | None = None
 
     def chunk(self, index: int, *, mmap: bool = False) -> np.ndarray:
-        with self._ahead_ready:
+        with waiting(), self._ahead_ready:  # the read-ahead thread's chunk
             while self._queued == index:
                 self._ahead_ready.wait()
             if index in self._failed:

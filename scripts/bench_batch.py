@@ -36,7 +36,9 @@ output folders), every side with a fresh cache, every command a new process as a
   ``bench.py e2e``, its fixture set generated under ``--work`` on first use) through ``runner
   batch`` (the default ``--workers``) over the same job through ``runner run``:
   ``batch_e2e_overhead_ratio``, with ``batch_e2e_one_job_s`` and ``run_e2e_one_job_s``, the best
-  of ``ONE_JOB_REPEATS`` interleaved runs: the fixed cost of a batch against a real shot.
+  of ``ONE_JOB_REPEATS`` interleaved runs: the fixed cost of a batch against a real shot; and
+  ``batch_e2e_attached_overhead_ratio`` (with ``batch_e2e_attached_one_job_s``), the same job
+  through ``runner batch --address`` joining a Ray started beforehand, over ``run_e2e_one_job_s``.
 
 The one-job timings are the best of ``ONE_JOB_REPEATS`` interleaved runs (each start-up part
 its own best) (the first also warms
@@ -156,9 +158,10 @@ def _start_up(log: Path, launched: float) -> dict[str, float]:
             "job_start_s": events["job_start"]["time"] - launched, "shutdown_s": events["batch_end"]["shutdown_s"]}
 
 
-def _attached(jobs: dict[str, dict], work: Path) -> float:
+def _attached(jobs: dict[str, dict], work: Path, name: str) -> float:
     """Best wall seconds of ``ONE_JOB_REPEATS`` ``runner batch --address`` of ``jobs`` joining a
-    local Ray started here first (its workers import this tree's packages), then shut down."""
+    local Ray started here first (its workers import this tree's packages), then shut down; its
+    folders under ``work`` named by ``name``."""
     import ray
 
     saved = os.environ.get("PYTHONPATH")
@@ -172,9 +175,9 @@ def _attached(jobs: dict[str, dict], work: Path) -> float:
         else:
             os.environ["PYTHONPATH"] = saved
     try:
-        args = _batch(jobs, work / "batch_attached", address=ray.get_runtime_context().gcs_address)
+        args = _batch(jobs, work / f"batch_attached_{name}", address=ray.get_runtime_context().gcs_address)
         env = {**os.environ, "RAY_AUTH_MODE": "token"}  # the token of a local ray.init
-        return min(_timed(args, cache=work / "cache_attached", env=env) for _ in range(ONE_JOB_REPEATS))
+        return min(_timed(args, cache=work / f"cache_attached_{name}", env=env) for _ in range(ONE_JOB_REPEATS))
     finally:
         ray.shutdown()
 
@@ -203,7 +206,7 @@ def run(args) -> list[dict]:
 
     run_one, batch_one, parts = _one_job(first, work, "one", 1)
     start_up = {name: min(p[name] for p in parts) for name in parts[0]}
-    attached = _attached(first, work)
+    attached = _attached(first, work, "one")
     seq = _timed(*[_run_args(job, work / "run_out" / name) for name, job in jobs.items()], cache=work / "cache_seq")
     two = _timed(_batch(jobs, work / "batch_two", 2), cache=work / "cache_batch_two")
 
@@ -212,9 +215,12 @@ def run(args) -> list[dict]:
     identical, same_pixels = all(a == b for a, b in pairs), all(_same_pixels(a, b) for a, b in pairs)
     e2e = []
     if "--e2e" in args.extra:
-        run_e2e, batch_e2e, _ = _one_job(_e2e_job(Path(args.work).resolve()), work, "e2e", None)
+        e2e_job = _e2e_job(Path(args.work).resolve())
+        run_e2e, batch_e2e, _ = _one_job(e2e_job, work, "e2e", None)
+        attached_e2e = _attached(e2e_job, work, "e2e")
         e2e = [("batch_e2e_overhead_ratio", batch_e2e / run_e2e, "x"), ("batch_e2e_one_job_s", batch_e2e, "s"),
-               ("run_e2e_one_job_s", run_e2e, "s")]
+               ("run_e2e_one_job_s", run_e2e, "s"), ("batch_e2e_attached_overhead_ratio", attached_e2e / run_e2e, "x"),
+               ("batch_e2e_attached_one_job_s", attached_e2e, "s")]
     load = f"{' '.join(load_before)} -> {' '.join(Path('/proc/loadavg').read_text().split()[:3])}"
     rows = [("batch_speedup_2workers", seq / two, "x"), ("batch_overhead_ratio", batch_one / run_one, "x"),
             ("batch_attached_overhead_ratio", attached / run_one, "x"), ("batch_attached_one_job_s", attached, "s"),

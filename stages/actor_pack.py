@@ -11,6 +11,14 @@ An actor pack is a folder with a manifest ``pack.yaml`` (format in ``docs/fixtur
 - ``captured``: the 30-40 captured geometries for PCA (Sec. 10, 14), either an ``.npz`` with key
   ``points`` ``(K, N, 2)`` or a list of points files.
 
+Bounds, checked before anything large is read: ``image_size`` at most :data:`MAX_PACK_PIXELS`
+pixels, each image's size read from its header (PNG, JPEG...) before it is decoded, at most
+:data:`MAX_EXAMPLES` examples, :data:`MAX_TEETH_EXAMPLES` teeth examples and
+:data:`MAX_CAPTURED` captured geometries (an ``.npz``'s array shape read from its header,
+:mod:`stages.npz_file`). Example and teeth example names are unique (they name the data file's
+columns), and no face's points may all lie on one point or one line parallel to an axis (a
+degenerate geometry propagates as NaN).
+
 A points file is a CSV with header ``name,x,y`` and one row per layout point (any order, every
 name once), or an ``.npz`` with key ``points`` ``(N, 2)`` in layout order. Pixel coordinates have
 their origin at the centre of the top-left pixel, x right, y down.
@@ -26,10 +34,16 @@ from typing import Any
 import numpy as np
 
 from runner.stage import StageError
+from stages.image_header import ImageTooLarge, image_size
 from stages.layout import Layout, load_layout, read_yaml
+from stages.npz_file import NpzError, read_npz
 
 MANIFEST = "pack.yaml"
 FORMAT = "actor-pack/1"
+MAX_PACK_PIXELS = 4096 * 4096  # image_size W x H (a pack holds ~20 images of that size, decoded)
+MAX_EXAMPLES = 64  # example expressions (the paper: 10-15)
+MAX_TEETH_EXAMPLES = 16
+MAX_CAPTURED = 256  # captured geometries (the paper: 30-40)
 
 
 class PackError(StageError):
@@ -124,15 +138,24 @@ class _PackReader:
         bundled = "/" not in layout_ref and not Path(layout_ref).suffix and not (self.root / layout_ref).exists()
         self.layout = load_layout(layout_ref if bundled else self.file(layout_ref, "layout"))
         size = self.field("image_size")
-        if not (isinstance(size, list) and len(size) == 2 and all(isinstance(v, int) and v > 0 for v in size)):
+        if not (isinstance(size, list) and len(size) == 2
+                and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in size)):
             raise self.fail(self.manifest, "image_size", f"expected [W, H] positive integers, got {size!r}")
+        if size[0] * size[1] > MAX_PACK_PIXELS:
+            raise self.fail(self.manifest, "image_size", f"{size[0]}x{size[1]} is more than the {MAX_PACK_PIXELS} "
+                                                         "pixels a pack image may have")
         self.size = (size[0], size[1])
         intrinsics = self.intrinsics()
         model3d = self.model3d()
         neutral = self.expression(self.field("neutral"), "neutral", "neutral")
         standard = self.expression(self.field("standard"), "standard", "standard")
-        examples = self.expressions("examples", min_count=2)
-        teeth = self.expressions("teeth_examples", min_count=1)
+        examples = self.expressions("examples", min_count=2, max_count=MAX_EXAMPLES)
+        teeth = self.expressions("teeth_examples", min_count=1, max_count=MAX_TEETH_EXAMPLES)
+        names = [e.name for e in examples + teeth]
+        repeated = next((n for n in names if names.count(n) > 1), None)
+        if repeated is not None:
+            raise self.fail(self.manifest, "examples", f"name {repeated!r} is given to two examples "
+                                                       "(the names of examples and teeth examples must differ)")
         captured = self.captured()
         return ActorPack(
             path=self.root,
@@ -195,30 +218,44 @@ class _PackReader:
             raise self.fail(path, field, f"point {self.layout.point_names[missing[0]]!r} missing or not finite")
         if not np.all(np.isfinite(out)):
             raise self.fail(path, field, "values must be finite")
+        if columns == ("x", "y"):
+            self.check_spread(out, path, field)
         return out
 
     def points(self, path: Path, field: str) -> np.ndarray:
         if path.suffix == ".npz":
-            pts = self.npz_points(path, field)
+            pts = self.npz_points(path, field, faces=1)
         else:
             pts = self.named_rows(path, field, ("x", "y"))
         self.check_inside(pts, path, field)
         return pts
 
-    def npz_points(self, path: Path, field: str) -> np.ndarray:
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                pts = np.asarray(z["points"], dtype=np.float64)
-        except KeyError:
-            raise self.fail(path, field, "npz has no array 'points'") from None
-        except (OSError, ValueError) as exc:
-            raise self.fail(path, field, f"cannot read npz ({exc})") from None
+    def npz_points(self, path: Path, field: str, *, faces: int) -> np.ndarray:
+        """Array ``points`` of an ``.npz``: ``(N, 2)`` or ``(K, N, 2)``, at most ``faces`` faces
+        (its header checked before it is read)."""
         n = self.layout.n_points
+        try:
+            arrays = read_npz(path, ["points"], max_values=faces * n * 2)
+        except NpzError as exc:
+            raise self.fail(path, field, f"{exc} (at most {faces} face(s) of {n} points)") from None
+        if "points" not in arrays:
+            raise self.fail(path, field, "npz has no array 'points'")
+        pts = np.asarray(arrays["points"], dtype=np.float64)
         if pts.ndim < 2 or pts.shape[-2:] != (n, 2):
             raise self.fail(path, field, f"expected points of shape (..., {n}, 2) for layout {self.layout.name!r}, got {pts.shape}")
         if not np.all(np.isfinite(pts)):
             raise self.fail(path, field, "points must be finite")
+        self.check_spread(pts, path, field)
         return pts
+
+    def check_spread(self, pts: np.ndarray, path: Path, field: str) -> None:
+        """Refuse a face whose points all lie on one point or on one line parallel to an axis."""
+        faces = pts.reshape(-1, self.layout.n_points, 2)
+        flat = np.flatnonzero((np.ptp(faces, axis=1) <= 1e-9).any(axis=1))
+        if flat.size:
+            which = f"face {flat[0]}: " if len(faces) > 1 else ""
+            raise self.fail(path, field, f"{which}its {self.layout.n_points} points all coincide or lie on one "
+                                         "horizontal or vertical line")
 
     def check_inside(self, pts: np.ndarray, path: Path, field: str) -> None:
         w, h = self.size
@@ -232,6 +269,15 @@ class _PackReader:
 
     def image(self, path: Path, field: str) -> np.ndarray:
         import cv2
+        try:
+            header = image_size(path, max_pixels=MAX_PACK_PIXELS, verify=True)
+        except ImageTooLarge as exc:
+            raise self.fail(path, field, f"image is {exc}") from None
+        if header is None:
+            raise self.fail(path, field, "cannot read image (not a PNG, JPEG, TIFF or WebP file)")
+        if header != self.size:
+            raise self.fail(path, field, f"image is {header[0]}x{header[1]}, the manifest's image_size is "
+                                         f"{self.size[0]}x{self.size[1]}")
         img = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if img is None:
             raise self.fail(path, field, "cannot read image")
@@ -249,19 +295,22 @@ class _PackReader:
             raise self.fail(self.manifest, f"{field}.points", "expected one face's points (N, 2)")
         return Expression(name=str(entry.get("name", default_name)), image=image, points=points)
 
-    def expressions(self, key: str, *, min_count: int) -> list[Expression]:
+    def expressions(self, key: str, *, min_count: int, max_count: int) -> list[Expression]:
         entries = self.field(key)
-        if not isinstance(entries, list) or len(entries) < min_count:
-            raise self.fail(self.manifest, key, f"expected a list of at least {min_count} expressions")
+        if not isinstance(entries, list) or not min_count <= len(entries) <= max_count:
+            got = f"{len(entries)} given" if isinstance(entries, list) else f"got {type(entries).__name__}"
+            raise self.fail(self.manifest, key, f"expected a list of {min_count} to {max_count} expressions, {got}")
         return [self.expression(e, f"{key}[{k}]", f"{key}_{k}") for k, e in enumerate(entries)]
 
     def captured(self) -> np.ndarray:
         value = self.field("captured")
         if isinstance(value, list):
+            if len(value) > MAX_CAPTURED:
+                raise self.fail(self.manifest, "captured", f"{len(value)} captured geometries, at most {MAX_CAPTURED}")
             pts = np.stack([self.points(self.file(v, f"captured[{k}]"), f"captured[{k}]") for k, v in enumerate(value)])
         else:
             path = self.file(value, "captured")
-            pts = self.npz_points(path, "captured")
+            pts = self.npz_points(path, "captured", faces=MAX_CAPTURED)
             self.check_inside(pts, path, "captured")
         if pts.ndim != 3 or pts.shape[0] < 2:
             raise self.fail(self.manifest, "captured", f"expected at least 2 captured geometries (K, N, 2), got {pts.shape}")

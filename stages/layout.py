@@ -123,7 +123,7 @@ def read_yaml(path: Path, *, what: str, noun: str = "file", error: type[StageErr
     outside every input the runner hashes."""
     depends_on(path)
     try:
-        return safe_yaml.load(Path(path).read_text(encoding="utf-8"))
+        return safe_yaml.load(safe_yaml.read_text(path))
     except OSError as exc:
         raise error(f"{what} {path}: cannot read {noun} ({exc.strerror or exc})") from None
     except yaml.YAMLError as exc:

@@ -230,10 +230,13 @@ def test_damaged_cache_entries_are_recomputed_not_used(default_run):
     assert result.returncode == 0, result.stderr
     warnings = [line for line in result.stderr.splitlines() if "damaged cache entry" in line]
     assert len(warnings) == 2 and "'synthesize'" in warnings[0] + warnings[1] and "'exr'" in warnings[0] + warnings[1]
-    for entry in CacheStore(cache).iter_entries():  # the recomputed chunk reads back verified
-        if entry.record.get("stage") == "synthesize" and "range" in entry.record:
-            load_bundle(entry, "coeffs")
+    chunks = [entry for entry in CacheStore(cache).iter_entries()
+              if entry.record.get("stage") == "synthesize" and "range" in entry.record]
+    assert len(chunks) == -(-len(np.load(TRUTH)["points"]) // 16)  # one entry per chunk of 16 frames
+    for entry in chunks:  # the recomputed chunk reads back verified
+        load_bundle(entry, "coeffs")
     manifest = json.loads((out / "exr" / "manifest.json").read_text())
+    assert len(manifest["files"]) == len(np.load(TRUTH)["points"])  # one EXR a frame
     for listed in manifest["files"]:
         assert hashlib.sha256((out / "exr" / listed["path"]).read_bytes()).hexdigest() == listed["sha256"]
     assert (out / "exr").joinpath(exr.name).read_bytes() == undamaged

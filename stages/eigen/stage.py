@@ -38,18 +38,18 @@ class TrainEigenfeatures(SequenceStage):
         Param("sampling", str, "rich", "paper: each parameter alone x {-3,0,3} deg X/Y; rich: plus random "
               "combinations under wider rotations (generator: +-25 yaw, +-15 pitch, +-10 roll, the live clip's "
               "range; pack: +-15, +-10, +-10)", choices=("paper", "rich")),
-        Param("samples", int, 500, "random combinations added by sampling=rich", min=1),
-        Param("seed", int, 0, "random seed of sampling=rich"),
-        Param("q", int, 16, "eigenfeatures per feature", min=1),
-        Param("margin", float, 0.25, "room around each feature's points, fraction of its box", min=0.0),
+        Param("samples", int, 500, "random combinations added by sampling=rich", min=1, max=100_000),
+        Param("seed", int, 0, "random seed of sampling=rich", min=0, max=2**32 - 1),
+        Param("q", int, 16, "eigenfeatures per feature", min=1, max=256),
+        Param("margin", float, 0.25, "room around each feature's points, fraction of its box", min=0.0, max=10.0),
         Param("blur_px", float, 1.0, "Gaussian blur of each patch before PCA, patch px (0: off; 1 measured better "
-              "than 0, docs/eigen.md)", min=0.0),
+              "than 0, docs/eigen.md)", min=0.0, max=100.0),
         Param("normalize", bool, False, "each patch to zero mean and unit standard deviation"),
         Param("supersample", int, 2, "antialiasing of the generator's training renders (the fixture clips: 2)",
               min=1, max=4),
         Param("variance", float, 0.95, "pack face model: share of the captured geometries' variance its PCA "
               "parameters reach", min=0.01, max=1.0),
-        Param("max_params", int, 8, "pack face model: most PCA parameters", min=1),
+        Param("max_params", int, 8, "pack face model: most PCA parameters", min=1, max=64),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
@@ -90,7 +90,7 @@ class AnalyzeEigenfeatures(SequenceStage):
               file=True),
         Param("rotation", bool, True, "head rotation from the pose input in the estimator's observation (paper)"),
         Param("ridge", float, 0.0, "ridge of the estimator on standardized observations (0: the paper's least squares)",
-              min=0.0),
+              min=0.0, max=1e6),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:

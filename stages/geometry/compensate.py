@@ -83,8 +83,8 @@ class SimilarityCompensate(SequenceStage):
     params = (
         Param("layout", str, "zhang134", "layout name or YAML path (its rigid points)", file=True),
         Param("robust", bool, False, "Huber-reweighted least squares instead of plain least squares"),
-        Param("huber_px", float, 1.0, "Huber threshold in px for the robust fit"),
-        Param("min_points", int, 3, "fewest valid rigid points for a frame's own fit (else interpolated)"),
+        Param("huber_px", float, 1.0, "Huber threshold in px for the robust fit", min=0.01, max=1000.0),
+        Param("min_points", int, 3, "fewest valid rigid points for a frame's own fit (else interpolated)", min=2, max=1000),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:

@@ -233,15 +233,15 @@ class PnPPose(SequenceStage):
     params = (
         Param("intrinsics", str, "pack", "camera matrix: the pack's (input 'camera'), or the default from the image "
               "size (f = max(W, H), principal point at the centre)", choices=("pack", "image")),
-        Param("focal_px", float, 0.0, "if > 0, focal length in px with the principal point at the image centre"),
+        Param("focal_px", float, 0.0, "if > 0, focal length in px with the principal point at the image centre", min=0.0, max=1e6),
         Param("model", str, "rigid", "rigid: PnP on the rigid points with the generic model (Sec. 12.1); face: fit "
               "the face model (generic shape plus the pack's captured expressions, input 'geometry') to all "
               "tracked points", choices=("rigid", "face")),
-        Param("components", int, 8, "face model: expression components (PCA of the pack's captured geometries)"),
+        Param("components", int, 8, "face model: expression components (PCA of the pack's captured geometries)", min=0, max=256),
         Param("points", list, [], "rigid model: names of the points used for PnP; empty: the layout's rigid points "
               "(hairline and inner eye corners, Sec. 12.1)"),
-        Param("min_points", int, 4, "fewest valid rigid points to solve a frame (else flagged and interpolated)"),
-        Param("smooth_sigma", float, 0.0, "temporal Gaussian smoothing of the poses, frames (0 = off)"),
+        Param("min_points", int, 4, "fewest valid rigid points to solve a frame (else flagged and interpolated)", min=3, max=1000),
+        Param("smooth_sigma", float, 0.0, "temporal Gaussian smoothing of the poses, frames (0 = off)", min=0.0, max=1000.0),
         Param("adapt_model", bool, True, "fit the generic model to the first complete frame, taken as the frontal "
               "neutral; poses are then relative to it"),
     )

@@ -330,16 +330,16 @@ class CompensateRigid3D(SequenceStage):
     outputs = {"displacements": "displacements", "similarity": "similarity", "pose": "pose"}
     params = (
         Param("neutral_frame", int, -1, "the reference (neutral) frame; -1: the neutral is estimated region by region "
-              "from the whole clip, and the head frame chosen as the most frontal, least expressive frame", min=-1),
+              "from the whole clip, and the head frame chosen as the most frontal, least expressive frame", min=-1, max=10_000_000),
         Param("search_frames", int, 0, "frames searched for the head frame, from the first with a face (0: the whole "
-              "clip)", min=0),
+              "clip)", min=0, max=10_000_000),
         Param("max_turn_deg", float, 20.0, "frames turned more than this from the head frame do not enter the "
               "estimated neutral", min=1.0, max=90.0),
         Param("rigid_points", list, list(RIGID_POINTS), "layout points aligned in 3D (they move with the skull)"),
         Param("huber_px", float, 2.0, "Huber threshold of the robust 3D fit, px", min=0.01, max=100.0),
         Param("warn_angle_deg", float, 12.0, "warn when the head frame is turned more than this", min=0.0, max=90.0),
         Param("warn_expression", float, 2.0, "warn when a named reference frame's expressiveness (sum of blendshapes) "
-              "exceeds this", min=0.0),
+              "exceeds this", min=0.0, max=100.0),
         Param("close_lips", bool, True, "displacements from the neutral with its inner lips closed (a neutral with "
               "the lips apart would cost the target that much mouth opening)"),
     )

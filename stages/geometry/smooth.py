@@ -136,9 +136,9 @@ class GaussianSmooth(SequenceStage):
     inputs = {"points": "points"}
     outputs = {"points": "points"}
     params = (
-        Param("sigma", float, 1.5, "kernel standard deviation in frames (0 = off)", min=0.0),
-        Param("truncate", float, 3.0, "kernel radius in sigmas"),
-        Param("min_support", float, 0.5, "kernel mass of valid neighbours that makes an invalid frame valid"),
+        Param("sigma", float, 1.5, "kernel standard deviation in frames (0 = off)", min=0.0, max=1000.0),
+        Param("truncate", float, 3.0, "kernel radius in sigmas", min=0.0, max=20.0),
+        Param("min_support", float, 0.5, "kernel mass of valid neighbours that makes an invalid frame valid", min=0.0, max=1.0),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
@@ -372,10 +372,10 @@ class OneEuroSmooth(SequenceStage):
     inputs = {"points": "points"}
     outputs = {"points": "points"}
     params = (
-        Param("min_cutoff", float, 1.0, "cutoff frequency of a resting point, Hz"),
-        Param("beta", float, 1.5, "rise of the cutoff with the point's speed on the face, Hz per px/s"),
-        Param("d_cutoff", float, 3.0, "cutoff frequency of the speed estimate, Hz"),
-        Param("fps", float, 30.0, "frames per second when the points carry no 'fps'"),
+        Param("min_cutoff", float, 1.0, "cutoff frequency of a resting point, Hz", min=0.0, max=1000.0),
+        Param("beta", float, 1.5, "rise of the cutoff with the point's speed on the face, Hz per px/s", min=0.0, max=1000.0),
+        Param("d_cutoff", float, 3.0, "cutoff frequency of the speed estimate, Hz", min=0.0, max=1000.0),
+        Param("fps", float, 30.0, "frames per second when the points carry no 'fps'", min=1e-3, max=1000.0),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:

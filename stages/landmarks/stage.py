@@ -46,12 +46,12 @@ class FaceLandmarks(SequenceStage):
     inputs = {"frames": "frames"}
     outputs = {"landmarks": "landmarks"}
     params = (
-        Param("max_faces", int, 4, "faces looked for per searched region"),
+        Param("max_faces", int, 4, "faces looked for per searched region", min=1, max=16),
         Param("select", str, "largest", "face chosen when there are several (then followed)", choices=SELECT_RULES),
-        Param("min_detection_confidence", float, 0.5, "face detector score threshold"),
-        Param("crop_scale", float, 3.0, "crop around the previous face, x its box side (0 = off)"),
+        Param("min_detection_confidence", float, 0.5, "face detector score threshold", min=0.0, max=1.0),
+        Param("crop_scale", float, 3.0, "crop around the previous face, x its box side (0 = off)", min=0.0, max=20.0),
         Param("search_tiles", bool, True, "search half-size tiles when the frame has no face"),
-        Param("min_face_px", float, 60.0, "warn when a face is narrower than this (px)"),
+        Param("min_face_px", float, 60.0, "warn when a face is narrower than this (px)", min=0.0, max=10000.0),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:

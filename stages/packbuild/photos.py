@@ -5,8 +5,10 @@
 Which files: the image files directly in the folder (suffix ``.jpg .jpeg .png .tif .tiff .webp``,
 any case), sorted by file name (code points: ``IMG_10`` before ``IMG_9``); other files,
 sub-folders and hidden files (name starting with ``.``) are ignored. Frame ``t`` is the ``t``-th
-readable photo in that order. A photo OpenCV cannot decode is skipped with one warning line
-naming every such file; a folder with no readable photo is an error.
+readable photo in that order. A photo whose header declares more than :data:`MAX_PHOTO_PIXELS`
+pixels is skipped before it is decoded (:mod:`stages.image_header`), and so is one that OpenCV
+cannot decode, with one warning line counting them and naming the first few
+(:data:`NAMED_FILES`); a folder with no readable photo is an error.
 
 Orientation: OpenCV's decoder applies the EXIF Orientation tag (1-8) of JPEG, PNG, TIFF and
 WebP files, so a phone's portrait photo stored as landscape pixels comes out upright.
@@ -23,16 +25,19 @@ from __future__ import annotations
 
 import functools
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
 
 from runner.stage import Context, FrameStage, Param, SequenceStage, StageError, StreamInfo
+from stages.image_header import ImageTooLarge, image_size
 from stages.packbuild.identity import DIFFERENT_FACE_DISTANCE, face_signature, majority_outliers
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".webp")
+MAX_PHOTO_PIXELS = 100_000_000  # a larger photo is skipped undecoded (100 MP: 300 MB as 8-bit RGB)
+NAMED_FILES = 5  # files named in a warning line; the others are counted
 PHOTO_FPS = 1.0  # the frame rate the photos are given: one photo per second (time_s = frame index)
 DEFAULT_MAX_SIDE = 1920
 
@@ -42,14 +47,35 @@ class PhotoSet:
     """The readable photos of a folder, in frame order.
 
     ``paths`` the readable photos; ``sizes`` their upright ``(width, height)`` in px;
-    ``unreadable`` the image files OpenCV could not decode; ``frame_size`` ``(W, H)`` of the
-    frames (:func:`frame_size`).
+    ``unreadable`` the image files OpenCV could not decode; ``too_large`` those skipped
+    undecoded, with their header's size (``"30000x30000 px, ..."``); ``frame_size`` ``(W, H)``
+    of the frames (:func:`frame_size`).
     """
 
     paths: tuple[Path, ...]
     sizes: tuple[tuple[int, int], ...]
     unreadable: tuple[Path, ...]
+    too_large: tuple[tuple[Path, str], ...]
     frame_size: tuple[int, int]
+
+    def skipped(self) -> str | None:
+        """One line counting and naming (the first :data:`NAMED_FILES` of each kind) the files
+        skipped, or None."""
+        parts = []
+        if self.unreadable:
+            parts.append(f"{len(self.unreadable)} unreadable image files skipped: "
+                         f"{_named([p.name for p in self.unreadable])}")
+        if self.too_large:
+            sizes = [f"{path.name} ({why.split(', ')[0]})" for path, why in self.too_large]
+            parts.append(f"{len(self.too_large)} image files of more than {MAX_PHOTO_PIXELS} px skipped undecoded: "
+                         f"{_named(sizes)}")
+        return "; ".join(parts) or None
+
+
+def _named(names: list[str]) -> str:
+    """The first :data:`NAMED_FILES` of ``names``, and how many more."""
+    more = f" and {len(names) - NAMED_FILES} more" if len(names) > NAMED_FILES else ""
+    return ", ".join(names[:NAMED_FILES]) + more
 
 
 def list_photos(folder: Path) -> list[Path]:
@@ -66,8 +92,16 @@ def list_photos(folder: Path) -> list[Path]:
 def read_photo(path: Path) -> np.ndarray | None:
     """The photo upright (EXIF orientation applied) as ``(H, W, 3)`` uint8 RGB, or None when the
     file cannot be read or decoded. Grey and 16-bit images are converted (16 bits: the high byte);
-    an alpha channel is dropped; of a multi-page TIFF the first page."""
+    an alpha channel is dropped; of a multi-page TIFF the first page.
+
+    Raises
+    ------
+    ImageTooLarge
+        Its header declares more than :data:`MAX_PHOTO_PIXELS` pixels (nothing is decoded).
+    """
     import cv2
+    if image_size(path, max_pixels=MAX_PHOTO_PIXELS, verify=True) is None:
+        return None
     try:
         data = np.fromfile(path, dtype=np.uint8)
     except OSError:
@@ -139,13 +173,14 @@ def scan_photos(folder: Path, *, max_side: int = DEFAULT_MAX_SIDE) -> PhotoSet:
     when the folder holds no readable photo (naming the unreadable files, or the suffixes
     looked for)."""
     state = tuple((path, *_stamp(path)) for path in list_photos(folder))
-    readable, sizes, unreadable = _decode_all(state)
+    readable, sizes, unreadable, too_large = _decode_all(state)
+    photos = PhotoSet(readable, sizes, unreadable, too_large, (0, 0))
     if not readable:
-        if unreadable:
-            raise ValueError(f"{folder}: none of its {len(unreadable)} image files could be read "
-                             f"({', '.join(p.name for p in unreadable)})")
+        if unreadable or too_large:
+            names = sorted([p.name for p in unreadable] + [p.name for p, _ in too_large])
+            raise ValueError(f"{folder}: none of its {len(names)} image files could be read ({_named(names)})")
         raise ValueError(f"{folder}: no photos in it (looked for {' '.join(PHOTO_SUFFIXES)})")
-    return PhotoSet(readable, sizes, unreadable, frame_size(sizes, max_side=max_side))
+    return replace(photos, frame_size=frame_size(sizes, max_side=max_side))
 
 
 def _stamp(path: Path) -> tuple[int, int]:
@@ -155,18 +190,23 @@ def _stamp(path: Path) -> tuple[int, int]:
 
 
 @functools.lru_cache(maxsize=4)
-def _decode_all(state: tuple[tuple[Path, int, int], ...]) -> tuple[tuple[Path, ...], tuple[tuple[int, int], ...], tuple[Path, ...]]:
+def _decode_all(state: tuple[tuple[Path, int, int], ...]) -> tuple[tuple[Path, ...], tuple[tuple[int, int], ...],
+                                                                    tuple[Path, ...], tuple[tuple[Path, str], ...]]:
     """Decode the files of ``state`` (path, size, mtime_ns): the readable ones, their upright
-    ``(width, height)`` and the unreadable ones."""
-    readable, sizes, unreadable = [], [], []
+    ``(width, height)``, the unreadable ones and those too large to decode (with why)."""
+    readable, sizes, unreadable, too_large = [], [], [], []
     for path, _, _ in state:
-        rgb = read_photo(path)
+        try:
+            rgb = read_photo(path)
+        except ImageTooLarge as exc:
+            too_large.append((path, str(exc)))
+            continue
         if rgb is None:
             unreadable.append(path)
         else:
             readable.append(path)
             sizes.append((rgb.shape[1], rgb.shape[0]))
-    return tuple(readable), tuple(sizes), tuple(unreadable)
+    return tuple(readable), tuple(sizes), tuple(unreadable), tuple(too_large)
 
 
 def _scan(stage: str, folder: Path, max_side: int) -> PhotoSet:
@@ -190,20 +230,19 @@ class PhotosDecode(FrameStage):
     inputs = {"photos": "dir"}
     outputs = {"frames": "frames"}
     cached = False
-    params = (Param("max_side", int, DEFAULT_MAX_SIDE, "longest side of the frames, px (larger photos are shrunk)", min=64),)
+    params = (Param("max_side", int, DEFAULT_MAX_SIDE, "longest side of the frames, px (larger photos are shrunk)", min=64, max=16384),)
 
     def __init__(self) -> None:
         self._scanned: tuple[Path, int, PhotoSet] | None = None
 
     def photos(self, folder: Path, max_side: int) -> PhotoSet:
-        """The folder's :class:`PhotoSet`, scanned once per stage instance; the unreadable files
-        are named in one warning line."""
+        """The folder's :class:`PhotoSet`, scanned once per stage instance; the files skipped
+        are counted in one warning line (:meth:`PhotoSet.skipped`)."""
         if self._scanned is None or self._scanned[:2] != (folder, max_side):
             photos = _scan(self.name, folder, max_side)
-            if photos.unreadable:
-                logging.getLogger(f"runner.stage.{self.name}").warning(
-                    "warning: %s: %s: %d unreadable image files skipped: %s", self.name, folder,
-                    len(photos.unreadable), ", ".join(p.name for p in photos.unreadable))
+            if photos.skipped():
+                logging.getLogger(f"runner.stage.{self.name}").warning("warning: %s: %s: %s", self.name, folder,
+                                                                       photos.skipped())
             self._scanned = (folder, max_side, photos)
         return self._scanned[2]
 
@@ -226,8 +265,9 @@ class PhotosDecode(FrameStage):
 
 
 class PhotoIdentity(SequenceStage):
-    """``photos.identity``: warns, naming them, about the photos whose face shape differs from
-    the majority's (:mod:`stages.packbuild.identity`, a coarse check of proportions).
+    """``photos.identity``: warns, counting them and naming the first :data:`NAMED_FILES`, about
+    the photos whose face shape differs from the majority's (:mod:`stages.packbuild.identity`, a
+    coarse check of proportions).
 
     Output bundle ``photo_identity``: ``names (T,) str`` the photos' file names in frame order,
     ``distance (T,) f8`` each face's signature distance to the majority's (NaN without a face),
@@ -240,7 +280,7 @@ class PhotoIdentity(SequenceStage):
     inputs = {"photos": "dir", "landmarks": "landmarks"}
     outputs = {"identity": "photo_identity"}
     params = (Param("max_distance", float, DIFFERENT_FACE_DISTANCE,
-                    "signature distance above which a face is named as another person's", min=1e-6),)
+                    "signature distance above which a face is named as another person's", min=1e-6, max=10.0),)
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         # which photos are frames does not depend on photos.decode's max_side (the frame size does)
@@ -260,7 +300,7 @@ class PhotoIdentity(SequenceStage):
             raise StageError(f"{self.name}: input 'landmarks': {exc}") from None
         faces = int(np.isfinite(distance).sum())
         if differs.any():
-            named = ", ".join(f"{names[t]} (frame {t}, {distance[t]:.3f})" for t in np.flatnonzero(differs))
+            named = _named([f"{names[t]} (frame {t}, {distance[t]:.3f})" for t in np.flatnonzero(differs)])
             ctx.log.warning("warning: %s: %d of %d faces may be another person's (face-shape distance to the "
                             "majority above %.3f; a coarse check): %s", self.name, int(differs.sum()), faces,
                             threshold, named)

@@ -9,6 +9,7 @@ import numpy as np
 
 from runner.depends import not_recording
 from runner.stage import SUMMARY, Context, Param, SequenceStage, StageError
+from stages.actor_pack import MAX_CAPTURED, MAX_EXAMPLES, MAX_TEETH_EXAMPLES
 from stages.geometry.pose import default_intrinsics
 from stages.landmarks.stage import layout_and_correspondence
 from stages.layout import load_layout
@@ -60,11 +61,11 @@ class PackFilter(SequenceStage):
     inputs = {"frames": "frames", "landmarks": "landmarks", "points": "points"}
     outputs = {"filter": "frame_filter"}
     params = (
-        Param("max_yaw", float, 20.0, "largest |yaw| of a usable frame, degrees", min=0.0),
-        Param("max_pitch", float, 15.0, "largest |pitch|, degrees", min=0.0),
-        Param("max_roll", float, 15.0, "largest |roll|, degrees", min=0.0),
-        Param("min_sharpness", float, 0.5, "least Laplacian variance in the face box, fraction of the clip's median", min=0.0),
-        Param("max_colour_change", float, 10.0, "largest Delta E of an eye zone's mean colour (the lips': a*b* only) from the clip's median", min=0.0),
+        Param("max_yaw", float, 20.0, "largest |yaw| of a usable frame, degrees", min=0.0, max=180.0),
+        Param("max_pitch", float, 15.0, "largest |pitch|, degrees", min=0.0, max=180.0),
+        Param("max_roll", float, 15.0, "largest |roll|, degrees", min=0.0, max=180.0),
+        Param("min_sharpness", float, 0.5, "least Laplacian variance in the face box, fraction of the clip's median", min=0.0, max=100.0),
+        Param("max_colour_change", float, 10.0, "largest Delta E of an eye zone's mean colour (the lips': a*b* only) from the clip's median", min=0.0, max=500.0),
         Param("layout", str, "zhang134", "layout name or YAML path", file=True),
     )
 
@@ -122,14 +123,14 @@ class PackSelect(SequenceStage):
     inputs = {"points": "points", "landmarks": "landmarks", "filter": "frame_filter"}
     outputs = {"selection": "pack_selection"}
     params = (
-        Param("width", int, 384, "pack image width, px", min=32),
-        Param("height", int, 512, "pack image height, px", min=32),
-        Param("examples", int, 12, "example expressions (paper: 10-15)", min=2),
-        Param("captured", int, 35, "captured geometries for PCA, examples included (paper: 30-40)", min=2),
-        Param("teeth", int, 4, "teeth examples (different mouth openings)", min=1),
-        Param("min_distinct_px", float, 1.0, "expressions closer than this (RMS, pack px) are not distinct", min=0.0),
-        Param("pose_deg", float, 10.0, "candidate frames' yaw and pitch within this of the neutral's, degrees", min=0.0),
-        Param("min_teeth_open", float, 0.08, "least inner-lip gap of a teeth example, eye distances", min=0.0),
+        Param("width", int, 384, "pack image width, px", min=32, max=4096),
+        Param("height", int, 512, "pack image height, px", min=32, max=4096),
+        Param("examples", int, 12, "example expressions (paper: 10-15)", min=2, max=MAX_EXAMPLES),
+        Param("captured", int, 35, "captured geometries for PCA, examples included (paper: 30-40)", min=2, max=MAX_CAPTURED),
+        Param("teeth", int, 4, "teeth examples (different mouth openings)", min=1, max=MAX_TEETH_EXAMPLES),
+        Param("min_distinct_px", float, 1.0, "expressions closer than this (RMS, pack px) are not distinct", min=0.0, max=1000.0),
+        Param("pose_deg", float, 10.0, "candidate frames' yaw and pitch within this of the neutral's, degrees", min=0.0, max=180.0),
+        Param("min_teeth_open", float, 0.08, "least inner-lip gap of a teeth example, eye distances", min=0.0, max=10.0),
         Param("min_teeth_fraction", float, 0.1, "least share of light, grey pixels inside the inner lips", min=0.0, max=1.0),
         Param("compare_3d", bool, False, "compare expressions with the head rotation removed in 3D (the points' z)"),
         Param("layout", str, "zhang134", "layout name or YAML path", file=True),
@@ -220,7 +221,7 @@ class PackWrite(SequenceStage):
     outputs = {"pack": "files"}
     params = (
         Param("name", str, "actor", "the pack's name"),
-        Param("max_gain", float, 2.0, "largest exposure/white-balance gain per channel (and 1 / it the least)", min=1.0),
+        Param("max_gain", float, 2.0, "largest exposure/white-balance gain per channel (and 1 / it the least)", min=1.0, max=100.0),
         Param("layout", str, "zhang134", "layout name or YAML path", file=True),
         Param("correspondence", str, "zhang134_mediapipe", "mesh correspondence name or YAML path (generic 3D model)", file=True),
     )

@@ -22,7 +22,7 @@ class TrainHierarchicalPCA(SequenceStage):
     inputs = {"layout": "layout", "geometry": "pack_geometry"}
     outputs = {"pca_model": "pca_model"}
     params = (
-        Param("n_components", int, 8, "most principal components kept per feature point set (paper: 5-10)", min=1),
+        Param("n_components", int, 8, "most principal components kept per feature point set (paper: 5-10)", min=1, max=256),
         Param("variance_kept", float, 1.0, "also stop at this fraction of explained variance, in (0, 1] (1.0: off)",
               min=0.0, max=1.0),
     )
@@ -71,8 +71,8 @@ class HierarchicalPropagation(SequenceStage):
     outputs = {"displacements": "displacements", "points": "points"}
     params = (
         Param("stop_progress_px", float, 1e-3, "stop when the input points move less than this between iterations, px",
-              min=0.0),
-        Param("max_iterations", int, 200, "iteration cap per frame", min=1),
+              min=0.0, max=1000.0),
+        Param("max_iterations", int, 200, "iteration cap per frame", min=1, max=100_000),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:

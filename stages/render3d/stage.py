@@ -68,7 +68,7 @@ class HeadPose3D(SequenceStage):
     optional_inputs = frozenset({"performer", "landmarks"})
     outputs = {"head": "head3d"}
     params = (
-        Param("translation_scale", float, 1.0, "multiplies the carried head translation (after the face-size ratio)", min=0.0),
+        Param("translation_scale", float, 1.0, "multiplies the carried head translation (after the face-size ratio)", min=0.0, max=100.0),
         Param("absolute", bool, True, "with 'landmarks': compose the reference frame's own head rotation (the landmarker's "
               "matrix), so the frontal target turns as the performer does, not relative to a turned reference"),
     )

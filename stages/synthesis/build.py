@@ -259,9 +259,9 @@ class BuildSynthesis(SequenceStage):
     outputs = {"model": "synthesis_model"}
     params = (
         Param("band_px", float, 10.0, "full width of the fade-in/fade-out band along subregion boundaries, px (Sec. 7)",
-              min=0.0),
-        Param("anchors_per_side", int, 4, "border anchor points per image side for the triangulation warp", min=1),
-        Param("anchor_margin", float, 0.25, "anchor rectangle outside the image, fraction of the larger side", min=0.0),
+              min=0.0, max=1000.0),
+        Param("anchors_per_side", int, 4, "border anchor points per image side for the triangulation warp", min=1, max=64),
+        Param("anchor_margin", float, 0.25, "anchor rectangle outside the image, fraction of the larger side", min=0.0, max=10.0),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:

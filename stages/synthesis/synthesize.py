@@ -440,14 +440,14 @@ class Synthesize(FrameStage):
     outputs = {"frames": "frames", "mask": "frames", "coeffs": "synthesis_coeffs"}
     params = (
         Param("mode", str, "full", "full: per-subregion synthesis; global: one combination (Pighin); warp-only: neutral warped", MODES),
-        Param("min_coeff", float, 1e-3, "coefficients at or below this are skipped in compositing (then renormalised)"),
+        Param("min_coeff", float, 1e-3, "coefficients at or below this are skipped in compositing (then renormalised)", min=0.0, max=1.0),
         Param("head_motion", bool, True, "carry the performer's 2D head motion (the similarity input) onto the output"),
-        Param("head_motion_scale", float, 1.0, "multiplies the carried head translation (on top of the face-size ratio from 'performer')"),
-        Param("fps", float, 30.0, "frame rate when the points bundle carries none"),
-        Param("detail_power", float, DETAIL_POWER, "band-pass blending: detail band weights are the coefficients to this power, renormalised (1 = plain eq. 6)", min=1.0),
-        Param("detail_sigma_px", float, DETAIL_SIGMA_PX, "band-pass blending: Gaussian sigma separating the detail band, px", min=0.1),
-        Param("flow_max_px", float, FLOW_MAX_PX, "refine the examples' alignment by optical flow (DIS) to the neutral, flow bounded to this many px (0 = off)", min=0.0),
-        Param("ridge_px", float, RIDGE_PX, "coefficient regularisation of the QPs: n_R tau^2 ||c||^2 with tau this many px (0 = plain eq. 2)", min=0.0),
+        Param("head_motion_scale", float, 1.0, "multiplies the carried head translation (on top of the face-size ratio from 'performer')", min=-100.0, max=100.0),
+        Param("fps", float, 30.0, "frame rate when the points bundle carries none", min=1e-3, max=1000.0),
+        Param("detail_power", float, DETAIL_POWER, "band-pass blending: detail band weights are the coefficients to this power, renormalised (1 = plain eq. 6)", min=1.0, max=100.0),
+        Param("detail_sigma_px", float, DETAIL_SIGMA_PX, "band-pass blending: Gaussian sigma separating the detail band, px", min=0.1, max=1000.0),
+        Param("flow_max_px", float, FLOW_MAX_PX, "refine the examples' alignment by optical flow (DIS) to the neutral, flow bounded to this many px (0 = off)", min=0.0, max=1000.0),
+        Param("ridge_px", float, RIDGE_PX, "coefficient regularisation of the QPs: n_R tau^2 ||c||^2 with tau this many px (0 = plain eq. 2)", min=0.0, max=1000.0),
         Param("coherence_frames", float, COHERENCE_FRAMES, "example weights coherent in time: sigma of the bilateral filter over frames "
               "(stages.synthesis.coherence; 0 = each frame's own QP solution)", min=0.0, max=10.0),
         Param("coherence_size", float, COHERENCE_SIZE, "example weights coherent in time: sigma of the filter's geometry term, "

@@ -278,7 +278,7 @@ class WriteExr(FrameStage):
         Param("compression", str, "zip", "lossless EXR compression", choices=COMPRESSIONS),
         Param("zip_level", int, ZIP_LEVEL, "deflate level of zip/zips (zlib: 1 fastest, 9 smallest)",
               min=ZIP_LEVELS.start, max=ZIP_LEVELS.stop - 1),
-        Param("threads", int, 0, "frames written in parallel; 0 = one per CPU core", in_key=False, min=0),
+        Param("threads", int, 0, "frames written in parallel; 0 = one per CPU core", in_key=False, min=0, max=256),
     )
 
     def process(

@@ -86,7 +86,7 @@ class SideBySide(FrameStage):
     outputs = {"frames": "frames"}
     cached = False  # cheaper to recompute than to store and read back (see the module's docstring)
     params = (
-        Param("height", int, 0, "common height in px (rounded down to even); 0 = scale x the result's height", min=0),
+        Param("height", int, 0, "common height in px (rounded down to even); 0 = scale x the result's height", min=0, max=8192),
         Param("scale", float, 0.5, "common height as a fraction of the result's height, when height is 0",
               min=0.05, max=1.0),
     )

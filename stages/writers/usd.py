@@ -175,7 +175,7 @@ class WriteUsd(SequenceStage):
     outputs = {"usd": "files"}
     params = (
         GEOMETRY,
-        Param("fps", float, 30.0, "frame rate when the mesh bundle carries none", min=1e-3),
+        Param("fps", float, 30.0, "frame rate when the mesh bundle carries none", min=1e-3, max=1000.0),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:

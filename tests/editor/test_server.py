@@ -180,3 +180,120 @@ def test_an_allowed_remote_address_is_warned_about(tmp_path):
                             cwd=REPO, capture_output=True, text=True, timeout=60)
     assert "WARNING: binding 0.0.0.0" in result.stderr
     assert result.returncode == 2 and "no pack.yaml" in result.stderr
+
+
+@pytest.mark.parametrize("content", [b"", b"PK\x03\x04 truncated"])
+def test_an_empty_or_truncated_performance_is_one_line_exit_2(tmp_path, content):
+    performance = tmp_path / "data.npz"
+    performance.write_bytes(content)
+    result = subprocess.run([sys.executable, "-m", "editor.cli", "--pack", str(PACK), "--performance", str(performance)],
+                            cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 2, result.stderr
+    assert "Traceback" not in result.stderr
+    assert result.stderr.strip().splitlines()[-1] == (f"expression-editor: {performance}: not a readable .npz "
+                                                      "(File is not a zip file)")
+
+
+# -- bad requests answered as JSON 4xx; exports bounded and built off the event loop -----------
+
+def raw_request(editor, lines: list[bytes], body: bytes = b"") -> tuple[int, bytes]:
+    """(status, body) of a request written byte for byte (urllib refuses non-ASCII headers)."""
+    import socket
+    from urllib.parse import urlsplit
+
+    where = urlsplit(editor.base)
+    with socket.create_connection((where.hostname, where.port), timeout=60) as conn:
+        head = b"\r\n".join([*lines, b"Host: x", b"Connection: close", f"Content-Length: {len(body)}".encode(), b"", b""])
+        conn.sendall(head + body)
+        answer = b""
+        while chunk := conn.recv(65536):
+            answer += chunk
+    status = int(answer.split(b" ", 2)[1])
+    return status, answer.partition(b"\r\n\r\n")[2]
+
+
+def test_a_token_header_that_is_not_utf8_is_refused_as_json(editor_server):
+    status, body = raw_request(editor_server, [b"GET /api/describe HTTP/1.1", TOKEN_HEADER.encode() + b": \xff\xfe"])
+    assert status == 403 and json.loads(body) == {"error": "missing or wrong token"}
+
+
+def test_a_huge_integer_coordinate_is_a_400(editor_server):
+    status, _, answer = call(editor_server, "/api/render", render_body([[40, 10 ** 400, 3.0]]))
+    assert status == 400 and "expected a finite number" in json.loads(answer)["error"]
+
+
+def test_a_body_nested_too_deep_is_a_400(editor_server):
+    raw = b"[" * 100_000 + b"]" * 100_000
+    status, _, answer = call(editor_server, "/api/render", raw=raw)
+    assert status == 400 and json.loads(answer) == {"error": "the JSON body is nested too deeply"}
+
+
+def test_an_export_beyond_the_frame_bound_is_refused(editor_server):
+    neutral = load_pack(PACK).neutral.points.tolist()
+    keys = [{"time_s": 0.0, "points": neutral}, {"time_s": 600.0, "points": neutral}]
+    status, _, answer = call(editor_server, "/api/export", {"fps": 240, "keyframes": keys})
+    assert status == 400 and "144001 frames" in json.loads(answer)["error"] and "at most 36000" in json.loads(answer)["error"]
+
+
+def test_exports_are_built_off_the_event_loop_one_at_a_time(monkeypatch):
+    """In-process, with a stand-in engine: the export is built on another thread than the
+    event loop's, and two requests at once are built one after the other."""
+    import asyncio
+    import threading
+    import types
+
+    from aiohttp.test_utils import TestClient, TestServer
+
+    from editor import server
+
+    engine = types.SimpleNamespace(pca=types.SimpleNamespace(n_points=3), size=(40, 30),
+                                   layout=types.SimpleNamespace(point_names=("a", "b", "c")))
+    built, busy = [], []
+    real = server.points_file_bytes
+
+    def spy(*args, **kwargs):
+        busy.append(1)
+        built.append((threading.current_thread(), len(busy)))
+        threading.Event().wait(0.05)
+        busy.pop()
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(server, "points_file_bytes", spy)
+    body = {"fps": 10, "keyframes": [{"time_s": 0.0, "points": [[1, 2], [3, 4], [5, 6]]},
+                                     {"time_s": 2.0, "points": [[2, 2], [3, 5], [5, 7]]}]}
+
+    async def exercise():
+        client = TestClient(TestServer(server.make_app(engine, token="t" * 16, processes=0)))
+        await client.start_server()
+        try:
+            answers = await asyncio.gather(*[client.post("/api/export", json=body, headers={TOKEN_HEADER: "t" * 16})
+                                             for _ in range(2)])
+            assert [a.status for a in answers] == [200, 200]
+            return threading.current_thread()
+        finally:
+            await client.close()
+
+    threads = []  # the event loop's thread: one of its own (the session may run a loop on this one)
+    runner = threading.Thread(target=lambda: threads.append(asyncio.run(exercise())))
+    runner.start()
+    runner.join()
+    loop_thread, = threads
+    assert len(built) == 2 and all(thread is not loop_thread for thread, _ in built)
+    assert [at_once for _, at_once in built] == [1, 1]
+
+
+def test_the_editor_started_in_the_background_stops_on_sigint():
+    """A script's background job starts with SIGINT ignored (here: `trap "" INT`, then exec);
+    the editor honours it anyway: exit 130."""
+    import signal
+
+    command = ["bash", "-c", 'trap "" INT; exec "$0" "$@"', sys.executable, "-m", "editor.cli", "--pack", str(PACK)]
+    process = subprocess.Popen(command, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        while "?token=" not in (line := process.stdout.readline()):
+            assert line, "the editor ended before serving"
+        process.send_signal(signal.SIGINT)
+        assert process.wait(timeout=30) == 130
+    finally:
+        process.kill()
+        process.wait()

@@ -35,6 +35,7 @@ ENTRY_POINTS = {
     "write.video": "stages.video:WriteVideo",
     "test.add": "tests.runner.helpers:AddFrames",
     "test.mean": "tests.runner.helpers:MeanSeries",
+    "test.warn_mean": "tests.runner.helpers:WarningMeanSeries",
     "test.table": "tests.runner.helpers:SeriesTable",
     "test.slow_write": "tests.runner.helpers:SlowWriteVideo",
     "test.every_other": "tests.runner.helpers:EveryOtherFrame",
@@ -117,6 +118,18 @@ class MeanSeries(SequenceStage):
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         means = [chunk.reshape(len(chunk), -1).mean(axis=1) for _, chunk in inputs["frames"].chunks()]
         return {"series": {"mean": np.concatenate(means)}}
+
+
+class WarningMeanSeries(MeanSeries):
+    """``test.mean`` that also warns: one line of its own through ``ctx.log`` (as a stage
+    warns of a poor reference frame), and a numpy ``RuntimeWarning`` (a float32 overflow)."""
+
+    name = "test.warn_mean"
+
+    def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
+        ctx.log.warning("warning: test.warn_mean: the series is made of test frames")
+        np.float32(3e38) * np.float32(10)
+        return super().run(inputs, params, ctx)
 
 
 class SeriesTable(SequenceStage):

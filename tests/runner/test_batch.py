@@ -292,6 +292,32 @@ def test_batch_killed_at_an_observed_event_resumes(site, cluster, alone, tmp_pat
     assert before and not before & ran(read_log(resumed_log))
 
 
+def test_batch_terminated_exits_130_with_its_batch_end_and_resumes(site, cluster, alone, tmp_path):
+    """SIGTERM to `runner batch` is an interrupt, as for `runner run` and as SIGINT: exit 130,
+    one line, a `batch_end` event; the next batch resumes to the same bytes."""
+    path = _manifest(tmp_path, TWO_JOBS)
+    log = tmp_path / "terminated.jsonl"
+    proc = subprocess.Popen(runner_cmd("batch", path, "--address", cluster, "--log-json", log),
+                            env=_env(site, tmp_path), cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True)
+    try:
+        deadline = time.monotonic() + 90
+        while not (log.exists() and any(e.get("event") == "chunk" and e["stage"] == "add" for e in read_log(log))):
+            assert proc.poll() is None and time.monotonic() < deadline, "the signal point was not reached"
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert proc.returncode == 130 and stderr.strip() == "interrupted", stderr  # no native stack dump
+    assert read_log(log)[-1] == {**read_log(log)[-1], "event": "batch_end", "status": "interrupted", "exit_code": 130}
+    done = run_cli("batch", path, "--address", cluster, env=_env(site, tmp_path), cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    for name in TWO_JOBS:
+        assert tree_bytes(tmp_path / "out" / name) == alone[name]
+
+
 def test_dead_worker_is_retried_and_a_failing_job_is_reported(site, tmp_path):
     """On a local Ray started by the command (no --address), shut down at the end."""
     pipeline = tmp_path / "crash.yaml"

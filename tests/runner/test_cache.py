@@ -148,3 +148,70 @@ def test_tree_digest_depends_on_names_and_bytes_only(tmp_path):
     (tmp_path / "a" / "x.txt").write_text("1")
     (tmp_path / "a" / "x.txt").rename(tmp_path / "a" / "y.txt")
     assert tree_digest(tmp_path) != first
+
+
+LEASE = 0.4  # s: short leases for the tests below
+
+
+def _other_host_lock(store: CacheStore, key: str, *, wall_clock: float) -> Path:
+    """A lock of a process on another host (a cluster node), stamped by a clock of its own."""
+    store.locks_dir.mkdir(parents=True, exist_ok=True)
+    lock = store.locks_dir / f"{key}.lock"
+    lock.write_text(json.dumps({"pid": os.getpid(), "host": "other-node", "started": 1, "time": wall_clock}))
+    return lock
+
+
+def _take(store: CacheStore, key: str, taken: list[float]) -> threading.Thread:
+    def take():
+        with store.locked(key):
+            taken.append(time.monotonic())
+
+    thread = threading.Thread(target=take, daemon=True)
+    thread.start()
+    return thread
+
+
+@pytest.mark.parametrize("clock_offset_s", [0.0, -86400.0, 86400.0])
+def test_a_lock_of_another_host_is_broken_once_its_heartbeat_stops(tmp_path, clock_offset_s):
+    """Another host's lock cannot be judged by its PID: while its file changes (the holder's
+    heartbeat) it is waited for, and once it stayed unchanged for a lease it is broken (its host
+    was killed), whatever that host's clock wrote in it: a day behind or ahead."""
+    store = CacheStore(tmp_path, lease_s=LEASE)
+    lock = _other_host_lock(store, "c" * 64, wall_clock=time.time() + clock_offset_s)
+    taken: list[float] = []
+    beating = time.monotonic() + 3 * LEASE
+    thread = _take(store, "c" * 64, taken)
+    while time.monotonic() < beating:  # the holder's heartbeat: the waiter keeps waiting
+        time.sleep(LEASE / 8)
+        assert not taken
+        os.utime(lock)
+        stopped = time.monotonic()
+    thread.join(timeout=20)
+    assert taken and LEASE <= taken[0] - stopped, "broken before a whole lease without a heartbeat"
+    assert not lock.exists()
+
+
+def test_a_held_lock_keeps_its_heartbeat(tmp_path):
+    """A process holding a lock for several leases refreshes it: another process's waiter (a
+    store with the same short lease) does not break it."""
+    holder, waiter = CacheStore(tmp_path, lease_s=LEASE), CacheStore(tmp_path, lease_s=LEASE)
+    events = []
+    holding = threading.Event()
+
+    def hold():
+        with holder.locked("d" * 64):
+            holding.set()
+            time.sleep(4 * LEASE)
+            events.append("released")
+
+    first = threading.Thread(target=hold)
+    first.start()
+    holding.wait(10)
+    lock = tmp_path / "locks" / f"{'d' * 64}.lock"
+    record = json.loads(lock.read_text())
+    lock.write_text(json.dumps({**record, "host": "other-node"}))  # judged by its heartbeat only
+    taken: list[float] = []
+    second = _take(waiter, "d" * 64, taken)
+    first.join()
+    second.join(timeout=20)
+    assert events == ["released"] and taken

@@ -6,6 +6,8 @@ import contextlib
 import importlib.metadata
 import io
 import json
+import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -17,7 +19,8 @@ import pytest
 from runner.cache import CacheStore
 from runner.cli import main
 from stages.video import VideoDecode, to_gray
-from tests.runner.helpers import DATA, TINY, chunk_status, read_log, run_cli, stage_status, tree_bytes
+from tests.runner.helpers import (DATA, REPO, TINY, chunk_status, read_log, run_cli, runner_cmd, stage_status,
+                                  tree_bytes)
 
 GRAPH = DATA / "graph.yaml"
 CHAIN = DATA / "chain.yaml"
@@ -219,3 +222,64 @@ def test_exit_now_waits_for_threads_and_flushes(tmp_path):
                           cwd=Path(__file__).resolve().parents[2])
     assert (done.returncode, done.stdout) == (3, "partial")
     assert marker.read_text() == "done"
+
+
+def test_empty_npz_in_a_pack_is_a_stage_failure_not_an_interrupt(tmp_path):
+    """A zero-byte ``captured.npz``: one line naming the stage and the file, exit 1 (its
+    EOFError is no interrupt, whatever click makes of it)."""
+    pack = tmp_path / "pack"
+    shutil.copytree(REPO / "fixtures" / "packs" / "target", pack)
+    (pack / "captured.npz").write_bytes(b"")
+    pipeline = tmp_path / "p.yaml"
+    pipeline.write_text("inputs: {pack: {type: dir}}\nstages:\n  load: {uses: pack.load, inputs: {pack: pack}}\n")
+    env = {**{k: v for k, v in os.environ.items() if not k.startswith("RUNNER_")}, "PYTHONPATH": str(REPO)}
+    done = subprocess.run(runner_cmd("run", pipeline, "--input", f"pack={pack}", "--cache-dir", tmp_path / "cache",
+                                     "--out", tmp_path / "out"), env=env, cwd=tmp_path, capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 1, done.stderr
+    assert done.stderr.count("\n") == 1 and done.stderr.startswith("error: stage 'load' (pack.load): actor pack ")
+    assert f"{pack / 'captured.npz'}: field 'captured'" in done.stderr and "not a readable .npz" in done.stderr
+
+
+def test_an_eof_error_of_a_stage_is_not_reported_as_an_interrupt(tmp_path, monkeypatch):
+    from runner import execute
+
+    def eof(self):
+        raise EOFError("Ran out of input")
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(execute.Runner, "run", eof)
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), pytest.raises(EOFError):
+        main(["run", str(CHAIN), "--cache-dir", str(tmp_path / "cache")])
+    assert "interrupted" not in err.getvalue()
+
+
+WARNED = """inputs: {clip: {type: video}}
+chunk_frames: 8
+stages:
+  decode: {uses: video.decode, inputs: {video: clip}}
+  mean: {uses: test.warn_mean, inputs: {frames: decode.frames}}
+  table: {uses: test.table, inputs: {series: mean.series}}
+  video: {uses: write.video, params: {crf: 20}, inputs: {frames: decode.frames}}
+"""  # `mean` reads a source's frames while `video` computes: it runs in a child process (runner.offload)
+
+
+def test_warnings_are_one_line_each_once_and_given_again_by_a_cached_run(env, tmp_path):
+    """A stage's own warning and a numpy RuntimeWarning of its computation: one line each on
+    stderr (the stage ran in a child process and was then looked up by the run: still once),
+    and a fully cached rerun says them again (recorded with the entry)."""
+    pipeline = tmp_path / "warned.yaml"
+    pipeline.write_text(WARNED)
+    expected = ["warning: test.warn_mean: the series is made of test frames",
+                "warning: overflow encountered in scalar multiply (RuntimeWarning, runner/helpers.py:"]
+    for run in ("first", "cached"):
+        done = run_cli("run", pipeline, "--in", TINY, "--out", tmp_path / "out", "--log-json", tmp_path / f"{run}.jsonl",
+                       env=env, cwd=tmp_path)
+        assert done.returncode == 0, done.stderr
+        lines = done.stderr.splitlines()
+        assert len(lines) == 2 and lines[0] == expected[0] and lines[1].startswith(expected[1]), done.stderr
+        assert lines[1].endswith(")") and "RuntimeWarning:" not in done.stderr
+        events = read_log(tmp_path / f"{run}.jsonl")
+        assert stage_status(events)["mean"] == ("ran" if run == "first" else "cached")
+        assert [e["stage"] for e in events if e["event"] == "offload"] == (["mean"] if run == "first" else [])

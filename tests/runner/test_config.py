@@ -159,15 +159,21 @@ def test_cycle(tmp_path):
 
 
 def test_duplicate_names(tmp_path):
+    """A key given twice is refused by the YAML reader (runner.safe_yaml) at the second one; a
+    stage named like a pipeline input by the loader."""
     found = issues(tmp_path, """
         inputs: {clip: {type: video}}
         stages:
           src: {uses: t.source, inputs: {video: clip}}
           src: {uses: t.source, inputs: {video: clip}}
+        """)
+    assert found == ["4:3: yaml: duplicate key 'src' (first at line 3, column 3)"]
+    found = issues(tmp_path, """
+        inputs: {clip: {type: video}}
+        stages:
           clip: {uses: t.source, inputs: {video: clip}}
         """)
-    assert found == ["4:3: stages.src: duplicate name",
-                     "5:3: stages.clip: duplicate name: 'clip' is also a pipeline input"]
+    assert found == ["3:3: stages.clip: duplicate name: 'clip' is also a pipeline input"]
 
 
 def test_unknown_keys_and_yaml_syntax(tmp_path):

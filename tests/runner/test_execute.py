@@ -4,6 +4,7 @@ chunks, --jobs, and stage errors, against numpy ground truth."""
 from __future__ import annotations
 
 import textwrap
+import time
 from pathlib import Path
 
 import numpy as np
@@ -164,3 +165,41 @@ def test_a_stage_that_names_itself_is_named_once(own_prefix):
     node = StageNode("ramp", "t.ramp", Ramp, {}, {}, Where("graph.yaml", 3, 3))
     failed = StageFailed(node, StageError(f"{own_prefix}no face in clip.mp4"))
     assert str(failed) == "stage 'ramp' (t.ramp): no face in clip.mp4"
+
+
+class SlowRamp(Ramp):
+    """:class:`Ramp` taking ``SLOW_S`` seconds a chunk (sleeping: the GIL is free)."""
+
+    name = "t.slow_ramp"
+
+    def process(self, start, stop, inputs, params, ctx):
+        time.sleep(SLOW_S)
+        return super().process(start, stop, inputs, params, ctx)
+
+
+class Sums(SequenceStage):
+    name, version = "t.sums", "1"
+    inputs = {"frames": "frames"}
+    outputs = {"sums": "sums"}
+
+    def run(self, inputs, params, ctx):
+        return {"sums": {"sum": np.array([int(chunk.sum()) for _, chunk in inputs["frames"].chunks()])}}
+
+
+SLOW_S = 0.1
+
+
+def test_stage_seconds_count_computing_not_waiting(tmp_path):
+    """A stream of 6 chunks computed by two producer threads while `sums` reads it: `ramp`'s
+    seconds are the wall time it computed (not the sum over both threads, twice that), and
+    `sums` reports its own work, not the time it waited for the producers: no stage's seconds
+    exceed the run's."""
+    path = tmp_path / "p.yaml"
+    path.write_text("chunk_frames: 4\nstages:\n  ramp: {uses: t.slow_ramp}\n  sums: {uses: t.sums, inputs: {frames: ramp.frames}}\n")
+    pipeline = load_pipeline(path, Registry(classes=[SlowRamp, Sums]))
+    started = time.perf_counter()
+    reports = {r.stage: r for r in Runner(pipeline, {}, Options(cache=CacheStore(tmp_path / "cache"), producers=2)).run()}
+    wall = time.perf_counter() - started
+    assert reports["ramp"].status == reports["sums"].status == "ran"
+    assert all(report.seconds <= wall for report in reports.values()), (reports, wall)
+    assert reports["sums"].seconds < SLOW_S  # less than one chunk's computing: it only waited for them

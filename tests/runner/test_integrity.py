@@ -8,16 +8,20 @@ from __future__ import annotations
 import errno
 import hashlib
 import json
+import os
+import shutil
+import socket
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from runner import depends, digest, outputs
+from runner import depends, digest, outputs, publish
 from runner.cache import CacheStore
 from runner.cli import cli
 from runner.config import ConfigError, bind_inputs, load_pipeline
@@ -63,10 +67,12 @@ class Table(SequenceStage):
     name, version = "i.table", "1"
     inputs = {"sums": "sums"}
     outputs = {"table": "files"}
-    params = (Param("note", str, "", "ignored"),)
+    params = (Param("note", str, "", "ignored"), Param("enabled", bool, True, "False: writes no file"))
 
     def run(self, inputs, params, ctx):
-        (ctx.files_dir("table") / "sums.json").write_text(json.dumps(inputs["sums"]["sum"].tolist()))
+        folder = ctx.files_dir("table")
+        if params["enabled"]:
+            (folder / "sums.json").write_text(json.dumps(inputs["sums"]["sum"].tolist()))
         return {"table": None}
 
 
@@ -216,18 +222,42 @@ def test_damaged_cached_file_is_not_published(tmp_path):
     assert len(recorder.warnings) == 1 and "'table'" in recorder.warnings[0]
 
 
-def test_published_files_share_the_entry_bytes_and_a_rewrite_is_caught(tmp_path):
-    """Publishing hard-links the entry's file (its bytes stored once); a published file rewritten
-    in place changes the entry too, which its sha256 catches: recomputed and published again."""
+def test_published_files_share_no_bytes_with_the_cache(tmp_path):
+    """A published file is a file of its own: damaging the cache entry leaves the published
+    output intact (and the entry is caught and recomputed when next read), and rewriting the
+    published file in place leaves the entry intact."""
     run(tmp_path)
     cached = entry_files(tmp_path, "table", "sums.json")[0]
     published = tmp_path / "out" / "table" / "sums.json"
-    assert published.stat().st_ino == cached.stat().st_ino
-    published.write_text("[0]")
+    assert published.stat().st_ino != cached.stat().st_ino
+    original = cached.read_bytes()
+    with open(cached, "r+b") as f:  # a byte flipped in the entry
+        f.write(b"{")
+    assert published.read_bytes() == original
+    cached.write_bytes(original)
+    published.write_text("[0]")  # a tool rewriting the output in place
+    assert cached.read_bytes() == original
+
+
+def test_published_file_damaged_in_place_is_published_again(tmp_path):
+    """A byte of a published file flipped in place (same size, new mtime): a rerun into the same
+    --out, all cached, publishes it again from the (intact) entry."""
+    run(tmp_path)
+    published = tmp_path / "out" / "table" / "sums.json"
+    time.sleep(0.05)  # past the filesystem's timestamp granularity: the write gets a new mtime
+    with open(published, "r+b") as f:
+        f.write(b"{")
     recorder = Recorder()
     run(tmp_path, recorder=recorder)
-    assert published_sums(tmp_path) == EXPECTED
-    assert len(recorder.warnings) == 1 and "'table'" in recorder.warnings[0]
+    assert set(statuses(recorder).values()) == {"cached"}
+    assert published_sums(tmp_path) == EXPECTED and recorder.warnings == []
+
+
+def test_stage_publishing_no_file_publishes_an_empty_folder(tmp_path):
+    run(tmp_path, overrides=["table.enabled=false"])
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["table"]
+    assert [p.name for p in (tmp_path / "out" / "table").iterdir()] == ["manifest.json"]
+    assert json.loads((tmp_path / "out" / "table" / "manifest.json").read_text())["files"] == []
 
 
 def test_publishing_hashes_a_file_only_when_its_stat_changed(tmp_path, monkeypatch):
@@ -305,18 +335,40 @@ def _dead_pid() -> int:
 
 
 def test_leftovers_of_a_killed_publish_are_removed(tmp_path):
+    """What a killed publish leaves (its marked temporary and replaced folders, or a replaced
+    folder renamed away before its marker was written) is removed by the next run and by
+    `runner cache gc --out`."""
     out = tmp_path / "out"
     run(tmp_path)
     pid = _dead_pid()
+    marker = json.dumps({"tool": publish.TOOL, "stage": "table", "pid": pid, "host": socket.gethostname()})
     for name in (f".table.{pid}.old", f".table.{pid}.tmp"):
         (out / name).mkdir()
         (out / name / "sums.json").write_text("[]")
+        (out / name / publish.MARKER).write_text(marker)
     run(tmp_path)
     assert sorted(p.name for p in out.iterdir()) == ["table"]
-    (out / f".table.{pid}.old").mkdir()
+    shutil.copytree(out / "table", out / f".table.{pid}.old")  # renamed away, not marked yet
     done = CliRunner().invoke(cli, ["cache", "gc", "--cache-dir", str(tmp_path / "cache"), "--out", str(out)])
     assert done.exit_code == 0 and "1 leftover output folders" in done.output
     assert sorted(p.name for p in out.iterdir()) == ["table"]
+
+
+def test_user_folders_named_like_leftovers_are_kept(tmp_path):
+    """Hidden folders named ``.<name>.<digits>.old`` / ``.tmp`` that no publish of this tool
+    wrote (no marker, no manifest of the stage) are a user's: a run and `cache gc` keep them."""
+    out = tmp_path / "out"
+    pid = _dead_pid()
+    mine = {".backup.2023.old": "thesis.txt", f".table.{pid}.tmp": "draft.json", f".table.{pid}.old": "notes.txt"}
+    for folder, name in mine.items():
+        (out / folder).mkdir(parents=True)
+        (out / folder / name).write_text("mine")
+    (out / f".table.{pid}.old" / publish.MARKER).write_text(json.dumps({"tool": "another tool", "pid": pid}))
+    run(tmp_path)
+    done = CliRunner().invoke(cli, ["cache", "gc", "--cache-dir", str(tmp_path / "cache"), "--out", str(out)])
+    assert done.exit_code == 0 and "0 leftover output folders" in done.output
+    for folder, name in mine.items():
+        assert (out / folder / name).read_text() == "mine"
 
 
 # -- failures -----------------------------------------------------------------------------
@@ -330,3 +382,38 @@ def test_disk_full_names_the_stage_and_the_file(tmp_path, monkeypatch):
         run(tmp_path)
     message = str(info.value)
     assert "'sums'" in message and "sums.npz" in message and "No space left on device" in message
+
+
+def test_out_that_cannot_be_written_is_refused_before_anything_runs(tmp_path):
+    (tmp_path / "a-file").write_text("not a folder")
+    with pytest.raises(ConfigError) as info:
+        run(tmp_path, out=tmp_path / "a-file" / "out")
+    assert "--out" in str(info.value) and "cannot write there" in str(info.value)
+    assert list(CacheStore(tmp_path / "cache").iter_entries()) == []
+
+
+def test_disk_full_while_publishing_names_the_destination_and_cleans_up(tmp_path, monkeypatch):
+    """A full --out disk while a file is copied (shutil names the source of a failed copy):
+    the error names the file written under --out, and no temporary folder is left there."""
+    real = os.sendfile
+
+    def full(out_fd, in_fd, offset, count):
+        real(out_fd, in_fd, offset, min(count, 3))
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    class CrossDevice:  # the cache and --out on two filesystems: no hard link between them
+        def __getattr__(self, name):
+            return getattr(os, name)
+
+        @staticmethod
+        def link(*args, **kwargs):
+            raise OSError(errno.EXDEV, "Invalid cross-device link")
+
+    monkeypatch.setattr(os, "sendfile", full)
+    monkeypatch.setattr(outputs, "os", CrossDevice())
+    with pytest.raises(StageFailed) as info:
+        run(tmp_path)
+    message = str(info.value)
+    assert "'table'" in message and "No space left on device" in message
+    assert f"{tmp_path / 'out'}/" in message and str(tmp_path / "cache") not in message
+    assert list((tmp_path / "out").iterdir()) == []

@@ -13,6 +13,7 @@ from runner.depends import recording
 from runner.stage import StageError
 from stages.actor_pack import PackError, load_pack
 from stages.layout import LAYOUT_DIR, load_layout
+from tests.stages.image_files import big_png
 
 REPO = Path(__file__).resolve().parents[2]
 W, H = 40, 30
@@ -157,3 +158,91 @@ def test_yaml_aliases_in_a_manifest_are_refused_with_their_position(pack_dir):
     manifest.write_text("a: &a [1, 1, 1]\nb: [*a, *a]\n" + manifest.read_text())
     with pytest.raises(PackError, match=f"{manifest}:2:5: not valid YAML \\(alias \\*a is not allowed"):
         load_pack(root)
+
+
+# -- bounds checked before anything large is read -------------------------------------------
+
+def test_an_image_larger_than_its_manifest_says_is_refused_undecoded(pack_dir, monkeypatch):
+    pack_dir = pack_dir[0]
+    """A 12000x12000 PNG as the neutral image: refused from its header, never decoded."""
+    big_png(pack_dir / "images" / "neutral.png", 12000, 12000)
+    decoded = []
+    real = cv2.imread
+    monkeypatch.setattr(cv2, "imread", lambda path, *args: decoded.append(Path(path).name) or real(path, *args))
+    with pytest.raises(PackError) as info:
+        load_pack(pack_dir)
+    assert "neutral.image" in str(info.value) and "12000x12000" in str(info.value)
+    assert "neutral.png" not in decoded
+
+
+def test_image_size_beyond_the_pack_limit_is_refused(pack_dir):
+    pack_dir = pack_dir[0]
+    _replace(pack_dir / "pack.yaml", f"image_size: [{W}, {H}]", "image_size: [20000, 20000]")
+    with pytest.raises(PackError, match=r"field 'image_size': 20000x20000 is more than the 16777216 pixels"):
+        load_pack(pack_dir)
+
+
+def test_captured_geometries_beyond_the_bound_are_refused_from_the_header(pack_dir):
+    pack_dir = pack_dir[0]
+    """An npz whose header declares a million geometries (its data truncated: nothing past the
+    header is read) and a real one of 300: both refused naming the file and the count."""
+    n = load_layout("zhang134").n_points
+    np.savez(pack_dir / "captured.npz", points=np.zeros((300, n, 2)))
+    with pytest.raises(PackError, match=r"captured\.npz: field 'captured': .*array 'points' has shape \(300, 134, 2\)"):
+        load_pack(pack_dir)
+    import io
+    import zipfile
+
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": "<f8", "fortran_order": False, "shape": (1_000_000, n, 2)})
+    with zipfile.ZipFile(pack_dir / "captured.npz", "w") as archive:
+        archive.writestr("points.npy", header.getvalue() + b"\0" * 64)
+    with pytest.raises(PackError, match=r"shape \(1000000, 134, 2\): 268000000 values, more than the 68608 allowed"):
+        load_pack(pack_dir)
+
+
+@pytest.mark.parametrize("content", [b"", b"PK\x03\x04 truncated"])
+def test_empty_or_truncated_npz_is_a_pack_error(pack_dir, content):
+    pack_dir = pack_dir[0]
+    (pack_dir / "captured.npz").write_bytes(content)
+    with pytest.raises(PackError, match=r"captured\.npz: field 'captured': .*not a readable \.npz"):
+        load_pack(pack_dir)
+
+
+def test_too_many_examples_are_refused(pack_dir):
+    pack_dir = pack_dir[0]
+    example = "{name: ex0, image: images/ex0.png, points: points/ex0.csv}"
+    many = ", ".join(example.replace("name: ex0", f"name: e{k}") for k in range(65))
+    _replace(pack_dir / "pack.yaml", "examples: [", f"examples: [{many}, ")
+    with pytest.raises(PackError, match=r"field 'examples': expected a list of 2 to 64 expressions, 67 given"):
+        load_pack(pack_dir)
+
+
+def test_examples_sharing_a_name_are_refused_by_the_loader(pack_dir):
+    pack_dir = pack_dir[0]
+    _replace(pack_dir / "pack.yaml", "{name: ex1,", "{name: ex0,")
+    with pytest.raises(PackError, match=r"pack\.yaml: field 'examples': name 'ex0' is given to two examples"):
+        load_pack(pack_dir)
+
+
+@pytest.mark.parametrize("where", ["points/ex1.csv", "captured.npz"])
+def test_points_that_all_coincide_are_refused_naming_the_pack(pack_dir, where):
+    pack_dir = pack_dir[0]
+    layout = load_layout("zhang134")
+    if where.endswith(".csv"):
+        _write_points(pack_dir / where, layout.point_names, np.full((layout.n_points, 2), 10.0))
+    else:
+        captured = np.load(pack_dir / where)["points"]
+        captured[1] = 12.0
+        np.savez(pack_dir / where, points=captured)
+    with pytest.raises(PackError) as info:
+        load_pack(pack_dir)
+    assert f"{pack_dir / where}" in str(info.value) and "points all coincide" in str(info.value)
+
+
+def test_image_size_of_booleans_is_refused(pack_dir):
+    """YAML's `true` is no size (Python's True is an int: it would read as "TruexTrue")."""
+    pack_dir = pack_dir[0]
+    _replace(pack_dir / "pack.yaml", f"image_size: [{W}, {H}]", "image_size: [true, true]")
+    with pytest.raises(PackError, match=r"field 'image_size': expected \[W, H\] positive integers, got \[True, True\]"):
+        load_pack(pack_dir)

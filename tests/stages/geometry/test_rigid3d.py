@@ -219,3 +219,31 @@ def test_stage_takes_displacements_from_the_reference_with_closed_lips(close_lip
     eye = expression_signals(xy, names)["eye_distance_px"][0]
     opening = expression_signals(out["neutral"][None], names)["mouth_open"][0] * eye
     assert opening == pytest.approx(0.0 if close_lips else 12.0, abs=1e-6)
+
+
+@pytest.mark.parametrize("neutral_frame, advice", [
+    (5, "the reference frame 5 set by neutral_frame is not a frontal neutral face (head turned 15.0 deg, expressiveness "
+        "0.00); neutral_frame=-1 estimates the neutral from the whole clip"),
+    (-1, "the most frontal frame of the clip, 0, is turned 15.0 deg: displacements are measured in a turned head frame")])
+def test_the_reference_warning_advises_what_was_not_done(caplog, neutral_frame, advice):
+    """Frame 5 is turned 15 degrees (more than warn_angle_deg): named by the user, the warning
+    does not tell them to set neutral_frame but that the estimate exists; with the neutral
+    estimated (every frame turned alike), it says the head frame is turned and advises nothing
+    that was done."""
+    import logging
+
+    from runner.stage import Context
+    from stages.geometry.rigid3d import CompensateRigid3D
+
+    points, marks, _, _ = _bundles()
+    marks["matrix"][5, :3, :3] = Rotation.from_euler("Y", 15, degrees=True).as_matrix()  # as the points turn
+    stage = CompensateRigid3D()
+    params = {p.name: p.default for p in stage.params} | {"neutral_frame": neutral_frame, "close_lips": False}
+    if neutral_frame < 0:
+        for key in ("valid", "blendshapes", "matrix"):
+            marks[key] = marks[key][5:]
+        points = {k: (v[5:] if k != "names" else v) for k, v in points.items()}
+    with caplog.at_level(logging.WARNING):
+        stage.run({"points": points, "landmarks": marks}, params, Context(device="cpu", files_dir=None))
+    warned = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING and "turned 15.0 deg" in r.getMessage()]
+    assert len(warned) == 1 and warned[0].endswith(advice) and "set neutral_frame=N" not in warned[0]

@@ -180,3 +180,50 @@ def test_the_majority_names_the_minority():
     distance, differs = majority_outliers(signatures, threshold=0.03)
     assert differs.tolist() == [False] * 3 + [True] + [False] * 4 + [True, False]
     assert np.isnan(distance[-1])
+
+
+def test_a_photo_beyond_the_pixel_limit_is_skipped_undecoded(tmp_path, caplog, monkeypatch):
+    """A 12000x12000 PNG (144 MP, a few kB) among two photos: skipped from its header with one
+    warning line saying its size, never decoded; the others are the frames."""
+    import cv2
+
+    from tests.stages.image_files import big_png
+
+    save(tmp_path / "a.png", asymmetric_image())
+    big_png(tmp_path / "b.png", 12000, 12000)
+    save(tmp_path / "c.png", asymmetric_image())
+    decoded = []
+    real = cv2.imdecode
+    monkeypatch.setattr(cv2, "imdecode", lambda data, flags: decoded.append(data.size) or real(data, flags))
+    with caplog.at_level(logging.WARNING):
+        info = PhotosDecode().stream_info({"photos": tmp_path}, {"max_side": 1920})
+    assert (info.frames, info.width, info.height) == (2, 60, 40)
+    assert len(decoded) == 2 and (tmp_path / "b.png").stat().st_size not in decoded
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and "1 image files of more than 100000000 px skipped undecoded: b.png (12000x12000 px)" in warnings[0]
+
+
+def test_skipped_photos_are_counted_and_the_first_five_named(tmp_path, caplog):
+    save(tmp_path / "a.png", asymmetric_image())
+    for k in range(40):
+        (tmp_path / f"broken{k:02d}.jpg").write_bytes(b"not a jpeg")
+    with caplog.at_level(logging.WARNING):
+        PhotosDecode().stream_info({"photos": tmp_path}, {"max_side": 1920})
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and warnings[0].endswith(
+        "40 unreadable image files skipped: broken00.jpg, broken01.jpg, broken02.jpg, broken03.jpg, broken04.jpg "
+        "and 35 more")
+
+
+def test_a_damaged_png_is_skipped_without_libpng_printing(tmp_path, capfd):
+    """A PNG whose data chunk is damaged: skipped as unreadable, found by its chunks' check
+    before OpenCV decodes it (libpng prints its own `libpng error:` line on stderr)."""
+    import cv2
+
+    save(tmp_path / "a.png", asymmetric_image())
+    data = bytearray(cv2.imencode(".png", asymmetric_image())[1].tobytes())
+    data[60:70] = bytes(10)  # inside IDAT
+    (tmp_path / "b.png").write_bytes(bytes(data))
+    photos = scan_photos(tmp_path, max_side=1920)
+    assert [p.name for p in photos.paths] == ["a.png"] and [p.name for p in photos.unreadable] == ["b.png"]
+    assert "libpng" not in capfd.readouterr().err

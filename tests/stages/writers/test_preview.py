@@ -69,7 +69,7 @@ def test_default_is_half_the_result_height_and_height_wins_over_scale(tmp_path: 
 def test_negative_height_is_refused_by_the_declaration():
     """The range is declared on the parameter, so the pipeline loader refuses it (exit 2)."""
     height = next(p for p in SideBySide.params if p.name == "height")
-    assert height.problem(-2) == "out of range: expected 0 <= height, got -2"
+    assert height.problem(-2) == "out of range: expected 0 <= height <= 8192, got -2"
     assert height.problem(0) is None
 
 

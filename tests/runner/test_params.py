@@ -1,0 +1,47 @@
+"""Every numeric parameter of every registered stage has a closed range, so that a value that
+would allocate without bound (a 20000x20000 pack image, a kernel 1e308 wide) is refused when
+the graph is loaded, exit 2, before anything runs."""
+
+from __future__ import annotations
+
+import pytest
+
+from runner.config import ConfigError, load_pipeline
+from runner.registry import Registry
+from tests.runner.helpers import REPO, run_cli
+
+REGISTRY = Registry.from_entry_points()
+
+
+def numeric_params():
+    for name in REGISTRY.names():
+        for param in REGISTRY.get(name).params:
+            if param.type in (int, float) and not param.choices:
+                yield name, param
+
+
+def test_every_numeric_parameter_has_a_minimum_and_a_maximum():
+    params = list(numeric_params())
+    assert len(params) > 80  # the registry was read
+    unbounded = [f"{stage}.{p.name}" for stage, p in params if p.min is None or p.max is None]
+    assert unbounded == []
+    assert all(p.min <= p.default <= p.max for _, p in params)
+
+
+@pytest.mark.parametrize("pipeline, override, message", [
+    ("pack_build.yaml", "select.width=20000", "out of range: expected 32 <= width <= 4096, got 20000"),
+    ("pack_build.yaml", "select.captured=1000000", "out of range: expected 2 <= captured <= 256, got 1000000"),
+    ("pipeline.yaml", "smooth.beta=1e308", "out of range: expected 0.0 <= beta <= 1000.0, got 1e+308"),
+    ("pipeline_paper.yaml", "smooth.truncate=1e308", "out of range: expected 0.0 <= truncate <= 20.0, got 1e+308"),
+    ("pipeline.yaml", "compensate.neutral_frame=-5", "out of range: expected -1 <= neutral_frame <= 10000000, got -5"),
+])
+def test_a_size_beyond_its_maximum_is_refused_before_anything_runs(pipeline, override, message):
+    with pytest.raises(ConfigError) as info:
+        load_pipeline(REPO / pipeline, REGISTRY, overrides=[override])
+    assert [str(issue) for issue in info.value.issues] == [f"--set: {override.split('=')[0]}: {message}"]
+
+
+def test_the_command_exits_2_on_select_width_20000(tmp_path, env):
+    done = run_cli("run", REPO / "pack_build.yaml", "--set", "select.width=20000", "--set", "select.height=20000",
+                   "--dry-run", env=env, cwd=tmp_path)
+    assert done.returncode == 2 and "select.width: out of range" in done.stderr and "select.height" in done.stderr
