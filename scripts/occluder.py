@@ -192,9 +192,9 @@ def hand_pose(event: Event, t: int, xy: np.ndarray, names: list[str]) -> tuple[n
     the hand of ``event`` in frame ``t`` from the clean points ``xy (N, 2)``.
 
     Over the mouth: sideways (fingers towards the image's right, thumb down), palm 1.05 eye
-    distances wide, centred 0.1 eye distances above the lips' centre, so that it hides the
+    distances wide, centred 0.15 eye distances above the lips' centre, so that it hides the
     mouth and the lower nose. Over an eye: fingers up, tilted 25 degrees inwards, thumb
-    outwards, palm 0.85 eye distances wide, centred 0.25 eye distances outwards of the eye's
+    outwards, palm 0.85 eye distances wide, centred 0.2 eye distances outwards of the eye's
     centre, so that it hides the eye and its brow and not the other eye. A slow drift of 5 % of
     the eye distance and 4 degrees moves it a little.
     """
@@ -205,12 +205,12 @@ def hand_pose(event: Event, t: int, xy: np.ndarray, names: list[str]) -> tuple[n
     drift = 0.05 * eye * (np.sin(phase / 37 + 0.3) * along + np.sin(phase / 53 + 1.1) * down)
     wobble = 4.0 * np.sin(phase / 45)
     if event.region == "mouth":
-        centre = xy[[names.index(f"mouth_outer_{k}") for k in range(16)]].mean(axis=0) - 0.1 * eye * down
+        centre = xy[[names.index(f"mouth_outer_{k}") for k in range(16)]].mean(axis=0) - 0.15 * eye * down
         return centre + drift, 1.05 * eye, roll + 90.0 + wobble, False
     left = event.region == "eye_l"
     centre = xy[[names.index(f"{event.region}_{k}") for k in range(12)]].mean(axis=0)
     outwards = -along if left else along
-    return (centre + 0.25 * eye * outwards - 0.05 * eye * down + drift, 0.85 * eye,
+    return (centre + 0.2 * eye * outwards - 0.05 * eye * down + drift, 0.85 * eye,
             roll + (25.0 if left else -25.0) + wobble, left)
 
 

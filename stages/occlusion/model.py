@@ -3,7 +3,9 @@
 The model of a region is a template strip ``T`` (:mod:`stages.occlusion.profiles`): the
 element-wise median of its strips over the frames where the region is seen. A frame's
 *visibility* is the least-squares weight of the template in its strip,
-``v_t = <x_t, T> / <T, T>`` (both mean-free per channel), divided by its median over the seen
+``w_t = <x_t, T> / <T, T>`` (both mean-free per channel), taken at the best of the ``2 s + 1``
+shifts of the strip along the normals (``s`` = :data:`stages.occlusion.profiles.SHIFT` samples:
+the landmarks' contour may be a little off the image's) and divided by its median over the seen
 frames: 1.0 is the region's structure at the strength typical of the clip, 0 is none of it (a
 hand, a sleeve, a uniform surface where the landmarks put the region), negative the structure
 inverted. Because the strip follows the landmarks, an expression moves the template with the
@@ -25,13 +27,32 @@ import numpy as np
 MIN_FRAMES = 5
 
 
-def template(strips: np.ndarray, *, keep: float, iterations: int = 3) -> tuple[np.ndarray, np.ndarray]:
+def windows(strips: np.ndarray, shift: int) -> np.ndarray:
+    """The ``2 shift + 1`` windows of ``M`` normal samples in strips ``(F, K, M + 2 shift, C)``,
+    each made mean-free per channel and flattened: ``(F, 2 shift + 1, K M C)``."""
+    x = np.asarray(strips, np.float64)
+    m = x.shape[2] - 2 * shift
+    out = np.stack([x[:, :, j:j + m] for j in range(2 * shift + 1)], axis=1)
+    out -= out.mean(axis=(2, 3), keepdims=True)
+    return out.reshape(len(x), 2 * shift + 1, -1)
+
+
+def weights(win: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The template's least-squares weight at the best shift of each frame ``(F,)`` and that
+    shift's index ``(F,)``, for windows ``(F, S, D)`` and a template ``(D,)``."""
+    w = win @ t / max(float(t @ t), 1e-12)
+    best = np.argmax(w, axis=1)
+    return w[np.arange(len(w)), best], best
+
+
+def template(win: np.ndarray, *, keep: float, iterations: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """The region's template and the frames it was estimated from.
 
     Parameters
     ----------
-    strips : (F, D) float
-        The region's mean-free strips of the frames with a face, flattened.
+    win : (F, S, D) float
+        The region's windows (:func:`windows`) in the frames with a face; ``S`` odd, the
+        middle one unshifted.
     keep : float
         Visibility above which a frame counts as seen when re-estimating.
     iterations : int
@@ -43,25 +64,31 @@ def template(strips: np.ndarray, *, keep: float, iterations: int = 3) -> tuple[n
     seen : (F,) bool
         The frames of the last estimate.
     """
-    x = np.asarray(strips, np.float64)
-    energy = np.einsum("fd,fd->f", x, x)
+    middle = win[:, win.shape[1] // 2]
+    energy = np.einsum("fd,fd->f", middle, middle)
     seen = energy >= np.median(energy)
-    t = np.median(x[seen], axis=0)
+    t = np.median(middle[seen], axis=0)
     for _ in range(iterations):
-        now = visibility(x, t, seen) > keep
+        w, best = weights(win, t)
+        level = float(np.median(w[seen]))
+        now = w > keep * level if level > 1e-9 else np.zeros(len(w), bool)
         if now.sum() < MIN_FRAMES:
             break
-        seen, t = now, np.median(x[now], axis=0)
+        seen, t = now, np.median(win[now, best[now]], axis=0)
     return t, seen
 
 
-def visibility(strips: np.ndarray, t: np.ndarray, seen: np.ndarray) -> np.ndarray:
-    """``v_t`` of the module doc for each frame ``(F,)``: the template's weight in each strip over
-    its median in the ``seen`` frames."""
-    x = np.asarray(strips, np.float64)
-    weight = x @ t / max(float(t @ t), 1e-12)
-    level = float(np.median(weight[seen])) if seen.any() else 0.0
-    return weight / level if level > 1e-9 else np.zeros_like(weight)
+def visibility(win: np.ndarray, t: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """The visibility of the module doc for each frame ``(F,)``: the template's weight at the
+    best shift relative to the ``seen`` frames (:func:`relative`)."""
+    return relative(weights(win, t)[0], seen)
+
+
+def relative(measure: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """A per-frame structure measure ``(F,)`` over its median in the ``seen`` frames (all 0
+    where that median is not positive: the clip never shows the structure)."""
+    level = float(np.median(measure[seen])) if seen.any() else 0.0
+    return measure / level if level > 1e-9 else np.zeros(len(measure))
 
 
 def median_filter(values: np.ndarray, width: int) -> np.ndarray:
@@ -70,5 +97,4 @@ def median_filter(values: np.ndarray, width: int) -> np.ndarray:
         return np.asarray(values, np.float64)
     half = width // 2
     padded = np.pad(np.asarray(values, np.float64), half, mode="edge")
-    windows = np.lib.stride_tricks.sliding_window_view(padded, width)
-    return np.median(windows, axis=1)
+    return np.median(np.lib.stride_tricks.sliding_window_view(padded, width), axis=1)

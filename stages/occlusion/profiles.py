@@ -3,7 +3,8 @@
 Each region's structure is sampled on a strip laid along one of its contours (the outer lip line,
 the eye outline, the brow's centre line, the lower nose outline): ``K`` positions evenly spaced by
 arc length along the contour, and at each ``M`` samples along the contour's normal, at offsets
-given in eye distances (the outer eye corners' distance in the frame, so the strip scales with the
+given in eye distances, plus :data:`SHIFT` more samples at each end (the model looks for the
+region's structure a little off the landmarks' contour, as far as they err) (the outer eye corners' distance in the frame, so the strip scales with the
 face). The strip is a ``(K, M)`` patch in the region's own coordinates: an expression that moves
 the contour moves the strip with it, and what a strip shows is the image across the contour (skin
 outside, lips inside; the lid margin and lashes; the dark stripe of a brow).
@@ -22,6 +23,8 @@ import numpy as np
 
 #: Samples along each contour.
 POSITIONS = 16
+#: Samples added at each end of every normal, so the structure is matched up to this many steps off.
+SHIFT = 2
 #: The face crop is resampled so that the eye distance spans this many pixels (sampling scale).
 EYE_DISTANCE_PX = 96.0
 EYE_OUTER = ("eye_l_6", "eye_r_6")
@@ -35,33 +38,44 @@ class Profile:
     points averaged with the first (the brow's upper edge with its lower edge gives its centre
     line), or empty; ``closed``: the contour closes on itself (its normal points outwards: the
     orientation is taken from the clip's median outline); for an open contour the normal points
-    away from the mean of the ``away`` points. ``offsets``: along the normal, eye distances.
+    away from the mean of the ``away`` points. ``inner``, ``outer``, ``count``: the ``M``
+    offsets along the normal, evenly spaced, eye distances. ``redder``: ``(a, b)`` where the
+    region must be redder inside than outside its contour whoever the performer is (the lips
+    against the skin): the mean redness at offsets below ``a`` minus that above ``b`` is a
+    second, template-free measure of the region's structure (:func:`redness_contrast`).
     """
 
     contour: tuple[str, ...]
-    offsets: tuple[float, ...]
+    inner: float
+    outer: float
+    count: int
     closed: bool = False
     pair: tuple[str, ...] = ()
     away: tuple[str, ...] = ()
+    redder: tuple[float, float] | None = None
+
+    @property
+    def offsets(self) -> np.ndarray:
+        """The ``M + 2 SHIFT`` offsets sampled (eye distances)."""
+        step = (self.outer - self.inner) / (self.count - 1)
+        return self.inner + step * np.arange(-SHIFT, self.count + SHIFT)
 
 
 def _side(side: str) -> dict[str, Profile]:
     return {
-        f"eye_{side}": Profile(tuple(f"eye_{side}_{k}" for k in range(12)), tuple(np.linspace(0.0, 0.1, 6)),
-                               closed=True),
-        f"brow_{side}": Profile(tuple(f"brow_{side}_{k}" for k in range(4)), tuple(np.linspace(-0.12, 0.12, 9)),
+        f"eye_{side}": Profile(tuple(f"eye_{side}_{k}" for k in range(12)), 0.0, 0.1, 6, closed=True),
+        f"brow_{side}": Profile(tuple(f"brow_{side}_{k}" for k in range(4)), -0.12, 0.12, 9,
                                 pair=tuple(f"brow_{side}_{k}" for k in (7, 6, 5, 4)),
                                 away=tuple(f"eye_{side}_{k}" for k in range(12))),
     }
 
 
 PROFILES: dict[str, Profile] = {
-    "mouth": Profile(tuple(f"mouth_outer_{k}" for k in range(16)), tuple(np.linspace(-0.05, 0.07, 7)), closed=True),
+    "mouth": Profile(tuple(f"mouth_outer_{k}" for k in range(16)), -0.05, 0.07, 7, closed=True, redder=(0.0, 0.02)),
     **_side("l"),
     **_side("r"),
-    "nose": Profile(("nose_side_l", "nose_alar_crease_l", "nose_ala_l", "nose_nostril_l", "nose_base",
-                     "nose_nostril_r", "nose_ala_r", "nose_alar_crease_r", "nose_side_r"),
-                    tuple(np.linspace(-0.08, 0.08, 9)), away=("nose_tip", "nose_bridge_2")),
+    "nose": Profile(("nose_ala_l", "nose_nostril_l", "nose_base", "nose_nostril_r", "nose_ala_r"), -0.1, 0.06, 9,
+                    away=("nose_tip", "nose_bridge_2")),
 }
 
 
@@ -144,7 +158,7 @@ def sample_grid(sampler: Sampler, xy: np.ndarray) -> tuple[np.ndarray, float]:
         else:
             centre = xy[sampler.away[r]].mean(axis=0)
             normal *= np.where(np.sum((q - centre) * normal, axis=1) < 0, -1.0, 1.0)[:, None]
-        offsets = np.asarray(profile.offsets) * eye
+        offsets = profile.offsets * eye
         grids.append((q[:, None, :] + offsets[None, :, None] * normal[:, None, :]).reshape(-1, 2))
     return np.concatenate(grids), eye
 
@@ -183,3 +197,14 @@ def channels(rgb: np.ndarray) -> np.ndarray:
     red = np.log((rgb[..., 0] + 8.0) / (rgb[..., 1] + 8.0))
     red -= red.mean(axis=(-2, -1), keepdims=True)
     return np.stack([weber, red], axis=-1)
+
+
+def redness_contrast(strips: np.ndarray, profile: Profile) -> np.ndarray:
+    """The mean redness inside minus outside the contour (``profile.redder``) of each strip
+    ``(F, K, M + 2 SHIFT, 2)`` (:func:`channels`), over its unshifted offsets: ``(F,)``."""
+    offsets = profile.offsets
+    inside, outside = offsets < profile.redder[0], offsets > profile.redder[1]
+    middle = np.zeros(len(offsets), bool)
+    middle[SHIFT:len(offsets) - SHIFT] = True
+    red = np.asarray(strips, np.float64)[..., 1]
+    return red[:, :, inside & middle].mean(axis=(1, 2)) - red[:, :, outside & middle].mean(axis=(1, 2))

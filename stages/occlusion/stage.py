@@ -87,9 +87,13 @@ class DetectOcclusion(SequenceStage):
             if valid.sum() < model.MIN_FRAMES:
                 break
             shape = sampler.shapes[region]
-            strips = profiles.channels(rgb[valid, ends[j]:ends[j + 1]].reshape(-1, *shape, 3)).reshape(valid.sum(), -1)
-            t, seen = model.template(strips, keep=float(params["keep"]))
-            seen_score = model.median_filter(model.visibility(strips, t, seen), int(params["median_frames"]))
+            strips = profiles.channels(rgb[valid, ends[j]:ends[j + 1]].reshape(-1, *shape, 3))
+            win = model.windows(strips, profiles.SHIFT)
+            t, seen = model.template(win, keep=float(params["keep"]))
+            seen_score = model.visibility(win, t, seen)
+            if profiles.PROFILES[region].redder is not None:
+                seen_score = np.maximum(seen_score, model.relative(profiles.redness_contrast(strips, profiles.PROFILES[region]), seen))
+            seen_score = model.median_filter(seen_score, int(params["median_frames"]))
             r = REGIONS.index(region)
             score[valid, r] = seen_score
             occluded[valid, r] = seen_score < float(params["threshold"])
