@@ -92,9 +92,10 @@ def relative(measure: np.ndarray, seen: np.ndarray) -> np.ndarray:
 
 
 def median_filter(values: np.ndarray, width: int) -> np.ndarray:
-    """Running median over ``width`` (odd) consecutive values ``(F,)``, the ends repeated."""
+    """Running median over ``width`` (odd) consecutive values ``(F,)``, the values mirrored about
+    the ends (a one-frame blip in the first frame is removed like any other)."""
     if width <= 1 or len(values) == 0:
         return np.asarray(values, np.float64)
     half = width // 2
-    padded = np.pad(np.asarray(values, np.float64), half, mode="edge")
+    padded = np.pad(np.asarray(values, np.float64), half, mode="reflect")
     return np.median(np.lib.stride_tricks.sliding_window_view(padded, width), axis=1)
