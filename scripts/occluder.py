@@ -17,11 +17,13 @@ variant with the hand over the mouth for 30 frames from the first frame (a clip 
 occluded; the performer's own skin tone) and over one eye (the one seen larger) for 30 frames
 in the middle (another skin tone) are each run through ``landmarks.mediapipe``,
 ``landmarks.layout`` and ``occlusion.detect``. Rows, per clip (``_<stem>``):
-``real_occlusion_recall`` / ``real_occlusion_precision`` over frames x regions of the variant,
-``real_occlusion_recall_<region>`` per region the hand covers, ``real_occlusion_false_frac``
-(flagged frames x regions over judged frames x regions of the clean clip, where every flag is
-false) and ``real_occlusion_false_frac_<region>``; over the clips: ``real_occlusion_recall_min``,
-``real_occlusion_precision_min`` (:func:`aggregate_rows`).
+``real_occlusion_recall`` / ``real_occlusion_precision`` over frames x regions of the variant
+(a covered frame where the landmarker finds no face counts as missed), ``real_occlusion_recall_<region>``
+per region the hand covers, ``real_occlusion_noface_frac`` (the covered frames x regions where the
+landmarker found no face), ``real_occlusion_false_frac`` (flagged frames x regions over judged
+frames x regions of the clean clip, where every flag is false) and
+``real_occlusion_false_frac_<region>``; over the clips: ``real_occlusion_recall_min``,
+``real_occlusion_precision_min``, ``real_occlusion_false_frac_max`` (:func:`aggregate_rows`).
 """
 
 from __future__ import annotations
@@ -285,18 +287,20 @@ def other_tone(skin: np.ndarray) -> np.ndarray:
     return TONES[int(np.argmax(np.abs(TONES @ luma - skin @ luma)))]
 
 
-def default_events(xy: np.ndarray, names: list[str], valid: np.ndarray, skin: np.ndarray) -> list[Event]:
-    """The benchmark's two events: the mouth in frames ``[0, 30)`` (own skin), the eye seen
-    larger (polygon area over the clip) in the 30 frames around the middle (another tone)."""
-    frames = len(xy)
-    if frames < 2 * EVENT_FRAMES + 10:
-        raise ValueError(f"clip too short for the occluder benchmark: {frames} frames, need {2 * EVENT_FRAMES + 10}")
+def default_events(xy: np.ndarray, names: list[str], valid: np.ndarray, skin: np.ndarray, *,
+                   frames: int = EVENT_FRAMES) -> list[Event]:
+    """The benchmark's two events of ``frames`` frames each: the mouth from the first frame
+    (the performer's own skin), then the eye seen larger (its outline's mean area over the clip)
+    in the frames around the middle of the clip (another tone)."""
+    total = len(xy)
+    if total < 2 * frames + 10:
+        raise ValueError(f"clip too short for {frames}-frame occluder events: {total} frames, need {2 * frames + 10}")
     polygons = [region_polygons(xy[t], names) for t in np.flatnonzero(valid)]
     area = {side: np.mean([_area(p[f"eye_{side}"]) for p in polygons]) for side in "lr"}
     eye = "eye_l" if area["l"] >= area["r"] else "eye_r"
-    middle = frames // 2
-    return [Event("mouth", 0, EVENT_FRAMES, tuple(float(c) for c in skin)),
-            Event(eye, middle - EVENT_FRAMES // 2, middle + EVENT_FRAMES // 2, tuple(float(c) for c in other_tone(skin)))]
+    start = max(total // 2 - frames // 2, frames + 5)
+    return [Event("mouth", 0, frames, tuple(float(c) for c in skin)),
+            Event(eye, start, start + frames, tuple(float(c) for c in other_tone(skin)))]
 
 
 def _area(polygon: np.ndarray) -> float:
@@ -397,16 +401,17 @@ def recall_precision(flagged: np.ndarray, truth: np.ndarray) -> tuple[float, flo
     return (hits / truth.sum() if truth.any() else np.nan, hits / flagged.sum() if flagged.any() else np.nan)
 
 
-def occlusion_rows(clip: Path, work: Path) -> list[dict[str, Any]]:
-    """The occlusion rows of one clip (module doc); files under ``work`` (``points.npz`` of the
-    clean clip, ``occluded.mp4``, ``truth.npz``)."""
+def occlusion_rows(clip: Path, work: Path, *, event_frames: int = EVENT_FRAMES) -> list[dict[str, Any]]:
+    """The occlusion rows of one clip (module doc), the hand over each region for
+    ``event_frames``; files under ``work`` (``points.npz`` of the clean clip, ``occluded.mp4``,
+    ``truth.npz``). A clip shorter than ``2 event_frames + 10`` frames is a ValueError."""
     stem = clip.stem
     work.mkdir(parents=True, exist_ok=True)
     points, clean = detect(clip, work / "points.npz")
     names = [str(n) for n in points["names"]]
     xy, valid = points["xy"], points["valid"].all(axis=1)
     skin = skin_colour(clip_stream(clip).chunks(), xy, names, valid)
-    events = default_events(xy, names, valid, skin)
+    events = default_events(xy, names, valid, skin, frames=event_frames)
     variant = work / "occluded.mp4"
     fraction = write_variant(clip, variant, xy, names, events)
     truth = fraction > 0.5
@@ -414,26 +419,28 @@ def occlusion_rows(clip: Path, work: Path) -> list[dict[str, Any]]:
              events=np.array([[e.start, e.stop] for e in events]), event_regions=np.array([e.region for e in events]),
              colours=np.array([e.colour for e in events]))
     _, found = detect(variant)
-    judged = clean["valid"][:, None] & np.ones(len(REGIONS), bool)
+    judged = clean["valid"]
     rows = [row(f"real_occlusion_false_frac_{stem}", clean["occluded"][judged].mean(), "fraction")]
-    for r, region in enumerate(REGIONS):
-        rows.append(row(f"real_occlusion_false_frac_{region}_{stem}", clean["occluded"][clean["valid"], r].mean(),
-                        "fraction"))
+    rows += [row(f"real_occlusion_false_frac_{region}_{stem}", clean["occluded"][judged, r].mean(), "fraction")
+             for r, region in enumerate(REGIONS)]
     recall, precision = recall_precision(found["occluded"], truth)
     rows += [row(f"real_occlusion_recall_{stem}", recall, "fraction"),
-             row(f"real_occlusion_precision_{stem}", precision, "fraction")]
-    for r, region in enumerate(REGIONS):
-        if truth[:, r].any():
-            rows.append(row(f"real_occlusion_recall_{region}_{stem}",
-                            recall_precision(found["occluded"][:, r], truth[:, r])[0], "fraction"))
+             row(f"real_occlusion_precision_{stem}", precision, "fraction"),
+             row(f"real_occlusion_noface_frac_{stem}", (truth & ~found["valid"][:, None]).sum() / max(truth.sum(), 1),
+                 "fraction")]
+    rows += [row(f"real_occlusion_recall_{region}_{stem}", recall_precision(found["occluded"][:, r], truth[:, r])[0],
+                 "fraction") for r, region in enumerate(REGIONS) if truth[:, r].any()]
     return rows
 
 
 def aggregate_rows(rows: list[dict[str, Any]], stems: list[str]) -> list[dict[str, Any]]:
-    """``real_occlusion_recall_min`` and ``real_occlusion_precision_min`` over the clips ``stems``."""
+    """``real_occlusion_recall_min``, ``real_occlusion_precision_min`` and
+    ``real_occlusion_false_frac_max`` over the clips ``stems``."""
     value = {r["metric"]: r["value"] for r in rows}
-    return [row(f"real_occlusion_{kind}_min", min(value[f"real_occlusion_{kind}_{s}"] for s in stems), "fraction")
-            for kind in ("recall", "precision")]
+    out = [row(f"real_occlusion_{kind}_min", min(value[f"real_occlusion_{kind}_{s}"] for s in stems), "fraction")
+           for kind in ("recall", "precision")]
+    return out + [row("real_occlusion_false_frac_max", max(value[f"real_occlusion_false_frac_{s}"] for s in stems),
+                      "fraction")]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -442,9 +449,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--work", type=Path, default=Path(".cache/bench/real/occlusion"), help="scratch folder")
     parser.add_argument("--json", action="store_true", help="print JSON lines only")
     args = parser.parse_args(argv)
+    from runner.stage import StageError
+
     rows: list[dict[str, Any]] = []
     for clip in args.clip:
-        rows += occlusion_rows(clip, args.work / clip.stem)
+        try:
+            rows += occlusion_rows(clip, args.work / clip.stem)
+        except (ValueError, StageError) as exc:
+            said = str(exc)
+            print(f"occluder: {said}" if str(clip) in said else f"occluder: {clip}: {said}", file=sys.stderr)
+            return 1
     rows += aggregate_rows(rows, [c.stem for c in args.clip])
     for r in rows:
         print(json.dumps(r) if args.json else f"{r['metric']:<52} {r['value']:.4g} {r['unit']}", flush=True)

@@ -17,6 +17,11 @@ half of the frames whose strips carry the most structure (energy ``<x_t, x_t>``;
 smoother than the face's structure, so a clip occluded for most of its length still starts from
 face frames), then it is re-estimated from the frames whose visibility exceeds ``keep``, a few
 times. No frame of the clip is privileged, so a clip that starts occluded is judged like any other.
+
+A frame whose visibility is below ``keep`` gets a second opinion (:func:`local_visibility`): its
+strip against the median of the seen frames whose face has the nearest shape (head pose and
+expression from the landmarks), so that a head turned 30 degrees or a grimace is compared with
+frames like it; the larger of the two visibilities is kept.
 """
 
 from __future__ import annotations
@@ -25,6 +30,8 @@ import numpy as np
 
 #: Fewest frames a template is estimated from; with fewer seen frames the previous one stays.
 MIN_FRAMES = 5
+#: Most seen frames a local template is looked for among (evenly spread over the clip).
+POOL = 1000
 
 
 def windows(strips: np.ndarray, shift: int) -> np.ndarray:
@@ -89,6 +96,40 @@ def relative(measure: np.ndarray, seen: np.ndarray) -> np.ndarray:
     where that median is not positive: the clip never shows the structure)."""
     level = float(np.median(measure[seen])) if seen.any() else 0.0
     return measure / level if level > 1e-9 else np.zeros(len(measure))
+
+
+def local_visibility(win: np.ndarray, shape: np.ndarray, seen: np.ndarray, frames: np.ndarray, *,
+                     neighbours: int) -> np.ndarray:
+    """A second opinion for ``frames``: each frame's strip against a template of the ``seen``
+    frames whose face has the nearest shape (head pose and expression, :func:`profiles.shape`),
+    so that a pose or an expression far from the clip's typical one is judged against frames
+    like it, not against the typical face.
+
+    Parameters
+    ----------
+    win : (F, S, D) windows; shape : (F, P) the frames' shapes; seen : (F,) bool.
+    frames : indices of the frames to judge.
+    neighbours : seen frames per template (the nearest in shape among at most :data:`POOL` seen
+        frames spread over the clip, the frame itself excluded).
+
+    Returns
+    -------
+    (len(frames),) the template's weight at the best shift over its median weight in those
+    neighbours (0 where there are too few seen frames).
+    """
+    pool = np.flatnonzero(seen)
+    pool = pool[np.unique(np.linspace(0, len(pool) - 1, min(len(pool), POOL)).round().astype(int))] if len(pool) else pool
+    out = np.zeros(len(frames))
+    if len(pool) < MIN_FRAMES:
+        return out
+    for i, f in enumerate(frames):
+        candidates = pool[pool != f]
+        near = candidates[np.argsort(np.sum((shape[candidates] - shape[f]) ** 2, axis=1))[:neighbours]]
+        _, best = weights(win[near], np.median(win[near, win.shape[1] // 2], axis=0))
+        t = np.median(win[near, best], axis=0)
+        level = float(np.median(weights(win[near], t)[0]))
+        out[i] = weights(win[f:f + 1], t)[0][0] / level if level > 1e-9 else 0.0
+    return out
 
 
 def median_filter(values: np.ndarray, width: int) -> np.ndarray:

@@ -28,6 +28,9 @@ SHIFT = 2
 #: The face crop is resampled so that the eye distance spans this many pixels (sampling scale).
 EYE_DISTANCE_PX = 96.0
 EYE_OUTER = ("eye_l_6", "eye_r_6")
+#: Points whose places relative to the eye line say the head's pose (with the region's contour:
+#: the face's shape, :func:`shape`).
+POSE_POINTS = ("nose_tip", "eye_l_0", "eye_r_0", *EYE_OUTER)
 
 
 @dataclass(frozen=True)
@@ -90,6 +93,7 @@ class Sampler:
     away: tuple[np.ndarray | None, ...]
     orientation: tuple[float, ...]
     eyes: np.ndarray
+    pose: np.ndarray
 
     @property
     def shapes(self) -> dict[str, tuple[int, int]]:
@@ -116,7 +120,24 @@ def make_sampler(names: Sequence[str], xy: np.ndarray, valid: np.ndarray, region
             sign = 1.0 if np.median(area) >= 0 else -1.0
         orientation.append(sign)
     eyes = np.array([where[n] for n in EYE_OUTER])
-    return Sampler(tuple(regions), tuple(contour), tuple(pair), tuple(away), tuple(orientation), eyes)
+    pose = np.array([where[n] for n in POSE_POINTS])
+    return Sampler(tuple(regions), tuple(contour), tuple(pair), tuple(away), tuple(orientation), eyes, pose)
+
+
+def shape(sampler: Sampler, xy: np.ndarray, region: int) -> np.ndarray:
+    """The face's shape as the region sees it: its contour's points (both contours of a paired
+    one) and :data:`POSE_POINTS` in the eye line's frame (origin between the outer eye corners,
+    x along the eye line, unit the eye distance), ``(F, 2 P)`` for points ``xy (F, N, 2)``."""
+    cols = [sampler.contour[region], *([] if sampler.pair[region] is None else [sampler.pair[region]]), sampler.pose]
+    p = xy[:, np.concatenate(cols)]
+    left, right = xy[:, sampler.eyes[0]], xy[:, sampler.eyes[1]]
+    axis = right - left
+    scale = np.hypot(axis[:, 0], axis[:, 1])[:, None]
+    along = axis / scale
+    rel = p - ((left + right) / 2)[:, None]
+    local = np.stack([(rel * along[:, None]).sum(-1), rel[..., 1] * along[:, None, 0] - rel[..., 0] * along[:, None, 1]],
+                     axis=-1) / scale[..., None]
+    return local.reshape(len(xy), -1)
 
 
 def _resample(polyline: np.ndarray, closed: bool, count: int) -> tuple[np.ndarray, np.ndarray]:

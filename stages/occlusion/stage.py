@@ -68,7 +68,7 @@ class DetectOcclusion(SequenceStage):
             raise StageError(f"{self.name}: input 'frames' has {stream.info.frames} frames, 'points' has {frames}")
         covers = region_points(names)
         judged = [r for r in REGIONS if set(profiles.PROFILES[r].contour) | set(profiles.PROFILES[r].pair)
-                  | set(profiles.PROFILES[r].away) | set(profiles.EYE_OUTER) <= set(names)]
+                  | set(profiles.PROFILES[r].away) | set(profiles.POSE_POINTS) <= set(names)]
         valid = np.asarray(points["valid"], bool).all(axis=1) & np.isfinite(xy).all(axis=(1, 2))
         sampler = profiles.make_sampler(names, xy, valid, judged)
         sizes = [int(np.prod(s)) for s in sampler.shapes.values()]
@@ -91,6 +91,10 @@ class DetectOcclusion(SequenceStage):
             win = model.windows(strips, profiles.SHIFT)
             t, seen = model.template(win, keep=float(params["keep"]))
             seen_score = model.visibility(win, t, seen)
+            suspect = np.flatnonzero(seen_score < float(params["keep"]))
+            shape_ = profiles.shape(sampler, xy[valid], j)
+            seen_score[suspect] = np.maximum(seen_score[suspect], model.local_visibility(
+                win, shape_, seen, suspect, neighbours=max(model.MIN_FRAMES, min(25, int(seen.sum()) // 10))))
             if profiles.PROFILES[region].redder is not None:
                 seen_score = np.maximum(seen_score, model.relative(profiles.redness_contrast(strips, profiles.PROFILES[region]), seen))
             seen_score = model.median_filter(seen_score, int(params["median_frames"]))

@@ -55,3 +55,28 @@ def test_median_filter_removes_short_dips_and_keeps_longer_ones():
     np.testing.assert_array_equal(filtered[10:13], 0.0)
     np.testing.assert_array_equal(filtered[14:], 1.0)
     np.testing.assert_array_equal(model.median_filter(values, 1), values)
+
+
+def test_a_face_far_from_its_typical_shape_is_judged_against_frames_like_it():
+    """The region's look changes with the face's shape (a head turning away over the clip:
+    pattern A at shape 0 becomes pattern B at shape 1); a hand hides it in frames 40-59. The
+    typical template alone loses the turned frames; against the seen frames nearest in shape
+    they are seen, and the hand is not."""
+    rng = np.random.default_rng(1)
+    frames = 100
+    a, b = rng.normal(0, 0.2, (2, K, M + 2 * SHIFT, C))
+    s = np.linspace(0, 1, frames) ** 2  # most frames near the typical shape
+    occluded = (np.arange(frames) >= 40) & (np.arange(frames) < 60)
+    strips = (1 - s)[:, None, None, None] * a + s[:, None, None, None] * b
+    strips[occluded] = rng.uniform(-0.05, 0.05, (occluded.sum(), K, 1, C))
+    strips += rng.normal(0, 0.02, strips.shape)
+    win = model.windows(strips, SHIFT)
+    template, seen = model.template(win, keep=0.5)
+    typical = model.visibility(win, template, seen)
+    assert typical[-5:].max() < 0.3  # the turned face against the typical one
+    suspect = np.flatnonzero(typical < 0.5)
+    local = model.local_visibility(win, s[:, None], seen, suspect, neighbours=5)
+    judged = typical.copy()
+    judged[suspect] = np.maximum(typical[suspect], local)
+    assert judged[~occluded].min() > 0.5
+    assert np.abs(judged[occluded]).max() < 0.2

@@ -14,8 +14,8 @@ def circle_points(order: int) -> tuple[list[str], np.ndarray]:
     or the other, with the outer eye corners ``EYE_PX`` apart."""
     angles = order * np.linspace(0, 2 * np.pi, 16, endpoint=False)
     lips = np.stack([200 + 30 * np.cos(angles), 150 + 30 * np.sin(angles)], axis=1)
-    names = [f"mouth_outer_{k}" for k in range(16)] + ["eye_l_6", "eye_r_6"]
-    return names, np.vstack([lips, [[150.0, 60.0], [150.0 + EYE_PX, 60.0]]])
+    names = [f"mouth_outer_{k}" for k in range(16)] + ["eye_l_6", "eye_r_6", "eye_l_0", "eye_r_0", "nose_tip"]
+    return names, np.vstack([lips, [[150.0, 60.0], [150.0 + EYE_PX, 60.0], [180, 60], [220, 60], [200, 100]]])
 
 
 def test_closed_contour_normals_point_outwards_whichever_way_it_is_traversed():
@@ -34,11 +34,11 @@ def test_closed_contour_normals_point_outwards_whichever_way_it_is_traversed():
 
 def test_a_collapsed_outline_keeps_the_clips_outward_side():
     """A shut eye's outline collapses to a line: its normals keep the side the open outline had."""
-    names = [f"eye_l_{k}" for k in range(12)] + ["eye_r_6"]
+    names = [f"eye_l_{k}" for k in range(12)] + ["eye_r_6", "eye_r_0", "nose_tip"]
     t = np.linspace(0, np.pi, 7)
     upper = np.stack([100 + 20 * np.cos(t), 100 - 8 * np.sin(t)], axis=1)  # eye_l_0 inner corner (right) .. 6
     lower = np.stack([100 - 20 * np.cos(t[1:-1]), 100 + 8 * np.sin(t[1:-1])], axis=1)  # 7..11 back to the inner
-    open_eye = np.vstack([upper, lower, [[300.0, 100.0]]])
+    open_eye = np.vstack([upper, lower, [[300.0, 100.0], [160.0, 100.0], [130.0, 140.0]]])
     shut = open_eye.copy()
     shut[:12, 1] = 100.0
     sampler = make_sampler(names, np.stack([open_eye, open_eye, shut]), np.ones(3, bool), ["eye_l"])
@@ -83,3 +83,15 @@ def test_redness_contrast_is_positive_for_red_lips_inside_skin():
     assert (contrast > 0.3).all()
     flat = profiles.channels(np.full((1, 16, len(offsets), 3), 150.0))
     assert abs(profiles.redness_contrast(flat, profile)[0]) < 1e-6
+
+
+def test_face_shape_does_not_change_with_the_faces_place_size_and_roll():
+    names, xy = circle_points(1)
+    sampler = make_sampler(names, xy[None], np.array([True]), ["mouth"])
+    angle = np.radians(25.0)
+    rot = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+    moved = 1.7 * xy @ rot.T + [40.0, -12.0]
+    np.testing.assert_allclose(profiles.shape(sampler, moved[None], 0), profiles.shape(sampler, xy[None], 0), atol=1e-12)
+    smiled = xy.copy()
+    smiled[:16, 0] *= 1.1  # a wider mouth is another shape
+    assert np.abs(profiles.shape(sampler, smiled[None], 0) - profiles.shape(sampler, xy[None], 0)).max() > 0.1
