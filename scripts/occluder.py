@@ -16,14 +16,17 @@ The benchmark (:func:`occlusion_rows`, rows of ``bench.py real``): the clean cli
 variant with the hand over the mouth for 30 frames from the first frame (a clip that starts
 occluded; the performer's own skin tone) and over one eye (the one seen larger) for 30 frames
 in the middle (another skin tone) are each run through ``landmarks.mediapipe``,
-``landmarks.layout`` and ``occlusion.detect``. Rows, per clip (``_<stem>``):
+``landmarks.layout`` and ``occlusion.detect``; so is a second variant with the same hands over
+the mouth for the first half of the clip and over the eye for the second half
+(``real_occlusion_half_*`` rows, as the variant's). Rows, per clip (``_<stem>``):
 ``real_occlusion_recall`` / ``real_occlusion_precision`` over frames x regions of the variant
 (a covered frame where the landmarker finds no face counts as missed), ``real_occlusion_recall_<region>``
 per region the hand covers, ``real_occlusion_noface_frac`` (the covered frames x regions where the
 landmarker found no face), ``real_occlusion_false_frac`` (flagged frames x regions over judged
 frames x regions of the clean clip, where every flag is false) and
 ``real_occlusion_false_frac_<region>``; over the clips: ``real_occlusion_recall_min``,
-``real_occlusion_precision_min``, ``real_occlusion_false_frac_max`` (:func:`aggregate_rows`).
+``real_occlusion_precision_min``, ``real_occlusion_half_recall_min``,
+``real_occlusion_half_precision_min``, ``real_occlusion_false_frac_max`` (:func:`aggregate_rows`).
 """
 
 from __future__ import annotations
@@ -401,10 +404,41 @@ def recall_precision(flagged: np.ndarray, truth: np.ndarray) -> tuple[float, flo
     return (hits / truth.sum() if truth.any() else np.nan, hits / flagged.sum() if flagged.any() else np.nan)
 
 
+def half_events(events: list[Event], frames: int) -> list[Event]:
+    """The half-clip variant of the benchmark's ``events``: the same hands, the mouth's over the
+    first half of the clip's ``frames``, the eye's over the second half."""
+    mouth, eye = events
+    return [Event("mouth", 0, frames // 2, mouth.colour), Event(eye.region, frames // 2, frames, eye.colour)]
+
+
+def variant_rows(clip: Path, work: Path, name: str, prefix: str, events: list[Event], xy: np.ndarray,
+                 names: list[str]) -> list[dict[str, Any]]:
+    """Paste the hands of ``events`` over ``clip`` (``work/<name>.mp4``, truth in
+    ``work/<name>_truth.npz``), run the detector on it and score it against the truth:
+    ``<prefix>_recall``, ``_precision``, ``_noface_frac`` and ``_recall_<region>``, each suffixed
+    ``_<clip file stem>``."""
+    stem = clip.stem
+    variant = work / f"{name}.mp4"
+    fraction = write_variant(clip, variant, xy, names, events)
+    truth = fraction > 0.5
+    np.savez(work / f"{name}_truth.npz", regions=np.array(REGIONS), covered=truth, fraction=fraction.astype(np.float32),
+             events=np.array([[e.start, e.stop] for e in events]), event_regions=np.array([e.region for e in events]),
+             colours=np.array([e.colour for e in events]))
+    _, found = detect(variant)
+    recall, precision = recall_precision(found["occluded"], truth)
+    rows = [row(f"{prefix}_recall_{stem}", recall, "fraction"), row(f"{prefix}_precision_{stem}", precision, "fraction"),
+            row(f"{prefix}_noface_frac_{stem}", (truth & ~found["valid"][:, None]).sum() / max(truth.sum(), 1),
+                "fraction")]
+    return rows + [row(f"{prefix}_recall_{region}_{stem}", recall_precision(found["occluded"][:, r], truth[:, r])[0],
+                       "fraction") for r, region in enumerate(REGIONS) if truth[:, r].any()]
+
+
 def occlusion_rows(clip: Path, work: Path, *, event_frames: int = EVENT_FRAMES) -> list[dict[str, Any]]:
-    """The occlusion rows of one clip (module doc), the hand over each region for
-    ``event_frames``; files under ``work`` (``points.npz`` of the clean clip, ``occluded.mp4``,
-    ``truth.npz``). A clip shorter than ``2 event_frames + 10`` frames is a ValueError."""
+    """The occlusion rows of one clip (module doc): the false alarms on the clean clip, the
+    variant with the hand over each region for ``event_frames`` (``real_occlusion_*``) and the
+    half-clip variant (``real_occlusion_half_*``). Files under ``work``: ``points.npz`` (the clean
+    clip's points), ``occluded.mp4``, ``occluded_truth.npz``, ``half.mp4``, ``half_truth.npz``. A
+    clip shorter than ``2 event_frames + 10`` frames is a ValueError."""
     stem = clip.stem
     work.mkdir(parents=True, exist_ok=True)
     points, clean = detect(clip, work / "points.npz")
@@ -412,33 +446,21 @@ def occlusion_rows(clip: Path, work: Path, *, event_frames: int = EVENT_FRAMES) 
     xy, valid = points["xy"], points["valid"].all(axis=1)
     skin = skin_colour(clip_stream(clip).chunks(), xy, names, valid)
     events = default_events(xy, names, valid, skin, frames=event_frames)
-    variant = work / "occluded.mp4"
-    fraction = write_variant(clip, variant, xy, names, events)
-    truth = fraction > 0.5
-    np.savez(work / "truth.npz", regions=np.array(REGIONS), covered=truth, fraction=fraction.astype(np.float32),
-             events=np.array([[e.start, e.stop] for e in events]), event_regions=np.array([e.region for e in events]),
-             colours=np.array([e.colour for e in events]))
-    _, found = detect(variant)
     judged = clean["valid"]
     rows = [row(f"real_occlusion_false_frac_{stem}", clean["occluded"][judged].mean(), "fraction")]
     rows += [row(f"real_occlusion_false_frac_{region}_{stem}", clean["occluded"][judged, r].mean(), "fraction")
              for r, region in enumerate(REGIONS)]
-    recall, precision = recall_precision(found["occluded"], truth)
-    rows += [row(f"real_occlusion_recall_{stem}", recall, "fraction"),
-             row(f"real_occlusion_precision_{stem}", precision, "fraction"),
-             row(f"real_occlusion_noface_frac_{stem}", (truth & ~found["valid"][:, None]).sum() / max(truth.sum(), 1),
-                 "fraction")]
-    rows += [row(f"real_occlusion_recall_{region}_{stem}", recall_precision(found["occluded"][:, r], truth[:, r])[0],
-                 "fraction") for r, region in enumerate(REGIONS) if truth[:, r].any()]
-    return rows
+    rows += variant_rows(clip, work, "occluded", "real_occlusion", events, xy, names)
+    return rows + variant_rows(clip, work, "half", "real_occlusion_half", half_events(events, len(xy)), xy, names)
 
 
 def aggregate_rows(rows: list[dict[str, Any]], stems: list[str]) -> list[dict[str, Any]]:
-    """``real_occlusion_recall_min``, ``real_occlusion_precision_min`` and
-    ``real_occlusion_false_frac_max`` over the clips ``stems``."""
+    """Over the clips ``stems``: ``real_occlusion_recall_min``, ``real_occlusion_precision_min``,
+    the same of the half-clip variant (``real_occlusion_half_*_min``) and
+    ``real_occlusion_false_frac_max``."""
     value = {r["metric"]: r["value"] for r in rows}
-    out = [row(f"real_occlusion_{kind}_min", min(value[f"real_occlusion_{kind}_{s}"] for s in stems), "fraction")
-           for kind in ("recall", "precision")]
+    out = [row(f"{prefix}_{kind}_min", min(value[f"{prefix}_{kind}_{s}"] for s in stems), "fraction")
+           for prefix in ("real_occlusion", "real_occlusion_half") for kind in ("recall", "precision")]
     return out + [row("real_occlusion_false_frac_max", max(value[f"real_occlusion_false_frac_{s}"] for s in stems),
                       "fraction")]
 

@@ -13,10 +13,11 @@ contour instead of breaking it; because the channels are contrasts, the light's 
 cancel.
 
 Which frames are *seen* is estimated, not assumed: the first template is the median over the
-half of the frames whose strips carry the most structure (energy ``<x_t, x_t>``; an occluder is
-smoother than the face's structure, so a clip occluded for most of its length still starts from
-face frames), then it is re-estimated from the frames whose visibility exceeds ``keep``, a few
-times. No frame of the clip is privileged, so a clip that starts occluded is judged like any other.
+half of the frames whose strips carry the most structure *across* the contour (the energy of the
+strip's profile averaged along the contour: the lips' edge, the lash line, the brow's stripe run
+along their contours, while an occluder is smoother, or, like the gaps between fingers, runs
+across them), so a clip occluded for half its length or more still starts from face frames; then
+it is re-estimated from the frames whose visibility exceeds ``keep``, a few times. No frame of the clip is privileged, so a clip that starts occluded is judged like any other.
 
 A frame whose visibility is below ``keep`` gets a second opinion (:func:`local_visibility`): its
 strip against the median of the seen frames whose face has the nearest shape (head pose and
@@ -52,7 +53,7 @@ def weights(win: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return w[np.arange(len(w)), best], best
 
 
-def template(win: np.ndarray, *, keep: float, iterations: int = 3) -> tuple[np.ndarray, np.ndarray]:
+def template(win: np.ndarray, *, positions: int, keep: float, iterations: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """The region's template and the frames it was estimated from.
 
     Parameters
@@ -60,6 +61,8 @@ def template(win: np.ndarray, *, keep: float, iterations: int = 3) -> tuple[np.n
     win : (F, S, D) float
         The region's windows (:func:`windows`) in the frames with a face; ``S`` odd, the
         middle one unshifted.
+    positions : int
+        ``K``, the positions along the contour (the windows' first axis before flattening).
     keep : float
         Visibility above which a frame counts as seen when re-estimating.
     iterations : int
@@ -72,7 +75,8 @@ def template(win: np.ndarray, *, keep: float, iterations: int = 3) -> tuple[np.n
         The frames of the last estimate.
     """
     middle = win[:, win.shape[1] // 2]
-    energy = np.einsum("fd,fd->f", middle, middle)
+    across = middle.reshape(len(middle), positions, -1).mean(axis=1)  # the profile across the contour
+    energy = np.einsum("fd,fd->f", across, across)
     seen = energy >= np.median(energy)
     t = np.median(middle[seen], axis=0)
     for _ in range(iterations):

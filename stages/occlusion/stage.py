@@ -89,7 +89,7 @@ class DetectOcclusion(SequenceStage):
             shape = sampler.shapes[region]
             strips = profiles.channels(rgb[valid, ends[j]:ends[j + 1]].reshape(-1, *shape, 3))
             win = model.windows(strips, profiles.SHIFT)
-            t, seen = model.template(win, keep=float(params["keep"]))
+            t, seen = model.template(win, positions=shape[0], keep=float(params["keep"]))
             seen_score = model.visibility(win, t, seen)
             suspect = np.flatnonzero(seen_score < float(params["keep"]))
             shape_ = profiles.shape(sampler, xy[valid], j)

@@ -108,9 +108,12 @@ def test_rows_of_the_real_texture_clip(tmp_path):
     assert value["real_occlusion_recall_astro"] >= 0.9 and value["real_occlusion_precision_astro"] >= 0.8
     assert value["real_occlusion_recall_mouth_astro"] >= 0.9
     assert {f"real_occlusion_false_frac_{r}_astro" for r in REGIONS} <= set(value)
-    truth = np.load(tmp_path / "truth.npz", allow_pickle=False)
+    assert value["real_occlusion_half_recall_astro"] >= 0.9 and value["real_occlusion_half_precision_astro"] >= 0.8
+    truth = np.load(tmp_path / "occluded_truth.npz", allow_pickle=False)
     assert truth["covered"].shape == (48, len(REGIONS)) and truth["covered"][:12, REGIONS.index("mouth")].all()
-    assert (tmp_path / "occluded.mp4").stat().st_size > 0
+    half = np.load(tmp_path / "half_truth.npz", allow_pickle=False)["covered"]
+    assert half[:24, REGIONS.index("mouth")].all() and not half[24:, REGIONS.index("mouth")].any()
+    assert (tmp_path / "occluded.mp4").stat().st_size > 0 and (tmp_path / "half.mp4").stat().st_size > 0
     assert all(set(r) == {"bench", "metric", "value", "unit"} and r["bench"] == "real" for r in rows)
     json.dumps(rows)
 
