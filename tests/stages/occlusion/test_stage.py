@@ -116,3 +116,38 @@ def test_inconsistent_inputs_are_stage_errors(clean):
         DetectOcclusion().run({"frames": frames, "points": {"xy": points["xy"], "valid": points["valid"]}}, {}, ctx)
     with pytest.raises(StageError, match="'median_frames' must be odd"):
         DetectOcclusion().run({"frames": frames, "points": points}, {"median_frames": 4}, ctx)
+
+
+def test_head_turned_30_degrees_either_way_is_not_occlusion(tmp_path):
+    """The real-texture face turned to 30 degrees of yaw each way (with pitch and a mouth
+    opening) is never flagged. Measured when written: lowest visibility 0.35, the image-right
+    brow at -30 degrees, where the renderer, which has no head beyond the photo's face, shows the
+    background past the far temple; every other region 0.6 or more."""
+    from scripts.realface.clip import fit_real_face, render_state
+    from stages.video import VideoWriter
+
+    face = fit_real_face(512)
+    frames = 48
+    t = np.arange(frames)
+    yaw = 30 * np.sin(2 * np.pi * t / frames)
+    clip = tmp_path / "turn.mp4"
+    with VideoWriter(clip, fps=25, width=512, height=512, crf=12) as writer:
+        for k in t:
+            params = np.array([0.6 * max(0.0, np.sin(2 * np.pi * k / 20)), 0.0, 0.0])
+            frame, *_ = render_state(face, params, np.array([yaw[k], 5 * np.sin(k / 7), 0.0]), np.zeros(3), supersample=1)
+            writer.write(frame.image[None])
+    occlusion = occluder.detect(clip)[1]
+    assert occlusion["valid"].all() and not occlusion["occluded"].any()
+
+
+def test_a_region_whose_contour_the_layout_lacks_is_not_judged(clean):
+    points, _ = clean
+    keep = [k for k, n in enumerate(NAMES) if not n.startswith("nose_") or n == "nose_tip"]
+    subset = {"xy": points["xy"][:, keep], "valid": points["valid"][:, keep], "names": points["names"][keep]}
+    frames = np.stack(list(occluder.clip_stream(CLIP).read(0, len(points["xy"]))))
+    out = DetectOcclusion().run({"frames": MemoryStream(frames), "points": subset}, {}, files_context(Path("/nonexistent")))
+    occlusion = out["occlusion"]
+    nose = REGIONS.index("nose")
+    assert np.isnan(occlusion["score"][:, nose]).all() and not occlusion["occluded"][:, nose].any()
+    assert np.isfinite(np.delete(occlusion["score"], nose, axis=1)).all()
+    assert occlusion["region_points"][nose].sum() == 1  # nose_tip, still covered by the region
