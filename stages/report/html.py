@@ -126,7 +126,8 @@ def report_html(inputs: Mapping[str, Any], *, title: str) -> str:
         data["occlusion"] = {r: hidden[:, k] for k, r in enumerate(regions)}
         if hidden.any():
             warnings.append("Occluded face regions: " + "; ".join(
-                f"{r} in {int(hidden[:, k].sum())} frames ({ranges[r]})" for k, r in enumerate(regions) if hidden[:, k].any()))
+                f"{r} in {int(hidden[:, k].sum())} of {T} frames ({ranges[r]})" for k, r in enumerate(regions)
+                if hidden[:, k].any()))
     sheet_body = contact_sheet(images, fps=fps)
 
     warnings += frame_warnings(no_face=no_face, pose_valid=pose["valid"], limited=limited, mapped=mapped,

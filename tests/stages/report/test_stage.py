@@ -155,3 +155,27 @@ def test_warp_only_and_missing_signal_points_are_said(tmp_path: Path):
 def test_enabled_false_writes_nothing(tmp_path: Path):
     WriteReport().run({"sheet": {}}, {**PARAMS, "enabled": False}, files_context(tmp_path))
     assert not (tmp_path / "report" / "index.html").exists()
+
+
+def test_occluded_regions_are_shown_and_counted(tmp_path: Path):
+    inputs = stage_inputs()
+    T = len(inputs["tracked"]["xy"])
+    occluded = np.zeros((T, 2), bool)
+    occluded[3:9, 0] = True  # the mouth in frames 3-8
+    occluded[20, 1] = True
+    valid = np.ones(T, bool)
+    valid[list(synthetic.NO_FACE)] = False
+    inputs["occlusion"] = {"regions": np.array(["mouth", "eye_l"]), "occluded": occluded,
+                           "score": np.where(occluded, 0.1, 1.0).astype(np.float32), "valid": valid}
+    page = write(inputs, tmp_path)
+    data = embedded(page)
+    assert data["occlusion"] == {"mouth": occluded[:, 0].tolist(), "eye_l": occluded[:, 1].tolist()}
+    assert "Occluded face regions: mouth in 6 of 40 frames (3-8); eye_l in 1 of 40 frames (20)" in data["warnings"]
+    text = page.read_text()
+    assert "Frames judged: 37 of 40." in text and 'alt="occluded face regions"' in text
+
+
+def test_without_occlusion_the_section_says_why(tmp_path: Path):
+    text = write(stage_inputs(), tmp_path).read_text()
+    assert "Not available: the run detects no occlusion" in text
+    assert "occlusion" not in embedded(tmp_path / "report" / "index.html")
