@@ -1,6 +1,6 @@
 """A synthetic hand pasted over a clip's face, with the truth of which face regions it hides.
 
-    python scripts/occluder.py --clip CLIP [--work DIR] [--json]
+    python scripts/occluder.py --clip CLIP [--clip CLIP ...] [--work DIR] [--no-half] [--json]
 
 The hand is drawn, not photographed: a palm and five fingers (capsules) whose rounded cross
 sections are shaded by one light, with a drop shadow on the face, a mottled skin texture and a
@@ -433,10 +433,10 @@ def variant_rows(clip: Path, work: Path, name: str, prefix: str, events: list[Ev
                        "fraction") for r, region in enumerate(REGIONS) if truth[:, r].any()]
 
 
-def occlusion_rows(clip: Path, work: Path, *, event_frames: int = EVENT_FRAMES) -> list[dict[str, Any]]:
+def occlusion_rows(clip: Path, work: Path, *, event_frames: int = EVENT_FRAMES, half: bool = True) -> list[dict[str, Any]]:
     """The occlusion rows of one clip (module doc): the false alarms on the clean clip, the
-    variant with the hand over each region for ``event_frames`` (``real_occlusion_*``) and the
-    half-clip variant (``real_occlusion_half_*``). Files under ``work``: ``points.npz`` (the clean
+    variant with the hand over each region for ``event_frames`` (``real_occlusion_*``) and, with
+    ``half``, the half-clip variant (``real_occlusion_half_*``). Files under ``work``: ``points.npz`` (the clean
     clip's points), ``occluded.mp4``, ``occluded_truth.npz``, ``half.mp4``, ``half_truth.npz``. A
     clip shorter than ``2 event_frames + 10`` frames is a ValueError."""
     stem = clip.stem
@@ -451,17 +451,20 @@ def occlusion_rows(clip: Path, work: Path, *, event_frames: int = EVENT_FRAMES) 
     rows += [row(f"real_occlusion_false_frac_{region}_{stem}", clean["occluded"][judged, r].mean(), "fraction")
              for r, region in enumerate(REGIONS)]
     rows += variant_rows(clip, work, "occluded", "real_occlusion", events, xy, names)
-    return rows + variant_rows(clip, work, "half", "real_occlusion_half", half_events(events, len(xy)), xy, names)
+    if half:
+        rows += variant_rows(clip, work, "half", "real_occlusion_half", half_events(events, len(xy)), xy, names)
+    return rows
 
 
 def aggregate_rows(rows: list[dict[str, Any]], stems: list[str]) -> list[dict[str, Any]]:
     """Over the clips ``stems``: ``real_occlusion_recall_min``, ``real_occlusion_precision_min``,
-    the same of the half-clip variant (``real_occlusion_half_*_min``) and
-    ``real_occlusion_false_frac_max``."""
+    the same of the half-clip variant where its rows are there (``real_occlusion_half_*_min``)
+    and ``real_occlusion_false_frac_max``."""
     value = {r["metric"]: r["value"] for r in rows}
-    out = [row(f"{prefix}_{kind}_min", min(value[f"{prefix}_{kind}_{s}"] for s in stems), "fraction")
-           for prefix in ("real_occlusion", "real_occlusion_half") for kind in ("recall", "precision")]
-    return out + [row("real_occlusion_false_frac_max", max(value[f"real_occlusion_false_frac_{s}"] for s in stems),
+    prefixes = ["real_occlusion"] + (["real_occlusion_half"] if f"real_occlusion_half_recall_{stems[0]}" in value else [])
+    out = [row(f"{prefix}_{kind}_min", np.nanmin([value[f"{prefix}_{kind}_{s}"] for s in stems]), "fraction")
+           for prefix in prefixes for kind in ("recall", "precision")]  # a precision with no flag is NaN: left out
+    return out + [row("real_occlusion_false_frac_max", np.nanmax([value[f"real_occlusion_false_frac_{s}"] for s in stems]),
                       "fraction")]
 
 
@@ -470,13 +473,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--clip", type=Path, action="append", required=True, help="a real clip (repeatable)")
     parser.add_argument("--work", type=Path, default=Path(".cache/bench/real/occlusion"), help="scratch folder")
     parser.add_argument("--json", action="store_true", help="print JSON lines only")
+    parser.add_argument("--no-half", action="store_true", help="skip the half-clip variant")
     args = parser.parse_args(argv)
     from runner.stage import StageError
 
     rows: list[dict[str, Any]] = []
     for clip in args.clip:
         try:
-            rows += occlusion_rows(clip, args.work / clip.stem)
+            rows += occlusion_rows(clip, args.work / clip.stem, half=not args.no_half)
         except (ValueError, StageError) as exc:
             said = str(exc)
             print(f"occluder: {said}" if str(clip) in said else f"occluder: {clip}: {said}", file=sys.stderr)

@@ -124,3 +124,12 @@ def test_cli_says_in_one_line_when_a_clip_is_too_short(tmp_path):
     assert result.returncode == 1 and "Traceback" not in result.stderr
     said = [line for line in result.stderr.splitlines() if line.startswith("occluder:")]
     assert said == [f"occluder: {CLIP}: clip too short for 30-frame occluder events: 48 frames, need 70"]
+
+
+def test_aggregates_are_over_the_clips_and_the_variants_there():
+    rows = [occluder.row(f"real_occlusion_{k}_{s}", v, "fraction")
+            for s, values in (("a", (0.9, 0.8, 0.0)), ("b", (1.0, np.nan, 0.01)))
+            for k, v in zip(("recall", "precision", "false_frac"), values)]
+    value = {r["metric"]: r["value"] for r in occluder.aggregate_rows(rows, ["a", "b"])}
+    assert value == {"real_occlusion_recall_min": 0.9, "real_occlusion_precision_min": 0.8,
+                     "real_occlusion_false_frac_max": 0.01}
