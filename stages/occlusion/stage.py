@@ -23,6 +23,35 @@ def _params(stage: SequenceStage, params: Mapping[str, Any]) -> dict[str, Any]:
     return {p.name: p.default for p in stage.params} | dict(params)
 
 
+def region_visibility(strips: np.ndarray, face_shape: np.ndarray, profile: profiles.Profile, *, keep: float,
+                      median_frames: int) -> np.ndarray:
+    """The visibility of one region in each frame with a face (:mod:`stages.occlusion.model`).
+
+    Parameters
+    ----------
+    strips : (F, K, M + 2 SHIFT, 2) the region's strips (:func:`profiles.channels`).
+    face_shape : (F, P) the face's shape in those frames (:func:`profiles.shape`).
+    profile : the region's strip (its ``redder`` test, if any).
+    keep, median_frames : the stage's parameters.
+
+    Returns
+    -------
+    (F,) the running median of the visibility: the template's weight, raised by the template of
+    the frames nearest in shape where it is below ``keep`` and, for a region that must be redder
+    inside, by its redness contrast.
+    """
+    win = model.windows(strips, profiles.SHIFT)
+    template, seen = model.template(win, positions=strips.shape[1], keep=keep)
+    visible = model.visibility(win, template, seen)
+    suspect = np.flatnonzero(visible < keep)
+    neighbours = max(model.MIN_FRAMES, min(25, int(seen.sum()) // 10))
+    visible[suspect] = np.maximum(visible[suspect],
+                                  model.local_visibility(win, face_shape, seen, suspect, neighbours=neighbours))
+    if profile.redder is not None:
+        visible = np.maximum(visible, model.relative(profiles.redness_contrast(strips, profile), seen))
+    return model.median_filter(visible, median_frames)
+
+
 class DetectOcclusion(SequenceStage):
     """``occlusion.detect``: per frame and region, whether the region is hidden.
 
@@ -86,18 +115,9 @@ class DetectOcclusion(SequenceStage):
         for j, region in enumerate(judged):
             if valid.sum() < model.MIN_FRAMES:
                 break
-            shape = sampler.shapes[region]
-            strips = profiles.channels(rgb[valid, ends[j]:ends[j + 1]].reshape(-1, *shape, 3))
-            win = model.windows(strips, profiles.SHIFT)
-            t, seen = model.template(win, positions=shape[0], keep=float(params["keep"]))
-            seen_score = model.visibility(win, t, seen)
-            suspect = np.flatnonzero(seen_score < float(params["keep"]))
-            shape_ = profiles.shape(sampler, xy[valid], j)
-            seen_score[suspect] = np.maximum(seen_score[suspect], model.local_visibility(
-                win, shape_, seen, suspect, neighbours=max(model.MIN_FRAMES, min(25, int(seen.sum()) // 10))))
-            if profiles.PROFILES[region].redder is not None:
-                seen_score = np.maximum(seen_score, model.relative(profiles.redness_contrast(strips, profiles.PROFILES[region]), seen))
-            seen_score = model.median_filter(seen_score, int(params["median_frames"]))
+            strips = profiles.channels(rgb[valid, ends[j]:ends[j + 1]].reshape(-1, *sampler.shapes[region], 3))
+            seen_score = region_visibility(strips, profiles.shape(sampler, xy[valid], j), profiles.PROFILES[region],
+                                           keep=float(params["keep"]), median_frames=int(params["median_frames"]))
             r = REGIONS.index(region)
             score[valid, r] = seen_score
             occluded[valid, r] = seen_score < float(params["threshold"])
