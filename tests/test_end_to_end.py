@@ -161,6 +161,19 @@ def test_default_pipeline_follows_the_performer(default_run):
         assert follow(ideal[signal], target[signal])[0] > 0.9, signal
 
 
+def test_default_run_records_the_occluded_regions(default_run):
+    """The calm fixture clip has nothing over the face: every frame is judged and no region is
+    flagged; the flags reach data.npz, data.csv and the report."""
+    data = np.load(default_run / "data" / "data.npz", allow_pickle=False)
+    assert list(data["occlusion_regions"]) == ["mouth", "eye_l", "eye_r", "brow_l", "brow_r", "nose"]
+    assert data["occlusion_valid"].all() and not data["occlusion_occluded"].any()
+    assert data["occlusion_occluded"].shape == (len(data["frame"]), 6)
+    with open(default_run / "data" / "data.csv", newline="") as f:
+        header = next(csv.reader(f))
+    assert {"occluded_mouth", "occlusion_score_nose", "occlusion_valid"} <= set(header)
+    assert "Occlusion: face regions hidden by a hand or an object" in (default_run / "report" / "index.html").read_text()
+
+
 @pytest.mark.parametrize(
     "pipeline, args, code, message",
     [

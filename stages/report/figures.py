@@ -148,3 +148,32 @@ def dominant_heatmap(example: np.ndarray, weight: np.ndarray, *, subregions: Seq
             ax.legend(handles=[Patch(color=colors[i], label=str(examples[i])) for i in used], loc="upper left",
                       bbox_to_anchor=(1.01, 1.0), fontsize=8, title="example", title_fontsize=8)
         return png_bytes(figure)
+
+
+def flag_strip(flags: Mapping[str, np.ndarray], *, judged: np.ndarray, title: str, colour: str) -> bytes:
+    """Rows of per-frame flags over the frame index: ``colour`` where a row's flag is set,
+    white where not, grey where the frame was not judged.
+
+    Parameters
+    ----------
+    flags : row name -> ``(T,)`` bool, top to bottom.
+    judged : (T,) bool.
+    title : the plot's title; colour : a matplotlib colour.
+
+    Returns
+    -------
+    PNG bytes.
+    """
+    names = list(flags)
+    on = np.array([np.asarray(flags[n], bool) for n in names]).reshape(len(names), len(judged))
+    rgb = np.where(on[..., None], matplotlib.colors.to_rgb(colour), 1.0)
+    rgb = np.where(np.asarray(judged, bool)[None, :, None], rgb, 0.75)
+    T = len(judged)
+    with matplotlib.style.context("default"):
+        figure = fixed_figure(ROW_IN * max(len(names), 1) / PANEL_IN, gaps=0, left_in=NAMES_IN, top_in=0.35)
+        ax = figure.subplots()
+        ax.imshow(rgb, aspect="auto", interpolation="nearest", extent=(-0.5, T - 0.5, len(names) - 0.5, -0.5))
+        ax.set_yticks(range(len(names)), names, fontsize=8)
+        ax.set_xlabel("frame")
+        ax.set_title(title, loc="left", fontsize=10)
+        return png_bytes(figure)

@@ -71,7 +71,8 @@ def report_html(inputs: Mapping[str, Any], *, title: str) -> str:
         also gives the frame count, rate and sizes); bundles ``target``, ``tracked`` (points),
         ``pose``, ``similarity``, ``coefficients``; optional ``displacements`` (its
         ``neutral_frame``) and ``mapped`` (the mapping's points with a per-frame soft-limit
-        flag, see :data:`series.LIMIT_KEYS`, and ``lips_clamped``).
+        flag, see :data:`series.LIMIT_KEYS`, and ``lips_clamped``), ``occlusion`` (the occluded
+        face regions of ``occlusion.detect``).
     title : the page's heading.
 
     Returns
@@ -126,6 +127,19 @@ def report_html(inputs: Mapping[str, Any], *, title: str) -> str:
         states_body = not_available(str(exc))
     geometry_body = sections.geometry_section(data, shaded=shaded, fps=fps)
     coefficient_body = sections.coefficient_section(dominant, coefficients, limited=limited)
+    occlusion = inputs.get("occlusion")
+    if occlusion is None:
+        occlusion_body = not_available("the run detects no occlusion (connect occlusion.detect to 'occlusion')")
+    else:
+        regions = [str(r) for r in occlusion["regions"]]
+        hidden = np.asarray(occlusion["occluded"], bool)
+        ranges = {r: frame_list(hidden[:, k]) for k, r in enumerate(regions)}
+        occlusion_body = sections.occlusion_section(occlusion, ranges)
+        data["occlusion"] = {r: hidden[:, k] for k, r in enumerate(regions)}
+        if hidden.any():
+            warnings.append("Occluded face regions: " + "; ".join(
+                f"{r} in {int(hidden[:, k].sum())} of {T} frames ({ranges[r]})" for k, r in enumerate(regions)
+                if hidden[:, k].any()))
     sheet_body = contact_sheet(images, fps=fps)
 
     warnings += frame_warnings(no_face=no_face, pose_valid=pose["valid"], limited=limited, mapped=mapped,
@@ -138,6 +152,7 @@ def report_html(inputs: Mapping[str, Any], *, title: str) -> str:
         Section("States: eyes, lip seal, and what the pack cannot show", states_body),
         Section("Head pose, tracking and propagation", geometry_body),
         Section("Which example drives which subregion", coefficient_body),
+        Section("Occlusion: face regions hidden by a hand or an object", occlusion_body),
         Section("Stage timings", not_available(TIMINGS_NOTE)),
     ]
     (pw, ph), (rw, rh) = (tuple(int(v) for v in sheet[k]) for k in ("performer_size", "result_size"))

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from stages.geometry.signals import SIGNALS, follow
-from stages.report.figures import Panel, dominant_heatmap, timeline
+from stages.report.figures import Panel, dominant_heatmap, flag_strip, timeline
 from stages.report.page import image, not_available, table
 
 FOLLOW_WARN_R = 0.5  # warn when a target signal correlates less than this with the performer's
@@ -126,3 +126,22 @@ def coefficient_section(dominant: Mapping[str, np.ndarray], coefficients: Mappin
                                examples=coefficients["examples"], limited=limited)
     return image(heatmap, "image/png", "coefficients") + ("" if limited is not None else not_available(
         "the run records no per-frame range limit (connect the mapping's points to 'mapped')"))
+
+
+def occlusion_section(occlusion: Mapping[str, np.ndarray], ranges: Mapping[str, str]) -> str:
+    """The occlusion section's HTML: a strip per face region over the frames (hidden frames
+    coloured) and a table of counts.
+
+    Parameters
+    ----------
+    occlusion : the ``occlusion`` bundle (``regions (R,)``, ``occluded (T, R)``, ``valid (T,)``).
+    ranges : region -> its occluded frames as text (first ranges).
+    """
+    regions = [str(r) for r in occlusion["regions"]]
+    occluded, judged = np.asarray(occlusion["occluded"], bool), np.asarray(occlusion["valid"], bool)
+    strip = flag_strip({r: occluded[:, k] for k, r in enumerate(regions)}, judged=judged,
+                       title="occluded face regions (grey: frame not judged)", colour="#c0392b")
+    rows = [[r, str(int(occluded[:, k].sum())), ranges[r] or "none"] for k, r in enumerate(regions)]
+    return (image(strip, "image/png", "occluded face regions")
+            + f"<p>Frames judged: {int(judged.sum())} of {len(judged)}.</p>"
+            + table(["region", "occluded frames", "frames"], rows))

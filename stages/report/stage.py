@@ -5,7 +5,7 @@ The page shows a contact sheet (performer | result at evenly spaced frames and a
 peaks), performer vs target expression signals, head pose, tracking validity and fit residuals,
 the motion propagation's iterations and residual (Sec. 10.1), which example drives which
 subregion (the coefficients of eq. 2-5), the frames whose geometry left the target pack's range,
-and the run's warnings. Everything comes from the run's own data and is drawn deterministically,
+the face regions an occluder hid, and the run's warnings. Everything comes from the run's own data and is drawn deterministically,
 so a cached run's report is byte-identical and costs only its own (cheap) recomputation.
 
 The contact sheet is a stage of its own because its frames are known from the geometry alone:
@@ -76,14 +76,14 @@ class WriteReport(SequenceStage):
     """``write.report``: ``index.html`` under the ``report`` files output (see the module doc)."""
 
     name = "write.report"
-    version = "4"  # 4: the states section (eyes, lip seal, beyond the pack)
+    version = "5"  # 5: the states section (eyes, lip seal, beyond the pack) and the occluded face regions
     doc = "an HTML page to judge the run: contact sheet, expression/pose/tracking curves, coefficients, warnings"
     inputs = {
         "sheet": "sheet", "target": "points", "tracked": "points", "pose": "pose",
         "similarity": "similarity", "coefficients": "coefficients", "displacements": "displacements",
-        "mapped": "points",
+        "mapped": "points", "occlusion": "occlusion",
     }
-    optional_inputs = frozenset({"displacements", "mapped"})
+    optional_inputs = frozenset({"displacements", "mapped", "occlusion"})
     outputs = {"report": "files"}
     imports = ("stages.report.sections",)  # matplotlib (~1 s of one core): imported while the frames stream
     params = (
@@ -98,7 +98,7 @@ class WriteReport(SequenceStage):
         frames = int(inputs["sheet"]["frames"])
         check_bundles(self.name, inputs, {"target": "points", "tracked": "points", "pose": "pose",
                                           "similarity": "similarity", "coefficients": "coefficients",
-                                          "mapped": "points"}, frames)
+                                          "mapped": "points", "occlusion": "occlusion"}, frames)
         try:
             from stages.report.html import report_html  # matplotlib: only when run
 

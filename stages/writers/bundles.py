@@ -14,12 +14,14 @@ FIELDS = {
     "pose": ("rvec", "tvec", "reproj_err_px", "valid"),
     "similarity": ("params", "residual_px", "valid"),
     "coefficients": ("coeff", "subregions", "examples"),
+    "occlusion": ("regions", "occluded", "score", "valid"),
 }
 PER_FRAME = {
     "points": ("xy", "valid"),
     "pose": ("rvec", "tvec", "reproj_err_px", "valid"),
     "similarity": ("params", "residual_px", "valid"),
     "coefficients": ("coeff",),
+    "occlusion": ("occluded", "score", "valid"),
 }
 
 

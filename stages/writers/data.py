@@ -1,7 +1,7 @@
 """``write.data``: the per-frame numbers of a run as one ``data.npz`` and one ``data.csv``.
 
 Whatever bundles are connected (target points, tracked and smoothed performer points, pose,
-similarity, QP coefficients per subregion) are written frame by frame. The ``.npz`` keeps every
+similarity, QP coefficients per subregion, occluded face regions) are written frame by frame. The ``.npz`` keeps every
 array of every connected bundle as it came, named ``<port>_<key>`` (``target_xy (T, N, 2)``…),
 plus ``frame (T,)`` and ``time_s (T,)``. The ``.csv`` is the same numbers flattened into one row
 per frame with named columns; ``docs/writers.md`` lists them. Floats are written with Python's
@@ -29,6 +29,7 @@ BUNDLE_PORTS = {
     "pose": "pose",
     "similarity": "similarity",
     "coefficients": "coefficients",
+    "occlusion": "occlusion",
 }
 Column = tuple[str, np.ndarray]  # (name, values (T,))
 
@@ -96,11 +97,35 @@ def coefficient_columns(port: str, bundle: Mapping[str, np.ndarray]) -> list[Col
     ]
 
 
+def occlusion_columns(port: str, bundle: Mapping[str, np.ndarray]) -> list[Column]:
+    """``occluded_<region>`` (0/1) and ``occlusion_score_<region>`` (the visibility of the
+    region's structure, 1 = as typical of the clip, NaN where not judged) per face region,
+    then ``occlusion_valid`` (0/1: the frame was judged).
+
+    Parameters
+    ----------
+    bundle : ``regions (R,)`` str, ``occluded (T, R)`` bool, ``score (T, R)`` float,
+        ``valid (T,)`` bool (``occlusion.detect``).
+    """
+    regions, occluded, score = bundle["regions"], bundle["occluded"], bundle["score"]
+    if occluded.ndim != 2 or occluded.shape[1] != len(regions) or score.shape != occluded.shape:
+        raise StageError(
+            f"write.data: input '{port}' must hold occluded and score (T, {len(regions)}) (frames, regions); "
+            f"got {occluded.shape} and {score.shape}"
+        )
+    return [
+        *((f"occluded_{name}", occluded[:, r]) for r, name in enumerate(regions)),
+        *((f"occlusion_score_{name}", score[:, r]) for r, name in enumerate(regions)),
+        ("occlusion_valid", bundle["valid"]),
+    ]
+
+
 COLUMNS = {  # port type -> its columns
     "points": point_columns,
     "pose": pose_columns,
     "similarity": similarity_columns,
     "coefficients": coefficient_columns,
+    "occlusion": occlusion_columns,
 }
 
 
@@ -168,8 +193,8 @@ class WriteData(SequenceStage):
     """Writes ``data.npz`` and ``data.csv``: every connected per-frame bundle, one row per frame."""
 
     name = "write.data"
-    version = "1"
-    doc = "per-frame points, pose, similarity and QP coefficients as data.npz and data.csv"
+    version = "2"  # 2: the occlusion input
+    doc = "per-frame points, pose, similarity, QP coefficients and occluded regions as data.npz and data.csv"
     inputs = {**BUNDLE_PORTS, "frames": "frames"}
     optional_inputs = frozenset(inputs)
     outputs = {"data": "files"}

@@ -179,3 +179,27 @@ def test_states_section_curves_and_the_states_beyond_the_pack(tmp_path: Path):
     assert "estimated from the clip, region by region; the nearest single frame, 12" in warnings
     assert data["reference_frame"] == 12 and dict(data["contact_sheet"])[12] == "reference"
     assert "3-4, 30" in (tmp_path / "report" / "index.html").read_text()
+
+
+def test_occluded_regions_are_shown_and_counted(tmp_path: Path):
+    inputs = stage_inputs()
+    T = len(inputs["tracked"]["xy"])
+    occluded = np.zeros((T, 2), bool)
+    occluded[3:9, 0] = True  # the mouth in frames 3-8
+    occluded[20, 1] = True
+    valid = np.ones(T, bool)
+    valid[list(synthetic.NO_FACE)] = False
+    inputs["occlusion"] = {"regions": np.array(["mouth", "eye_l"]), "occluded": occluded,
+                           "score": np.where(occluded, 0.1, 1.0).astype(np.float32), "valid": valid}
+    page = write(inputs, tmp_path)
+    data = embedded(page)
+    assert data["occlusion"] == {"mouth": occluded[:, 0].tolist(), "eye_l": occluded[:, 1].tolist()}
+    assert "Occluded face regions: mouth in 6 of 40 frames (3-8); eye_l in 1 of 40 frames (20)" in data["warnings"]
+    text = page.read_text()
+    assert "Frames judged: 37 of 40." in text and 'alt="occluded face regions"' in text
+
+
+def test_without_occlusion_the_section_says_why(tmp_path: Path):
+    text = write(stage_inputs(), tmp_path).read_text()
+    assert "Not available: the run detects no occlusion" in text
+    assert "occlusion" not in embedded(tmp_path / "report" / "index.html")

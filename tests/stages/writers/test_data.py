@@ -142,3 +142,25 @@ def test_csv_is_what_csv_writer_writes(tmp_path: Path) -> None:
                     files_context(tmp_path))
     expected = _csv_writer_text(data_columns(bundles, frames=T, fps=FPS))
     assert (tmp_path / "data" / "data.csv").read_bytes() == expected.encode()
+
+
+def test_occlusion_columns_per_region(tmp_path: Path) -> None:
+    occluded = np.zeros((T, 2), bool)
+    occluded[1:3, 1] = True
+    score = np.array([[1.0, 0.9], [0.8, 0.1], [np.nan, 0.2], [1.1, 0.95], [1.0, 1.0]], np.float32)
+    occlusion = {"regions": np.array(["mouth", "eye_l"]), "occluded": occluded, "score": score,
+                 "valid": np.array([True, True, False, True, True]), "region_points": np.ones((2, 3), bool),
+                 "names": np.array(["a", "b", "c"])}
+    frames = MemoryStream(np.zeros((T, 2, 2, 3), np.uint8), fps=FPS)
+    WriteData().run({"occlusion": occlusion, "frames": frames}, {}, files_context(tmp_path))
+    header, table = _read_csv(tmp_path / "data" / "data.csv")
+    assert header == ["frame", "time_s", "occluded_mouth", "occluded_eye_l", "occlusion_score_mouth",
+                      "occlusion_score_eye_l", "occlusion_valid"]
+    np.testing.assert_array_equal(table["occluded_eye_l"], [0, 1, 1, 0, 0])
+    np.testing.assert_array_equal(table["occlusion_score_mouth"], score[:, 0].astype(np.float64))
+    np.testing.assert_array_equal(table["occlusion_valid"], [1, 1, 0, 1, 1])
+    npz = np.load(tmp_path / "data" / "data.npz", allow_pickle=False)
+    np.testing.assert_array_equal(npz["occlusion_occluded"], occluded)
+    assert list(npz["occlusion_regions"]) == ["mouth", "eye_l"] and npz["occlusion_region_points"].shape == (2, 3)
+    with pytest.raises(StageError, match="'occlusion' must hold occluded and score"):
+        WriteData().run({"occlusion": {**occlusion, "score": score[:, :1]}, "frames": frames}, {}, files_context(tmp_path))
