@@ -410,6 +410,7 @@ def states_rows(clips: list[Path], work: Path, pack_clips: list[Path]) -> list[d
     cut-start variant onto the bundled target; per clip the worst over its targets, then the
     aggregates over the clips."""
     from scripts import real_states as states
+    from scripts.occluder import aggregate_rows
 
     cache = work / "states_cache"
     targets: dict[str, Path | None] = {"bundled": None}
@@ -446,11 +447,43 @@ def states_rows(clips: list[Path], work: Path, pack_clips: list[Path]) -> list[d
         rows += [row(f"real_{key}_{stem}", value, states.unit_of(key)) for key, value in sorted(worst.items())
                  if np.isfinite(value)]
         per_clip[stem] = worst
+        rows += occlusion_variant_rows(clip, folder / "occlusion", cache)
     rows += states.aggregate(per_clip)
+    rows += aggregate_rows(rows, [clip.stem for clip in clips])
     for name, amps in amp_onto.items():
         if name != "bundled":
             rows.append(row(f"real_mouth_amp_ratio_onto_{name}_min", min(amps.values()), "ratio"))
     return rows
+
+
+def occlusion_variant_rows(clip: Path, work: Path, cache: Path) -> list[dict[str, Any]]:
+    """Benchmark variant (b): a synthetic hand over the mouth, then over one eye, 30 frames each
+    (:func:`scripts.occluder.occlusion_rows`: recall and precision of ``occlusion.detect``,
+    false alarms on the clean clip), and the default pipeline on that variant against the same
+    clip re-encoded alike without the hand: ``real_occlusion_outside_diff_<stem>``, the median over
+    the frames away from the hands (3 frames either side) of the largest target point difference,
+    eye distances, beside ``real_occlusion_outside_landmark_diff_<stem>``, the same of the
+    performer's landmarks (what re-encoding alone moves them)."""
+    from scripts.occluder import occlusion_rows, write_variant
+    from stages.geometry.mapping import eye_distance
+
+    rows = occlusion_rows(clip, work, half=False)
+    points = np.load(work / "points.npz")
+    names = [str(n) for n in points["names"]]
+    write_variant(clip, work / "clean.mp4", points["xy"], names, [])
+    for name in ("clean", "occluded"):
+        run_pipeline(work / f"{name}.mp4", work / f"run_{name}", cache=cache)
+    a, b = (np.load(work / f"run_{name}" / "out" / "data" / "data.npz") for name in ("occluded", "clean"))
+    truth = np.load(work / "occluded_truth.npz")
+    away = np.ones(len(a["target_xy"]), bool)
+    for first, stop in truth["events"]:
+        away[max(0, first - 3):stop + 3] = False
+    out = []
+    for key, label in (("target", "outside_diff"), ("tracked", "outside_landmark_diff")):
+        scale = eye_distance(np.nanmedian(b[f"{key}_xy"], axis=0), names)
+        diff = np.nanmax(np.linalg.norm(a[f"{key}_xy"] - b[f"{key}_xy"], axis=-1), axis=1) / scale
+        out.append(row(f"real_occlusion_{label}_{clip.stem}", float(np.nanmedian(diff[away])), "eye"))
+    return rows + out
 
 
 def run(args: argparse.Namespace) -> list[dict[str, Any]]:

@@ -203,6 +203,15 @@ def close_reference_lips(neutral: np.ndarray, d: np.ndarray, names: np.ndarray) 
     return closed, np.asarray(d, np.float64) + (neutral - closed)[None], widest
 
 
+def median_placement(xy: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """``(N, 2)`` px: each point's median image position over the frames where it is valid
+    (``xy (T, N, 2)``, ``valid (T, N)``); a point valid nowhere takes its first frame's."""
+    masked = np.where(valid[..., None], np.asarray(xy, np.float64), np.nan)
+    with np.errstate(all="ignore"):
+        out = np.nanmedian(masked, axis=0) if valid.any() else np.asarray(xy[0], np.float64)
+    return np.where(np.isfinite(out), out, np.asarray(xy[0], np.float64))
+
+
 def nearest_valid(valid: np.ndarray) -> np.ndarray:
     """``(T,)`` bool -> ``(T,)`` int: each frame's nearest valid frame (itself when valid)."""
     good = np.flatnonzero(valid)
@@ -322,7 +331,7 @@ class CompensateRigid3D(SequenceStage):
     extension of Sec. 12 for real footage)."""
 
     name = "compensate.rigid3d"
-    version = "4"  # 4: the neutral estimated region by region over the clip (stages.geometry.neutral); occlusion held
+    version = "5"  # 5: the neutral estimated region by region over the clip (stages.geometry.neutral); occlusion held; the 2D head motion relative to the clip's median placement
     doc = ("neutral estimated from the whole clip (or a named frame); 3D similarity of the rigid points; "
            "displacements, pose, 2D similarity; occluded regions held")
     inputs = {"points": "points", "landmarks": "landmarks", "occlusion": "occlusion"}
@@ -425,7 +434,11 @@ class CompensateRigid3D(SequenceStage):
                          "neutral_frame": np.array(reference), "neutral_estimated": np.array(estimate is not None),
                          "neutral_nearest_frame": np.array(reference if estimate is None else estimate.nearest_frame),
                          "eye_open_known": known, "held": ~frame_ok, "occluded": occluded_any, **extra}
-        planar = similarity_2d(xy, valid, xy[reference], rigid)
+        # The head motion carried onto the output: relative to the named frame, or to the clip's median
+        # head placement (per point over the frames with a face), so that no one frame decides where
+        # the target sits.
+        rest = xy[reference] if estimate is None else median_placement(xy, valid & frame_ok[:, None])
+        planar = similarity_2d(xy, valid, rest, rigid)
         similarity = {"params": planar["params"], "residual_px": planar["residual_px"],
                       "valid": planar["frame_valid"] & frame_ok}
 
