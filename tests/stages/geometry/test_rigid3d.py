@@ -247,3 +247,31 @@ def test_the_reference_warning_advises_what_was_not_done(caplog, neutral_frame, 
         stage.run({"points": points, "landmarks": marks}, params, Context(device="cpu", files_dir=None))
     warned = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING and "turned 15.0 deg" in r.getMessage()]
     assert len(warned) == 1 and warned[0].endswith(advice) and "set neutral_frame=N" not in warned[0]
+
+
+def test_stage_holds_an_occluded_region_from_the_frames_around_it():
+    """The non-rigid points below y = 200 move down 2 px a frame; an ``occlusion`` bundle hides
+    them ("mouth") in frames 1-2: their displacements there are the line from frame 0 to frame 3,
+    whatever the landmarks guessed under the hand (here: 50 px off), and the other points keep
+    theirs; the occluded frames are flagged."""
+    from runner.stage import Context
+    from stages.geometry.rigid3d import CompensateRigid3D
+
+    points, marks, ref, names = _bundles()
+    lower = _lower(ref, names)
+    points["xy"][1:3][:, lower] += 50.0  # what a landmarker guesses under a hand
+    hidden = np.zeros((6, 1), bool)
+    hidden[1:3, 0] = True
+    occlusion = {"regions": np.array(["mouth"]), "occluded": hidden, "region_points": lower[None],
+                 "names": names, "valid": np.ones(6, bool), "score": np.where(hidden, 0.0, 1.0)}
+    stage = CompensateRigid3D()
+    params = {p.name: p.default for p in stage.params} | {"neutral_frame": 0, "close_lips": False}
+    ctx = Context(device="cpu", files_dir=None)
+    held = stage.run({"points": points, "landmarks": marks, "occlusion": occlusion}, params, ctx)["displacements"]
+    seen = stage.run({"points": points, "landmarks": marks}, params, ctx)["displacements"]
+    for t in (1, 2):
+        np.testing.assert_allclose(held["d"][t][lower], seen["d"][0][lower] + t / 3 * (seen["d"][3][lower] - seen["d"][0][lower]),
+                                   atol=1e-9)
+    np.testing.assert_allclose(held["d"][:, ~lower], seen["d"][:, ~lower])
+    np.testing.assert_array_equal(held["occluded"], [False, True, True, False, False, False])
+    assert np.abs(seen["d"][1][lower, 1] - 2.0).min() > 40  # without the bundle the guess is taken
