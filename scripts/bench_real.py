@@ -406,9 +406,9 @@ WORST = {"recall": min, "precision": min, "_r": min, "amp_ratio": min, "frames":
 
 def states_rows(clips: list[Path], work: Path, pack_clips: list[Path]) -> list[dict[str, Any]]:
     """The expression-state rows (:mod:`scripts.real_states`): every clip onto the bundled target and
-    onto packs built from ``pack_clips`` (never onto its own), pops onto the first such pack, the
-    cut-start variant onto the bundled target; per clip the worst over its targets, then the
-    aggregates over the clips."""
+    onto packs built from ``pack_clips`` (never onto its own), pops onto each such pack, the
+    cut-start variant onto the bundled target, the occluder variant; per clip the worst over its
+    targets, then the aggregates over the clips."""
     from scripts import real_states as states
     from scripts.occluder import aggregate_rows
 
@@ -437,11 +437,16 @@ def states_rows(clips: list[Path], work: Path, pack_clips: list[Path]) -> list[d
             pick = next((f for ending, f in WORST.items() if key.endswith(ending)), None)
             if values and pick is not None:
                 worst[key] = pick(values)
-        pops_target = next(name for name in targets if name not in ("bundled", stem))
-        for mode in ("full", "warp-only"):
-            run_pipeline(clip, folder / f"pops_{mode}", "--input", f"target={targets[pops_target]}", "--set",
-                         "synthesize.head_motion=false", "--set", f"synthesize.mode={mode}", cache=cache)
-        worst |= states.pops_measures(folder / "pops_full" / "out", folder / "pops_warp-only" / "out")
+        pops: dict[str, dict[str, float]] = {}
+        for name in targets:
+            if name in ("bundled", stem):
+                continue
+            for mode in ("full", "warp-only"):
+                run_pipeline(clip, folder / f"pops_{name}_{mode}", "--input", f"target={targets[name]}", "--set",
+                             "synthesize.head_motion=false", "--set", f"synthesize.mode={mode}", cache=cache)
+            pops[name] = states.pops_measures(folder / f"pops_{name}_full" / "out", folder / f"pops_{name}_warp-only" / "out")
+            rows += [row(f"real_{key}_{stem}_onto_{name}", value, states.unit_of(key)) for key, value in pops[name].items()]
+        worst |= {key: max(m[key] for m in pops.values()) for key in next(iter(pops.values()))}
         worst |= states.cutstart_measures(clip, folder / "bundled" / "out", folder,
                                           lambda c, f: run_pipeline(c, f, cache=cache))
         rows += [row(f"real_{key}_{stem}", value, states.unit_of(key)) for key, value in sorted(worst.items())
