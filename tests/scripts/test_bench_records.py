@@ -1,0 +1,47 @@
+"""Benchmark records (scripts/bench.py --record) and the page rendered from them
+(scripts/benchmarks_page.py): provenance kept, the latest record shown, stale rows marked."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+from scripts import bench, benchmarks_page
+
+
+def git(repo: Path, *args: str) -> str:
+    return subprocess.run(["git", *args], cwd=repo, capture_output=True, text=True, check=True).stdout.strip()
+
+
+def test_records_keep_provenance_and_the_page_shows_the_latest_marking_stale_ones(tmp_path, monkeypatch):
+    repo = tmp_path / "repo"
+    (repo / "stages").mkdir(parents=True)
+    (repo / "stages" / "a.py").write_text("x = 1\n")
+    git(repo, "init", "-q")
+    git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qam", "one", "--allow-empty")
+    git(repo, "add", ".")
+    git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "two")
+    for module in (bench, benchmarks_page):
+        monkeypatch.setattr(module, "REPO", repo)
+    monkeypatch.setattr(benchmarks_page, "RESULTS", repo / "benchmarks" / "results")
+    monkeypatch.setattr(benchmarks_page, "PAGE", repo / "docs" / "benchmarks.md")
+    first = git(repo, "rev-parse", "HEAD")
+    started = {"date": "2026-01-01T00:00:00+00:00", "load_start": 0.5, "commit": bench.commit()}
+    rows = [{"bench": "geometry", "metric": "m_a", "value": 1.0, "unit": "px"},
+            {"bench": "geometry", "metric": "m_b", "value": 2.0, "unit": "px"}]
+    path = bench.record("geometry", rows, started, ["geometry", "--json", "--record"])
+    entries = [json.loads(line) for line in path.read_text().splitlines()]
+    assert [e["commit"] for e in entries] == [first, first] and entries[0]["machine"]["cores"] >= 1
+    assert entries[0]["command"] == "scripts/bench.py geometry --json --record"
+    (repo / "docs").mkdir()
+    text = benchmarks_page.page()
+    assert "| `m_a` | 1 | px |" in text and "| stale |" not in text
+    bench.record("geometry", [{**rows[0], "value": 3.0}], started, ["geometry"])
+    (repo / "stages" / "a.py").write_text("x = 2\n")  # the code the figures depend on changes
+    git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qam", "three")
+    text = benchmarks_page.page()
+    assert "| `m_a` | 3 | px |" in text and "| `m_a` | 1 |" not in text  # the latest record only
+    assert text.count("| stale |") == 2  # both rows are stale now
+    assert benchmarks_page.main(["--check"]) == 1
+    assert benchmarks_page.main([]) == 0 and benchmarks_page.main(["--check"]) == 0
