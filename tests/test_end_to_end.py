@@ -57,12 +57,6 @@ def paper_run(tmp_path_factory) -> Path:
     return _run(tmp_path_factory, "pipeline_paper.yaml")
 
 
-def reference_frame(data) -> int:
-    """The performer's reference (neutral) frame of a run: chosen by the default pipeline, frame 0
-    in the paper's."""
-    return int(data["pose_neutral_frame"]) if "pose_neutral_frame" in data.files else 0
-
-
 def test_exr_frames_read_back_with_metadata(default_run):
     truth = np.load(TRUTH, allow_pickle=False)
     frames = sorted((default_run / "exr").glob("frame.*.exr"))
