@@ -120,7 +120,7 @@ def write_usd_scene(
         shader.CreateIdAttr("UsdPreviewSurface")
         reader = UsdShade.Shader.Define(stage, "/Root/Materials/Face/st")
         reader.CreateIdAttr("UsdPrimvarReader_float2")
-        reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set("st")
+        reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")  # UsdPrimvarReader: string (Sdr)
         tex = UsdShade.Shader.Define(stage, "/Root/Materials/Face/Texture")
         tex.CreateIdAttr("UsdUVTexture")
         tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
@@ -168,7 +168,7 @@ class WriteUsd(SequenceStage):
     """``write.usd``: ``scene.usda`` (animated mesh, head xform, texture sequence, camera), textures, head pose CSV."""
 
     name = "write.usd"
-    version = "1"
+    version = "2"  # 2: the primvar reader's varname is a string (usd-core validation)
     doc = "USD scene of the 3D expression: time-sampled mesh points and UVs, head xform, texture sequence; head_pose.csv"
     inputs = {"mesh": "mesh3d", "head": "head3d", "texture": "frames", "mask": "frames"}
     optional_inputs = frozenset({"head", "mask"})
