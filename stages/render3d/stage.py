@@ -1,10 +1,15 @@
 """Stages ``render3d.head`` (the performer's head pose on the target mesh) and ``render3d`` (Sec. 14.1).
 
-``render3d.head`` output bundle ``head3d``: ``R (T, 3, 3)``, ``t (T, 3)`` mm — the rigid motion
-``X' = R X + t`` of the target mesh in the target camera's frame (:mod:`stages.render3d.head`);
-``valid (T,)`` (frames without a valid pose keep the reference pose); ``ypr_deg (T, 3)`` of ``R``
-(``R = Ry Rx Rz``, degrees); ``pivot (3,)`` mm. With the ``landmarks`` input (and ``absolute``), the
-reference frame's own rotation is composed in: ``R = R_rel R_ref`` (the pack's target is frontal).
+``render3d.head`` reads the pack's geometry, generic 3D model and camera (the target's depth and
+head centre, :func:`stages.mesh3d.model.target_depth`) and the performer's pose; output bundle
+``head3d``: ``R (T, 3, 3)``, ``t (T, 3)`` mm — the rigid motion ``X' = R X + t`` of the target's 3D
+model in the target camera's frame (:mod:`stages.render3d.head`), the one the 3D render and the
+2D result's depth-aware head turn (``synthesis.synthesize``, :mod:`stages.synthesis.turn`) both
+apply; ``valid (T,)`` (frames without a valid pose keep the reference pose); ``ypr_deg (T, 3)`` of
+``R`` (``R = Ry Rx Rz``, degrees); ``pivot (3,)`` mm; ``depth (N,)`` mm, the camera depth of each
+layout point ``names (N,)`` at the neutral; ``camera (3, 3)``, ``size (2,)`` the pack camera. With
+the ``landmarks`` input (and ``absolute``), the reference frame's own rotation is composed in:
+``R = R_rel R_ref`` (the pack's target is frontal).
 
 ``render3d`` renders each frame's Sec. 9 mesh (``mesh3d.synthesize``), moved by the head motion
 and textured with the frame's synthesized image (``synthesis.synthesize`` without head motion:
@@ -23,7 +28,9 @@ import numpy as np
 
 from runner.stage import Context, FrameStage, Param, SequenceStage, StageError, StreamInfo
 from stages.geometry.rigid3d import euler_yaw_pitch_roll
+from stages.mesh3d.model import target_depth
 from stages.mesh3d.stage import GEOMETRY, mesh_vertices
+from stages.pack.bundles import camera_from_bundle, geometry_from_bundle, model3d_from_bundle
 from stages.render3d.frame import render_textured, scaled_intrinsics, to_display
 from stages.render3d.head import apply_head, head_motion_3d
 from stages.render3d.raster import MeshRenderer
@@ -35,11 +42,6 @@ def _field(bundle: Mapping[str, np.ndarray], key: str, stage: str, port: str) ->
     if key not in bundle:
         raise StageError(f"{stage}: input '{port}' has no field '{key}'")
     return np.asarray(bundle[key])
-
-
-def _project(points: np.ndarray, A: np.ndarray) -> np.ndarray:
-    p = np.asarray(points, np.float64) @ np.asarray(A, np.float64).T
-    return p[..., :2] / p[..., 2:3]
 
 
 def reference_rotation(matrix: np.ndarray) -> np.ndarray:
@@ -62,9 +64,10 @@ class HeadPose3D(SequenceStage):
     """``render3d.head``: the performer's relative head pose as a rigid motion of the target mesh."""
 
     name = "render3d.head"
-    version = "2"
-    doc = "Sec. 14.1: performer head pose (compensate.rigid3d) -> rigid motion of the target mesh, mm"
-    inputs = {"mesh": "mesh3d", "pose": "pose", "performer": "displacements", "landmarks": "landmarks"}
+    version = "3"  # 3: from the pack's geometry, model and camera (no mesh); the depth of every point
+    doc = "Sec. 14.1: performer head pose (compensate.rigid3d) -> rigid motion of the target's 3D model, mm; point depths"
+    inputs = {"geometry": "pack_geometry", "model3d": "pack_model3d", "camera": "camera", "pose": "pose",
+              "performer": "displacements", "landmarks": "landmarks"}
     optional_inputs = frozenset({"performer", "landmarks"})
     outputs = {"head": "head3d"}
     params = (
@@ -74,7 +77,15 @@ class HeadPose3D(SequenceStage):
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
-        mesh, pose = inputs["mesh"], inputs["pose"]
+        pose = inputs["pose"]
+        try:
+            geometry = geometry_from_bundle(inputs["geometry"])
+            model3d = model3d_from_bundle(inputs["model3d"], geometry.names)
+            A = camera_from_bundle(inputs["camera"], size=geometry.size)
+            names = np.array(geometry.names)
+            depth, pivot, _, _ = target_depth(model3d, geometry.neutral, A, names)
+        except ValueError as exc:
+            raise StageError(f"{self.name}: {exc}") from None
         R = _field(pose, "R", self.name, "pose").astype(np.float64)
         tvec = _field(pose, "tvec", self.name, "pose").astype(np.float64)
         if "scale" not in pose:
@@ -93,23 +104,23 @@ class HeadPose3D(SequenceStage):
             if not 0 <= frame < len(matrix):
                 raise StageError(f"{self.name}: the pose's neutral_frame {frame} is outside the {len(matrix)} frames of 'landmarks'")
             reference = reference_rotation(matrix[frame])
-        A = np.asarray(mesh["camera"], np.float64)
-        target_2d = _project(mesh["neutral"], A)
+        target_2d = geometry.neutral  # the lifted neutral reprojects onto it exactly
         performer = inputs.get("performer")
         if performer is not None:
             for key in ("neutral", "names"):
                 _field(performer, key, self.name, "performer")
-            center, _, ratio = head_motion_frame(performer["neutral"], performer["names"], target_2d, mesh["names"])
+            center, _, ratio = head_motion_frame(performer["neutral"], performer["names"], target_2d, names)
         else:
             center, ratio = target_2d.mean(0), 1.0
         try:
             rotation, translation = head_motion_3d(
-                R, tvec, scale, source_center=center, pivot=mesh["pivot"], A=A, size_ratio=ratio * float(params["translation_scale"]),
+                R, tvec, scale, source_center=center, pivot=pivot, A=A, size_ratio=ratio * float(params["translation_scale"]),
                 reference=reference,
             )
         except ValueError as exc:
             raise StageError(f"{self.name}: input 'pose': {exc}") from None
-        out = {"R": rotation, "t": translation, "valid": valid, "pivot": np.asarray(mesh["pivot"], np.float64)}
+        out = {"R": rotation, "t": translation, "valid": valid, "pivot": pivot, "depth": depth, "names": names,
+               "camera": A, "size": np.array(geometry.size, np.int64)}
         out["ypr_deg"] = euler_yaw_pitch_roll(rotation)
         ctx.progress(T)
         return {"head": out}

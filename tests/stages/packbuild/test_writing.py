@@ -13,10 +13,27 @@ def test_align_image_moves_a_pixel_where_the_similarity_moves_its_point():
     image = np.zeros((60, 80, 3), np.uint8)
     image[20, 30] = 255
     params = np.array([1.2 * np.cos(0.3), 1.2 * np.sin(0.3), 12.0, -4.0])
-    out = align_image(image, params, (100, 90))
-    assert out.shape == (90, 100, 3)
+    out, matte = align_image(image, params, (100, 90))
+    assert out.shape == (90, 100, 3) and matte.shape == (90, 100)
     y, x = np.unravel_index(np.argmax(out[..., 0].astype(float)), out.shape[:2])
     np.testing.assert_allclose((x, y), apply_similarity(params, np.array([30.0, 20.0])), atol=0.75)
+
+
+def test_pixels_beyond_the_footage_are_marked_in_the_matte_and_filled_not_repeated_from_the_edge():
+    """A frame whose bottom row is a random colour pattern, mapped 20 px up: the last 20 rows of
+    the pack image have no source. They must be marked (matte 0) and be no copy of the edge row
+    (an edge-replicated crop repeats it in every such row: vertical streaks)."""
+    rng = np.random.default_rng(2)
+    image = np.full((60, 80, 3), 120, np.uint8)
+    image[-1] = rng.integers(0, 256, (80, 3))
+    params = np.array([1.0, 0.0, 0.0, -20.0])  # up by 20 px: pack rows 40.. come from beyond the frame's bottom
+    out, matte = align_image(image, params, (80, 60))
+    assert (matte[:40] == 255).all() and (matte[41:] == 0).all()
+    np.testing.assert_array_equal(out[:39], np.full((39, 80, 3), 120, np.uint8))  # real pixels as they were
+    edge = image[-1].astype(float)
+    beyond = out[45:].astype(float)
+    assert np.abs(beyond - edge).mean() > 0.5 * np.abs(edge - edge.mean(0)).mean()  # not the edge row repeated
+    assert np.abs(np.diff(beyond, axis=1)).mean() < 0.2 * np.abs(np.diff(edge, axis=0)).mean()  # a smooth fill
 
 
 def test_exposure_gains_undo_a_known_linear_gain_per_channel():

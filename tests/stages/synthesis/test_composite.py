@@ -15,12 +15,12 @@ def model():
 
 
 def numpy_eq7(model: dict, coeffs: np.ndarray) -> np.ndarray:
-    """sum_s w_s(p) sum_i c_si I_i(p) with the dense (S+1, H, W) weight tensor; outside = standard."""
+    """sum_s w_s(p) sum_i c_si I_i(p) with the dense (S+1, H, W) weight tensor; outside = the outside image (the aligned neutral)."""
     S = len(model["subregion_teeth"])
     w = subregion_weights(model["blend_r"], model["blend_i1"], model["blend_i2"], n_labels=S + 1)
     ex = model["examples"].astype(np.float64) / 255
     teeth = model["teeth"].astype(np.float64) / 255
-    out = w[S][..., None] * model["standard"].astype(np.float64) / 255
+    out = w[S][..., None] * model["outside"].astype(np.float64) / 255
     for s in range(S):
         imgs = teeth if model["subregion_teeth"][s] else ex
         sub = np.einsum("i,ihwc->hwc", coeffs[s, : len(imgs)], imgs)  # eq. 6
