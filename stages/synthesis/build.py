@@ -16,6 +16,7 @@ key                    shape, dtype        meaning
                                            head ring, outer ring, border; appended to every point set)
 ``anchor_kind``        (A,) i1             ``RING_HEAD`` 1, ``RING_OUTER`` 2, ``BORDER`` 0
 ``anchor_hull``        (A,) i8             the feature point a ring anchor is scaled from (-1: border)
+``face_outline``       (h,) i8             the face outline: the hull of the feature points but the teeth
 ``triangles``          (K, 3) i4           triangulation over standard points + anchors
 ``mouth_triangles``    (K,) bool           the triangles of the mouth opening (first in order)
 ``examples``           (M, H, W, 3) u1     example expressions aligned to the standard image
@@ -65,7 +66,7 @@ from runner.stage import Context, Param, SequenceStage, StageError
 from stages.actor_pack import ActorPack, Expression
 from stages.layout import Layout, subregion_mask
 from stages.pack.bundles import images_from_bundle, layout_from_bundle
-from stages.synthesis.surround import head_matte, surround_anchors, surround_triangles
+from stages.synthesis.surround import head_matte, head_ring, surround_anchors, surround_triangles
 from stages.synthesis.warp import warp_images
 
 __all__ = ["blend_weight_map", "subregion_weights", "align_to_standard", "polygon_area", "teeth_host",
@@ -267,6 +268,7 @@ def build_synthesis_model(
         "anchors": anchors,
         "anchor_kind": anchor_kind,
         "anchor_hull": anchor_hull,
+        "face_outline": head_ring(std, face_points)[0],
         "triangles": triangles.astype(np.int32),
         "mouth_triangles": mouth_triangles,
         "examples": examples,

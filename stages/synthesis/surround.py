@@ -37,7 +37,7 @@ import numpy as np
 
 from stages.synthesis.warp import border_anchors
 
-__all__ = ["RING_SCALES", "BORDER", "RING_HEAD", "RING_OUTER", "surround_anchors", "surround_triangles", "head_matte",
+__all__ = ["RING_SCALES", "BORDER", "RING_HEAD", "RING_OUTER", "head_ring", "surround_anchors", "surround_triangles", "head_matte",
            "anchor_depth", "motion_weights"]
 
 RING_SCALES = (1.3, 1.7)
@@ -175,7 +175,7 @@ def head_matte(points: np.ndarray, face: np.ndarray, size: tuple[int, int]) -> n
     return np.clip(cv2.GaussianBlur(mask, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE), 0.0, 1.0)
 
 
-def anchor_depth(lifted: np.ndarray, kind: np.ndarray, hull: np.ndarray, *, far_mm: float) -> np.ndarray:
+def anchor_depth(lifted: np.ndarray, kind: np.ndarray, hull: np.ndarray, outline: np.ndarray) -> np.ndarray:
     """Camera depth of each anchor, mm (module docstring).
 
     Parameters
@@ -184,18 +184,20 @@ def anchor_depth(lifted: np.ndarray, kind: np.ndarray, hull: np.ndarray, *, far_
         The feature points of the standard geometry in the camera frame (lifted at the target
         model's depths).
     kind, hull : (A,) from :func:`surround_anchors`
-    far_mm : float
-        The border anchors' depth (the background: farther than every ring).
+    outline : (h,) int, the face outline's points (:func:`head_ring`)
 
     Returns
     -------
-    (A,) float64, mm.
+    (A,) float64, mm: a ring point ``(s - 1) r`` behind the hull point it is scaled from; the
+    border at the outer ring's depth behind the farthest hull point (a background plane just behind
+    the head: a render of the mesh at rest reproduces its texture, and a triangle from the face to
+    the border does not reach so far back that perspective bends its texture).
     """
     lifted = np.asarray(lifted, np.float64)
-    rings = hull[hull >= 0]
-    xy = lifted[np.unique(rings), :2]
+    ring_idx = np.asarray(outline, np.int64)
+    xy = lifted[ring_idx, :2]
     radius = np.sqrt(((xy - xy.mean(0)) ** 2).sum(1).mean())
-    depth = np.full(len(kind), float(far_mm))
+    depth = np.full(len(kind), lifted[ring_idx, 2].max() + (RING_SCALES[1] - 1.0) * radius)
     for k, scale in zip((RING_HEAD, RING_OUTER), RING_SCALES):
         sel = kind == k
         depth[sel] = lifted[hull[sel], 2] + (scale - 1.0) * radius

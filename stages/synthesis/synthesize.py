@@ -32,7 +32,6 @@ __all__ = ["MODES", "HEAD_MOTION", "HeadTurn", "Synthesizer", "half_float_planes
 
 MODES = ("full", "warp-only", "global")
 HEAD_MOTION = ("auto", "depth", "similarity", "none")
-FAR_BEHIND_MM = 1000.0  # the background's depth behind the farthest feature point (it only orders triangles)
 VALID = 0.999  # validity at or above which a pixel counts as real (bilinear weights sum to 1 within rounding)
 DETAIL_POWER = 1.0  # band-pass blending defaults (docs/synthesis.md, "Fine texture")
 DETAIL_SIGMA_PX = 2.0
@@ -240,6 +239,7 @@ class Synthesizer:
         self.anchors = np.asarray(model["anchors"], np.float64)
         self.anchor_kind = np.asarray(model["anchor_kind"])
         self.anchor_hull = np.asarray(model["anchor_hull"], np.int64)
+        self.face_outline = np.asarray(model["face_outline"], np.int64)
         self.triangles = np.asarray(model["triangles"])
         self.mouth_triangles = np.asarray(model["mouth_triangles"], bool)
         self.teeth_polygon = np.asarray(model["teeth_polygon"], np.int64)
@@ -433,8 +433,7 @@ class Synthesizer:
             from stages.synthesis.surround import anchor_depth, motion_weights
             from stages.synthesis.turn import depth_order, turned_points
             lifted = lift(self.standard_np, turn.depth, turn.camera)
-            depth = np.concatenate([turn.depth, anchor_depth(lifted, self.anchor_kind, self.anchor_hull,
-                                                             far_mm=float(turn.depth.max()) + FAR_BEHIND_MM)])
+            depth = np.concatenate([turn.depth, anchor_depth(lifted, self.anchor_kind, self.anchor_hull, self.face_outline)])
             weight = np.concatenate([np.ones(len(turn.depth)), motion_weights(self.anchor_kind)])
             A_out = scaled_intrinsics(turn.camera, self.out_size[0] / self.size[0])
             dst, z = turned_points(vertices, depth, weight, turn.camera, turn.R, turn.t, A_out=A_out)
@@ -581,8 +580,8 @@ class HeadTurn:
 class Synthesize(FrameStage):
     """``synthesis.synthesize``: target geometry per frame -> expression images (Sec. 6-8, 11).
 
-    Outputs ``frames`` (the whole frame, sRGB half floats), ``mask`` (face alpha), ``head`` (head
-    matte), ``filled`` (how much of each pixel is filled because no real source pixel covers it:
+    Outputs ``frames`` (the whole frame, sRGB half floats), ``mask`` (face alpha), ``head_matte``
+    (head matte), ``filled`` (how much of each pixel is filled because no real source pixel covers it:
     beyond the pack image or its validity matte) and ``coeffs``. Head motion (``head_motion``):
     ``depth`` the depth-aware warp of the whole image turned by input ``head``
     (:mod:`stages.synthesis.turn`), ``similarity`` the 2D similarity of eq. 8-9 (input
@@ -603,7 +602,7 @@ class Synthesize(FrameStage):
         "head": "head3d",
     }
     optional_inputs = frozenset({"points", "displacements", "similarity", "performer", "head"})
-    outputs = {"frames": "frames", "mask": "frames", "head": "frames", "filled": "frames", "coeffs": "synthesis_coeffs"}
+    outputs = {"frames": "frames", "mask": "frames", "head_matte": "frames", "filled": "frames", "coeffs": "synthesis_coeffs"}
     params = (
         Param("mode", str, "full", "full: per-subregion synthesis; global: one combination (Pighin); warp-only: neutral warped", MODES),
         Param("min_coeff", float, 1e-3, "coefficients at or below this are skipped in compositing (then renormalised)"),
@@ -692,7 +691,7 @@ class Synthesize(FrameStage):
             points, mode=params["mode"], similarity=similarity, turn=turn, min_coeff=params["min_coeff"],
             progress=ctx.progress, **options,
         )
-        return {"frames": frames, "mask": mask, "head": head, "filled": filled, "coeffs": {"coeffs": coeffs.cpu().numpy()}}
+        return {"frames": frames, "mask": mask, "head_matte": head, "filled": filled, "coeffs": {"coeffs": coeffs.cpu().numpy()}}
 
 
 def head_turn(head: Mapping[str, np.ndarray], model: Mapping[str, np.ndarray], start: int, stop: int, *, stage: str) -> HeadTurn:
