@@ -62,7 +62,8 @@ def test_usd_scene_and_head_pose(out):
     T = clip_frames()
     stage = Usd.Stage.Open(str(out / "usd" / "scene.usda"))
     points = UsdGeom.Mesh(stage.GetPrimAtPath("/Root/Head/Face")).GetPointsAttr()
-    assert len(points.GetTimeSamples()) == T and len(points.Get(0)) == 134
+    assert len(points.GetTimeSamples()) == T and len(points.Get(0)) > 134  # the 134 layout points and the surround
+    assert len(UsdGeom.Mesh(stage.GetPrimAtPath("/Root/Surround")).GetPointsAttr().GetTimeSamples()) == T
     assert len(UsdGeom.Xformable(stage.GetPrimAtPath("/Root/Head")).GetOrderedXformOps()[0].GetAttr().GetTimeSamples()) == T
     assert len(list((out / "usd" / "textures").glob("texture.*.png"))) == T
     with (out / "usd" / "head_pose.csv").open() as fh:

@@ -155,3 +155,66 @@ def test_chunks_rendered_on_two_threads_at_once_equal_one_thread(chain, tmp_path
     for frame in (0, 1):
         for port in ("frames", "mask", "depth"):
             np.testing.assert_array_equal(results[frame][port][0], out[port][frame])
+
+
+@pytest.fixture(scope="module")
+def whole(tmp_path_factory):
+    """The whole head: mesh3d with the synthesis model, rendered at rest and turned."""
+    from stages.actor_pack import load_pack
+    from stages.pack.bundles import pack_to_bundles
+    from stages.synthesis.build import build_synthesis_model
+
+    root = tmp_path_factory.mktemp("whole")
+    ctx = files_context(root)
+    pack = load_pack(PACK)
+    bundles = pack_to_bundles(pack)
+    model = build_synthesis_model(pack)
+    xy = np.stack([pack.neutral.points, pack.neutral.points])
+    inputs = {port: bundles[port] for port in ("layout", "images", "model3d", "camera")}
+    mesh = Mesh3DSynthesize().run({**inputs, "points": {"xy": xy, "fps": np.array(25.0)}, "model": model}, {}, ctx)["mesh"]
+    R = np.stack([np.eye(3), Rotation.from_euler("y", 20, degrees=True).as_matrix()])
+    pose = {"R": R, "tvec": np.zeros((2, 3)), "scale": np.ones(2), "valid": np.ones(2, bool)}
+    target = {port: bundles[port] for port in ("geometry", "model3d", "camera")}
+    head = HeadPose3D().run({**target, "pose": pose}, {"translation_scale": 1.0}, ctx)["head"]
+    image = pack.neutral.image.astype(np.float32) / 255.0
+    texture = MemoryStream(np.stack([image, image]).astype(np.float16), fps=25.0, chunk=1)
+    params = {"samples": 4, "resolution_scale": 1.0, "geometry": "lifted", "compression": "zip"}
+    out = Render3D().process(0, 2, {"texture": texture, "mesh": mesh, "head": head}, params, ctx)
+    return root, pack, mesh, head, texture, out
+
+
+def test_whole_head_at_rest_reproduces_its_texture_over_the_whole_frame(whole):
+    _, pack, mesh, _, _, out = whole
+    N = pack.layout.n_points
+    assert mesh["surround"].shape[0] == mesh["surround_uv"].shape[0] and mesh["weight"].shape == (N + len(mesh["surround"]),)
+    rest = out["frames"][0].astype(np.float32)
+    err = np.abs(rest - pack.neutral.image / 255.0)
+    assert np.median(err) < 0.01 and err.mean() < 0.02  # hair, neck, background included: no face mask on black
+    assert out["filled"][0].max() < 0.05  # every pixel covered by the mesh and real
+    turned = out["frames"][1].astype(np.float32)
+    corners = np.zeros(turned.shape[:2], bool)
+    corners[:8, :8] = corners[:8, -8:] = True
+    assert np.abs(turned - rest).mean() > 0.01  # the head turned
+    assert np.abs(turned - rest)[corners].mean() < 0.02  # the background stayed
+
+
+def test_whole_head_usd_validates_with_a_rigid_head_and_a_deforming_surround(whole):
+    from pxr import Usd, UsdGeom, UsdValidation
+
+    root, pack, mesh, head, texture, _ = whole
+    ctx = files_context(root)
+    WriteUsd().run({"mesh": mesh, "head": head, "texture": texture}, {"geometry": "lifted", "fps": 25.0}, ctx)
+    path = root / "usd" / "scene.usda"
+    stage = Usd.Stage.Open(str(path))
+    errors = UsdValidation.ValidationContext(UsdValidation.ValidationRegistry().GetOrLoadAllValidators()).Validate(stage)
+    assert [e.GetMessage() for e in errors] == []
+    face = UsdGeom.Mesh(stage.GetPrimAtPath("/Root/Head/Face"))
+    surround = UsdGeom.Mesh(stage.GetPrimAtPath("/Root/Surround"))
+    V = pack.layout.n_points + len(mesh["surround"])
+    assert len(face.GetPointsAttr().Get(0)) == len(surround.GetPointsAttr().Get(1)) == V
+    n_face = len(face.GetFaceVertexCountsAttr().Get())
+    n_surround = len(surround.GetFaceVertexCountsAttr().Get())
+    assert n_face + n_surround == len(mesh["head_triangles"]) and n_face > 0 and n_surround > 0
+    # a static vertex (weight 0) stays put in the turned frame; the head's own vertices move with its xform
+    static = int(np.flatnonzero(mesh["weight"] == 0)[0])
+    np.testing.assert_allclose(surround.GetPointsAttr().Get(1)[static], surround.GetPointsAttr().Get(0)[static], atol=1e-3)
