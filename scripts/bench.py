@@ -13,7 +13,7 @@ import json
 import sys
 from pathlib import Path
 
-AREAS = ("runner", "geometry", "propagation", "synthesis", "writers", "e2e", "landmarks", "smoothing", "real", "editor", "eigen", "reenact", "render3d", "batch", "photo_identity")
+AREAS = ("runner", "geometry", "propagation", "synthesis", "writers", "e2e", "landmarks", "smoothing", "real", "editor", "eigen", "reenact", "render3d", "batch", "photo_identity", "shot")
 
 
 def main(argv: list[str] | None = None) -> int:

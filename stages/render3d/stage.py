@@ -73,6 +73,18 @@ def reference_rotation(matrix: np.ndarray) -> np.ndarray:
     return F @ R @ F
 
 
+def behind_the_lips(vertices: np.ndarray, names: np.ndarray) -> np.ndarray:
+    """``vertices (N, 3)`` mm with the teeth points (``teeth_*``) moved ``MOUTH_BEHIND_MM`` farther
+    along their rays: the mouth opening behind the lips that close over it (the 2D warp's painting
+    order, :mod:`stages.synthesis.turn`); at rest they project where they did."""
+    from stages.mesh3d.model import skin_points
+    from stages.synthesis.turn import MOUTH_BEHIND_MM
+    out = np.array(vertices, np.float64)
+    teeth = ~skin_points(names)
+    out[teeth] *= (1.0 + MOUTH_BEHIND_MM / out[teeth, 2])[:, None]
+    return out
+
+
 class HeadPose3D(SequenceStage):
     """``render3d.head``: the performer's relative head pose as a rigid motion of the target mesh."""
 
@@ -205,7 +217,8 @@ class Render3D(FrameStage):
             v, uv = np.asarray(vertices[frame], np.float64), np.asarray(mesh["uv"][frame], np.float64)
             triangles, weight = mesh["triangles"], None
             if whole:
-                v, uv = np.concatenate([v, mesh["surround"]]), np.concatenate([uv, mesh["surround_uv"]])
+                v = np.concatenate([behind_the_lips(v, mesh["names"]), mesh["surround"]])
+                uv = np.concatenate([uv, mesh["surround_uv"]])
                 triangles, weight = mesh["head_triangles"], np.asarray(mesh["weight"], np.float64)[:, None]
             rest = v
             attrs = frame_attributes(frame, fps=stream.info.fps)

@@ -212,6 +212,9 @@ class Synthesizer:
     output_size : (W, H), optional
         The output images' size (the same aspect ratio as the pack's, up to a pixel's rounding);
         the pack's when omitted. Geometry stays in pack px; it is scaled to the output.
+    padding_mode : ``"border" | "zeros"``
+        The colour the warp reads beyond the source image before the fill: its edge repeated
+        (``border``, what a pixel on the edge of the validity matte keeps a share of) or 0.
     """
 
     def __init__(
@@ -225,6 +228,7 @@ class Synthesizer:
         ridge_px: float = RIDGE_PX,
         memo_frames: int = MEMO_FRAMES,
         output_size: tuple[int, int] | None = None,
+        padding_mode: str = "border",
     ) -> None:
         import torch
         from stages.synthesis.align import refine_model
@@ -236,6 +240,7 @@ class Synthesizer:
         )
         self.size = tuple(int(v) for v in model["size"])
         self.out_size = self.size if output_size is None else tuple(int(v) for v in output_size)
+        self.padding_mode = padding_mode
         self.anchors = np.asarray(model["anchors"], np.float64)
         self.anchor_kind = np.asarray(model["anchor_kind"])
         self.anchor_hull = np.asarray(model["anchor_hull"], np.int64)
@@ -505,8 +510,8 @@ class Synthesizer:
         the composite in the standard geometry (eq. 6, 7) from the standard points, ``warp-only``
         the neutral image with the face alpha in its geometry (:meth:`_neutral_rgba`) from the
         neutral points. Pixels the mattes say no real source pixel covers are filled (``fill``);
-        their colour before the fill is the source's edge repeated (``cv2.BORDER_REPLICATE``),
-        which only the fill's weight ``validity`` of a pixel on the edge of the matte keeps.
+        their colour before the fill is what ``padding_mode`` reads beyond the source, which only
+        the fill's weight ``validity`` of a pixel on the edge of the matte keeps.
         """
         import torch
         if mode not in MODES:
@@ -529,10 +534,11 @@ class Synthesizer:
             source_points, mattes = self.standard_points, self.mattes
         if B == 1:
             out, warped = warp_images(source, source_points[None], dst_t, triangles[0], size=self.out_size,
-                                      buffers=buffers, extra=mattes)
+                                      padding_mode=self.padding_mode, buffers=buffers, extra=mattes)
         else:  # frame by frame: each has its own triangle order
             pairs = [warp_images(source[b:b + 1] if len(source) > 1 else source, source_points[None], dst_t[b:b + 1],
-                                 triangles[b], size=self.out_size, extra=mattes) for b in range(B)]
+                                 triangles[b], size=self.out_size, padding_mode=self.padding_mode, extra=mattes)
+                     for b in range(B)]
             out, warped = torch.cat([p[0] for p in pairs]), torch.cat([p[1] for p in pairs])
         out = out.clamp_(0, 1)
         if fill:
