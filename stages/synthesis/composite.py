@@ -33,7 +33,10 @@ per-frame *teeth mix* ``m`` in [0, 1] (:func:`stages.synthesis.synthesize.teeth_
 neutral's opening, 1 from the least open teeth example's) the teeth subregion composites
 ``m sum_i c^teeth_i T_i + (1 - m) sum_i c^host_i I_i``: the teeth examples blended with the face
 examples at the coefficients of the subregion holding the teeth (the lips), which at a closed
-mouth show closed lips there.
+mouth show closed lips there. The teeth examples' own coefficients are sharpened first,
+``c_i^p / sum_j c_j^p`` (``teeth_power`` p; :func:`stages.synthesis.bandpass.sharpened`): teeth are
+rigid, each example has them at its own place relative to the lip points the alignment follows,
+and an even blend of two shows both rows of teeth, doubled and blurred.
 """
 
 from __future__ import annotations
@@ -100,6 +103,7 @@ class Compositor:
     background: torch.Tensor  # (H*W, 4) channels-last: the composite outside the box (any coefficients), alpha
     teeth_label: int  # the teeth subregion, -1 if none
     teeth_host: int  # the subregion whose coefficients the teeth mix takes for the face examples, -1 if none
+    teeth_power: float  # the teeth examples' coefficients are sharpened to this power (1: as solved)
 
 
 @dataclass
@@ -122,14 +126,16 @@ class Workspace:
 
 
 def prepare_compositor(
-    model: dict[str, np.ndarray], *, device: str = "cpu", detail_power: float = 1.0, detail_sigma_px: float = 2.0
+    model: dict[str, np.ndarray], *, device: str = "cpu", detail_power: float = 1.0, detail_sigma_px: float = 2.0,
+    teeth_power: float = 1.0,
 ) -> Compositor:
     """Move a ``synthesis_model`` bundle's images and weight map to ``device`` in compositing form.
 
     Images become float32 sRGB in [0, 1]. ``detail_power`` > 1 turns on band-pass blending
     (:mod:`stages.synthesis.bandpass`): the detail band ``I - G_sigma * I`` (``sigma`` =
     ``detail_sigma_px``) is blended with the coefficients raised to that power and renormalised
-    (``inf``: the dominant example's detail alone); 1 is plain eq. 6.
+    (``inf``: the dominant example's detail alone); 1 is plain eq. 6. ``teeth_power`` sharpens
+    the teeth examples' coefficients the same way (module docstring, "Teeth mixing").
     """
     import torch
     from stages.synthesis.bandpass import detail_band
@@ -194,7 +200,7 @@ def prepare_compositor(
         (W, H), candidates, primary, secondary, primary_index, secondary_index,
         primary_template, secondary_template, alpha, images, r, i1, i2, details, float(detail_power), box,
         primary_index.view(H, W)[y0:y1, x0:x1].flatten(), box_band, box_secondary[box_band], background,
-        teeth_label, host,
+        teeth_label, host, float(teeth_power),
     )
 
 
@@ -247,8 +253,8 @@ def _fill(buffer: torch.Tensor, segment: _Segment, terms: list[tuple[int, float]
 
 def mixed_coefficients(comp: Compositor, coeffs: torch.Tensor, teeth_mix: np.ndarray | None) -> torch.Tensor:
     """The coefficients the compositor's candidates take: the teeth label's row becomes
-    ``[m c^teeth, (1 - m) c^host]`` (the teeth mix, module docstring; ``m = 1`` when
-    ``teeth_mix`` is None).
+    ``[m s(c^teeth), (1 - m) c^host]`` (the teeth mix, module docstring; ``m = 1`` when
+    ``teeth_mix`` is None; ``s`` the sharpening to ``teeth_power``).
 
     Parameters
     ----------
@@ -257,22 +263,29 @@ def mixed_coefficients(comp: Compositor, coeffs: torch.Tensor, teeth_mix: np.nda
 
     Returns
     -------
-    (B, S, K') tensor, ``K' >= len(candidates[l])`` for every label (``coeffs`` itself when the
-    compositor has no teeth host).
+    (B, S, K') tensor, ``K' >= len(candidates[l])`` for every label (``coeffs`` itself when there
+    is nothing to change: no teeth host and ``teeth_power`` 1).
     """
     import torch
-    if comp.teeth_host < 0:
-        return coeffs
+    from stages.synthesis.bandpass import sharpened
     t, host = comp.teeth_label, comp.teeth_host
-    Mt = len(comp.candidates[t]) - len(comp.candidates[host])
+    if t < 0 or (host < 0 and comp.teeth_power == 1):
+        return coeffs
+    M = len(comp.candidates[host]) if host >= 0 else 0
+    Mt = len(comp.candidates[t]) - M
     B, S, K = coeffs.shape
     out = torch.zeros(B, S, max(K, len(comp.candidates[t])), dtype=coeffs.dtype, device=coeffs.device)
     out[..., :K] = coeffs
-    m = torch.ones(B, dtype=coeffs.dtype, device=coeffs.device) if teeth_mix is None else \
+    teeth = coeffs[:, t, :Mt]
+    if comp.teeth_power != 1:
+        teeth = torch.as_tensor(sharpened(teeth.detach().cpu().numpy().clip(0, None), power=comp.teeth_power),
+                                dtype=coeffs.dtype, device=coeffs.device)
+    m = torch.ones(B, dtype=coeffs.dtype, device=coeffs.device) if teeth_mix is None or host < 0 else \
         torch.as_tensor(np.asarray(teeth_mix, np.float64), dtype=coeffs.dtype, device=coeffs.device)
-    out[:, t, :Mt] = m[:, None] * coeffs[:, t, :Mt]
-    out[:, t, Mt:Mt + len(comp.candidates[host])] = (1 - m)[:, None] * coeffs[:, host, :len(comp.candidates[host])]
-    out[:, t, Mt + len(comp.candidates[host]):] = 0
+    out[:, t, :Mt] = m[:, None] * teeth
+    if host >= 0:
+        out[:, t, Mt:Mt + M] = (1 - m)[:, None] * coeffs[:, host, :M]
+    out[:, t, Mt + M:] = 0
     return out
 
 

@@ -35,6 +35,7 @@ HEAD_MOTION = ("auto", "depth", "similarity", "none")
 VALID = 0.999  # validity at or above which a pixel counts as real (bilinear weights sum to 1 within rounding)
 DETAIL_POWER = 1.0  # band-pass blending defaults (docs/synthesis.md, "Fine texture")
 DETAIL_SIGMA_PX = 2.0
+TEETH_POWER = 4.0  # teeth examples' coefficients sharpened (composite.py, "Teeth mixing"): (0.6, 0.4) -> (0.84, 0.16)
 FLOW_MAX_PX = 0.0  # optical-flow refinement of the examples' alignment (0: off)
 RIDGE_PX = 0.0  # coefficient regularisation of the QPs (docs/synthesis.md, "Per-subregion vs global on real faces")
 MEMO_FRAMES = 2048  # frames whose QP coefficients a Synthesizer keeps (about 4 KB each)
@@ -207,6 +208,9 @@ class Synthesizer:
         the flow clipped to this many px per component; 0 leaves the examples as built.
     ridge_px : float
         Coefficient regularisation ``tau`` of the QPs, px (:class:`SubregionQP`; 0: plain eq. 2).
+    teeth_power : float
+        The teeth examples' coefficients sharpened to this power (:mod:`stages.synthesis.composite`,
+        "Teeth mixing"; 1: as the QP solved them).
     memo_frames : int
         How many frames' QP coefficients :meth:`coefficients` keeps (0: none, every QP solved).
     output_size : (W, H), optional
@@ -226,6 +230,7 @@ class Synthesizer:
         detail_sigma_px: float = DETAIL_SIGMA_PX,
         flow_max_px: float = FLOW_MAX_PX,
         ridge_px: float = RIDGE_PX,
+        teeth_power: float = TEETH_POWER,
         memo_frames: int = MEMO_FRAMES,
         output_size: tuple[int, int] | None = None,
         padding_mode: str = "border",
@@ -236,7 +241,7 @@ class Synthesizer:
         self.device = device
         self.qp = SubregionQP(model, device=device, ridge_px=ridge_px)
         self.compositor: Compositor = prepare_compositor(
-            dict(model), device=device, detail_power=detail_power, detail_sigma_px=detail_sigma_px
+            dict(model), device=device, detail_power=detail_power, detail_sigma_px=detail_sigma_px, teeth_power=teeth_power
         )
         self.size = tuple(int(v) for v in model["size"])
         self.out_size = self.size if output_size is None else tuple(int(v) for v in output_size)
@@ -623,6 +628,8 @@ class Synthesize(FrameStage):
         Param("detail_sigma_px", float, DETAIL_SIGMA_PX, "band-pass blending: Gaussian sigma separating the detail band, px", min=0.1),
         Param("flow_max_px", float, FLOW_MAX_PX, "refine the examples' alignment by optical flow (DIS) to the neutral, flow bounded to this many px (0 = off)", min=0.0),
         Param("ridge_px", float, RIDGE_PX, "coefficient regularisation of the QPs: n_R tau^2 ||c||^2 with tau this many px (0 = plain eq. 2)", min=0.0),
+        Param("teeth_power", float, TEETH_POWER, "the teeth examples' coefficients to this power, renormalised: an even "
+              "blend of two shows their teeth doubled (1 = as solved)", min=1.0),
     )
 
     def __init__(self) -> None:
@@ -647,11 +654,11 @@ class Synthesize(FrameStage):
         """The model prepared on ``device``, kept between chunks of the same run."""
         size, _ = self._output_size(model, params)
         remedies = (float(params["detail_power"]), float(params["detail_sigma_px"]), float(params["flow_max_px"]),
-                    float(params["ridge_px"]), *size)
+                    float(params["ridge_px"]), float(params["teeth_power"]), *size)
         with self._preparing:
             if self._prepared is None or self._prepared[0] is not model or self._prepared[1:3] != (device, remedies):
                 synth = Synthesizer(model, device=device, detail_power=remedies[0], detail_sigma_px=remedies[1],
-                                    flow_max_px=remedies[2], ridge_px=remedies[3], output_size=size)
+                                    flow_max_px=remedies[2], ridge_px=remedies[3], teeth_power=remedies[4], output_size=size)
                 self._prepared = (model, device, remedies, synth)
             return self._prepared[3]
 
