@@ -208,12 +208,15 @@ def selection_from_bundle(bundle: Mapping[str, Any]) -> tuple[Selection, tuple[i
 
 class PackWrite(SequenceStage):
     """``pack.write``: the actor pack folder (``files`` output ``pack``), validated by
-    :func:`stages.actor_pack.load_pack` before the stage returns (:mod:`stages.packbuild.writing`)."""
+    :func:`stages.actor_pack.load_pack` before the stage returns (:mod:`stages.packbuild.writing`).
+    The optional ``valid`` frames (255 = a real pixel, ``photos.decode``'s) say which pixels of
+    each frame the validity mattes may count as real."""
 
     name = "pack.write"
     version = "2"  # 2: validity mattes, no edge-replicated pixels; image width chosen here; source frames recorded
     doc = "write the actor pack: aligned, exposure-matched images, validity mattes, points, captured.npz, model3d, pack.yaml, sheet.png"
-    inputs = {"frames": "frames", "points": "points", "selection": "pack_selection"}
+    inputs = {"frames": "frames", "points": "points", "selection": "pack_selection", "valid": "frames"}
+    optional_inputs = frozenset({"valid"})
     outputs = {"pack": "files"}
     params = (
         Param("name", str, "actor", "the pack's name"),
@@ -258,9 +261,11 @@ class PackWrite(SequenceStage):
         self._check_scale(chosen, size, (stream.info.width, stream.info.height), float(params["max_upscale"]), ctx)
         folder = ctx.files_dir("pack")
         folder.mkdir(parents=True, exist_ok=True)
+        valid = inputs.get("valid")
         done = write_pack(folder, name=params["name"], layout=layout, correspondence=correspondence, selection=chosen,
                           xy=xy, read_frame=lambda t: stream.read(t, t + 1)[0], size=size,
-                          intrinsics=default_intrinsics(size), max_gain=params["max_gain"])
+                          intrinsics=default_intrinsics(size), max_gain=params["max_gain"],
+                          read_valid=None if valid is None else lambda t: valid.read(t, t + 1)[0, ..., 0])
         if done["clipped_points"]:
             ctx.log.warning("%s: %d points of the chosen frames fell outside the %dx%d pack image and were moved "
                             "to its border", self.name, done["clipped_points"], *size)

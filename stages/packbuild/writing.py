@@ -41,9 +41,11 @@ SKIN_SUBREGIONS = ("forehead", "glabella", "eyezone_l", "eyezone_r", "nose", "ch
 INNER_EYE_CORNERS = ("eye_l_0", "eye_r_0")
 
 
-def align_image(image: np.ndarray, params: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+def align_image(image: np.ndarray, params: np.ndarray, size: tuple[int, int], *,
+                valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Map ``image (H, W, 3) uint8`` by the similarity ``params = (a, b, tx, ty)`` (eq. 8) into an
-    image of ``size = (W', H')`` (bilinear), with its validity matte.
+    image of ``size = (W', H')`` (bilinear), with its validity matte (of the frame's pixels that are
+    real: ``valid (H, W) uint8``, 255 = real; every pixel of the frame when omitted).
 
     Returns
     -------
@@ -59,9 +61,9 @@ def align_image(image: np.ndarray, params: np.ndarray, size: tuple[int, int]) ->
     a, b, tx, ty = (float(v) for v in params)
     M = np.array([[a, -b, tx], [b, a, ty]])
     size = tuple(int(v) for v in size)
-    source = np.ascontiguousarray(image)
-    ones = np.full(source.shape[:2], 255, np.uint8)
-    matte = cv2.warpAffine(ones, M, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    inside = np.full(image.shape[:2], 255, np.uint8) if valid is None else np.ascontiguousarray(valid, np.uint8).reshape(image.shape[:2])
+    source = np.ascontiguousarray(image) if valid is None else cv2.bitwise_and(image, image, mask=(inside == 255).astype(np.uint8))
+    matte = cv2.warpAffine(inside, M, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     mapped = cv2.warpAffine(source, M, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     if matte.min() == 255:
         return mapped, matte
@@ -169,7 +171,8 @@ def write_rows(path: Path, names: Sequence[str], rows: np.ndarray, columns: tupl
 
 def write_pack(folder: Path, *, name: str, layout: Layout, correspondence: Correspondence, selection: Selection,
                xy: np.ndarray, read_frame: Callable[[int], np.ndarray], size: tuple[int, int],
-               intrinsics: np.ndarray, max_gain: float = 2.0) -> dict[str, object]:
+               intrinsics: np.ndarray, max_gain: float = 2.0,
+               read_valid: Callable[[int], np.ndarray] | None = None) -> dict[str, object]:
     """Write the pack folder: images, points, ``captured.npz``, ``model3d.csv``, ``pack.yaml``, ``sheet.png``.
 
     Parameters
@@ -186,6 +189,9 @@ def write_pack(folder: Path, *, name: str, layout: Layout, correspondence: Corre
         The pack's image size.
     intrinsics : (3, 3)
         Camera matrix written to the manifest.
+    read_valid : callable, optional
+        ``read_valid(t) -> (H, W) uint8``: which pixels of frame ``t`` are real (255; photos
+        brought to one frame size fill a border that is not); every pixel when omitted.
 
     Returns
     -------
@@ -208,8 +214,11 @@ def write_pack(folder: Path, *, name: str, layout: Layout, correspondence: Corre
     points_in_pack = {t: np.clip(p, lo, hi) for t, p in points_in_pack.items()}
     for sub in ("images", "points", "mattes"):
         (folder / sub).mkdir()
+    def cut(t: int) -> tuple[np.ndarray, np.ndarray]:
+        return align_image(read_frame(t), selection.to_pack[t], size, valid=None if read_valid is None else read_valid(t))
+
     footage = read_frame(selection.neutral)
-    neutral_image, neutral_matte = align_image(footage, selection.to_pack[selection.neutral], size)
+    neutral_image, neutral_matte = cut(selection.neutral)
     neutral_skin = skin_mask(layout, points_in_pack[selection.neutral], size) & (neutral_matte == 255)
     gains: dict[str, np.ndarray] = {}
     missing: dict[str, float] = {}
@@ -218,7 +227,7 @@ def write_pack(folder: Path, *, name: str, layout: Layout, correspondence: Corre
     def entry(label: str, t: int) -> dict[str, object]:
         image, matte = neutral_image, neutral_matte
         if t != selection.neutral:
-            image, matte = align_image(read_frame(t), selection.to_pack[t], size)
+            image, matte = cut(t)
             mask = neutral_skin & skin_mask(layout, points_in_pack[t], size) & (matte == 255)
             gains[label] = exposure_gains(image, neutral_image, mask, max_gain=max_gain) if mask.any() else np.ones(3)
             image = apply_gains(image, gains[label])

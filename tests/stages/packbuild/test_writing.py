@@ -61,3 +61,18 @@ def test_contact_sheet_rows_columns_and_blank_cells():
     assert np.all(sheet[64 + 2:64 + 62, 2 * 49 + 2:2 * 49 + 47] == 255)  # the sixth cell is blank
     assert np.all(sheet[64 + 50, 49 + 40] == 40)  # the fifth image, below its label
     assert np.all(sheet[0:2] == 255) and np.all(sheet[50, 40] == 0)  # border; the first image
+
+
+def test_a_letterboxed_photos_border_is_not_counted_as_real():
+    """photos.decode fills the border of a photo brought to the frame size by repeating its edge;
+    its 'valid' frame marks that border, and the pack's matte does not count it as real."""
+    from stages.packbuild.photos import letterbox, placed
+
+    rng = np.random.default_rng(4)
+    photo = rng.integers(0, 256, (30, 20, 3)).astype(np.uint8)
+    frame, valid = letterbox(photo, (40, 30)), placed((20, 30), (40, 30))[..., 0]
+    assert (valid[:, :10] == 0).all() and (valid[:, 10:30] == 255).all() and (valid[:, 30:] == 0).all()
+    out, matte = align_image(frame, np.array([1.0, 0.0, 0.0, 0.0]), (40, 30), valid=valid)
+    np.testing.assert_array_equal(matte, valid)
+    np.testing.assert_array_equal(out[:, 10:30], photo)
+    assert np.abs(np.diff(out[:, :8].astype(float), axis=1)).mean() < 0.5 * np.abs(np.diff(frame[:, 10:30].astype(float), axis=1)).mean()
