@@ -20,9 +20,11 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["COARSEST_PX", "push_pull_fill", "fill_invalid"]
+__all__ = ["COARSEST_PX", "push_pull_fill", "fill_invalid", "fill_regions"]
 
 COARSEST_PX = 4  # the pyramid stops when the smaller side is at most this
+CONTEXT = 0.5  # a region is filled from a crop grown by this fraction of its larger side (and CONTEXT_PX)
+CONTEXT_PX = 16
 
 
 def push_pull_fill(premultiplied: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -80,3 +82,26 @@ def fill_invalid(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
     valid = np.clip(np.asarray(valid, np.float32), 0.0, 1.0)
     premultiplied = cv2.multiply(np.asarray(image, np.float32), cv2.merge([valid] * 3))
     return cv2.cvtColor(push_pull_fill(premultiplied, valid), cv2.COLOR_RGBA2RGB)
+
+
+def fill_regions(image: np.ndarray, valid: np.ndarray) -> int:
+    """Fill, in place, the missing pixels of ``image (H, W, C >= 3) float32`` (its first three
+    channels, any strides), region by region: each connected region (8-connected) of pixels less
+    than half real (``valid (H, W)`` below 0.5) is filled by :func:`fill_invalid` on a crop around
+    it grown by ``CONTEXT`` of its larger side and ``CONTEXT_PX`` (the real pixels there are its
+    context; the crop's partly real pixels are blended by their validity), so a strip along the
+    image's edge costs a thin crop, not the whole frame. A pixel at least half real outside every
+    such crop (a sample reaching less than half a pixel beyond the source's edge) keeps its colour:
+    what it misses is taken from the nearest real pixel, the source's edge. Returns the number of
+    regions.
+    """
+    import cv2
+    H, W = valid.shape
+    holes = (valid < 0.5).astype(np.uint8)
+    n, _, stats, _ = cv2.connectedComponentsWithStats(holes, connectivity=8)
+    for x, y, w, h, _ in stats[1:]:
+        grow = int(CONTEXT * max(w, h)) + CONTEXT_PX
+        x0, y0, x1, y1 = max(x - grow, 0), max(y - grow, 0), min(x + w + grow, W), min(y + h + grow, H)
+        crop = (slice(y0, y1), slice(x0, x1), slice(0, 3))
+        image[crop] = fill_invalid(np.ascontiguousarray(image[crop]), valid[crop[:2]])
+    return n - 1

@@ -32,7 +32,6 @@ __all__ = ["MODES", "HEAD_MOTION", "HeadTurn", "Synthesizer", "half_float_planes
 
 MODES = ("full", "warp-only", "global")
 HEAD_MOTION = ("auto", "depth", "similarity", "none")
-VALID = 0.999  # validity at or above which a pixel counts as real (bilinear weights sum to 1 within rounding)
 DETAIL_POWER = 1.0  # band-pass blending defaults (docs/synthesis.md, "Fine texture")
 DETAIL_SIGMA_PX = 2.0
 TEETH_POWER = 4.0  # teeth examples' coefficients sharpened (composite.py, "Teeth mixing"): (0.6, 0.4) -> (0.84, 0.16)
@@ -422,9 +421,7 @@ class Synthesizer:
                                                turn=None if turn is None else turn.frames(one), direct=direct,
                                                coeffs=coeffs[one], buffers=buffers, **options)
             half_float_planes(rgba, out=(frames[one], mask[one]), buffers=buffers)
-            planes = mattes[0].permute(1, 2, 0).cpu().numpy()  # (H, W, 2): validity, head
-            head[i, ..., 0] = planes[..., 1]
-            filled[i, ..., 0] = np.clip(1.0 - planes[..., 0], 0.0, 1.0)
+            matte_planes(mattes[0], head=head[i, ..., 0], filled=filled[i, ..., 0])
             progress(1)
         return frames, mask, head, filled, coeffs
 
@@ -551,16 +548,30 @@ class Synthesizer:
         return out, warped, coeffs
 
 
+def matte_planes(mattes: torch.Tensor, *, head: np.ndarray, filled: np.ndarray) -> None:
+    """One frame's warped mattes ``(2, H, W)`` (validity, head) into the float16 planes ``head``
+    and ``filled`` (``1 - validity``, clipped to [0, 1]), converted by OpenCV (numpy's float16
+    conversion is a slow scalar loop)."""
+    import cv2
+    planes = mattes.permute(1, 2, 0).cpu().numpy()  # (H, W, 2); on the CPU a view of channels-last memory
+    head[...] = cv2.multiply(np.ascontiguousarray(planes[..., 1]), 1.0, dtype=cv2.CV_16F)
+    missing = cv2.max(cv2.subtract(1.0, np.ascontiguousarray(planes[..., 0])), 0.0)
+    filled[...] = cv2.multiply(missing, 1.0, dtype=cv2.CV_16F)
+
+
 def fill_frames(rgba: torch.Tensor, valid: torch.Tensor) -> None:
-    """Fill, in place, the colour of the pixels whose ``valid`` (B, H, W) is below 1
-    (:func:`stages.fill.fill_invalid`); frames with every pixel valid are left as they are."""
-    from stages.fill import fill_invalid
+    """Fill, in place, the colour of the missing pixels by their ``valid`` (B, H, W)
+    (:func:`stages.fill.fill_regions`, region by region); frames with no pixel less than half real
+    are left as they are."""
+    from stages.fill import fill_regions
     for b in range(len(rgba)):
-        if float(valid[b].min()) >= VALID:
+        if float(valid[b].min()) >= 0.5:
             continue
-        image = np.ascontiguousarray(rgba[b, :3].permute(1, 2, 0).cpu().numpy())
-        filled = fill_invalid(image, valid[b].cpu().numpy())
-        rgba[b, :3] = torch_from(filled, rgba).permute(2, 0, 1)
+        frame = rgba[b].permute(1, 2, 0)  # (H, W, 4): on the CPU a view of channels-last memory
+        image = frame.numpy() if frame.device.type == "cpu" else frame.cpu().numpy()
+        fill_regions(image, np.ascontiguousarray(valid[b].cpu().numpy()))
+        if frame.device.type != "cpu":
+            frame.copy_(torch_from(image, rgba))
 
 
 def torch_from(array: np.ndarray, like: torch.Tensor) -> torch.Tensor:
