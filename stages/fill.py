@@ -11,9 +11,9 @@ The fill is a push-pull pyramid (Gortler et al., "The Lumigraph", SIGGRAPH 1996,
 pull = average the premultiplied colour and the weight down a Gaussian pyramid; push = composite
 each level *over* the level below upsampled, ``C_k = P_k + (1 - V_k) up(C_k+1)``). Each missing
 pixel gets a smooth colour from the real pixels nearest to it, with no streak and no seam where
-the matte ends. It costs two pyramid passes of the frame (about 2 ms at 384x512 on one core),
-where ``cv2.inpaint`` (Telea) spends per missing pixel and took 15-60 ms on a third of such a
-frame; both fills are compared against the truth in ``scripts/bench_shot.py``.
+the matte ends. Its cost is two pyramid passes of the region's crop whatever the share missing,
+where ``cv2.inpaint`` (Telea) spends per missing pixel; the two are compared against the truth,
+and timed, by ``scripts/bench_shot.py`` (rows ``shot_fill_*``).
 """
 
 from __future__ import annotations

@@ -91,7 +91,7 @@ def write_usd_scene(
     surround_points : (T, V, 3) float, mm, optional
         The vertices after the head's motion, camera frame (with ``surround_triangles``).
     """
-    from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, Vt
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade
 
     vertices = np.asarray(vertices, np.float64)
     T = len(vertices)
