@@ -20,7 +20,8 @@ standard geometry, in three kinds:
 
 Ring points outside the image are left out, and the triangulation (:func:`surround_triangles`) is
 made of two parts that meet at the image's edge: one over the feature points, the rings and the
-points on the image's edge, one over those edge points and the outer rectangle. So the image's
+points on the image's edge (the mouth's outline made edges of it), one over those edge points and
+the outer rectangle. So the image's
 edge is made of triangle edges: a warp that keeps the anchors where they are (the alignment of
 the examples to the standard geometry, Sec. 5.2) maps the image's edge onto itself and never
 reaches beyond it.
@@ -104,10 +105,64 @@ def _inside_polygon(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
     return PolygonPath(polygon).contains_points(points)
 
 
+def _cross(o: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    return float((a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]))
+
+
+def _crosses(p: np.ndarray, q: np.ndarray, a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether the open segments ``pq`` and ``ab`` cross (not merely touch)."""
+    d1, d2 = _cross(a, b, p), _cross(a, b, q)
+    d3, d4 = _cross(p, q, a), _cross(p, q, b)
+    return d1 * d2 < 0 and d3 * d4 < 0
+
+
+def constrain(triangles: np.ndarray, vertices: np.ndarray, edges: list[tuple[int, int]]) -> np.ndarray:
+    """Make each of ``edges`` an edge of the triangulation by edge flips (Lawson's method of
+    inserting a constraint into a triangulation; the result still tiles the same region).
+
+    Parameters
+    ----------
+    triangles : (K, 3) int, a triangulation of ``vertices (P, 2)`` (Delaunay)
+    edges : vertex index pairs that must be triangle edges (the mouth's outline)
+
+    Returns
+    -------
+    (K, 3) int32. Raises ValueError when an edge cannot be inserted (flips would not converge).
+    """
+    tri = [list(t) for t in np.asarray(triangles)]
+    v = np.asarray(vertices, np.float64)
+    for a, b in edges:
+        for _ in range(4 * len(tri)):
+            if any(a in t and b in t for t in tri):
+                break
+            flipped = False
+            for k, t in enumerate(tri):
+                for u, w in ((t[0], t[1]), (t[1], t[2]), (t[2], t[0])):
+                    if a in (u, w) or b in (u, w) or not _crosses(v[u], v[w], v[a], v[b]):
+                        continue
+                    other = next((m for m, s in enumerate(tri) if m != k and u in s and w in s), None)
+                    if other is None:
+                        continue
+                    p = next(x for x in t if x not in (u, w))
+                    q = next(x for x in tri[other] if x not in (u, w))
+                    if not _crosses(v[p], v[q], v[u], v[w]):
+                        continue  # not a convex quad: flip another crossing edge first
+                    tri[k], tri[other] = [p, q, w], [q, p, u]
+                    flipped = True
+                    break
+                if flipped:
+                    break
+            if not flipped:
+                raise ValueError(f"cannot make points {a}-{b} an edge of the triangulation")
+        else:
+            raise ValueError(f"cannot make points {a}-{b} an edge of the triangulation")
+    return np.array(tri, np.int32)
+
+
 def surround_triangles(vertices: np.ndarray, size: tuple[int, int], *, mouth: np.ndarray | None = None,
                        mouth_inside: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The triangulation over feature points and anchors, in parts that meet along the image's edge
-    and the mouth opening's outline.
+    """The triangulation over feature points and anchors, in parts that meet along the image's edge,
+    the mouth opening's outline an edge of it.
 
     Parameters
     ----------
@@ -123,13 +178,13 @@ def surround_triangles(vertices: np.ndarray, size: tuple[int, int], *, mouth: np
     Returns
     -------
     triangles : (K, 3) int32
-        Delaunay triangles of the mouth outline and the points inside it (those inside the
-        outline), then of the other points inside the image (its edge included; those not inside
-        the outline), then of the points on the image's edge and beyond (those outside the image).
-        No triangle joins a point inside the mouth to one outside it, so a closed mouth folds the
+        The Delaunay triangles of the points inside the image (its edge included), with the mouth
+        outline's edges made triangle edges (:func:`constrain`), those inside the outline first;
+        then those of the points on the image's edge and beyond that lie outside the image. No
+        triangle joins a point inside the mouth to one outside it, so a closed mouth folds the
         opening away without dragging the teeth across the lips.
     mouth_triangles : (K,) bool
-        The first part's.
+        The triangles inside the outline.
     """
     from stages.synthesis.warp import triangulate
     vertices = np.asarray(vertices, np.float64)
@@ -138,23 +193,18 @@ def surround_triangles(vertices: np.ndarray, size: tuple[int, int], *, mouth: np
     eps = 1e-6
     within = np.all((vertices >= lo - eps) & (vertices <= hi + eps), axis=1)
     on_edge = np.any((np.abs(vertices - lo) < eps) | (np.abs(vertices - hi) < eps), axis=1)
-    mouth = np.zeros(0, np.int64) if mouth is None else np.asarray(mouth, np.int64)
-    mouth_inside = np.zeros(0, np.int64) if mouth_inside is None else np.asarray(mouth_inside, np.int64)
-
-    def part(indices: np.ndarray, keep) -> np.ndarray:
-        tri = indices[triangulate(vertices[indices])]
-        return tri[keep(vertices[tri].mean(1))]
-
-    inner = np.setdiff1d(np.flatnonzero(within), mouth_inside)
-    if len(mouth) >= 3:
-        outline = vertices[mouth]
-        opening = part(np.union1d(mouth, mouth_inside), lambda c: _inside_polygon(c, outline))
-        face = part(inner, lambda c: ~_inside_polygon(c, outline))
-    else:
-        opening, face = np.zeros((0, 3), np.int64), part(inner, lambda c: np.ones(len(c), bool))
-    around = part(np.flatnonzero(on_edge | ~within), lambda c: ~np.all((c > lo) & (c < hi), axis=1))
-    triangles = np.concatenate([opening, face, around]).astype(np.int32)
-    return triangles, np.arange(len(triangles)) < len(opening)
+    inner = np.flatnonzero(within)
+    face = inner[triangulate(vertices[inner])]
+    opening = np.zeros(len(face), bool)
+    if mouth is not None and len(mouth) >= 3:
+        outline = list(np.asarray(mouth, np.int64))
+        face = constrain(face, vertices, list(zip(outline, outline[1:] + outline[:1])))
+        opening = _inside_polygon(vertices[face].mean(1), vertices[outline])
+    outer = np.flatnonzero(on_edge | ~within)
+    around = outer[triangulate(vertices[outer])]
+    around = around[~np.all((vertices[around].mean(1) > lo) & (vertices[around].mean(1) < hi), axis=1)]
+    triangles = np.concatenate([face[opening], face[~opening], around]).astype(np.int32)
+    return triangles, np.arange(len(triangles)) < int(opening.sum())
 
 
 def head_matte(points: np.ndarray, face: np.ndarray, size: tuple[int, int]) -> np.ndarray:

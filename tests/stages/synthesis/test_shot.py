@@ -50,8 +50,12 @@ def test_triangulation_tiles_the_image_once_and_keeps_the_teeth_inside_the_mouth
     for k in range(len(model["triangles"])):
         covered += triangle_index_map(vertices, model["triangles"][k:k + 1], (W, H), uncovered=-1) == 0
     assert covered.min() >= 1
+    from matplotlib.path import Path as PolygonPath
     names = list(model["point_names"])
-    teeth = {i for i, n in enumerate(names) if n.startswith("teeth_")}
+    std = model["standard_points"]
+    outline = PolygonPath(std[model["teeth_polygon"]])
+    teeth = {i for i, n in enumerate(names) if n.startswith("teeth_") and outline.contains_point(std[i])}
+    assert len(teeth) >= 4
     lips = set(model["teeth_polygon"].tolist())
     for tri in model["triangles"]:
         if teeth & set(tri.tolist()):
