@@ -35,10 +35,12 @@ benchmark makes an *indicator pack*: each image replaced by where it comes from 
 frame (white) or beyond it (black), from the cut's similarity and the footage size ``pack.yaml``
 records (the writer's mattes are not read); it is synthesized frame by frame with the run's
 geometry (``data.npz``) and head motion (the EXR headers), positions beyond the pack image reading
-black. ``shot_invented_px_frac_<clip>``: the fraction of the output pixels (over both packs) that
-the indicator says come from beyond a real source image and the run's EXR does not mark
-(``filled.A`` < 0.5); ``shot_invented_px_frac_max`` over the clips; ``shot_filled_px_frac_<clip>``
-what the run filled and marked.
+black. Per pixel, the part that comes from beyond a real source image (``1 - indicator``) and is not
+marked (``filled.A``): ``max(0, 1 - indicator - filled)``; ``shot_invented_px_frac_<clip>`` is its
+mean over the output pixels and frames (both packs), so an edge-replicated streak counts whole
+and a pixel on the footage's edge marked as it straddles it counts nothing;
+``shot_invented_px_frac_max`` over the clips; ``shot_filled_px_frac_<clip>`` the mean of
+``filled.A`` (what the run filled and marked).
 
 **Speed and size** (``--no-speed`` skips). ``pipeline.yaml`` end to end (landmarks, every output)
 from an empty cache, ``--speed-clip`` (default ``LP_d3``) onto the 384x512 ``LP_d18`` pack:
@@ -313,10 +315,9 @@ def invented_fraction(pack: Path, out: Path) -> tuple[float, float]:
         R = np.array(spec.getattribute("exmap:head_R"), np.float64).reshape(3, 3)
         shift = np.array(spec.getattribute("exmap:head_t_mm"), np.float64)
         rgba, _, _ = synth.render_rgba(xy[t:t + 1], turn=HeadTurn(R[None], shift[None], depth, indicator.intrinsics), fill=False)
-        beyond = rgba[0, 0].numpy() < 0.5
-        marked = channels["filled.A"] >= 0.5
-        invented += float((beyond & ~marked).mean())
-        filled += float(marked.mean())
+        beyond = 1.0 - rgba[0, 0].numpy()
+        invented += float(np.clip(beyond - channels["filled.A"], 0.0, None).mean())
+        filled += float(channels["filled.A"].mean())
     return invented / len(xy), filled / len(xy)
 
 
