@@ -49,7 +49,7 @@ def to_preview(points: np.ndarray, size: tuple[int, int], small: tuple[int, int]
 def reduced_model(model: Mapping[str, np.ndarray], small: tuple[int, int]) -> dict[str, np.ndarray]:
     """The compositing fields of a ``synthesis_model`` bundle at ``small (w, h)``.
 
-    Images (``examples``, ``teeth``, ``standard``) and the fade weight ``blend_r`` are
+    Images (``examples``, ``teeth``, ``standard``, ``outside``) and the fade weight ``blend_r`` are
     area-averaged; the subregion labels ``blend_i1``, ``blend_i2`` are sampled at the nearest
     pixel. The other fields are the model's (point fields stay at the full size).
     """
@@ -65,7 +65,8 @@ def reduced_model(model: Mapping[str, np.ndarray], small: tuple[int, int]) -> di
     for key in ("examples", "teeth"):
         stack = np.asarray(model[key])
         reduced[key] = np.stack([area(image) for image in stack]) if len(stack) else np.zeros((0, h, w, 3), np.uint8)
-    reduced["standard"] = area(np.asarray(model["standard"]))
+    for key in ("standard", "outside"):
+        reduced[key] = area(np.asarray(model[key]))
     reduced["blend_r"] = area(np.asarray(model["blend_r"], np.float32))
     reduced["blend_i1"] = nearest(np.asarray(model["blend_i1"]))
     reduced["blend_i2"] = nearest(np.asarray(model["blend_i2"]))
@@ -100,7 +101,8 @@ class PreviewSynthesizer:
         self.full_size = tuple(int(v) for v in model["size"])
         self.size = preview_size(self.full_size, scale)
         self.compositor: Compositor = (synthesizer.compositor if self.size == self.full_size
-                                       else prepare_compositor(reduced_model(model, self.size), device=synthesizer.device))
+                                       else prepare_compositor(reduced_model(model, self.size), device=synthesizer.device,
+                                                               teeth_power=synthesizer.compositor.teeth_power))
         standard = np.concatenate([model["standard_points"], synthesizer.anchors])
         self.standard_points = torch.from_numpy(to_preview(standard, self.full_size, self.size)).to(synthesizer.device)
 
@@ -120,6 +122,6 @@ class PreviewSynthesizer:
         points = np.asarray(points, np.float64)
         dst = to_preview(np.concatenate([points, synth.anchors]), self.full_size, self.size)
         coeffs, _ = synth.qp.coefficients(points[None])
-        standard = composite(self.compositor, coeffs)[:, :3]
+        standard = composite(self.compositor, coeffs, teeth_mix=synth.teeth_mix(points[None]))[:, :3]
         dst_t = torch.from_numpy(dst[None]).to(synth.device)
         return warp_images(standard, self.standard_points[None], dst_t, synth.triangles, size=self.size).clamp_(0, 1)

@@ -23,7 +23,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 
-AREAS = ("runner", "geometry", "propagation", "synthesis", "writers", "e2e", "landmarks", "smoothing", "real", "editor", "eigen", "reenact", "render3d", "batch", "photo_identity")
+AREAS = ("runner", "geometry", "propagation", "synthesis", "writers", "e2e", "landmarks", "smoothing", "real", "editor", "eigen", "reenact", "render3d", "batch", "photo_identity", "shot")
 
 
 def main(argv: list[str] | None = None) -> int:

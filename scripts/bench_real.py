@@ -443,7 +443,7 @@ def states_rows(clips: list[Path], work: Path, pack_clips: list[Path]) -> list[d
                 continue
             for mode in ("full", "warp-only"):
                 run_pipeline(clip, folder / f"pops_{name}_{mode}", "--input", f"target={targets[name]}", "--set",
-                             "synthesize.head_motion=false", "--set", f"synthesize.mode={mode}", cache=cache)
+                             "synthesize.head_motion=none", "--set", f"synthesize.mode={mode}", cache=cache)
             pops[name] = states.pops_measures(folder / f"pops_{name}_full" / "out", folder / f"pops_{name}_warp-only" / "out")
             rows += [row(f"real_{key}_{stem}_onto_{name}", value, states.unit_of(key)) for key, value in pops[name].items()]
         worst |= {key: max(m[key] for m in pops.values()) for key in next(iter(pops.values()))}

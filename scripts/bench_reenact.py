@@ -162,7 +162,7 @@ def evaluate(
         uint8, ``(B, N + A, 2)``, ``(B, 3, H, W)`` float."""
         params = [fit_similarity(xy[t, columns], pack.neutral.points[columns]) for t in frames]
         geometry = np.stack([apply_similarity(p, xy[t]) for p, t in zip(params, frames)])
-        truth = np.stack([align_image(clip.frames[t], p, size) for p, t in zip(params, frames)])
+        truth = np.stack([align_image(clip.frames[t], p, size)[0] for p, t in zip(params, frames)])
         dst = np.concatenate([geometry, np.broadcast_to(anchors, (len(frames),) + anchors.shape)], 1)
         images = torch.from_numpy(truth).permute(0, 3, 1, 2).float() / 255.0
         standard = warp_images(images, torch.from_numpy(dst), synth.standard_points[None].expand(len(frames), -1, -1), model["triangles"])

@@ -1,10 +1,12 @@
 """Write a real-texture ground-truth clip: the astronaut portrait's face with known head pose and
 expressions (scripts/realface, docs/realface.md).
 
-    python scripts/make_realface.py --out DIR --frames 48 --seed 0 [--size 512] [--lossless]
+    python scripts/make_realface.py --out DIR --frames 48 --seed 0 [--size 512] [--lossless] [--backdrop]
 
 writes ``DIR/astro.mp4`` (H.264 yuv420p, 25 fps, crf 12; ``--lossless``: FFV1 ``astro.mkv``) and
-``DIR/astro_truth.npz``. Same arguments, same truth.
+``DIR/astro_truth.npz``. Same arguments, same truth. ``--backdrop``: the head (face, hair, ears,
+neck) moves in front of a static background (the photo with the head inpainted) instead of the
+whole picture moving with it.
 """
 
 from __future__ import annotations
@@ -32,12 +34,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--supersample", type=int, default=2, help="samples per pixel along each axis")
     parser.add_argument("--name", default="astro", help="file name stem")
     parser.add_argument("--model", type=Path, default=MODEL_PATH, help="MediaPipe face_landmarker.task")
+    parser.add_argument("--backdrop", action="store_true", help="a static background behind the moving head")
     args = parser.parse_args(argv)
     wall, cpu = time.perf_counter(), time.process_time()
     try:
         clip, truth = make_clip(args.out, frames=args.frames, seed=args.seed, size=args.size, fps=args.fps,
                                 codec="ffv1" if args.lossless else "h264", crf=args.crf,
-                                supersample=args.supersample, name=args.name, model_path=args.model)
+                                supersample=args.supersample, name=args.name, model_path=args.model,
+                                backdrop=args.backdrop)
     except ValueError as exc:
         print(f"make_realface: {exc}", file=sys.stderr)
         return 2

@@ -18,7 +18,7 @@ eye-line frame:
 - **coverage**: ``real_range_limited_frac`` (frames the mapping limited or scaled to the pack's
   range) and ``real_beyond_pack_frames`` (frames with some state beyond what the pack's examples
   show), with one ``real_beyond_pack_frames_<state>`` row per state that occurs.
-- **pops** (:func:`texture_changes`): with ``synthesize.head_motion=false``, each result frame
+- **pops** (:func:`texture_changes`): with ``synthesize.head_motion=none``, each result frame
   (what a viewer sees: ``video/result.mp4``) warped back onto the clip's median target geometry by
   a piecewise-affine map of this module's own (Delaunay over the median points, barycentric), and
   the mean absolute change of the face's grey level between frame steps:

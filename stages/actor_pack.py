@@ -6,10 +6,14 @@ An actor pack is a folder with a manifest ``pack.yaml`` (format in ``docs/fixtur
 - ``image_size``: ``[W, H]`` in pixels, shared by every image of the pack;
 - ``intrinsics``: the 3x3 camera matrix A of eq. 10 (pixels), inline;
 - ``model3d``: a CSV ``name,x,y,z`` (mm, head frame), the generic face model of Sec. 12.1;
-- ``neutral``, ``standard``: ``{image: PNG, points: CSV}``; the standard image has the mouth open;
+- ``neutral``, ``standard``: ``{image: PNG, points: CSV}``, optionally ``matte: PNG`` (8-bit grey, the
+  image's size: 255 where the pixel is real, 0 where the source did not hold it; no matte = every
+  pixel real); the standard image has the mouth open;
 - ``examples``, ``teeth_examples``: lists of ``{name, image, points}`` (Sec. 6 and Sec. 8);
 - ``captured``: the 30-40 captured geometries for PCA (Sec. 10, 14), either an ``.npz`` with key
-  ``points`` ``(K, N, 2)`` or a list of points files.
+  ``points`` ``(K, N, 2)`` or a list of points files;
+- ``source`` (optional, packs built from footage): ``{size: [W, H], scale: s}``, the footage's frame
+  size and the neutral's scale, pack px per footage px (above 1: the images enlarge the footage).
 
 Bounds, checked before anything large is read: ``image_size`` at most :data:`MAX_PACK_PIXELS`
 pixels, each image's size read from its header (PNG, JPEG...) before it is decoded, at most
@@ -52,11 +56,13 @@ class PackError(StageError):
 
 @dataclass
 class Expression:
-    """One face image with its feature points: ``image (H, W, 3) uint8`` RGB, ``points (N, 2) float64`` px."""
+    """One face image with its feature points: ``image (H, W, 3) uint8`` RGB, ``points (N, 2) float64`` px,
+    and its validity matte ``matte (H, W) uint8`` (255 = a real pixel; None: every pixel real)."""
 
     name: str
     image: np.ndarray
     points: np.ndarray
+    matte: np.ndarray | None = None
 
 
 @dataclass
@@ -64,7 +70,8 @@ class ActorPack:
     """A loaded, validated actor pack (see the module docstring for the files behind each field).
 
     ``captured_points`` is ``(K, N, 2)`` px; ``model3d`` ``(N, 3)`` mm in the head frame;
-    ``intrinsics`` the ``(3, 3)`` matrix A of eq. 10; ``image_size`` is ``(W, H)``.
+    ``intrinsics`` the ``(3, 3)`` matrix A of eq. 10; ``image_size`` is ``(W, H)``; ``source_scale``
+    pack px per footage px (None: not built from footage).
     """
 
     path: Path
@@ -78,6 +85,7 @@ class ActorPack:
     model3d: np.ndarray
     intrinsics: np.ndarray
     image_size: tuple[int, int]
+    source_scale: float | None = None
 
 
 def load_pack(path: str | Path) -> ActorPack:
@@ -169,7 +177,17 @@ class _PackReader:
             model3d=model3d,
             intrinsics=intrinsics,
             image_size=self.size,
+            source_scale=self.source_scale(),
         )
+
+    def source_scale(self) -> float | None:
+        source = self.data.get("source")
+        if source is None:
+            return None
+        scale = source.get("scale") if isinstance(source, dict) else None
+        if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not scale > 0:
+            raise self.fail(self.manifest, "source.scale", f"expected a positive number, got {scale!r}")
+        return float(scale)
 
     def intrinsics(self) -> np.ndarray:
         value = self.field("intrinsics")
@@ -293,7 +311,22 @@ class _PackReader:
         points = self.points(self.file(entry.get("points"), f"{field}.points"), f"{field}.points")
         if points.ndim != 2:
             raise self.fail(self.manifest, f"{field}.points", "expected one face's points (N, 2)")
-        return Expression(name=str(entry.get("name", default_name)), image=image, points=points)
+        matte = None
+        if entry.get("matte") is not None:
+            matte = self.matte(self.file(entry["matte"], f"{field}.matte"), f"{field}.matte")
+        return Expression(name=str(entry.get("name", default_name)), image=image, points=points, matte=matte)
+
+    def matte(self, path: Path, field: str) -> np.ndarray:
+        import cv2
+        matte = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if matte is None:
+            raise self.fail(path, field, "cannot read image")
+        if matte.ndim != 2 or matte.dtype != np.uint8:
+            raise self.fail(path, field, f"expected an 8-bit grey PNG, got shape {matte.shape} {matte.dtype}")
+        h, w = matte.shape
+        if (w, h) != self.size:
+            raise self.fail(path, field, f"matte is {w}x{h}, the manifest's image_size is {self.size[0]}x{self.size[1]}")
+        return matte
 
     def expressions(self, key: str, *, min_count: int, max_count: int) -> list[Expression]:
         entries = self.field(key)

@@ -62,28 +62,27 @@ def test_exr_frames_read_back_with_metadata(default_run):
     frames = sorted((default_run / "exr").glob("frame.*.exr"))
     assert len(frames) == len(truth["points"])
     data = np.load(default_run / "data" / "data.npz", allow_pickle=False)
-    # the frame whose carried head motion is nearest the identity (the 2D similarity is relative to
-    # the clip's median head placement): there the output geometry is the data file's target points
-    still = int(np.argmin(np.abs(data["similarity_params"] - [1.0, 0.0, 0.0, 0.0]).sum(axis=1)))
-    for index in sorted({0, still, len(frames) - 1}):
+    reference = int(data["pose_neutral_frame"])  # the head frame: the head turn is relative to it
+    for index in sorted({0, reference, len(frames) - 1}):
         image = oiio.ImageInput.open(str(frames[index]))
         spec = image.spec()
         pixels = image.read_image(oiio.FLOAT)
         image.close()
-        assert spec.format == oiio.TypeDesc("half") and tuple(spec.channelnames) == ("R", "G", "B", "A")
+        names = tuple(spec.channelnames)
+        assert spec.format == oiio.TypeDesc("half") and names[:4] == ("R", "G", "B", "A")
+        assert set(names[4:]) == {"plate.R", "plate.G", "plate.B", "face.A", "filled.A"}  # the shot's layers
         assert (spec.width, spec.height) == load_pack(REPO / "fixtures" / "packs" / "target").image_size
         assert spec.getattribute("exmap:frame") == index
         assert spec.getattribute("exmap:time_s") == pytest.approx(index / float(truth["fps"]), abs=1e-4)
         np.testing.assert_allclose(spec.getattribute("exmap:similarity"), data["similarity_params"][index], rtol=1e-5, atol=1e-4)
         assert np.isfinite(pixels).all() and pixels[..., :3].max() <= 1.0 + 1e-3
-        if index == still:
-            # With (almost) no head motion carried onto the output, the output geometry is the
-            # target points of the data file; the face mask is their hull.
-            assert np.abs(data["similarity_params"][index] - [1.0, 0.0, 0.0, 0.0]).max() < 0.02 * spec.width
+        if index == reference:
+            # At the head frame no head motion is carried onto the output, so the output geometry
+            # is the target points of the data file; the face mask is their hull.
             face = np.zeros(pixels.shape[:2], np.uint8)
             hull = cv2.convexHull(data["target_xy"][index].astype(np.float32))
             cv2.fillConvexPoly(face, np.round(hull).astype(np.int32).reshape(-1, 2), 1)
-            alpha, face = pixels[..., 3] > 0.5, face.astype(bool)
+            alpha, face = pixels[..., names.index("face.A")] > 0.5, face.astype(bool)
             assert (alpha & face).sum() / (alpha | face).sum() > 0.97
 
 

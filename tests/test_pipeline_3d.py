@@ -1,5 +1,6 @@
-"""pipeline_3d.yaml through the CLI on the default fixture clip: the 3D render (EXR RGBA + Z in mm)
-and the USD scene come out for every frame, as docs/render3d.md describes them."""
+"""pipeline_3d.yaml through the CLI on the default fixture clip: the 3D render of the whole head (EXR
+with the head, the plate, the mattes and Z in mm) and the USD scene come out for every frame, as
+docs/render3d.md describes them."""
 
 from __future__ import annotations
 
@@ -44,12 +45,15 @@ def test_exr_frames_with_depth_in_mm(out):
     spec = image.spec()
     pixels = image.read_image("float")
     image.close()
-    assert spec.channelnames == ("R", "G", "B", "A", "Z") and spec.getattribute("exmap:depth_unit") == "mm"
-    face = pixels[..., 3] > 0.99
-    assert face.mean() > 0.1
-    depth = pixels[..., 4][face]
-    assert np.all(np.isfinite(depth)) and 150.0 < np.median(depth) < 600.0  # the pack camera's face, ~320 mm away
-    assert not np.isfinite(pixels[..., 4][pixels[..., 3] == 0]).any()
+    names = spec.channelnames
+    assert names[:4] == ("R", "G", "B", "A") and spec.getattribute("exmap:depth_unit") == "mm"
+    assert set(names[4:]) == {"Z", "plate.R", "plate.G", "plate.B", "face.A", "filled.A"}
+    get = {n: pixels[..., names.index(n)] for n in names}
+    face = get["face.A"] > 0.99
+    assert face.mean() > 0.1 and (get["A"][face] > 0.99).all()  # the face is inside the head
+    assert np.all(np.isfinite(get["Z"]))  # the whole head covers the frame: hair, neck, background
+    assert 150.0 < np.median(get["Z"][face]) < 600.0  # the pack camera's face, ~320 mm away
+    assert (get["plate.G"] > 0).mean() > 0.99 and get["filled.A"].max() <= 1.0
 
 
 def test_usd_scene_and_head_pose(out):
@@ -58,7 +62,8 @@ def test_usd_scene_and_head_pose(out):
     T = clip_frames()
     stage = Usd.Stage.Open(str(out / "usd" / "scene.usda"))
     points = UsdGeom.Mesh(stage.GetPrimAtPath("/Root/Head/Face")).GetPointsAttr()
-    assert len(points.GetTimeSamples()) == T and len(points.Get(0)) == 134
+    assert len(points.GetTimeSamples()) == T and len(points.Get(0)) > 134  # the 134 layout points and the surround
+    assert len(UsdGeom.Mesh(stage.GetPrimAtPath("/Root/Surround")).GetPointsAttr().GetTimeSamples()) == T
     assert len(UsdGeom.Xformable(stage.GetPrimAtPath("/Root/Head")).GetOrderedXformOps()[0].GetAttr().GetTimeSamples()) == T
     assert len(list((out / "usd" / "textures").glob("texture.*.png"))) == T
     with (out / "usd" / "head_pose.csv").open() as fh:
@@ -74,7 +79,7 @@ def test_pipeline_3d_is_pipeline_yaml_plus_the_3d_stages():
     assert three["inputs"] == base["inputs"]
     for name, stage in base["stages"].items():
         assert three["stages"].get(name) == stage, f"pipeline_3d.yaml's stage {name!r} differs from pipeline.yaml's"
-    assert {"texture", "mesh3d", "head3d", "render3d", "usd"} <= set(three["stages"]) - set(base["stages"])
+    assert {"texture", "mesh3d", "render3d", "usd"} <= set(three["stages"]) - set(base["stages"])
 
 
 def test_more_chunks_than_kept_ahead_stream_through(tmp_path):

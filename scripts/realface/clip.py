@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -14,7 +14,7 @@ from stages.video import CODECS, VideoWriter
 
 from .expression import EXPRESSIONS, STATE_EXPRESSIONS, deform, expression_basis, state_basis
 from .landmarks import MODEL_PATH, N_LANDMARKS, detect, open_landmarker
-from .mesh import RealFaceMesh, build_mesh, mouth_texture
+from .mesh import RealFaceMesh, build_mesh, clean_plate, mouth_texture
 from .motion import make_motion, state_motion
 from .photo import CROP, source_photo
 from .render import Frame, render
@@ -23,17 +23,20 @@ from .render import Frame, render
 @dataclass(frozen=True)
 class RealFace:
     """The photo, its landmarks ``(478, 3)`` px, the fitted mesh, its expression basis
-    ``(3, V, 3)`` mm and the two textures (photo, mouth) as float32."""
+    ``(3, V, 3)`` mm, the two textures (photo, mouth) as float32, and the backdrop (the clean plate
+    behind the head, :func:`scripts.realface.mesh.clean_plate`; None: the whole mesh moves)."""
 
     photo: np.ndarray
     landmarks: np.ndarray
     mesh: RealFaceMesh
     basis: np.ndarray
     textures: tuple[np.ndarray, np.ndarray]
+    backdrop: np.ndarray | None = None
 
 
-def fit_real_face(size: int, *, model_path: Path | str = MODEL_PATH) -> RealFace:
-    """Crop and upscale the portrait to ``size`` px, run MediaPipe once, fit the mesh."""
+def fit_real_face(size: int, *, model_path: Path | str = MODEL_PATH, backdrop: bool = False) -> RealFace:
+    """Crop and upscale the portrait to ``size`` px, run MediaPipe once, fit the mesh (and with
+    ``backdrop``, inpaint the plate behind the head)."""
     photo = source_photo(size)
     with open_landmarker(model_path=model_path) as landmarker:
         landmarks = detect(landmarker, photo)
@@ -41,7 +44,8 @@ def fit_real_face(size: int, *, model_path: Path | str = MODEL_PATH) -> RealFace
         raise ValueError(f"no face found by MediaPipe in the {size} px source photo")
     mesh = build_mesh(landmarks, size=size)
     mouth = mouth_texture(photo, landmarks, eye_px=mesh.eye_px)
-    return RealFace(photo, landmarks, mesh, expression_basis(mesh), (photo.astype(np.float32), mouth.astype(np.float32)))
+    return RealFace(photo, landmarks, mesh, expression_basis(mesh), (photo.astype(np.float32), mouth.astype(np.float32)),
+                    clean_plate(photo, mesh) if backdrop else None)
 
 
 def pose(face: RealFace, angles: np.ndarray, shift: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -57,30 +61,31 @@ def render_state(face: RealFace, params: np.ndarray, angles: np.ndarray, shift: 
     ``R (3, 3)``, ``t (3,)`` mm."""
     vertices = deform(face.mesh, face.basis, params)
     R, t = pose(face, angles, shift)
-    return render(face.mesh, face.textures, vertices, R, t, supersample=supersample), vertices, R, t
+    return render(face.mesh, face.textures, vertices, R, t, supersample=supersample, backdrop=face.backdrop), vertices, R, t
 
 
 def make_clip(out: Path, *, frames: int, seed: int, size: int = 512, fps: int = 25, codec: str = "h264", crf: int = 12,
               supersample: int = 2, name: str = "astro", model_path: Path | str = MODEL_PATH,
-              script: str | None = None) -> tuple[Path, Path]:
+              script: str | None = None, backdrop: bool = False) -> tuple[Path, Path]:
     """Write ``out/<name>.mp4`` (or ``.mkv`` for ``codec="ffv1"``, lossless) and ``out/<name>_truth.npz``.
 
     ``script`` (:data:`scripts.realface.motion.STATE_SCRIPTS`): a states clip instead of the seeded
     events, whose length is the script's (``frames`` is ignored) and whose truth also holds the
-    held spans (``state_names (S,)``, ``state_spans (S, 2)`` inclusive frames).
+    held spans (``state_names (S,)``, ``state_spans (S, 2)`` inclusive frames). With ``backdrop``
+    the head moves in front of a static background (:mod:`scripts.realface.render`).
 
     Returns the two paths. Same arguments, same truth file bytes.
     """
     if codec not in CODECS:
         raise ValueError(f"codec: expected one of {', '.join(CODECS)}, got {codec!r}")
-    face = fit_real_face(size, model_path=model_path)
+    face = fit_real_face(size, model_path=model_path, backdrop=backdrop)
     spans: list[tuple[str, int, int]] = []
     names = EXPRESSIONS
     if script is None:
         params, angles, shift = make_motion(frames, seed=seed, fps=fps)
     else:
         params, angles, shift, spans = state_motion(script, seed=seed, fps=fps)
-        face = RealFace(face.photo, face.landmarks, face.mesh, state_basis(face.mesh), face.textures)
+        face = replace(face, basis=state_basis(face.mesh))
         frames, names = len(params), STATE_EXPRESSIONS
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -83,6 +83,40 @@ class RealFaceMesh:
     def n_cavity(self) -> int:
         return CAVITY_GRID[0] * CAVITY_GRID[1]
 
+    @property
+    def square(self) -> np.ndarray:
+        """``(4 BORDER_POINTS,)`` int64: the indices of the outermost square's vertices (after the rings)."""
+        stop = len(self.vertices) - self.n_cavity
+        return np.arange(stop - 4 * BORDER_POINTS, stop)
+
+    @property
+    def head(self) -> np.ndarray:
+        """The skin triangles of the head (the face and the two rings: hair, ears, neck), those that
+        touch the outermost square left out: what turns in front of a static backdrop."""
+        return self.skin[~np.isin(self.skin, self.square).any(axis=1)]
+
+
+def clean_plate(photo: np.ndarray, mesh: RealFaceMesh, *, radius_px: float = 8.0) -> np.ndarray:
+    """The backdrop behind the head: the photo with the head's region (the pixels the head's
+    triangles cover at rest, grown by a pixel) inpainted (``cv2.inpaint``, Telea) from the pixels
+    around it.
+
+    Parameters
+    ----------
+    photo : (S, S, 3) uint8 RGB
+    mesh : the fitted mesh (its outer ring)
+
+    Returns
+    -------
+    (S, S, 3) uint8 RGB; equal to ``photo`` outside the grown region.
+    """
+    from .render import rasterize
+    h, w = photo.shape[:2]
+    mask = np.zeros(h * w, np.uint8)
+    mask[rasterize(mesh.source_px, np.ones(len(mesh.source_px)), mesh.head, (h, w)).pixel] = 255
+    mask = cv2.dilate(mask.reshape(h, w), np.ones((3, 3), np.uint8))
+    return cv2.inpaint(np.ascontiguousarray(photo), mask, radius_px, cv2.INPAINT_TELEA)
+
 
 def _back_project(px: np.ndarray, depth: np.ndarray, A: np.ndarray) -> np.ndarray:
     """Camera-frame points ``(n, 3)`` mm of pixels ``(n, 2)`` at depths ``(n,)`` mm."""

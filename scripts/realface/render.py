@@ -5,6 +5,12 @@ A frame is rendered at ``supersample`` times its size (intrinsics ``S A`` with
 reduced with ``cv2.INTER_AREA`` (the mean of each ``s x s`` block). The skin is z-buffered
 (triangles may fold over each other at large yaw); the mouth cavity is drawn wherever the skin
 leaves a hole (the opening between the inner lips), z-buffered among its own triangles.
+
+With a *backdrop* (:func:`scripts.realface.mesh.clean_plate`) the scene is a person in front of a
+static background: the head (the face and the rings of hair, ears and neck, ``mesh.head``) turns
+and moves, the backdrop stays where it is and shows wherever the head does not cover it (what a
+turned head uncovers is the inpainted plate, a guess every method has to make too). Without one,
+the whole mesh, out to the square beyond the frame, moves with the head.
 """
 
 from __future__ import annotations
@@ -182,17 +188,19 @@ class Frame:
     """A rendered frame and its truth.
 
     ``image (S, S, 3) uint8`` RGB; ``points (478, 2)`` px, the landmarks' exact projections;
-    ``visible (478,)`` bool; ``depth (478,)`` mm camera depth.
+    ``visible (478,)`` bool; ``depth (478,)`` mm camera depth; ``coverage (S, S) float32``, the
+    fraction of each pixel the rendered mesh covers (the head's matte with a backdrop, 1 without).
     """
 
     image: np.ndarray
     points: np.ndarray
     visible: np.ndarray
     depth: np.ndarray
+    coverage: np.ndarray
 
 
 def render(mesh: RealFaceMesh, textures: tuple[np.ndarray, np.ndarray], vertices: np.ndarray, R: np.ndarray,
-           t: np.ndarray, *, supersample: int = 2) -> Frame:
+           t: np.ndarray, *, supersample: int = 2, backdrop: np.ndarray | None = None) -> Frame:
     """Render head-frame ``vertices`` ``(V, 3)`` mm at pose ``X_cam = R X + t``.
 
     Parameters
@@ -207,6 +215,8 @@ def render(mesh: RealFaceMesh, textures: tuple[np.ndarray, np.ndarray], vertices
         ``(3, 3)`` rotation, ``(3,)`` translation mm.
     supersample
         Samples per pixel along each axis.
+    backdrop
+        ``(S, S, 3)`` uint8 RGB, optional: a static background behind the head (module docstring).
     """
     ss = int(supersample)
     if ss < 1:
@@ -215,20 +225,27 @@ def render(mesh: RealFaceMesh, textures: tuple[np.ndarray, np.ndarray], vertices
     S = np.array([[ss, 0, (ss - 1) / 2.0], [0, ss, (ss - 1) / 2.0], [0, 0, 1.0]])
     v_px, v_z = project(vertices, R, t, S @ mesh.intrinsics)
     grid = (size * ss, size * ss)
-    skin = rasterize(v_px, v_z, mesh.skin, grid)
+    skin = rasterize(v_px, v_z, mesh.skin if backdrop is None else mesh.head, grid)
     cavity = rasterize(v_px, v_z, mesh.cavity, grid)
     colour = np.zeros((grid[0] * grid[1], 3), np.float32)
+    covered = np.zeros(grid[0] * grid[1], np.float32)
+    if backdrop is not None:
+        colour[:] = cv2.resize(backdrop.astype(np.float32), grid[::-1], interpolation=cv2.INTER_NEAREST).reshape(-1, 3)
     z0 = mesh.vertices[:, 2] + mesh.head_centre[2]
     colour[cavity.pixel] = sample_texture(textures[1], mesh.source_px, z0, cavity)
     colour[skin.pixel] = sample_texture(textures[0], mesh.source_px, z0, skin)
+    covered[cavity.pixel] = covered[skin.pixel] = 1.0
     colour = colour.reshape(grid + (3,))
+    covered = covered.reshape(grid)
     if ss > 1:
         colour = cv2.resize(colour, (size, size), interpolation=cv2.INTER_AREA)
+        covered = cv2.resize(covered, (size, size), interpolation=cv2.INTER_AREA)
     image = np.clip(np.round(colour), 0, 255).astype(np.uint8)
     points, depth = project(vertices[:N_LANDMARKS], R, t, mesh.intrinsics)
     cam = vertices @ R.T + t
     visible = _front_facing(cam, mesh.skin)[:N_LANDMARKS] & _unoccluded(points, depth, skin.inv_depth, ss)
-    return Frame(image=image, points=points, visible=visible, depth=depth)
+    return Frame(image=image, points=points, visible=visible, depth=depth,
+                 coverage=covered if backdrop is not None else np.ones((size, size), np.float32))
 
 
 def _front_facing(cam: np.ndarray, triangles: np.ndarray) -> np.ndarray:

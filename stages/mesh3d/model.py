@@ -29,7 +29,8 @@ from stages.layout import Layout
 from stages.pack.bundles import PackImages
 from stages.synthesis.warp import triangulate
 
-__all__ = ["TargetModel", "fit_generic_depth", "lift", "skin_triangles", "build_target_model", "face_subregions"]
+__all__ = ["TargetModel", "fit_generic_depth", "lift", "skin_points", "target_depth", "skin_triangles", "build_target_model",
+           "face_subregions"]
 
 
 @dataclass(frozen=True)
@@ -118,6 +119,37 @@ def lift(points: np.ndarray, depth: np.ndarray, A: np.ndarray) -> np.ndarray:
     return rays * np.asarray(depth, np.float64)[..., None]
 
 
+def skin_points(names: np.ndarray) -> np.ndarray:
+    """``(N,) bool``: the layout points that are mesh vertices (all but the ``teeth_*`` points)."""
+    return np.array([not str(n).startswith("teeth_") for n in names])
+
+
+def target_depth(model3d: np.ndarray, neutral: np.ndarray, A: np.ndarray, names: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The target's depth of every layout point and its head centre, from the posed generic model.
+
+    Parameters
+    ----------
+    model3d : (N, 3) float, mm, head frame: the generic model in the layout's point order
+    neutral : (N, 2) float, px: the pack's neutral points
+    A : (3, 3) float, px: the pack's intrinsics
+    names : (N,) str: the layout's point names
+
+    Returns
+    -------
+    depth : (N,) float64, mm (:func:`fit_generic_depth` on the skin points)
+    pivot : (3,) float64, mm: the head centre, mean of the lifted neutral's skin points
+    R, t : the generic model's pose (head frame -> camera frame)
+
+    Raises
+    ------
+    ValueError
+        The generic model cannot be posed on the neutral points.
+    """
+    skin = skin_points(names)
+    depth, R, t = fit_generic_depth(model3d, neutral, A, use=skin)
+    return depth, lift(neutral, depth, A)[skin].mean(0), R, t
+
+
 def skin_triangles(points: np.ndarray, skin: np.ndarray) -> np.ndarray:
     """Delaunay triangles over the skin points, counter-clockwise on screen (y down).
 
@@ -162,9 +194,9 @@ def build_target_model(pack: ActorPack | PackImages, model3d: np.ndarray, intrin
         The generic model cannot be posed on the neutral points.
     """
     names = np.array(pack.layout.point_names)
-    skin = np.array([not n.startswith("teeth_") for n in names])
+    skin = skin_points(names)
     A = np.asarray(intrinsics, np.float64)
-    depth, R, t = fit_generic_depth(model3d, pack.neutral.points, A, use=skin)
+    depth, _, R, t = target_depth(model3d, pack.neutral.points, A, names)
     examples = lift(np.stack([e.points for e in pack.examples]), depth, A)
     return TargetModel(
         names=names,

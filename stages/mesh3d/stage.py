@@ -20,6 +20,18 @@ Output bundle ``mesh3d``:
 ``names``          (N,) str            layout point names
 ``fps``            ()                  when the input has it
 =================  ==================  =====================================================
+
+With the ``model`` input (the synthesis model: its anchors and triangulation,
+:mod:`stages.synthesis.surround`) the bundle also holds the whole head: the face mesh extended to
+hair, ears, neck and the background, the geometry the 2D result's head turn warps by.
+
+=================  ==================  =====================================================
+``surround``       (A, 3) f8           the anchors lifted at their depths (static), mm
+``surround_uv``    (A, 2) f8           their texture positions (fixed), px
+``head_triangles`` (K, 3) i4           the synthesis model's triangulation over the N points
+                                       and then the A anchors
+``weight``         (N + A,) f8         how much each vertex follows the head (1: face, head ring)
+=================  ==================  =====================================================
 """
 
 from __future__ import annotations
@@ -51,10 +63,11 @@ class Mesh3DSynthesize(SequenceStage):
     """``mesh3d.synthesize``: lift the target geometry to 3D and synthesize it from 3D examples."""
 
     name = "mesh3d.synthesize"
-    version = "2"
+    version = "3"  # 3: the whole head with the synthesis model
     doc = "Sec. 9: target 2D geometry per frame -> 3D expression mesh (per-subregion QP on 3n-vectors, vertex blending)"
     inputs = {"layout": "layout", "images": "pack_images", "model3d": "pack_model3d", "camera": "camera",
-              "points": "points"}
+              "points": "points", "model": "synthesis_model"}
+    optional_inputs = frozenset({"model"})
     outputs = {"mesh": "mesh3d"}
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
@@ -96,4 +109,22 @@ class Mesh3DSynthesize(SequenceStage):
         }
         if "fps" in bundle:
             out["fps"] = np.asarray(bundle["fps"])
+        if inputs.get("model") is not None:
+            out.update(whole_head(inputs["model"], model.depth, model.camera, stage=self.name))
         return {"mesh": out}
+
+
+def whole_head(model: Mapping[str, np.ndarray], depth: np.ndarray, A: np.ndarray, *, stage: str) -> dict[str, np.ndarray]:
+    """The ``surround``, ``surround_uv``, ``head_triangles`` and ``weight`` fields (module docstring)
+    from a synthesis model and the target's point depths ``(N,)`` mm."""
+    from stages.synthesis.surround import anchor_depth, motion_weights
+    for key in ("anchors", "anchor_kind", "anchor_hull", "face_outline", "triangles", "standard_points"):
+        if key not in model:
+            raise StageError(f"{stage}: input 'model' has no field '{key}'")
+    standard = np.asarray(model["standard_points"], np.float64)
+    if len(standard) != len(depth):
+        raise StageError(f"{stage}: input 'model' has {len(standard)} points, the pack's layout {len(depth)}")
+    anchors, kind = np.asarray(model["anchors"], np.float64), np.asarray(model["anchor_kind"])
+    z = anchor_depth(lift(standard, depth, A), kind, np.asarray(model["anchor_hull"]), np.asarray(model["face_outline"]))
+    return {"surround": lift(anchors, z, A), "surround_uv": anchors, "head_triangles": np.asarray(model["triangles"], np.int32),
+            "weight": np.concatenate([np.ones(len(depth)), motion_weights(kind)])}

@@ -12,13 +12,16 @@ port             type                keys
                                      px, ``examples (E, N, 2)`` px (the example expressions'
                                      points), ``size (2,)`` ``[W, H]``
 ``images``       ``pack_images``     ``pack ()`` name, ``names (N,)``, ``size (2,)``,
-                                     ``{neutral,standard}_{image,points,name}``,
-                                     ``{examples,teeth}_{images,points,names}``
+                                     ``{neutral,standard}_{image,points,name,matte}``,
+                                     ``{examples,teeth}_{images,points,names,mattes}``,
+                                     ``source_scale ()`` (pack px per footage px, NaN:
+                                     not from footage)
 ``model3d``      ``pack_model3d``    ``names (N,)``, ``xyz (N, 3)`` mm, head frame (Sec. 12.1)
 ``camera``       ``camera``          ``intrinsics (3, 3)`` (A of eq. 10, px), ``size (2,)``
 ===============  ==================  =========================================================
 
-Images are ``(H, W, 3)`` uint8 RGB; points are in px, x right, y down, origin at the centre of
+Images are ``(H, W, 3)`` uint8 RGB, validity mattes ``(H, W)`` uint8 (255 = a real pixel; a pack
+image without a matte file gets 255 everywhere); points are in px, x right, y down, origin at the centre of
 the top-left pixel, rows in layout order. A bundle holds no file path, so moving a pack folder
 changes no key. The ``*_from_bundle`` functions check the keys and shapes and raise
 ``ValueError`` naming the key; stages turn that into ``StageError`` naming their input.
@@ -206,21 +209,31 @@ class PackImages:
     standard: Expression
     examples: list[Expression]
     teeth_examples: list[Expression]
+    source_scale: float | None = None
+
+
+def _matte(e: Expression, size: tuple[int, int]) -> np.ndarray:
+    w, h = size
+    return np.full((h, w), 255, np.uint8) if e.matte is None else np.asarray(e.matte, np.uint8)
 
 
 def images_to_bundle(pack: ActorPack) -> dict[str, np.ndarray]:
     """The ``pack_images`` bundle: neutral, standard, examples and teeth examples (Sec. 5, 8)."""
+    size = pack.image_size
     out = {"pack": np.array(pack.name), "names": np.array(pack.layout.point_names),
-           "size": np.array(pack.image_size, np.int64)}
+           "size": np.array(size, np.int64),
+           "source_scale": np.float64(np.nan if pack.source_scale is None else pack.source_scale)}
     for key, e in (("neutral", pack.neutral), ("standard", pack.standard)):
-        out |= {f"{key}_image": e.image, f"{key}_points": np.asarray(e.points, np.float64), f"{key}_name": np.array(e.name)}
-    w, h = pack.image_size
+        out |= {f"{key}_image": e.image, f"{key}_points": np.asarray(e.points, np.float64), f"{key}_name": np.array(e.name),
+                f"{key}_matte": _matte(e, size)}
+    w, h = size
     n = pack.layout.n_points
     for key, group in (("examples", pack.examples), ("teeth", pack.teeth_examples)):
         out[f"{key}_images"] = np.stack([e.image for e in group]) if group else np.zeros((0, h, w, 3), np.uint8)
         out[f"{key}_points"] = (np.stack([np.asarray(e.points, np.float64) for e in group]) if group
                                 else np.zeros((0, n, 2)))
         out[f"{key}_names"] = np.array([e.name for e in group], dtype=str)
+        out[f"{key}_mattes"] = np.stack([_matte(e, size) for e in group]) if group else np.zeros((0, h, w), np.uint8)
     return out
 
 
@@ -237,17 +250,20 @@ def images_from_bundle(bundle: Bundle, layout: Layout) -> PackImages:
     def one(key: str) -> Expression:
         return Expression(str(_field(bundle, f"{key}_name", what, ())),
                           _field(bundle, f"{key}_image", what, (h, w, 3), np.uint8),
-                          _field(bundle, f"{key}_points", what, (n, 2), np.float64))
+                          _field(bundle, f"{key}_points", what, (n, 2), np.float64),
+                          _field(bundle, f"{key}_matte", what, (h, w), np.uint8))
 
     def group(key: str) -> list[Expression]:
         names = [str(v) for v in _field(bundle, f"{key}_names", what, (None,))]
         m = len(names)
         images = _field(bundle, f"{key}_images", what, (m, h, w, 3), np.uint8)
         points = _field(bundle, f"{key}_points", what, (m, n, 2), np.float64)
-        return [Expression(name, image, pts) for name, image, pts in zip(names, images, points)]
+        mattes = _field(bundle, f"{key}_mattes", what, (m, h, w), np.uint8)
+        return [Expression(name, image, pts, matte) for name, image, pts, matte in zip(names, images, points, mattes)]
 
+    scale = float(_field(bundle, "source_scale", what, ()))
     return PackImages(str(_field(bundle, "pack", what, ())), layout, (w, h), one("neutral"), one("standard"),
-                      group("examples"), group("teeth"))
+                      group("examples"), group("teeth"), None if np.isnan(scale) else scale)
 
 
 def pack_to_bundles(pack: ActorPack) -> dict[str, dict[str, np.ndarray]]:

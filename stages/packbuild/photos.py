@@ -151,10 +151,19 @@ def photo_to_frame(size: tuple[int, int], frame: tuple[int, int]) -> np.ndarray:
     return np.array([sx, sy, ox + (sx - 1) / 2, oy + (sy - 1) / 2])
 
 
+def placed(size: tuple[int, int], frame: tuple[int, int]) -> np.ndarray:
+    """``(H, W, 1) uint8``: 255 on the pixels of ``frame = (W, H)`` a photo of ``size = (w, h)``
+    covers once :func:`letterbox` placed it, 0 on the border it filled (not the photo's pixels)."""
+    fw, fh, ox, oy = _fitted(size, frame)
+    valid = np.zeros((frame[1], frame[0], 1), np.uint8)
+    valid[oy:oy + fh, ox:ox + fw] = 255
+    return valid
+
+
 def letterbox(rgb: np.ndarray, frame: tuple[int, int]) -> np.ndarray:
     """``rgb (h, w, 3)`` uint8 scaled uniformly to fit ``frame = (W, H)``, centred, the border
-    filled by replicating the edge pixels: ``(H, W, 3)`` uint8 (the same array when it already
-    has the frame's size)."""
+    filled by replicating the edge pixels (for the landmarker; :func:`placed` marks it): ``(H, W,
+    3)`` uint8 (the same array when it already has the frame's size)."""
     import cv2
     h, w = rgb.shape[:2]
     fw, fh, ox, oy = _fitted((w, h), frame)
@@ -225,10 +234,10 @@ class PhotosDecode(FrameStage):
     everything downstream."""
 
     name = "photos.decode"
-    version = "1"
+    version = "2"  # 2: the 'valid' output (which pixels of a frame are the photo's)
     doc = "Decode a folder of photos (jpg, png, tif, webp; EXIF orientation) into RGB uint8 frames of one size"
     inputs = {"photos": "dir"}
-    outputs = {"frames": "frames"}
+    outputs = {"frames": "frames", "valid": "frames"}
     cached = False
     params = (Param("max_side", int, DEFAULT_MAX_SIDE, "longest side of the frames, px (larger photos are shrunk)", min=64, max=16384),)
 
@@ -253,15 +262,17 @@ class PhotosDecode(FrameStage):
 
     def process(self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any],
                 ctx: Context) -> dict[str, Any]:
-        """Photos ``[start, stop)`` as frames ``(stop - start, H, W, 3)`` uint8 RGB."""
+        """Photos ``[start, stop)`` as frames ``(stop - start, H, W, 3)`` uint8 RGB, and ``valid``
+        ``(stop - start, H, W, 1)`` uint8: 255 where the frame's pixel is the photo's (:func:`placed`)."""
         photos = self.photos(Path(inputs["photos"]), int(params.get("max_side", DEFAULT_MAX_SIDE)))
-        frames = []
+        frames, valid = [], []
         for path in photos.paths[start:stop]:
             rgb = read_photo(path)
             if rgb is None:
                 raise StageError(f"{self.name}: {path}: could not be read any more (changed during the run?)")
             frames.append(letterbox(rgb, photos.frame_size))
-        return {"frames": np.stack(frames)}
+            valid.append(placed((rgb.shape[1], rgb.shape[0]), photos.frame_size))
+        return {"frames": np.stack(frames), "valid": np.stack(valid)}
 
 
 class PhotoIdentity(SequenceStage):

@@ -3,6 +3,7 @@ target's face (``pack_build.yaml``; docs/packbuild.md)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any, Mapping
 
 import numpy as np
@@ -15,7 +16,7 @@ from stages.landmarks.stage import layout_and_correspondence
 from stages.layout import load_layout
 from stages.packbuild.filters import CAUSES, KEEP, cause_counts, classify_frames, head_angles, measure_frames
 from stages.geometry.states import SEALED_GAP, coverage_record
-from stages.packbuild.selection import Selection, select_frames
+from stages.packbuild.selection import Selection, compose_similarity, select_frames
 from stages.packbuild.writing import write_pack
 
 
@@ -183,6 +184,13 @@ class PackSelect(SequenceStage):
         return {"selection": selection_bundle(chosen, (params["width"], params["height"]))}
 
 
+def _scaled(params: np.ndarray, scale: float) -> np.ndarray:
+    """Similarities ``(..., 4)`` followed by the scaling of an image by ``scale`` about the
+    top-left pixel's corner (pixel centres: ``x' = scale (x + 0.5) - 0.5``)."""
+    outer = np.array([scale, 0.0, 0.5 * scale - 0.5, 0.5 * scale - 0.5])
+    return compose_similarity(outer, params)
+
+
 def selection_bundle(chosen: Selection, size: tuple[int, int]) -> dict[str, np.ndarray]:
     """A :class:`Selection` as a ``pack_selection`` bundle (see :class:`PackSelect`)."""
     return {
@@ -212,19 +220,47 @@ def selection_from_bundle(bundle: Mapping[str, Any]) -> tuple[Selection, tuple[i
 
 class PackWrite(SequenceStage):
     """``pack.write``: the actor pack folder (``files`` output ``pack``), validated by
-    :func:`stages.actor_pack.load_pack` before the stage returns (:mod:`stages.packbuild.writing`)."""
+    :func:`stages.actor_pack.load_pack` before the stage returns (:mod:`stages.packbuild.writing`).
+    The optional ``valid`` frames (255 = a real pixel, ``photos.decode``'s) say which pixels of
+    each frame the validity mattes may count as real."""
 
     name = "pack.write"
-    version = "2"  # 2: pack.yaml records the examples' coverage of each expression state
-    doc = "write the actor pack: aligned, exposure-matched images, points, captured.npz, model3d, pack.yaml, sheet.png"
-    inputs = {"frames": "frames", "points": "points", "selection": "pack_selection"}
+    version = "3"  # 3: validity mattes, no edge-replicated pixels; image width chosen here; source frames recorded; the examples' coverage of each expression state
+    doc = "write the actor pack: aligned, exposure-matched images, validity mattes, points, captured.npz, model3d, pack.yaml, sheet.png"
+    inputs = {"frames": "frames", "points": "points", "selection": "pack_selection", "valid": "frames"}
+    optional_inputs = frozenset({"valid"})
     outputs = {"pack": "files"}
     params = (
         Param("name", str, "actor", "the pack's name"),
+        Param("width", int, 0, "the pack images' width, px (the height keeps pack.select's aspect ratio); 0: pack.select's size", min=0, max=8192),
+        Param("max_upscale", float, 2.0, "refuse a pack whose images would enlarge the footage more than this (pack px per "
+              "footage px); any enlargement is warned about with the sizes", min=0.01, max=100.0),
         Param("max_gain", float, 2.0, "largest exposure/white-balance gain per channel (and 1 / it the least)", min=1.0, max=100.0),
         Param("layout", str, "zhang134", "layout name or YAML path", file=True),
         Param("correspondence", str, "zhang134_mediapipe", "mesh correspondence name or YAML path (generic 3D model)", file=True),
     )
+
+    @staticmethod
+    def _resized(chosen: Selection, size: tuple[int, int], width: int) -> tuple[Selection, tuple[int, int]]:
+        """The selection's similarities and size for images ``width`` px wide (0: as selected)."""
+        if width in (0, size[0]):
+            return chosen, size
+        scale = width / size[0]
+        return replace(chosen, to_pack=_scaled(chosen.to_pack, scale)), (width, max(round(size[1] * scale), 1))
+
+    def _check_scale(self, chosen: Selection, size: tuple[int, int], footage: tuple[int, int], max_upscale: float,
+                     ctx: Context) -> None:
+        """Warn when the pack images enlarge the footage, refuse beyond ``max_upscale`` (the neutral's scale)."""
+        scale = float(np.hypot(*chosen.to_pack[chosen.neutral][:2]))
+        if scale <= 1.0:
+            return
+        held = (round(size[0] / scale), round(size[1] / scale))
+        line = (f"{self.name}: {size[0]}x{size[1]} pack images enlarge the {footage[0]}x{footage[1]} footage "
+                f"{scale:.2f}x (the crop spans {held[0]}x{held[1]} footage px)")
+        if scale > max_upscale:
+            raise StageError(f"{line}, more than max_upscale={max_upscale:g}: ask for width <= "
+                             f"{int(size[0] * max_upscale / scale)} or raise max_upscale")
+        ctx.log.warning("%s; the pack holds no more detail than the footage", line)
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         from stages.actor_pack import load_pack
@@ -233,14 +269,23 @@ class PackWrite(SequenceStage):
         stream = inputs["frames"]
         xy, _ = _points(inputs, stage=self.name, frames=stream.info.frames)
         chosen, size = selection_from_bundle(inputs["selection"])
+        chosen, size = self._resized(chosen, size, int(params["width"]))
+        self._check_scale(chosen, size, (stream.info.width, stream.info.height), float(params["max_upscale"]), ctx)
         folder = ctx.files_dir("pack")
         folder.mkdir(parents=True, exist_ok=True)
+        valid = inputs.get("valid")
         done = write_pack(folder, name=params["name"], layout=layout, correspondence=correspondence, selection=chosen,
                           xy=xy, read_frame=lambda t: stream.read(t, t + 1)[0], size=size,
-                          intrinsics=default_intrinsics(size), max_gain=params["max_gain"])
+                          intrinsics=default_intrinsics(size), max_gain=params["max_gain"],
+                          read_valid=None if valid is None else lambda t: valid.read(t, t + 1)[0, ..., 0])
         if done["clipped_points"]:
             ctx.log.warning("%s: %d points of the chosen frames fell outside the %dx%d pack image and were moved "
                             "to its border", self.name, done["clipped_points"], *size)
+        if done["missing"]:
+            worst = max(done["missing"], key=done["missing"].get)
+            ctx.log.info("%s: %d of %d images reach beyond the footage's frame (at most %.1f %% of %s's pixels); "
+                         "their mattes (mattes/) mark those pixels, filled from the rest", self.name, len(done["missing"]),
+                         2 + len(chosen.examples) + len(chosen.teeth), 100 * done["missing"][worst], worst)
         for label, g in done["gains"].items():
             ctx.log.info("%s: %s exposure gains (linear R, G, B) %.3f %.3f %.3f", self.name, label, *g)
         record = coverage_record(done["coverage"])

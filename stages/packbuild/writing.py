@@ -1,8 +1,12 @@
 """Writing an actor pack from chosen frames (format: ``docs/fixtures.md``, ``stages/actor_pack.py``).
 
 Every chosen frame is mapped into the pack's image by its similarity (frame -> neutral's frame ->
-upright, centred pack image; :mod:`stages.packbuild.selection`) with ``cv2.warpAffine`` (bilinear,
-edge pixels replicated), its layout points by the same similarity.
+upright, centred pack image; :mod:`stages.packbuild.selection`) with ``cv2.warpAffine`` (bilinear),
+its layout points by the same similarity. Where the pack image reaches beyond the footage's frame
+nothing is repeated from the edge: the image's *validity matte* (the same warp of a plane of ones,
+:mod:`stages.fill`) is written beside it (``mattes/<name>.png``, 8-bit, 255 = a real pixel), and
+the pixels it leaves out are filled by the push-pull fill of the real ones, so that a bilinear
+sample across the matte's edge meets a plausible colour, never black or a streak.
 
 **Exposure and white balance.** Each image other than the neutral is multiplied, per channel and
 in linear light (sRGB decoded, IEC 61966-2-1), by the gain ``g_c = mean(neutral_c) /
@@ -38,14 +42,37 @@ SKIN_SUBREGIONS = ("forehead", "glabella", "eyezone_l", "eyezone_r", "nose", "ch
 INNER_EYE_CORNERS = ("eye_l_0", "eye_r_0")
 
 
-def align_image(image: np.ndarray, params: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Map ``image (H, W, 3)`` by the similarity ``params = (a, b, tx, ty)`` (eq. 8) into an image
-    of ``size = (W', H')`` (bilinear; pixels from outside the source repeat its edge)."""
+def align_image(image: np.ndarray, params: np.ndarray, size: tuple[int, int], *,
+                valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Map ``image (H, W, 3) uint8`` by the similarity ``params = (a, b, tx, ty)`` (eq. 8) into an
+    image of ``size = (W', H')`` (bilinear), with its validity matte (of the frame's pixels that are
+    real: ``valid (H, W) uint8``, 255 = real; every pixel of the frame when omitted).
+
+    Returns
+    -------
+    image : (H', W', 3) uint8
+        The mapped image; the pixels the source does not hold are the push-pull fill of the rest
+        (:func:`stages.fill.fill_invalid`).
+    matte : (H', W') uint8
+        255 where the pixel comes from the source whole, 0 where from beyond its frame, between
+        where a bilinear sample straddles the edge.
+    """
     import cv2
+    from stages.fill import fill_invalid
     a, b, tx, ty = (float(v) for v in params)
     M = np.array([[a, -b, tx], [b, a, ty]])
-    return cv2.warpAffine(np.ascontiguousarray(image), M, tuple(int(v) for v in size), flags=cv2.INTER_LINEAR,
-                          borderMode=cv2.BORDER_REPLICATE)
+    size = tuple(int(v) for v in size)
+    inside = np.full(image.shape[:2], 255, np.uint8) if valid is None else np.ascontiguousarray(valid, np.uint8).reshape(image.shape[:2])
+    source = np.ascontiguousarray(image) if valid is None else cv2.bitwise_and(image, image, mask=(inside == 255).astype(np.uint8))
+    matte = cv2.warpAffine(inside, M, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    mapped = cv2.warpAffine(source, M, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    if matte.min() == 255:
+        return mapped, matte
+    valid = matte.astype(np.float32) / 255.0
+    colour = np.divide(mapped.astype(np.float32), valid[..., None], out=np.zeros(mapped.shape, np.float32),
+                       where=valid[..., None] > 0)  # the edge pixels' colour, the black border's share taken out
+    filled = fill_invalid(colour, valid)
+    return np.clip(np.round(filled), 0, 255).astype(np.uint8), matte
 
 
 def skin_mask(layout: Layout, points: np.ndarray, size: tuple[int, int]) -> np.ndarray:
@@ -127,9 +154,10 @@ def contact_sheet(images: Sequence[tuple[str, np.ndarray]], *, columns: int, thu
 
 
 def write_png(path: Path, image: np.ndarray) -> None:
-    """Write an RGB ``(H, W, 3) uint8`` image as PNG (``OSError`` if it cannot be encoded)."""
+    """Write an RGB ``(H, W, 3)`` or grey ``(H, W)`` uint8 image as PNG (``OSError`` if it cannot be encoded)."""
     import cv2
-    ok, data = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_PNG_COMPRESSION, 6])
+    pixels = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    ok, data = cv2.imencode(".png", pixels, [cv2.IMWRITE_PNG_COMPRESSION, 6])
     if not ok:
         raise OSError(f"cannot encode {path}")
     path.write_bytes(data.tobytes())
@@ -144,7 +172,8 @@ def write_rows(path: Path, names: Sequence[str], rows: np.ndarray, columns: tupl
 
 def write_pack(folder: Path, *, name: str, layout: Layout, correspondence: Correspondence, selection: Selection,
                xy: np.ndarray, read_frame: Callable[[int], np.ndarray], size: tuple[int, int],
-               intrinsics: np.ndarray, max_gain: float = 2.0) -> dict[str, object]:
+               intrinsics: np.ndarray, max_gain: float = 2.0,
+               read_valid: Callable[[int], np.ndarray] | None = None) -> dict[str, object]:
     """Write the pack folder: images, points, ``captured.npz``, ``model3d.csv``, ``pack.yaml``, ``sheet.png``.
 
     Parameters
@@ -161,12 +190,21 @@ def write_pack(folder: Path, *, name: str, layout: Layout, correspondence: Corre
         The pack's image size.
     intrinsics : (3, 3)
         Camera matrix written to the manifest.
+    read_valid : callable, optional
+        ``read_valid(t) -> (H, W) uint8``: which pixels of frame ``t`` are real (255; photos
+        brought to one frame size fill a border that is not); every pixel when omitted.
 
     Returns
     -------
     dict
         ``gains``: ``{entry name: (3,) gains}``; ``clipped_points``: points moved inside the image
-        (chosen frames whose face reached past the pack image's border).
+        (chosen frames whose face reached past the pack image's border); ``missing``: ``{entry
+        name: fraction of the image's pixels beyond the footage's frame}`` (entries with any).
+
+    Each entry of the manifest names its image, points and validity matte (``mattes/<name>.png``,
+    :func:`align_image`), the clip frame it was cut from (``frame``) and the similarity that cut it
+    (``similarity``: (a, b, tx, ty), footage px -> pack px); ``source`` records the footage's frame
+    size and the neutral's scale (pack px per footage px).
     """
     W, H = size
     names = layout.point_names
@@ -175,24 +213,34 @@ def write_pack(folder: Path, *, name: str, layout: Layout, correspondence: Corre
     lo, hi = np.array([-0.5, -0.5]), np.array([W - 0.5, H - 0.5])
     clipped = sum(int(np.sum((p < lo) | (p > hi))) for p in points_in_pack.values())
     points_in_pack = {t: np.clip(p, lo, hi) for t, p in points_in_pack.items()}
-    (folder / "images").mkdir()
-    (folder / "points").mkdir()
-    neutral_image = align_image(read_frame(selection.neutral), selection.to_pack[selection.neutral], size)
-    neutral_skin = skin_mask(layout, points_in_pack[selection.neutral], size)
+    for sub in ("images", "points", "mattes"):
+        (folder / sub).mkdir()
+    def cut(t: int) -> tuple[np.ndarray, np.ndarray]:
+        return align_image(read_frame(t), selection.to_pack[t], size, valid=None if read_valid is None else read_valid(t))
+
+    footage = read_frame(selection.neutral)
+    neutral_image, neutral_matte = cut(selection.neutral)
+    neutral_skin = skin_mask(layout, points_in_pack[selection.neutral], size) & (neutral_matte == 255)
     gains: dict[str, np.ndarray] = {}
+    missing: dict[str, float] = {}
     sheet: list[tuple[str, np.ndarray]] = []
 
-    def entry(label: str, t: int) -> dict[str, str]:
-        image = neutral_image
+    def entry(label: str, t: int) -> dict[str, object]:
+        image, matte = neutral_image, neutral_matte
         if t != selection.neutral:
-            image = align_image(read_frame(t), selection.to_pack[t], size)
-            mask = neutral_skin & skin_mask(layout, points_in_pack[t], size)
+            image, matte = cut(t)
+            mask = neutral_skin & skin_mask(layout, points_in_pack[t], size) & (matte == 255)
             gains[label] = exposure_gains(image, neutral_image, mask, max_gain=max_gain) if mask.any() else np.ones(3)
             image = apply_gains(image, gains[label])
+        if matte.min() < 255:
+            missing[label] = float(np.mean(255 - matte.astype(np.float64)) / 255.0)
         write_png(folder / "images" / f"{label}.png", image)
+        write_png(folder / "mattes" / f"{label}.png", matte)
         write_rows(folder / "points" / f"{label}.csv", names, points_in_pack[t], ("x", "y"))
         sheet.append((label, image))
-        return {"name": label, "image": f"images/{label}.png", "points": f"points/{label}.csv"}
+        return {"name": label, "image": f"images/{label}.png", "points": f"points/{label}.csv",
+                "matte": f"mattes/{label}.png", "frame": int(t),
+                "similarity": [round(float(v), 9) for v in selection.to_pack[t]]}
 
     manifest = {
         "format": "actor-pack/1",
@@ -201,6 +249,8 @@ def write_pack(folder: Path, *, name: str, layout: Layout, correspondence: Corre
         "image_size": [int(W), int(H)],
         "intrinsics": np.asarray(intrinsics, np.float64).tolist(),
         "model3d": "model3d.csv",
+        "source": {"size": [int(footage.shape[1]), int(footage.shape[0])],
+                   "scale": round(float(np.hypot(*selection.to_pack[selection.neutral][:2])), 6)},
         "neutral": entry("neutral", selection.neutral),
         "standard": entry("standard", selection.standard),
         "examples": [entry(f"ex_f{t:05d}", t) for t in selection.examples],
@@ -216,4 +266,4 @@ def write_pack(folder: Path, *, name: str, layout: Layout, correspondence: Corre
         "# Actor pack built from footage by stages.packbuild (docs/packbuild.md)\n"
         + yaml.safe_dump(manifest, sort_keys=False, default_flow_style=None, width=120), encoding="utf-8")
     write_png(folder / "sheet.png", contact_sheet(sheet, columns=6, thumb_height=160))
-    return {"gains": gains, "clipped_points": clipped, "coverage": covered}
+    return {"gains": gains, "clipped_points": clipped, "coverage": covered, "missing": missing}

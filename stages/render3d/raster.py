@@ -29,8 +29,8 @@ uniform mat3 A;          // intrinsics, px
 uniform vec2 size;       // (W, H) px
 uniform vec2 near_far;   // clipping depths, mm
 in vec3 position;        // camera frame, mm
-in vec2 uv;              // texture coordinates in [0, 1]
-out vec2 v_uv;
+in vec3 uvw;             // (s w, t w, w): texture coordinates in [0, 1] times the projective weight w
+out vec3 v_uvw;
 out float v_depth;
 void main() {
     vec3 p = A * position;                       // (u z, v z, z): column-major like GLSL
@@ -39,7 +39,7 @@ void main() {
     float n = near_far.x, f = near_far.y;
     float clip_z = (f + n) / (f - n) * z - 2.0 * f * n / (f - n);
     gl_Position = vec4(ndc_z, clip_z, z);
-    v_uv = uv;
+    v_uvw = uvw;
     v_depth = z;
 }
 """
@@ -47,11 +47,11 @@ void main() {
 _COLOUR = """
 #version 330
 uniform sampler2D tex;
-in vec2 v_uv;
+in vec3 v_uvw;
 in float v_depth;
 out vec4 colour;
 void main() {
-    vec4 c = texture(tex, v_uv);
+    vec4 c = texture(tex, v_uvw.xy / v_uvw.z);   // projective lookup (w = 1: plain perspective-correct)
     colour = vec4(c.rgb * c.a, c.a);             // premultiplied (associated) alpha
 }
 """
@@ -131,7 +131,8 @@ class MeshRenderer:
         A: np.ndarray,
         *,
         cull_back: bool = False,
-    ) -> tuple[np.ndarray, np.ndarray]:
+        uv_depth: np.ndarray | None = None,
+    ) -> tuple[np.ndarray | tuple[np.ndarray, ...], np.ndarray]:
         """Rasterize one textured mesh.
 
         Parameters
@@ -143,17 +144,23 @@ class MeshRenderer:
         uv : (V, 2) float
             Texture positions in pixels of ``texture`` (x right, y down, origin at the centre of
             its top-left pixel).
-        texture : (h, w, 3) or (h, w, 4) float or uint8
+        texture : (h, w, 3) or (h, w, 4) float or uint8, or a tuple of such (one size)
             Colours (any encoding: interpolated as given) and optional alpha; uint8 is divided by
-            255.
+            255. A tuple renders each over the same mesh (one colour pass each, one depth pass).
         A : (3, 3) float
             Intrinsics of eq. 10 for the output size, px.
         cull_back : bool
             Drop back-facing triangles (clockwise on screen).
+        uv_depth : (V,) float, optional
+            Projective texturing: each vertex's depth in the view the texture was taken from (the
+            mesh at rest); a surface point takes the texture at ``sum w_i z_i uv_i / sum w_i z_i``
+            (``w_i`` its 3D barycentric weights), its projection in that view, so a mesh rendered at
+            rest reproduces its texture exactly. Without it, ``uv`` is interpolated
+            perspective-correctly (``z_i = 1``).
 
         Returns
         -------
-        rgba : (H, W, 4) float32
+        rgba : (H, W, 4) float32, or a tuple of them (one per texture)
             Premultiplied colour and alpha (MSAA coverage times the texture's alpha); 0 where no
             triangle is.
         depth : (H, W) float32
@@ -165,7 +172,8 @@ class MeshRenderer:
         verts = np.asarray(vertices, np.float64)
         tri = np.asarray(triangles)
         uvs = np.asarray(uv, np.float64)
-        tex = np.asarray(texture)
+        textures = tuple(np.asarray(t) for t in texture) if isinstance(texture, tuple) else (np.asarray(texture),)
+        tex = textures[0]
         if verts.ndim != 2 or verts.shape[1] != 3:
             raise ValueError(f"vertices must be (V, 3), got {verts.shape}")
         if tri.ndim != 2 or tri.shape[1] != 3 or not np.issubdtype(tri.dtype, np.integer):
@@ -174,22 +182,25 @@ class MeshRenderer:
             raise ValueError(f"triangles index vertices 0..{len(verts) - 1}, got {tri.min()}..{tri.max()}")
         if uvs.shape != (len(verts), 2):
             raise ValueError(f"uv must be ({len(verts)}, 2), got {uvs.shape}")
-        if tex.ndim != 3 or tex.shape[2] not in (3, 4):
-            raise ValueError(f"texture must be (h, w, 3) or (h, w, 4), got {tex.shape}")
+        if any(t.ndim != 3 or t.shape[2] not in (3, 4) or t.shape[:2] != tex.shape[:2] for t in textures):
+            raise ValueError(f"textures must be (h, w, 3) or (h, w, 4) of one size, got {[t.shape for t in textures]}")
+        w0 = np.ones(len(verts)) if uv_depth is None else np.asarray(uv_depth, np.float64)
+        if w0.shape != (len(verts),) or not np.all(w0 > 0):
+            raise ValueError(f"uv_depth must be ({len(verts)},) positive, got {w0.shape}")
         if np.asarray(A).shape != (3, 3):
             raise ValueError(f"A must be (3, 3), got {np.asarray(A).shape}")
         h, w = tex.shape[:2]
-        tex = tex.astype(np.float32) / 255.0 if tex.dtype == np.uint8 else tex.astype(np.float32)
-        if tex.shape[2] == 3:
-            tex = np.concatenate([tex, np.ones((h, w, 1), np.float32)], axis=2)
+
+        def rgba_texture(t: np.ndarray) -> np.ndarray:
+            t = t.astype(np.float32) / 255.0 if t.dtype == np.uint8 else t.astype(np.float32)
+            return np.concatenate([t, np.ones((h, w, 1), np.float32)], axis=2) if t.shape[2] == 3 else t
+
         st = (uvs + 0.5) / np.array([w, h])
-        data = np.hstack([verts, st]).astype(np.float32)
+        data = np.hstack([verts, st * w0[:, None], w0[:, None]]).astype(np.float32)
         W, H = self.size
         ctx = self.ctx
+        colours = []
         with ctx:  # make this renderer's context current (several renderers may coexist)
-            gl_tex = ctx.texture((w, h), 4, np.ascontiguousarray(tex).tobytes(), dtype="f4")
-            gl_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
-            gl_tex.repeat_x = gl_tex.repeat_y = False
             vbo = ctx.buffer(data.tobytes())
             ibo = ctx.buffer(np.ascontiguousarray(tri, np.int32).tobytes())
             try:
@@ -203,16 +214,21 @@ class MeshRenderer:
                 a = np.asarray(A, np.float32)
                 for prog in (self._colour, self._depth):
                     prog["A"].write(np.ascontiguousarray(a.T).tobytes())  # GLSL mat3 is column-major
-                gl_tex.use(0)
                 self._colour["tex"].value = 0
-                vao = ctx.vertex_array(self._colour, [(vbo, "3f 2f", "position", "uv")], index_buffer=ibo)
-                self._fbo_ms.use()
-                self._fbo_ms.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
-                vao.render(moderngl.TRIANGLES)
-                ctx.copy_framebuffer(self._fbo_rgba, self._fbo_ms)
-                rgba = np.frombuffer(self._fbo_rgba.read(components=4, dtype="f4"), np.float32).reshape(H, W, 4)
+                vao = ctx.vertex_array(self._colour, [(vbo, "3f 3f", "position", "uvw")], index_buffer=ibo)
+                for t in textures:
+                    gl_tex = ctx.texture((w, h), 4, np.ascontiguousarray(rgba_texture(t)).tobytes(), dtype="f4")
+                    gl_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
+                    gl_tex.repeat_x = gl_tex.repeat_y = False
+                    gl_tex.use(0)
+                    self._fbo_ms.use()
+                    self._fbo_ms.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+                    vao.render(moderngl.TRIANGLES)
+                    ctx.copy_framebuffer(self._fbo_rgba, self._fbo_ms)
+                    colours.append(np.frombuffer(self._fbo_rgba.read(components=4, dtype="f4"), np.float32).reshape(H, W, 4).copy())
+                    gl_tex.release()
                 vao.release()
-                vao = ctx.vertex_array(self._depth, [(vbo, "3f 8x", "position")], index_buffer=ibo)
+                vao = ctx.vertex_array(self._depth, [(vbo, "3f 12x", "position")], index_buffer=ibo)
                 self._fbo_z.use()
                 self._fbo_z.clear(np.inf, 0.0, 0.0, 0.0, depth=1.0)
                 vao.render(moderngl.TRIANGLES)
@@ -221,8 +237,8 @@ class MeshRenderer:
             finally:
                 vbo.release()
                 ibo.release()
-                gl_tex.release()
-        return rgba.copy(), depth.copy()
+        rgba = tuple(colours) if isinstance(texture, tuple) else colours[0]
+        return rgba, depth.copy()
 
     def release(self) -> None:
         """Free the GL context and its framebuffers."""

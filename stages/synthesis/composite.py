@@ -22,7 +22,21 @@ examples' detail bands ``D_i`` and the sharpened weights ``c^ = c^p / sum c^p``.
 
 Labels: ``0 .. S-1`` are the layout's subregions (face subregions composite the examples, the
 teeth subregion the teeth examples, Sec. 8); label ``S`` is the outside of the face, always the
-standard image. Image stack order: ``M`` examples, ``Mt`` teeth examples, then the standard.
+model's ``outside`` image (the neutral aligned to the standard geometry). Image stack order:
+``M`` examples, ``Mt`` teeth examples, then the outside.
+
+Teeth mixing. The teeth subregion is the inside of the inner lips; when the mouth is closed or
+nearly so it is a sliver of a few pixels between the lips, where a real face shows lip (the
+inner lip points of a closed mouth are rarely on one line), and the teeth examples, all with the
+mouth open, squeezed into the sliver show a bright line of teeth along the lips. So with a
+per-frame *teeth mix* ``m`` in [0, 1] (:func:`stages.synthesis.synthesize.teeth_mix`: 0 at the
+neutral's opening, 1 from the least open teeth example's) the teeth subregion composites
+``m sum_i c^teeth_i T_i + (1 - m) sum_i c^host_i I_i``: the teeth examples blended with the face
+examples at the coefficients of the subregion holding the teeth (the lips), which at a closed
+mouth show closed lips there. The teeth examples' own coefficients are sharpened first,
+``c_i^p / sum_j c_j^p`` (``teeth_power`` p; :func:`stages.synthesis.bandpass.sharpened`): teeth are
+rigid, each example has them at its own place relative to the lip points the alignment follows,
+and an even blend of two shows both rows of teeth, doubled and blurred.
 """
 
 from __future__ import annotations
@@ -31,7 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Compositor", "Workspace", "prepare_compositor", "workspace", "composite"]
+__all__ = ["Compositor", "Workspace", "prepare_compositor", "workspace", "mixed_coefficients", "composite"]
 
 
 @dataclass
@@ -60,7 +74,8 @@ class Compositor:
     ``box_band_secondary`` their columns), added where they belong.
 
     ``candidates[l]`` indexes the full image stack (``M`` examples, ``Mt`` teeth examples, the
-    standard image); ``alpha`` (H*W,) is the face alpha ``1 - w_S``; ``images`` (E, 3, H*W),
+    outside image; the teeth label's are the teeth examples, then the examples when it has a
+    host for the teeth mix); ``alpha`` (H*W,) is the face alpha ``1 - w_S``; ``images`` (E, 3, H*W),
     ``r``, ``i1``, ``i2`` (H*W,) serve the direct path. With band-pass blending
     (``detail_power > 1``, :mod:`stages.synthesis.bandpass`) ``details`` (E, 3, H*W) holds the
     images' detail bands and every segment its premultiplied ``detail`` stack; otherwise None.
@@ -86,6 +101,9 @@ class Compositor:
     box_band: torch.Tensor  # (n,) positions (of the h*w) of the box pixels in a blending band
     box_band_secondary: torch.Tensor  # (n,) their secondary_index
     background: torch.Tensor  # (H*W, 4) channels-last: the composite outside the box (any coefficients), alpha
+    teeth_label: int  # the teeth subregion, -1 if none
+    teeth_host: int  # the subregion whose coefficients the teeth mix takes for the face examples, -1 if none
+    teeth_power: float  # the teeth examples' coefficients are sharpened to this power (1: as solved)
 
 
 @dataclass
@@ -108,14 +126,16 @@ class Workspace:
 
 
 def prepare_compositor(
-    model: dict[str, np.ndarray], *, device: str = "cpu", detail_power: float = 1.0, detail_sigma_px: float = 2.0
+    model: dict[str, np.ndarray], *, device: str = "cpu", detail_power: float = 1.0, detail_sigma_px: float = 2.0,
+    teeth_power: float = 1.0,
 ) -> Compositor:
     """Move a ``synthesis_model`` bundle's images and weight map to ``device`` in compositing form.
 
     Images become float32 sRGB in [0, 1]. ``detail_power`` > 1 turns on band-pass blending
     (:mod:`stages.synthesis.bandpass`): the detail band ``I - G_sigma * I`` (``sigma`` =
     ``detail_sigma_px``) is blended with the coefficients raised to that power and renormalised
-    (``inf``: the dominant example's detail alone); 1 is plain eq. 6.
+    (``inf``: the dominant example's detail alone); 1 is plain eq. 6. ``teeth_power`` sharpens
+    the teeth examples' coefficients the same way (module docstring, "Teeth mixing").
     """
     import torch
     from stages.synthesis.bandpass import detail_band
@@ -125,7 +145,7 @@ def prepare_compositor(
     teeth_flags = np.asarray(model["subregion_teeth"], bool)
     S = len(teeth_flags)
     M, Mt = len(model["examples"]), len(model["teeth"])
-    stack = np.concatenate([model["examples"], model["teeth"], model["standard"][None]])
+    stack = np.concatenate([model["examples"], model["teeth"], model["outside"][None]])
     images = torch.from_numpy(stack).to(device).reshape(len(stack), H * W, 3).permute(0, 2, 1).float().div(255.0).contiguous()
     details = None
     if detail_power > 1:
@@ -140,11 +160,15 @@ def prepare_compositor(
     primary: list[_Segment] = []
     secondary: list[_Segment] = []
     p_off = s_off = 0
+    teeth_label = int(np.flatnonzero(teeth_flags)[0]) if teeth_flags.any() else -1
+    host = int(model["teeth_host"]) if teeth_label >= 0 and "teeth_host" in model else -1
     for label in range(S + 1):
         if label == S:
             cand = torch.tensor([M + Mt], device=device)
         elif teeth_flags[label]:
             cand = torch.arange(M, M + Mt, device=device)
+            if host >= 0:
+                cand = torch.cat([cand, torch.arange(M, device=device)])
         else:
             cand = torch.arange(M, device=device)
         candidates.append(cand)
@@ -176,6 +200,7 @@ def prepare_compositor(
         (W, H), candidates, primary, secondary, primary_index, secondary_index,
         primary_template, secondary_template, alpha, images, r, i1, i2, details, float(detail_power), box,
         primary_index.view(H, W)[y0:y1, x0:x1].flatten(), box_band, box_secondary[box_band], background,
+        teeth_label, host, float(teeth_power),
     )
 
 
@@ -226,8 +251,47 @@ def _fill(buffer: torch.Tensor, segment: _Segment, terms: list[tuple[int, float]
         view.add_(segment.detail[k], alpha=d)
 
 
+def mixed_coefficients(comp: Compositor, coeffs: torch.Tensor, teeth_mix: np.ndarray | None) -> torch.Tensor:
+    """The coefficients the compositor's candidates take: the teeth label's row becomes
+    ``[m s(c^teeth), (1 - m) c^host]`` (the teeth mix, module docstring; ``m = 1`` when
+    ``teeth_mix`` is None; ``s`` the sharpening to ``teeth_power``).
+
+    Parameters
+    ----------
+    coeffs : (B, S, K) tensor, the QPs' coefficients
+    teeth_mix : (B,) float in [0, 1], optional
+
+    Returns
+    -------
+    (B, S, K') tensor, ``K' >= len(candidates[l])`` for every label (``coeffs`` itself when there
+    is nothing to change: no teeth host and ``teeth_power`` 1).
+    """
+    import torch
+    from stages.synthesis.bandpass import sharpened
+    t, host = comp.teeth_label, comp.teeth_host
+    if t < 0 or (host < 0 and comp.teeth_power == 1):
+        return coeffs
+    M = len(comp.candidates[host]) if host >= 0 else 0
+    Mt = len(comp.candidates[t]) - M
+    B, S, K = coeffs.shape
+    out = torch.zeros(B, S, max(K, len(comp.candidates[t])), dtype=coeffs.dtype, device=coeffs.device)
+    out[..., :K] = coeffs
+    teeth = coeffs[:, t, :Mt]
+    if comp.teeth_power != 1:
+        teeth = torch.as_tensor(sharpened(teeth.detach().cpu().numpy().clip(0, None), power=comp.teeth_power),
+                                dtype=coeffs.dtype, device=coeffs.device)
+    m = torch.ones(B, dtype=coeffs.dtype, device=coeffs.device) if teeth_mix is None or host < 0 else \
+        torch.as_tensor(np.asarray(teeth_mix, np.float64), dtype=coeffs.dtype, device=coeffs.device)
+    out[:, t, :Mt] = m[:, None] * teeth
+    if host >= 0:
+        out[:, t, Mt:Mt + M] = (1 - m)[:, None] * coeffs[:, host, :M]
+    out[:, t, Mt + M:] = 0
+    return out
+
+
 def composite(
-    comp: Compositor, coeffs: torch.Tensor, *, min_coeff: float = 1e-3, direct: bool = False, workspace: Workspace | None = None
+    comp: Compositor, coeffs: torch.Tensor, *, min_coeff: float = 1e-3, direct: bool = False, workspace: Workspace | None = None,
+    teeth_mix: np.ndarray | None = None,
 ) -> torch.Tensor:
     """Blend the aligned example images by per-subregion coefficients (eq. 6, 7).
 
@@ -245,6 +309,9 @@ def composite(
     workspace : Workspace, optional
         Sparse path, one frame (``B = 1``): composite in these buffers (:func:`workspace`) and
         return ``workspace.standard``, which the next call with the same workspace overwrites.
+    teeth_mix : (B,) float in [0, 1], optional
+        The teeth mix of each frame (module docstring; :func:`mixed_coefficients`); None: the
+        teeth examples alone.
 
     The compositor's ``detail_power`` (:func:`prepare_compositor`) adds the band-pass detail
     term in both paths (see the module docstring).
@@ -258,6 +325,7 @@ def composite(
     import torch
     W, H = comp.size
     B, S = coeffs.shape[:2]
+    coeffs = mixed_coefficients(comp, coeffs, teeth_mix)
     device = comp.images.device
     if workspace is not None and (direct or B != 1):
         raise ValueError(f"a workspace composites one frame on the sparse path, got B={B}, direct={direct}")

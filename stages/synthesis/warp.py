@@ -257,7 +257,8 @@ def warp_images(
     size: tuple[int, int] | None = None,
     padding_mode: str = "border",
     buffers: Buffers | None = None,
-) -> torch.Tensor:
+    extra: torch.Tensor | None = None,
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Warp images so that ``src_points`` move to ``dst_points`` (piecewise affine, bilinear).
 
     Parameters
@@ -276,11 +277,16 @@ def warp_images(
     buffers : Buffers, optional
         CPU path: this thread's :class:`Buffers` for the temporaries and the output, which the
         next call with the same buffers overwrites; ignored elsewhere.
+    extra : (1 or B, C2, H, W) float32 tensor, optional
+        Further planes of the source (mattes) warped by the same map, positions outside the
+        source reading 0 whatever ``padding_mode`` (a matte says what the source holds there:
+        nothing).
 
     Returns
     -------
     (B, C, H_out, W_out) tensor, float64 for float64 images, float32 otherwise. On the CPU its
-    memory is channels-last (``permute(0, 2, 3, 1)`` of it is contiguous, no copy).
+    memory is channels-last (``permute(0, 2, 3, 1)`` of it is contiguous, no copy). With
+    ``extra``, the pair (that, the warped ``extra`` (B, C2, H_out, W_out) float32).
     """
     import torch
     _, C, H, W = images.shape
@@ -293,7 +299,11 @@ def warp_images(
         grid, _ = backward_map(src_points, dst_points, triangles, size, dtype=dtype, source_size=(W, H))
         if images.shape[0] == 1 and grid.shape[0] > 1:
             images = images.expand(grid.shape[0], -1, -1, -1)
-        return F.grid_sample(images, grid, mode="bilinear", padding_mode=padding_mode, align_corners=True)
+        out = F.grid_sample(images, grid, mode="bilinear", padding_mode=padding_mode, align_corners=True)
+        if extra is None:
+            return out
+        planes = extra.expand(grid.shape[0], -1, -1, -1) if extra.shape[0] == 1 else extra
+        return out, F.grid_sample(planes.to(grid.dtype), grid, mode="bilinear", padding_mode="zeros", align_corners=True).float()
     import cv2
     maps = _source_map(src_points, dst_points, triangles, size, dtype=torch.float32, source_size=None, buffers=buffers)
     B, (Wo, Ho) = maps.shape[0], size
@@ -304,4 +314,13 @@ def warp_images(
         image = source[b if len(source) > 1 else 0].contiguous().numpy()
         cv2.remap(image, maps[b].numpy(), None, cv2.INTER_LINEAR, dst=planes[b] if C > 1 else planes[b, ..., 0],
                   borderMode=getattr(cv2, _BORDERS[padding_mode]))
-    return out.permute(0, 3, 1, 2)
+    if extra is None:
+        return out.permute(0, 3, 1, 2)
+    C2 = extra.shape[1]
+    more = extra.detach().float().permute(0, 2, 3, 1)
+    warped = scratch(buffers, "warped_extra", (B, Ho, Wo, C2), torch.float32)
+    for b in range(B):
+        plane = more[b if len(more) > 1 else 0].contiguous().numpy()
+        cv2.remap(plane, maps[b].numpy(), None, cv2.INTER_LINEAR, dst=warped[b].numpy() if C2 > 1 else warped[b, ..., 0].numpy(),
+                  borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return out.permute(0, 3, 1, 2), warped.permute(0, 3, 1, 2)

@@ -3,9 +3,15 @@
 Pixels: the synthesized frames are sRGB-encoded floats in [0, 1]; they are decoded to
 scene-linear with the IEC 61966-2-1 curve (:func:`stages.color.srgb_to_linear`), so the files
 hold linear light with Rec.709/sRGB primaries (``oiio:ColorSpace`` = ``lin_rec709_scene``).
-The face mask becomes the alpha channel with OpenEXR's convention of *associated* alpha: the
-stored R, G, B are the linear colour multiplied by alpha (outside the face they are 0). Without a
-mask, alpha is 1 and the whole frame is kept.
+
+Channels with the ``head_matte`` input (the shot, :func:`shot_channels`): ``R, G, B, A`` the head with
+OpenEXR's *associated* alpha (A = the head matte, R, G, B = the linear colour times A), ``plate.R,
+plate.G, plate.B`` the whole frame (opaque: the plate the head sits in), ``face.A`` the face matte
+and ``filled.A`` how much of each pixel was filled because no real source pixel covers it — layer
+names as OpenEXR's multi-layer convention (``layer.channel``) and Nuke read them (layers ``plate``,
+``face``, ``filled``; ``face.A`` becomes ``face.alpha``). Without ``head_matte``: the face mask is the
+alpha (R, G, B = colour times it, 0 outside the face); without a mask either, alpha is 1 and the
+whole frame is kept.
 
 Per-frame metadata goes into namespaced header attributes (``exmap:frame`` ...; see
 ``docs/writers.md``). Each file is written under a temporary name and renamed into place, so a
@@ -32,6 +38,8 @@ from stages.writers.exr_file import COMPRESSION_CODES, ZIP_LEVEL, ZIP_LEVELS, wr
 from stages.writers.lut import apply_elementwise
 
 COMPRESSIONS = ("zip", "zips", "piz", "rle", "none")  # OpenEXR's lossless codecs
+PLATE, FACE, FILLED = ("plate.R", "plate.G", "plate.B"), "face.A", "filled.A"
+SHOT_CHANNELS = PLATE + (FACE, FILLED)  # besides R, G, B, A (the head)
 FRAME_NAME = "frame.{:06d}.exr"  # 0-based frame index of the source clip
 PREFIX = "exmap:"
 COLOR_SPACE = "lin_rec709_scene"  # oiio:ColorSpace, written by OpenImageIO as colorInteropID
@@ -121,6 +129,48 @@ def to_linear_rgba(srgb: np.ndarray, alpha: np.ndarray | None = None) -> np.ndar
     return np.moveaxis(planes, 0, -1)
 
 
+def _half(plane: np.ndarray) -> np.ndarray:
+    """``(H, W)`` float -> float16, rounded once to the nearest (OpenCV's conversion, GIL released)."""
+    import cv2
+    return plane if plane.dtype == np.float16 else cv2.multiply(np.ascontiguousarray(plane, np.float32), 1.0, dtype=cv2.CV_16F)
+
+
+def shot_channels(srgb: np.ndarray, head: np.ndarray, face: np.ndarray | None = None,
+                  filled: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The channels of a shot EXR (module docstring): the head premultiplied, the plate, the mattes.
+
+    Parameters
+    ----------
+    srgb : (H, W, 3) float (sRGB-encoded, in [0, 1]) or uint8: the whole frame
+    head : (H, W) or (H, W, 1) float in [0, 1]: the head matte
+    face, filled : (H, W) or (H, W, 1) float in [0, 1], optional: the face matte, the filled matte
+
+    Returns
+    -------
+    rgba : (H, W, 4) float16: linear colour times ``head``, and ``head`` (view of planar memory)
+    layers : ``{"plate.R": (H, W) float16, ..., "face.A": ..., "filled.A": ...}`` (the mattes given)
+    """
+    return linear_shot_channels(apply_elementwise(srgb_decode, np.moveaxis(srgb, 2, 0)), head, face, filled)
+
+
+def linear_shot_channels(linear: np.ndarray, head: np.ndarray, face: np.ndarray | None = None,
+                         filled: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """:func:`shot_channels` of a frame already in scene-linear light, ``linear (3, H, W)`` float32 (planar)."""
+    import cv2
+    height, width = linear.shape[1:]
+    head32 = np.ascontiguousarray(np.asarray(head).reshape(height, width), np.float32)
+    linear = np.ascontiguousarray(linear, np.float32)
+    planes = np.empty((4, height, width), np.float16)
+    for plane, channel in zip(planes[:3], linear):
+        cv2.multiply(channel, head32, dst=plane, dtype=cv2.CV_16F)
+    planes[3] = _half(head32)
+    layers = {name: _half(channel) for name, channel in zip(PLATE, linear)}
+    for name, matte in ((FACE, face), (FILLED, filled)):
+        if matte is not None:
+            layers[name] = _half(np.asarray(matte).reshape(height, width))
+    return np.moveaxis(planes, 0, -1), layers
+
+
 def frame_attributes(
     frame: int,
     *,
@@ -153,6 +203,13 @@ def frame_attributes(
     return attrs
 
 
+def head_attributes(head3d: Mapping[str, np.ndarray], frame: int) -> dict[str, Attribute]:
+    """``exmap:head_R`` (9 floats, row-major) and ``exmap:head_t_mm`` (3) of one frame of a ``head3d``
+    bundle: the rigid motion ``X' = R X + t`` of the target's 3D model in its camera's frame."""
+    return {PREFIX + "head_R": tuple(float(x) for x in np.asarray(head3d["R"][frame]).ravel()),
+            PREFIX + "head_t_mm": tuple(float(x) for x in np.asarray(head3d["t"][frame]))}
+
+
 def exr_spec(width: int, height: int, *, attributes: Mapping[str, Attribute], compression: str) -> oiio.ImageSpec:
     """OpenImageIO header of a half-float RGBA EXR with the given extra attributes.
 
@@ -174,10 +231,13 @@ def exr_spec(width: int, height: int, *, attributes: Mapping[str, Attribute], co
     return spec
 
 
-def oiio_write_exr(path: Path, pixels: np.ndarray, *, attributes: Mapping[str, Attribute], compression: str) -> None:
+def oiio_write_exr(path: Path, pixels: np.ndarray, *, attributes: Mapping[str, Attribute], compression: str,
+                   names: tuple[str, ...] | None = None, floats: tuple[str, ...] = ("Z",)) -> None:
     """Write ``pixels`` ``(H, W, 4)`` (RGBA, half) or ``(H, W, 5)`` (RGBA half + float Z), any strides, with
     OpenImageIO, in place (not atomic): the codecs ``piz`` and ``rle``, and the reference the
-    tests and the benchmark compare :func:`write_exr` with.
+    tests and the benchmark compare :func:`write_exr` with. With ``names``, ``pixels`` ``(H, W, C)``
+    holds those channels (RGBA first), the ones named in ``floats`` stored as 32-bit floats, the
+    others as half.
 
     Raises
     ------
@@ -187,10 +247,12 @@ def oiio_write_exr(path: Path, pixels: np.ndarray, *, attributes: Mapping[str, A
     import OpenImageIO as oiio
     height, width, channels = pixels.shape
     spec = exr_spec(width, height, attributes=attributes, compression=compression)
-    if channels == 5:
-        spec.nchannels = 5
-        spec.channelnames = ("R", "G", "B", "A", "Z")
-        spec.channelformats = (oiio.HALF,) * 4 + (oiio.FLOAT,)
+    if names is None and channels == 5:
+        names = ("R", "G", "B", "A", "Z")
+    if names is not None:
+        spec.nchannels = len(names)
+        spec.channelnames = tuple(names)
+        spec.channelformats = tuple(oiio.FLOAT if n in floats else oiio.HALF for n in names)
     out = oiio.ImageOutput.create("openexr")
     if out is None or not out.open(str(path), spec):
         reason = out.geterror() if out is not None else oiio.geterror()
@@ -206,7 +268,7 @@ DEPTH_UNIT = "mm"
 
 def write_exr(
     path: Path, rgba: np.ndarray, *, attributes: Mapping[str, Attribute], compression: str = "zip",
-    zip_level: int = ZIP_LEVEL, depth: np.ndarray | None = None,
+    zip_level: int = ZIP_LEVEL, depth: np.ndarray | None = None, layers: Mapping[str, np.ndarray] | None = None,
 ) -> None:
     """Write one half-float RGBA EXR atomically (temp name in the same folder, then rename).
 
@@ -227,6 +289,8 @@ def write_exr(
     depth : optional (H, W) camera depth of the surface at each pixel centre, in ``DEPTH_UNIT``
         (mm, z away from the camera; ``inf`` where no surface is): written as a 32-bit float ``Z``
         channel after RGBA, with the header attribute ``exmap:depth_unit``.
+    layers : optional further channels, name -> (H, W) float16 (layer-prefixed names such as
+        ``plate.R``, ``face.A``: :data:`SHOT_CHANNELS`).
 
     Raises
     ------
@@ -246,19 +310,24 @@ def write_exr(
         if depth.shape != (height, width):
             raise ValueError(f"expected depth ({height}, {width}), got {depth.shape}")
         attributes = {**attributes, PREFIX + "depth_unit": DEPTH_UNIT}
+    channels = {name: pixels[..., c] for c, name in enumerate("RGBA")}
+    if depth is not None:
+        channels["Z"] = np.asarray(depth, np.float32)
+    for name, plane in (layers or {}).items():
+        if plane.shape != (height, width) or plane.dtype != np.float16:
+            raise ValueError(f"expected layer {name!r} ({height}, {width}) float16, got {plane.shape} {plane.dtype}")
+        channels[name] = plane
     try:
         with atomic_write(path) as tmp:
             if compression in COMPRESSION_CODES:
-                channels = {name: pixels[..., c] for c, name in enumerate("RGBA")}
-                if depth is not None:
-                    channels["Z"] = np.asarray(depth, np.float32)
                 with open(tmp, "wb") as file:
                     write_scanline_exr(file, channels, attributes={"colorInteropID": COLOR_SPACE, **attributes},
                                        compression=compression, level=zip_level)
-            else:
-                if depth is not None:
-                    pixels = np.concatenate([pixels.astype(np.float32), np.asarray(depth, np.float32)[..., None]], axis=2)
+            elif len(channels) == 4:
                 oiio_write_exr(tmp, pixels, attributes=attributes, compression=compression)
+            else:
+                stacked = np.stack([np.asarray(c, np.float32) for c in channels.values()], axis=2)
+                oiio_write_exr(tmp, stacked, attributes=attributes, compression=compression, names=tuple(channels))
     except OSError as err:
         raise StageError(f"cannot write EXR {path}: {err.strerror or err}") from err
 
@@ -268,17 +337,21 @@ class WriteExr(FrameStage):
 
     name = "write.exr"
     # 2: own zip writer (ISA-L's deflate); 3: zlib's deflate, whose bytes do not depend on the thread
-    # (other bytes, the same pixels); 4: zlib-ng's deflate (as deterministic, 3x faster at level 1)
-    version = "4"
-    doc = "EXR per frame: half float, scene-linear (sRGB decoded), face mask as associated alpha"
-    inputs = {"frames": "frames", "mask": "frames", "pose": "pose", "similarity": "similarity"}
-    optional_inputs = frozenset({"mask", "pose", "similarity"})
+    # (other bytes, the same pixels); 4: zlib-ng's deflate (as deterministic, 3x faster at level 1);
+    # 5: the shot channels with 'head_matte' (plate, face and filled mattes), the head motion in the header
+    version = "5"
+    doc = "EXR per frame: half float, scene-linear (sRGB decoded); the head (associated alpha), the plate, face and filled mattes"
+    inputs = {"frames": "frames", "mask": "frames", "head_matte": "frames", "filled": "frames", "pose": "pose",
+              "similarity": "similarity", "head": "head3d"}
+    optional_inputs = frozenset({"mask", "head_matte", "filled", "pose", "similarity", "head"})
     outputs = {"exr": "files"}
     params = (
         Param("compression", str, "zip", "lossless EXR compression", choices=COMPRESSIONS),
         Param("zip_level", int, ZIP_LEVEL, "deflate level of zip/zips (zlib: 1 fastest, 9 smallest)",
               min=ZIP_LEVELS.start, max=ZIP_LEVELS.stop - 1),
         Param("threads", int, 0, "frames written in parallel; 0 = one per CPU core", in_key=False, min=0, max=256),
+        Param("layers", str, "shot", "shot: with 'head_matte', the head, the plate and the mattes; face: RGBA with alpha = "
+              "the face mask only (RGB 0 outside the face: about 40 % of the shot's CPU per frame)", choices=("shot", "face")),
     )
 
     def process(
@@ -289,14 +362,20 @@ class WriteExr(FrameStage):
         frames = stream.read(start, stop)
         if frames.ndim != 4 or frames.shape[3] != 3:
             raise StageError(f"write.exr: input 'frames' must be RGB (B, H, W, 3), got {frames.shape}")
-        masks = None
-        if inputs.get("mask") is not None:
-            masks = inputs["mask"].read(start, stop)
-            if inputs["mask"].info.frames != info.frames or masks.shape[1:] != frames.shape[1:3] + (1,):
+        mattes = {}
+        for port in ("mask", "head_matte", "filled"):
+            if inputs.get(port) is None:
+                continue
+            mattes[port] = inputs[port].read(start, stop)
+            if inputs[port].info.frames != info.frames or mattes[port].shape[1:] != frames.shape[1:3] + (1,):
                 raise StageError(
-                    f"write.exr: input 'mask' ({inputs['mask'].info.frames} frames of shape {masks.shape[1:]}) "
+                    f"write.exr: input '{port}' ({inputs[port].info.frames} frames of shape {mattes[port].shape[1:]}) "
                     f"does not match 'frames' ({info.frames} of shape {frames.shape[1:3] + (1,)})"
                 )
+        masks = mattes.get("mask")
+        head3d = inputs.get("head")
+        if head3d is not None and len(head3d["R"]) != info.frames:
+            raise StageError(f"write.exr: input 'head' has {len(head3d['R'])} frames, 'frames' {info.frames}")
         pose, similarity = inputs.get("pose"), inputs.get("similarity")
         for port, bundle in (("pose", pose), ("similarity", similarity)):
             if bundle is not None:
@@ -315,9 +394,16 @@ class WriteExr(FrameStage):
                 pose=None if pose is None else {k: pose[k][frame] for k in ("rvec", "tvec", "valid")},
                 similarity=None if similarity is None else {k: similarity[k][frame] for k in ("params", "valid")},
             )
-            rgba = to_linear_rgba(frames[i], None if masks is None else masks[i])
+            if head3d is not None:
+                attributes.update(head_attributes(head3d, frame))
+            layers = None
+            if "head_matte" in mattes and params.get("layers", "shot") == "shot":
+                rgba, layers = shot_channels(frames[i], mattes["head_matte"][i], None if masks is None else masks[i],
+                                             mattes["filled"][i] if "filled" in mattes else None)
+            else:
+                rgba = to_linear_rgba(frames[i], None if masks is None else masks[i])
             write_exr(folder / exr_name(frame), rgba, attributes=attributes, compression=params["compression"],
-                      zip_level=params["zip_level"])
+                      zip_level=params["zip_level"], layers=layers)
 
         workers = min(params["threads"] or os.cpu_count() or 1, len(frames))
         with ThreadPoolExecutor(max_workers=max(workers, 1), thread_name_prefix="write.exr") as pool:

@@ -12,6 +12,13 @@ Files written (under ``out/<stage>/``):
     ``/Root/Materials/Face`` (UsdPreviewSurface whose ``diffuseColor`` and ``opacity`` come from a
     UsdUVTexture with a time-sampled ``inputs:file``, one PNG per frame)) and ``/Root/Camera``
     (the target camera: intrinsics as focal length and apertures, at the origin looking down -Z).
+``/Root/Surround`` (Mesh, with the whole head: ``mesh3d.synthesize`` given the synthesis model)
+    The part of the whole head that does not move rigidly with it: the band from the head ring to
+    the outer ring and the image's edge, and the background beyond. Its ``points`` are
+    time-sampled *after* the head's motion (weighted per vertex as in the 2D result: ``w (R X + t)
+    + (1 - w) X``), in the camera frame, so it is not under ``/Root/Head``; it shares the face's
+    material and its ``primvars:st``. ``/Root/Head/Face`` then holds the triangles whose vertices
+    all follow the head (face, teeth, head ring): feature points and anchors alike.
 ``textures/texture.%06d.png``
     The synthesized expression image of each frame, RGBA (alpha = the synthesized face mask).
 ``head_pose.csv``
@@ -63,6 +70,8 @@ def write_usd_scene(
     head_R: np.ndarray | None = None,
     head_t: np.ndarray | None = None,
     texture_files: list[str] | None = None,
+    surround_triangles: np.ndarray | None = None,
+    surround_points: np.ndarray | None = None,
 ) -> None:
     """Write the animated mesh as a USD layer (``.usda`` text or ``.usdc`` by the suffix).
 
@@ -77,8 +86,12 @@ def write_usd_scene(
     fps : frames per second (time code = frame index)
     head_R, head_t : (T, 3, 3), (T, 3) mm, optional head motion ``X' = R X + t``
     texture_files : T paths relative to the layer, optional
+    surround_triangles : (G, 3) int, optional
+        Triangles of ``/Root/Surround`` (module docstring), over the same vertices.
+    surround_points : (T, V, 3) float, mm, optional
+        The vertices after the head's motion, camera frame (with ``surround_triangles``).
     """
-    from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, Vt
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade
 
     vertices = np.asarray(vertices, np.float64)
     T = len(vertices)
@@ -99,28 +112,18 @@ def write_usd_scene(
             op.Set(_matrix(np.asarray(head_R[f], np.float64), np.asarray(head_t[f], np.float64)), Usd.TimeCode(f))
     else:
         op.Set(Gf.Matrix4d(1.0))
-    mesh = UsdGeom.Mesh.Define(stage, "/Root/Head/Face")
-    tri = np.asarray(triangles, np.int64)[:, [0, 2, 1]]
-    mesh.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(tri)))
-    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray(tri.ravel().tolist()))
-    mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
-    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-    points = mesh.CreatePointsAttr()
-    st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex)
     uv = np.asarray(uv, np.float64)
     st_all = np.stack([(uv[..., 0] + 0.5) / W, 1.0 - (uv[..., 1] + 0.5) / H], axis=-1)
-    for f in range(T):
-        points.Set(Vt.Vec3fArray.FromNumpy((vertices[f] @ FLIP).astype(np.float32)), Usd.TimeCode(f))
-        st.Set(Vt.Vec2fArray.FromNumpy(st_all[f].astype(np.float32)), Usd.TimeCode(f))
-    lo, hi = (vertices @ FLIP).min((0, 1)), (vertices @ FLIP).max((0, 1))
-    mesh.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*lo.tolist()), Gf.Vec3f(*hi.tolist())]))
+    meshes = [_mesh(stage, "/Root/Head/Face", vertices, triangles, st_all)]
+    if surround_triangles is not None and len(surround_triangles):
+        meshes.append(_mesh(stage, "/Root/Surround", np.asarray(surround_points, np.float64), surround_triangles, st_all))
     if texture_files is not None:
         material = UsdShade.Material.Define(stage, "/Root/Materials/Face")
         shader = UsdShade.Shader.Define(stage, "/Root/Materials/Face/Surface")
         shader.CreateIdAttr("UsdPreviewSurface")
         reader = UsdShade.Shader.Define(stage, "/Root/Materials/Face/st")
         reader.CreateIdAttr("UsdPrimvarReader_float2")
-        reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set("st")
+        reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")  # UsdPrimvarReader: string (Sdr)
         tex = UsdShade.Shader.Define(stage, "/Root/Materials/Face/Texture")
         tex.CreateIdAttr("UsdUVTexture")
         tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
@@ -134,7 +137,8 @@ def write_usd_scene(
         shader.CreateInput("opacity", Sdf.ValueTypeNames.Float).ConnectToSource(alpha)
         shader.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(0.8)
         material.CreateSurfaceOutput().ConnectToSource(shader.ConnectableAPI(), "surface")
-        UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
+        for mesh in meshes:
+            UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
     A = np.asarray(camera, np.float64)
     cam = UsdGeom.Camera.Define(stage, "/Root/Camera")
     focal = 50.0  # mm; the apertures carry the field of view
@@ -145,6 +149,27 @@ def write_usd_scene(
     cam.CreateVerticalApertureOffsetAttr(float((A[1, 2] - (H - 1) / 2.0) / A[1, 1] * focal))
     cam.CreateClippingRangeAttr(Gf.Vec2f(10.0, 100000.0))
     stage.GetRootLayer().Save()
+
+
+def _mesh(stage, path: str, vertices: np.ndarray, triangles: np.ndarray, st: np.ndarray):
+    """A triangle mesh at ``path`` with time-sampled ``points`` (``vertices (T, V, 3)`` mm, pipeline
+    camera axes) and vertex ``primvars:st`` (``st (T, V, 2)``), front faces counter-clockwise."""
+    from pxr import Gf, Sdf, Usd, UsdGeom, Vt
+
+    mesh = UsdGeom.Mesh.Define(stage, path)
+    tri = np.asarray(triangles, np.int64)[:, [0, 2, 1]]
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(tri)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray(tri.ravel().tolist()))
+    mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    points = mesh.CreatePointsAttr()
+    primvar = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex)
+    for f in range(len(vertices)):
+        points.Set(Vt.Vec3fArray.FromNumpy((vertices[f] @ FLIP).astype(np.float32)), Usd.TimeCode(f))
+        primvar.Set(Vt.Vec2fArray.FromNumpy(st[f].astype(np.float32)), Usd.TimeCode(f))
+    lo, hi = (vertices @ FLIP).min((0, 1)), (vertices @ FLIP).max((0, 1))
+    mesh.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*lo.tolist()), Gf.Vec3f(*hi.tolist())]))
+    return mesh
 
 
 def write_pose_csv(path: Path, head: Mapping[str, np.ndarray], *, fps: float) -> None:
@@ -164,11 +189,33 @@ def write_pose_csv(path: Path, head: Mapping[str, np.ndarray], *, fps: float) ->
             out.writerow(row)
 
 
+def whole_head_parts(mesh: Mapping[str, np.ndarray], vertices: np.ndarray, head: Mapping[str, np.ndarray] | None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """The whole head of a ``mesh3d`` bundle split as the scene holds it (module docstring).
+
+    Returns
+    -------
+    vertices : (T, N + A, 3) mm, at rest; uv : (T, N + A, 2) px; rigid : (F, 3) the triangles whose
+    vertices all follow the head; and the ``surround_triangles`` / ``surround_points`` keywords of
+    :func:`write_usd_scene` (the other triangles, every vertex after the weighted motion).
+    """
+    from stages.render3d.head import apply_head
+    T = len(vertices)
+    full = np.concatenate([vertices, np.broadcast_to(mesh["surround"], (T,) + np.shape(mesh["surround"]))], 1)
+    uv = np.concatenate([np.asarray(mesh["uv"], np.float64),
+                         np.broadcast_to(mesh["surround_uv"], (T,) + np.shape(mesh["surround_uv"]))], 1)
+    triangles, weight = np.asarray(mesh["head_triangles"]), np.asarray(mesh["weight"], np.float64)
+    rigid = (weight[triangles] == 1.0).all(1)
+    moved = full if head is None else apply_head(full, np.asarray(head["R"], np.float64), np.asarray(head["t"], np.float64))
+    baked = weight[None, :, None] * moved + (1.0 - weight[None, :, None]) * full
+    return full, uv, triangles[rigid], {"surround_triangles": triangles[~rigid], "surround_points": baked}
+
+
 class WriteUsd(SequenceStage):
     """``write.usd``: ``scene.usda`` (animated mesh, head xform, texture sequence, camera), textures, head pose CSV."""
 
     name = "write.usd"
-    version = "1"
+    version = "3"  # 2: the primvar reader's varname is a string (usd-core validation); 3: the whole head
     doc = "USD scene of the 3D expression: time-sampled mesh points and UVs, head xform, texture sequence; head_pose.csv"
     inputs = {"mesh": "mesh3d", "head": "head3d", "texture": "frames", "mask": "frames"}
     optional_inputs = frozenset({"head", "mask"})
@@ -202,17 +249,21 @@ class WriteUsd(SequenceStage):
                     raise StageError(f"{self.name}: cannot write {folder / name}")
                 names.append(name)
             ctx.progress(len(chunk))
+        triangles, uv, surround = np.asarray(mesh["triangles"]), np.asarray(mesh["uv"], np.float64), {}
+        if "head_triangles" in mesh:
+            vertices, uv, triangles, surround = whole_head_parts(mesh, vertices, head)
         write_usd_scene(
             folder / "scene.usda",
             vertices=vertices,
-            triangles=np.asarray(mesh["triangles"]),
-            uv=np.asarray(mesh["uv"], np.float64),
+            triangles=triangles,
+            uv=uv,
             size=tuple(int(v) for v in mesh["size"]),
             camera=np.asarray(mesh["camera"], np.float64),
             fps=fps,
             head_R=None if head is None else np.asarray(head["R"]),
             head_t=None if head is None else np.asarray(head["t"]),
             texture_files=names,
+            **surround,
         )
         if head is not None:
             write_pose_csv(folder / "head_pose.csv", head, fps=fps)

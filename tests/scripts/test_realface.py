@@ -57,6 +57,29 @@ def test_identity_pose_reproduces_the_photo(face):
     assert exact.visible.all()
 
 
+def test_backdrop_stays_while_the_head_turns_in_front_of_it(face):
+    """With a backdrop: at rest the frame is the photo; turned, the head moves and the background
+    (the frame's bottom corners, beyond the head's rings) stays; the coverage is the head."""
+    from dataclasses import replace
+    from scripts.realface.mesh import clean_plate
+
+    staged = replace(face, backdrop=clean_plate(face.photo, face.mesh))
+    rest = render_state(staged, ZERO, ZERO, ZERO, supersample=1)[0]
+    head = _outside_mouth(face, 3) & (rest.coverage == 1)
+    assert head.mean() > 0.3 and np.abs(rest.image.astype(int) - face.photo)[head].max() <= 1
+    behind = cv2.dilate((rest.coverage > 0).astype(np.uint8), np.ones((3, 3), np.uint8)) == 0  # the plate is the photo there
+    np.testing.assert_array_equal(rest.image[behind], face.photo[behind])
+    turned = render_state(staged, ZERO, np.array([25.0, 0.0, 0.0]), ZERO, supersample=1)[0]
+    s = face.mesh.size
+    corners = (slice(s - 12, s), slice(0, 12)), (slice(s - 12, s), slice(s - 12, s))
+    for corner in corners:
+        assert rest.coverage[corner].max() == 0
+        np.testing.assert_array_equal(turned.image[corner], staged.backdrop[corner])
+    nose = np.round(rest.points[NOSE_TIP]).astype(int)
+    assert rest.coverage[nose[1], nose[0]] == 1.0 and 0.0 <= turned.coverage.min() and turned.coverage.max() <= 1.0
+    assert np.abs(turned.image.astype(int) - rest.image).mean() > 2.0
+
+
 def test_perspective_correct_interpolation_lands_on_the_pixel_centre(face):
     vertices = deform(face.mesh, face.basis, np.array([0.7, 0.4, 0.6]))
     R, t = pose(face, np.array([18.0, -8.0, 6.0]), np.array([3.0, -2.0, 10.0]))

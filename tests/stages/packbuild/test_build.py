@@ -122,3 +122,64 @@ def test_compare_3d_reads_the_points_depth(built):
     no_depth = {**inputs, "points": {k: v for k, v in points.items() if k != "z"}}
     with pytest.raises(StageError, match="pack.select: input 'points': missing key 'z'"):
         PackSelect().run(no_depth, params, ctx)
+
+
+def test_pack_records_each_images_matte_frame_and_cut(built):
+    """Each entry names its validity matte, the clip frame and the similarity that cut it; the
+    manifest the footage's size and scale (what an independent check of invented pixels reads)."""
+    import cv2
+    import yaml
+
+    folder, runner = built
+    selection = runner.values[("select", "selection")].get()
+    manifest = yaml.safe_load((folder / "pack.yaml").read_text())
+    assert manifest["source"]["size"] == [512, 512]
+    assert manifest["source"]["scale"] == pytest.approx(np.hypot(*selection["to_pack"][int(selection["neutral"])][:2]), rel=1e-5)
+    for entry in [manifest["neutral"], manifest["standard"], *manifest["examples"], *manifest["teeth_examples"]]:
+        np.testing.assert_allclose(entry["similarity"], selection["to_pack"][entry["frame"]], atol=1e-8)
+        matte = cv2.imread(str(folder / entry["matte"]), cv2.IMREAD_UNCHANGED)
+        a, b, tx, ty = entry["similarity"]
+        inside = cv2.warpAffine(np.full((512, 512), 255, np.uint8), np.array([[a, -b, tx], [b, a, ty]]), (384, 512),
+                                borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        np.testing.assert_array_equal(matte, inside)
+    assert load_pack(folder).neutral.matte is not None
+
+
+def _write(built, tmp_path, caplog, **params):
+    _, runner = built
+    inputs = {"frames": runner.values[("decode", "frames")].get(), "points": runner.values[("points", "points")].get(),
+              "selection": runner.values[("select", "selection")].get()}
+    ctx = Context(device="cpu", files_dir=lambda port: tmp_path / port, log=logging.getLogger("test"))
+    with caplog.at_level(logging.WARNING, logger="test"):
+        PackWrite().run(inputs, params, ctx)
+    return load_pack(tmp_path / "pack")
+
+
+def test_pack_width_is_chosen_at_write_and_an_enlargement_is_warned_with_the_sizes(built, tmp_path, caplog):
+    folder, _ = built
+    small = load_pack(folder)
+    big = _write(built, tmp_path, caplog, width=576)
+    assert big.image_size == (576, 768) and big.neutral.image.shape == (768, 576, 3)
+    np.testing.assert_allclose(big.neutral.points, 1.5 * (small.neutral.points + 0.5) - 0.5, atol=1e-5)
+    assert big.source_scale == pytest.approx(1.5 * small.source_scale, rel=1e-5) and big.source_scale > 1
+    warned = [r.getMessage() for r in caplog.records if "enlarge" in r.getMessage()]
+    assert warned and "576x768 pack images enlarge the 512x512 footage" in warned[0]
+
+
+def test_a_face_far_smaller_than_the_pack_size_is_refused_with_the_sizes(built, tmp_path, caplog):
+    with pytest.raises(StageError, match=r"pack\.write: 1536x2048 pack images enlarge the 512x512 footage .*max_upscale=2: ask for width <= \d+"):
+        _write(built, tmp_path, caplog, width=1536)
+
+
+def test_footage_whose_face_is_cut_by_the_frame_edge_in_most_frames(built):
+    """The face pushed past the frame's edge in all frames but two: a clear error with the counts."""
+    _, runner = built
+    points = dict(runner.values[("points", "points")].get())
+    xy = np.array(points["xy"], np.float64)
+    xy[2:, :, 0] += 300.0  # beyond the right edge of the 512 px frames
+    points["xy"] = xy
+    inputs = {"frames": MemoryStream(np.zeros((48, 512, 512, 3), np.uint8)), "landmarks": runner.values[("landmarks", "landmarks")].get(),
+              "points": points}
+    ctx = Context(device="cpu", files_dir=lambda port: None, log=logging.getLogger("test"))
+    with pytest.raises(StageError, match=r"pack\.filter: [01] of 48 frames passed the filters .*out_of_frame 46"):
+        PackFilter().run(inputs, {}, ctx)

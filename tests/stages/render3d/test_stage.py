@@ -29,17 +29,18 @@ def chain(tmp_path_factory):
     mesh = Mesh3DSynthesize().run({**pack_inputs, "points": {"xy": xy, "fps": np.array(25.0)}}, {}, ctx)["mesh"]
     R = np.stack([np.eye(3), Rotation.from_euler("y", 20, degrees=True).as_matrix()])
     pose = {"R": R, "tvec": np.zeros((2, 3)), "scale": np.ones(2), "valid": np.ones(2, bool)}
-    head = HeadPose3D().run({"mesh": mesh, "pose": pose}, {"translation_scale": 1.0}, ctx)["head"]
+    target = {port: bundles[port] for port in ("geometry", "model3d", "camera")}
+    head = HeadPose3D().run({**target, "pose": pose}, {"translation_scale": 1.0}, ctx)["head"]
     images = np.stack([pack.neutral.image, pack.standard.image]).astype(np.float32) / 255.0
     texture = MemoryStream(images.astype(np.float16), fps=25.0, chunk=1)
     inputs = {"texture": texture, "mesh": mesh, "head": head}
     params = {"samples": 4, "resolution_scale": 1.0, "geometry": "synthesized", "compression": "zip"}
     out = Render3D().process(0, 2, inputs, params, ctx)
-    return root, pack, mesh, head, texture, out
+    return root, pack, mesh, head, texture, out, target
 
 
 def test_mesh_bundle_shapes(chain):
-    _, pack, mesh, head, _, _ = chain
+    _, pack, mesh, head, _, _, _ = chain
     N = pack.layout.n_points
     assert mesh["vertices"].shape == (2, N, 3) and mesh["uv"].shape == (2, N, 2)
     assert mesh["coeffs"].shape[0] == 2 and np.allclose(mesh["coeffs"].sum(-1), 1.0)
@@ -49,7 +50,7 @@ def test_mesh_bundle_shapes(chain):
 def test_render_outputs_and_exr_depth_in_mm(chain):
     import OpenImageIO as oiio
 
-    root, pack, mesh, _, _, out = chain
+    root, pack, mesh, _, _, out, _ = chain
     W, H = pack.image_size
     assert out["frames"].shape == (2, H, W, 3) and out["mask"].shape == (2, H, W, 1) and out["depth"].shape == (2, H, W, 1)
     exr = oiio.ImageInput.open(str(root / "exr" / "frame.000000.exr"))
@@ -74,7 +75,7 @@ def test_render_outputs_and_exr_depth_in_mm(chain):
 def test_write_usd_stage(chain):
     from pxr import Usd, UsdGeom
 
-    root, pack, mesh, head, texture, _ = chain
+    root, pack, mesh, head, texture, _, _ = chain
     ctx = files_context(root)
     WriteUsd().run({"mesh": mesh, "head": head, "texture": texture}, {"geometry": "synthesized", "fps": 30.0}, ctx)
     stage = Usd.Stage.Open(str(root / "usd" / "scene.usda"))
@@ -87,16 +88,23 @@ def test_write_usd_stage(chain):
 
 
 def test_head_needs_a_relative_pose(chain):
-    _, _, mesh, _, _, _ = chain
+    target = chain[-1]
     with pytest.raises(StageError, match="scale"):
-        HeadPose3D().run({"mesh": mesh, "pose": {"R": np.stack([np.eye(3)]), "tvec": np.zeros((1, 3))}}, {"translation_scale": 1.0},
+        HeadPose3D().run({**target, "pose": {"R": np.stack([np.eye(3)]), "tvec": np.zeros((1, 3))}}, {"translation_scale": 1.0},
                          files_context(Path(".")))
+
+
+def test_head_carries_the_mesh_models_depth_and_pivot(chain):
+    _, _, mesh, head, _, _, _ = chain
+    np.testing.assert_allclose(head["pivot"], mesh["pivot"], atol=1e-9)
+    np.testing.assert_allclose(head["depth"], mesh["neutral"][:, 2], atol=1e-9)
+    np.testing.assert_allclose(head["camera"], mesh["camera"])
 
 
 def test_resolution_scale_renders_the_same_picture_larger(chain, tmp_path):
     import cv2
 
-    _, pack, mesh, head, texture, out = chain
+    _, pack, mesh, head, texture, out, _ = chain
     params = {"samples": 4, "resolution_scale": 2.0, "geometry": "synthesized", "compression": "zip"}
     big = Render3D().process(0, 1, {"texture": texture, "mesh": mesh, "head": head}, params, files_context(tmp_path))
     W, H = pack.image_size
@@ -108,7 +116,7 @@ def test_resolution_scale_renders_the_same_picture_larger(chain, tmp_path):
 def test_missing_egl_is_a_stage_error_naming_the_packages(chain, tmp_path, monkeypatch):
     import stages.render3d.raster as raster
 
-    _, _, mesh, head, texture, _ = chain
+    _, _, mesh, head, texture, _, _ = chain
 
     def no_egl():
         raise RuntimeError("no headless OpenGL context (EGL): test; install libegl1 libegl-mesa0 libgl1-mesa-dri (.ci/install-egl)")
@@ -124,7 +132,7 @@ def test_chunks_rendered_on_two_threads_at_once_equal_one_thread(chain, tmp_path
     at the same time on two threads (one stage instance) equal those rendered on one."""
     import threading
 
-    root, _, mesh, head, texture, out = chain
+    root, _, mesh, head, texture, out, _ = chain
     params = {"samples": 4, "resolution_scale": 1.0, "geometry": "synthesized", "compression": "zip"}
     stage, results, errors = Render3D(), {}, []
     start = threading.Barrier(2)
@@ -147,3 +155,66 @@ def test_chunks_rendered_on_two_threads_at_once_equal_one_thread(chain, tmp_path
     for frame in (0, 1):
         for port in ("frames", "mask", "depth"):
             np.testing.assert_array_equal(results[frame][port][0], out[port][frame])
+
+
+@pytest.fixture(scope="module")
+def whole(tmp_path_factory):
+    """The whole head: mesh3d with the synthesis model, rendered at rest and turned."""
+    from stages.actor_pack import load_pack
+    from stages.pack.bundles import pack_to_bundles
+    from stages.synthesis.build import build_synthesis_model
+
+    root = tmp_path_factory.mktemp("whole")
+    ctx = files_context(root)
+    pack = load_pack(PACK)
+    bundles = pack_to_bundles(pack)
+    model = build_synthesis_model(pack)
+    xy = np.stack([pack.neutral.points, pack.neutral.points])
+    inputs = {port: bundles[port] for port in ("layout", "images", "model3d", "camera")}
+    mesh = Mesh3DSynthesize().run({**inputs, "points": {"xy": xy, "fps": np.array(25.0)}, "model": model}, {}, ctx)["mesh"]
+    R = np.stack([np.eye(3), Rotation.from_euler("y", 20, degrees=True).as_matrix()])
+    pose = {"R": R, "tvec": np.zeros((2, 3)), "scale": np.ones(2), "valid": np.ones(2, bool)}
+    target = {port: bundles[port] for port in ("geometry", "model3d", "camera")}
+    head = HeadPose3D().run({**target, "pose": pose}, {"translation_scale": 1.0}, ctx)["head"]
+    image = pack.neutral.image.astype(np.float32) / 255.0
+    texture = MemoryStream(np.stack([image, image]).astype(np.float16), fps=25.0, chunk=1)
+    params = {"samples": 4, "resolution_scale": 1.0, "geometry": "lifted", "compression": "zip"}
+    out = Render3D().process(0, 2, {"texture": texture, "mesh": mesh, "head": head}, params, ctx)
+    return root, pack, mesh, head, texture, out
+
+
+def test_whole_head_at_rest_reproduces_its_texture_over_the_whole_frame(whole):
+    _, pack, mesh, _, _, out = whole
+    N = pack.layout.n_points
+    assert mesh["surround"].shape[0] == mesh["surround_uv"].shape[0] and mesh["weight"].shape == (N + len(mesh["surround"]),)
+    rest = out["frames"][0].astype(np.float32)
+    err = np.abs(rest - pack.neutral.image / 255.0)
+    assert np.median(err) < 0.01 and err.mean() < 0.02  # hair, neck, background included: no face mask on black
+    assert out["filled"][0].max() < 0.05  # every pixel covered by the mesh and real
+    turned = out["frames"][1].astype(np.float32)
+    corners = np.zeros(turned.shape[:2], bool)
+    corners[:8, :8] = corners[:8, -8:] = True
+    assert np.abs(turned - rest).mean() > 0.01  # the head turned
+    assert np.abs(turned - rest)[corners].mean() < 0.02  # the background stayed
+
+
+def test_whole_head_usd_validates_with_a_rigid_head_and_a_deforming_surround(whole):
+    from pxr import Usd, UsdGeom, UsdValidation
+
+    root, pack, mesh, head, texture, _ = whole
+    ctx = files_context(root)
+    WriteUsd().run({"mesh": mesh, "head": head, "texture": texture}, {"geometry": "lifted", "fps": 25.0}, ctx)
+    path = root / "usd" / "scene.usda"
+    stage = Usd.Stage.Open(str(path))
+    errors = UsdValidation.ValidationContext(UsdValidation.ValidationRegistry().GetOrLoadAllValidators()).Validate(stage)
+    assert [e.GetMessage() for e in errors] == []
+    face = UsdGeom.Mesh(stage.GetPrimAtPath("/Root/Head/Face"))
+    surround = UsdGeom.Mesh(stage.GetPrimAtPath("/Root/Surround"))
+    V = pack.layout.n_points + len(mesh["surround"])
+    assert len(face.GetPointsAttr().Get(0)) == len(surround.GetPointsAttr().Get(1)) == V
+    n_face = len(face.GetFaceVertexCountsAttr().Get())
+    n_surround = len(surround.GetFaceVertexCountsAttr().Get())
+    assert n_face + n_surround == len(mesh["head_triangles"]) and n_face > 0 and n_surround > 0
+    # a static vertex (weight 0) stays put in the turned frame; the head's own vertices move with its xform
+    static = int(np.flatnonzero(mesh["weight"] == 0)[0])
+    np.testing.assert_allclose(surround.GetPointsAttr().Get(1)[static], surround.GetPointsAttr().Get(0)[static], atol=1e-3)

@@ -39,10 +39,10 @@ def test_sharpened_weights():
 
 
 def numpy_bandpass(model: dict, coeffs: np.ndarray, power: float, sigma: float) -> np.ndarray:
-    """sum_s w_s(p) [sum_i c_si L_i(p) + sum_i c^_si D_i(p)], bands by scipy; outside = standard."""
+    """sum_s w_s(p) [sum_i c_si L_i(p) + sum_i c^_si D_i(p)], bands by scipy; outside = the outside image (the aligned neutral)."""
     S = len(model["subregion_teeth"])
     w = subregion_weights(model["blend_r"], model["blend_i1"], model["blend_i2"], n_labels=S + 1)
-    out = w[S][..., None] * model["standard"].astype(np.float64) / 255
+    out = w[S][..., None] * model["outside"].astype(np.float64) / 255
     for s in range(S):
         imgs = (model["teeth"] if model["subregion_teeth"][s] else model["examples"]).astype(np.float64) / 255
         low = np.stack([np.stack([gaussian_filter(im[..., ch], sigma, truncate=3.0, mode="mirror") for ch in range(3)], -1) for im in imgs])

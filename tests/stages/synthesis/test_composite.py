@@ -15,12 +15,12 @@ def model():
 
 
 def numpy_eq7(model: dict, coeffs: np.ndarray) -> np.ndarray:
-    """sum_s w_s(p) sum_i c_si I_i(p) with the dense (S+1, H, W) weight tensor; outside = standard."""
+    """sum_s w_s(p) sum_i c_si I_i(p) with the dense (S+1, H, W) weight tensor; outside = the outside image (the aligned neutral)."""
     S = len(model["subregion_teeth"])
     w = subregion_weights(model["blend_r"], model["blend_i1"], model["blend_i2"], n_labels=S + 1)
     ex = model["examples"].astype(np.float64) / 255
     teeth = model["teeth"].astype(np.float64) / 255
-    out = w[S][..., None] * model["standard"].astype(np.float64) / 255
+    out = w[S][..., None] * model["outside"].astype(np.float64) / 255
     for s in range(S):
         imgs = teeth if model["subregion_teeth"][s] else ex
         sub = np.einsum("i,ihwc->hwc", coeffs[s, : len(imgs)], imgs)  # eq. 6
@@ -88,3 +88,22 @@ def test_workspace_frames_equal_fresh_buffers_frame_after_frame(model, detail_po
         composite(comp, torch.from_numpy(c[:2]), workspace=ws)
     with pytest.raises(ValueError, match="one frame"):
         composite(comp, torch.from_numpy(c[:1]), workspace=ws, direct=True)
+
+
+def test_teeth_examples_are_blended_with_sharpened_weights(model):
+    """Two teeth examples at 0.6 / 0.4 (each with its teeth at its own place relative to the lips):
+    an even-ish blend shows both rows of teeth, doubled. Sharpened to the 4th power the weaker one
+    keeps 0.4^4 / (0.6^4 + 0.4^4) = 16.5 % of the teeth region."""
+    S = len(model["subregion_teeth"])
+    c = random_coeffs(np.random.default_rng(2), 1, S, 4)
+    c[0, -1] = [0.6, 0.4, 0.0, 0.0]
+    teeth = model["region"] == S - 1
+    plain = composite(prepare_compositor(model), torch.from_numpy(c), min_coeff=0.0)[0, :3].permute(1, 2, 0).numpy()
+    sharp = composite(prepare_compositor(model, teeth_power=4.0), torch.from_numpy(c), min_coeff=0.0)[0, :3].permute(1, 2, 0).numpy()
+    T0, T1 = (model["teeth"][k].astype(np.float64) / 255 for k in (0, 1))
+    w1 = 0.4**4 / (0.6**4 + 0.4**4)
+    inside = teeth & (model["blend_r"] == 1)
+    np.testing.assert_allclose(plain[inside], (0.6 * T0 + 0.4 * T1)[inside], atol=2e-6)
+    np.testing.assert_allclose(sharp[inside], ((1 - w1) * T0 + w1 * T1)[inside], atol=2e-6)
+    outside_teeth = ~teeth & (model["blend_i2"] == model["blend_i1"])
+    np.testing.assert_allclose(sharp[outside_teeth], plain[outside_teeth], atol=1e-7)  # the face subregions as solved

@@ -180,7 +180,7 @@ def test_half_float_planes_in_buffers_equal_fresh_memory():
 def test_render_rgba_is_render_in_one_tensor(pack, synth):
     for mode in ("full", "warp-only"):
         rgb, alpha, coeffs = synth.render(pack.captured_points[:2], mode=mode)
-        rgba, coeffs_rgba = synth.render_rgba(pack.captured_points[:2], mode=mode)
+        rgba, _, coeffs_rgba = synth.render_rgba(pack.captured_points[:2], mode=mode)
         torch.testing.assert_close(rgba, torch.cat([rgb, alpha], 1), rtol=0, atol=0)
         torch.testing.assert_close(coeffs_rgba, coeffs, rtol=0, atol=0)
 
@@ -192,10 +192,12 @@ def test_render_half_is_render_rgba_in_half_floats(pack, model):
     points = pack.captured_points[:3]
     sim = np.array([[1.0, 0.0, 0.0, 0.0], [0.98, 0.05, 2.0, -1.5], [1.02, -0.03, -3.0, 1.0]])
     for mode in ("full", "global", "warp-only"):
-        frames, mask, coeffs = synth.render_half(points, mode=mode, similarity=sim, motion_scale=1.1)
-        rgba, coeffs_batch = synth.render_rgba(points, mode=mode, similarity=sim, motion_scale=1.1)
+        frames, mask, head, filled, coeffs = synth.render_half(points, mode=mode, similarity=sim, motion_scale=1.1)
+        rgba, mattes, coeffs_batch = synth.render_rgba(points, mode=mode, similarity=sim, motion_scale=1.1)
         np.testing.assert_array_equal(frames, rgba.permute(0, 2, 3, 1)[..., :3].to(torch.float16).numpy())
         np.testing.assert_array_equal(mask, rgba.permute(0, 2, 3, 1)[..., 3:].to(torch.float16).numpy())
+        np.testing.assert_array_equal(head[..., 0], mattes[:, 1].to(torch.float16).numpy())
+        np.testing.assert_array_equal(filled[..., 0], (1 - mattes[:, 0]).clamp(0, 1).to(torch.float16).numpy())
         torch.testing.assert_close(coeffs, coeffs_batch, rtol=0, atol=0)
 
 
@@ -250,8 +252,8 @@ def test_warp_only_is_one_warp_of_the_neutral_rgba(pack, model):
     synth = Synthesizer(model)
     points = np.asarray(pack.captured_points[:3], np.float64)
     sim = np.array([[1.0, 0.0, 0.0, 0.0], [0.98, 0.05, 2.0, -1.5], [1.02, -0.03, -3.0, 1.0]])
-    rgba, coeffs = synth.render_rgba(points, mode="warp-only", similarity=sim, buffers=Buffers())
-    full, _ = synth.render_rgba(points, mode="full", similarity=sim)
+    rgba, _, coeffs = synth.render_rgba(points, mode="warp-only", similarity=sim, buffers=Buffers(), fill=False)
+    full, _, _ = synth.render_rgba(points, mode="full", similarity=sim)
     assert rgba.shape == full.shape == (3, 4, 80, 96) and rgba.dtype == full.dtype == torch.float32
     assert rgba.permute(0, 2, 3, 1).is_contiguous() and full.permute(0, 2, 3, 1).is_contiguous()
     assert 0.0 <= float(rgba.min()) and float(rgba.max()) <= 1.0 and float(coeffs.abs().max()) == 0.0

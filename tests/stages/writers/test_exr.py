@@ -350,3 +350,34 @@ def test_openimageio_writer_takes_the_planar_rgba(tmp_path: Path) -> None:
     stored = inp.read_image(oiio.HALF)
     inp.close()
     np.testing.assert_array_equal(stored.view(np.uint16), rgba.view(np.uint16))
+
+
+@pytest.mark.parametrize("compression", ["zip", "piz"])
+def test_shot_channels_hold_the_head_the_plate_and_the_mattes(tmp_path: Path, compression: str) -> None:
+    """With 'head_matte': R, G, B, A the head (associated alpha), plate.R/G/B the whole frame, face.A and
+    filled.A the mattes, as OpenImageIO reads them back; the head motion in the header."""
+    rng = np.random.default_rng(5)
+    frames = rng.random((T, H, W, 3), dtype=np.float32)
+    mattes = {port: rng.random((T, H, W, 1), dtype=np.float32).astype(np.float16) for port in ("mask", "head_matte", "filled")}
+    R = np.stack([np.eye(3)] * T)
+    inputs = {"frames": MemoryStream(frames.astype(np.float16), fps=FPS),
+              **{port: MemoryStream(m, fps=FPS) for port, m in mattes.items()},
+              "head": {"R": R, "t": rng.normal(size=(T, 3))}}
+    WriteExr().process(0, T, inputs, _params(compression=compression), files_context(tmp_path))
+    image = oiio.ImageInput.open(str(tmp_path / "exr" / exr_name(1)))
+    spec = image.spec()
+    names = spec.channelnames
+    pixels = image.read_image("float")
+    image.close()
+    assert set(names) == {"R", "G", "B", "A", "plate.R", "plate.G", "plate.B", "face.A", "filled.A"}
+    assert names[:4] == ("R", "G", "B", "A") and spec.alpha_channel == 3
+    get = {n: pixels[..., names.index(n)] for n in names}
+    plate = np.stack([get[f"plate.{c}"] for c in "RGB"], -1)
+    linear = srgb_to_linear(frames[1].astype(np.float16).astype(np.float32))
+    np.testing.assert_allclose(plate, linear, rtol=HALF_RTOL, atol=HALF_ATOL)
+    head = mattes["head_matte"][1, ..., 0].astype(np.float32)
+    np.testing.assert_array_equal(get["A"], head)
+    np.testing.assert_allclose(np.stack([get[c] for c in "RGB"], -1), linear * head[..., None], rtol=HALF_RTOL, atol=HALF_ATOL)
+    np.testing.assert_array_equal(get["face.A"], mattes["mask"][1, ..., 0].astype(np.float32))
+    np.testing.assert_array_equal(get["filled.A"], mattes["filled"][1, ..., 0].astype(np.float32))
+    np.testing.assert_allclose(spec.getattribute("exmap:head_t_mm"), inputs["head"]["t"][1], rtol=1e-6)

@@ -67,3 +67,27 @@ def test_front_faces_wind_counter_clockwise_towards_the_usd_camera(tmp_path):
     p = np.array(mesh.GetPointsAttr().Get(0))[np.array(mesh.GetFaceVertexIndicesAttr().Get())]
     normal = np.cross(p[1] - p[0], p[2] - p[0])  # right-handed orientation
     assert normal @ (-p.mean(0)) > 0  # points towards the camera at the origin (looking down -Z)
+
+
+def validation_errors(path):
+    """usd-core's validators (UsdValidation, every registered validator) on the layer: ``[(name, message)]``."""
+    from pxr import Usd, UsdValidation
+
+    validators = UsdValidation.ValidationRegistry().GetOrLoadAllValidators()
+    errors = UsdValidation.ValidationContext(validators).Validate(Usd.Stage.Open(str(path)))
+    return [(e.GetName(), e.GetMessage()) for e in errors]
+
+
+def test_scene_passes_usd_core_validation_and_its_textures_resolve(tmp_path):
+    import cv2
+    from pxr import UsdUtils
+
+    path, *_ = scene(tmp_path)
+    (tmp_path / "textures").mkdir()
+    for k in range(3):
+        cv2.imwrite(str(tmp_path / f"textures/texture.{k:06d}.png"), np.zeros((12, 10, 4), np.uint8))
+    assert validation_errors(path) == []
+    # what an importer gathers to package the scene: the layer and its time-sampled texture files
+    layers, assets, unresolved = UsdUtils.ComputeAllDependencies(str(path))
+    assert [layer.realPath for layer in layers] == [str(path)]
+    assert sorted(assets) == [str(tmp_path / f"textures/texture.{k:06d}.png") for k in range(3)] and not unresolved
