@@ -623,7 +623,7 @@ class Synthesize(FrameStage):
     """
 
     name = "synthesis.synthesize"
-    version = "7"  # 7: example weights coherent in time (stages.synthesis.coherence); depth-aware head turn, output size, head and filled mattes, fill, teeth mix, the outside from the neutral
+    version = "8"  # 8: min_coeff 0.01; example weights coherent in time (stages.synthesis.coherence); depth-aware head turn, output size, head and filled mattes, fill, teeth mix, the outside from the neutral
     doc = ("per-subregion QP + compositing + blending + warp (head turned in depth): target points per frame -> "
            "half-float sRGB frames, face mask, head matte, filled matte, coefficients")
     inputs = {
@@ -638,7 +638,7 @@ class Synthesize(FrameStage):
     outputs = {"frames": "frames", "mask": "frames", "head_matte": "frames", "filled": "frames", "coeffs": "synthesis_coeffs"}
     params = (
         Param("mode", str, "full", "full: per-subregion synthesis; global: one combination (Pighin); warp-only: neutral warped", MODES),
-        Param("min_coeff", float, 1e-3, "coefficients at or below this are skipped in compositing (then renormalised)", min=0.0, max=1.0),
+        Param("min_coeff", float, 0.01, "coefficients at or below this are skipped in compositing (then renormalised; the weights made coherent in time spread over more examples: 0.01 drops 0.3 % of their mass and a sixth of the compositing)", min=0.0, max=1.0),
         Param("head_motion", str, "auto", "depth: the whole image turned in 3D by input 'head'; similarity: the 2D similarity "
               "(eq. 8-9) of input 'similarity'; none; auto: depth with 'head', else similarity with 'similarity'",
               HEAD_MOTION),
