@@ -47,7 +47,10 @@ from an empty cache, ``--speed-clip`` (default ``LP_d3``) onto the 384x512 ``LP_
 ``shot_fps_384``; onto a pack ``--wide-width`` px wide built from ``--wide-clip`` (default
 ``LP_d13``, 720x1280): ``shot_fps_1024``; each with ``shot_peak_mb_<size>`` (the largest resident
 set of the run's processes), ``shot_cache_mb_per_100_frames_<size>`` and the profile
-``shot_ms_per_frame_<stage>_<size>`` (each stage's CPU time per frame, from ``--log-json``: the
+``shot_ms_per_frame_<stage>_<size>`` and the baseline measured in the same run,
+``shot_fps_<size>_warponly`` (``synthesize.mode=warp-only``, ``head_motion=similarity``,
+``exr.layers=face``: traditional expression mapping) and ``shot_fps_<size>_ratio_warponly`` (the
+full run's frames/s over it); the profile is each stage's CPU time per frame, from ``--log-json``: the
 runner's CPU clock of the stage's own work, which leaves out the threads of a library's pool, e.g.
 MediaPipe's and the EXR writer's; stages run on two cores at once).
 
@@ -356,6 +359,14 @@ def speed_rows(work: Path, clip: Path, pack: Path, label: str) -> list[dict[str,
             cpu.setdefault(e["stage"], set()).add(float(e["cpu_seconds"]))
     for stage, seconds in cpu.items():
         rows.append(row(f"shot_ms_per_frame_{stage}_{label}", 1000.0 * sum(seconds) / frames, "ms"))
+    # the baseline in the same run: traditional expression mapping (the neutral warped, the 2D
+    # similarity, the face-only EXR), everything else as above
+    shutil.rmtree(work / f"{label}_baseline", ignore_errors=True)
+    base, _ = runner("pipeline.yaml", clip, work / f"{label}_baseline" / "out", work / f"{label}_baseline" / "cache",
+                     "--input", f"target={pack}", "--set", "synthesize.mode=warp-only", "--set",
+                     "synthesize.head_motion=similarity", "--set", "exr.layers=face")
+    rows += [row(f"shot_fps_{label}_warponly", frames / base, "frames/s"),
+             row(f"shot_fps_{label}_ratio_warponly", base / seconds, "ratio")]
     return rows
 
 
