@@ -357,8 +357,8 @@ def speed_rows(work: Path, clip: Path, pack: Path, label: str) -> list[dict[str,
     for e in events:  # a stage run in a child process is reported by the child and again by the run
         if e.get("event") == "stage" and e.get("status") in ("ran", "on demand") and e.get("cpu_seconds"):
             cpu.setdefault(e["stage"], set()).add(float(e["cpu_seconds"]))
-    for stage, seconds in cpu.items():
-        rows.append(row(f"shot_ms_per_frame_{stage}_{label}", 1000.0 * sum(seconds) / frames, "ms"))
+    for stage, spent in cpu.items():
+        rows.append(row(f"shot_ms_per_frame_{stage}_{label}", 1000.0 * sum(spent) / frames, "ms"))
     # the baseline in the same run: traditional expression mapping (the neutral warped, the 2D
     # similarity, the face-only EXR), everything else as above
     shutil.rmtree(work / f"{label}_baseline", ignore_errors=True)
