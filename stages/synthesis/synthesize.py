@@ -27,7 +27,7 @@ import numpy as np
 from runner.stage import Context, FrameStage, Param, StageError, StreamInfo
 from stages.geometry.mapping import rms_radius
 from stages.synthesis.coherence import coherent_coefficients
-from stages.synthesis.composite import Compositor, Workspace, composite, prepare_compositor, workspace
+from stages.synthesis.composite import MIN_COEFF, Compositor, Workspace, composite, prepare_compositor, workspace
 from stages.synthesis.coefficients import SubregionQP, target_geometry
 from stages.synthesis.warp import Buffers, scratch, warp_images
 
@@ -473,7 +473,7 @@ class Synthesizer:
         source_center: np.ndarray | None = None,
         target_center: np.ndarray | None = None,
         motion_scale: float = 1.0,
-        min_coeff: float = 1e-3,
+        min_coeff: float = MIN_COEFF,
         direct: bool = False,
         coeffs: torch.Tensor | None = None,
         buffers: Buffers | None = None,
@@ -638,7 +638,7 @@ class Synthesize(FrameStage):
     outputs = {"frames": "frames", "mask": "frames", "head_matte": "frames", "filled": "frames", "coeffs": "synthesis_coeffs"}
     params = (
         Param("mode", str, "full", "full: per-subregion synthesis; global: one combination (Pighin); warp-only: neutral warped", MODES),
-        Param("min_coeff", float, 0.01, "coefficients at or below this are skipped in compositing (then renormalised; the weights made coherent in time spread over more examples: 0.01 drops 0.3 % of their mass and a sixth of the compositing)", min=0.0, max=1.0),
+        Param("min_coeff", float, MIN_COEFF, "coefficients at or below this are skipped in compositing (then renormalised; the weights made coherent in time spread over more examples: 0.01 drops 0.3 % of their mass and a sixth of the compositing)", min=0.0, max=1.0),
         Param("head_motion", str, "auto", "depth: the whole image turned in 3D by input 'head'; similarity: the 2D similarity "
               "(eq. 8-9) of input 'similarity'; none; auto: depth with 'head', else similarity with 'similarity'",
               HEAD_MOTION),
