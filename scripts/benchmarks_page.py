@@ -5,13 +5,15 @@
 For each area, the latest record of each metric: its value and unit, the commit and date of the
 run that recorded it, and the machine's load then. A row is marked *stale* when a file its area
 depends on (:data:`DEPENDS`, paths relative to the repository) changed after the recorded commit,
-or when it was recorded from a checkout with uncommitted changes. ``--check`` exits 1 when the
+or when it was recorded from a checkout with uncommitted changes; a Python file whose
+change is only comments, docstrings or layout does not count. ``--check`` exits 1 when the
 page on disk differs from what the records give.
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
 import json
 import subprocess
 import sys
@@ -37,12 +39,40 @@ def latest(path: Path) -> dict[str, dict]:
     return rows
 
 
+def code_of(source: str) -> str:
+    """What a Python file does: its syntax tree without docstrings (comments and layout are not in it)."""
+    tree = ast.parse(source)
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if (isinstance(body, list) and body and isinstance(body[0], ast.Expr)
+                and isinstance(body[0].value, ast.Constant) and isinstance(body[0].value.value, str)):
+            node.body = body[1:] or [ast.Pass()]
+    return ast.dump(tree)
+
+
+def git(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True)
+
+
 def changed_since(commit: str, paths: tuple[str, ...]) -> bool:
-    """Whether a file under ``paths`` differs between ``commit`` and HEAD (True when unknown)."""
+    """Whether a file under ``paths`` does something else at HEAD than at ``commit`` (True when
+    unknown): a Python file whose code is the same (:func:`code_of`: only comments, docstrings or
+    layout changed) does not count; any other file counts by its bytes."""
     if commit.endswith("-dirty") or commit == "unknown":
         return True
-    result = subprocess.run(["git", "diff", "--quiet", commit, "HEAD", "--", *paths], cwd=REPO, capture_output=True)
-    return result.returncode != 0
+    names = git("diff", "--name-only", commit, "HEAD", "--", *paths)
+    if names.returncode != 0:
+        return True
+    for name in names.stdout.split():
+        before, after = git("show", f"{commit}:{name}"), git("show", f"HEAD:{name}")
+        if before.returncode != 0 or after.returncode != 0 or not name.endswith(".py"):
+            return True
+        try:
+            if code_of(before.stdout) != code_of(after.stdout):
+                return True
+        except SyntaxError:
+            return True
+    return False
 
 
 def page() -> str:

@@ -37,6 +37,9 @@ def test_records_keep_provenance_and_the_page_shows_the_latest_marking_stale_one
     (repo / "docs").mkdir()
     text = benchmarks_page.page()
     assert "| `m_a` | 1 | px |" in text and "| stale |" not in text
+    (repo / "stages" / "a.py").write_text('"""A module."""\n\nx = (\n    1  # one\n)\n')  # words and layout only
+    git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qam", "words")
+    assert "| stale |" not in benchmarks_page.page()
     bench.record("geometry", [{**rows[0], "value": 3.0}], started, ["geometry"])
     (repo / "stages" / "a.py").write_text("x = 2\n")  # the code the figures depend on changes
     git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qam", "three")
