@@ -45,20 +45,45 @@ def is_loopback(host: str) -> bool:
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="expression-editor", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="expression-editor", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--pack", type=Path, required=True, help="the target's actor pack (folder with pack.yaml)")
-    parser.add_argument("--performance", type=Path, help="a run's data/data.npz whose frames (target_xy) can be loaded and touched up")
+    parser.add_argument(
+        "--performance", type=Path, help="a run's data/data.npz whose frames (target_xy) can be loaded and touched up"
+    )
     parser.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
     parser.add_argument("--port", type=int, default=0, help="port (default 0: any free port)")
     parser.add_argument("--allow-remote", action="store_true", help="allow a --host that is not a loopback address")
     parser.add_argument("--device", default="cpu", help="torch device of the synthesis (cpu, cuda)")
-    parser.add_argument("--threads", type=int, default=1, help="torch/OpenCV threads of the synthesis (default 1; more needs --processes 0, see docs/editor.md)")
-    parser.add_argument("--processes", type=int, default=2, choices=range(0, 9), metavar="0..8",
-                        help="renderer processes (default 2; 0: render on the server's threads, sharing the GIL; see docs/editor.md)")
-    parser.add_argument("--jpeg-quality", type=int, default=90, choices=range(1, 101), metavar="1..100",
-                        help="quality of the JPEG images sent to the page (while dragging, in-betweens); when the mouse stops the image is PNG")
-    parser.add_argument("--preview-scale", type=float, default=1.0,
-                        help="size of the images shown while dragging, fraction of the pack's image size, in (0, 1] (default 1: the pack's size; see docs/editor.md)")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch/OpenCV threads of the synthesis (default 1; more needs --processes 0, see docs/editor.md)",
+    )
+    parser.add_argument(
+        "--processes",
+        type=int,
+        default=2,
+        choices=range(0, 9),
+        metavar="0..8",
+        help="renderer processes (default 2; 0: render on the server's threads, sharing the GIL; see docs/editor.md)",
+    )
+    parser.add_argument(
+        "--jpeg-quality",
+        type=int,
+        default=90,
+        choices=range(1, 101),
+        metavar="1..100",
+        help="quality of the JPEG images sent to the page (while dragging, in-betweens); when the mouse stops the image is PNG",
+    )
+    parser.add_argument(
+        "--preview-scale",
+        type=float,
+        default=1.0,
+        help="size of the images shown while dragging, fraction of the pack's image size, in (0, 1] (default 1: the pack's size; see docs/editor.md)",
+    )
     return parser.parse_args(argv)
 
 
@@ -88,10 +113,15 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     if not is_loopback(args.host):
         if not args.allow_remote:
-            print(f"expression-editor: --host {args.host} is not a loopback address; add --allow-remote to bind it", file=sys.stderr)
+            print(
+                f"expression-editor: --host {args.host} is not a loopback address; add --allow-remote to bind it", file=sys.stderr
+            )
             return 2
-        print(f"WARNING: binding {args.host}: anyone who can reach this port and learns the URL (its token) can use the editor",
-              file=sys.stderr, flush=True)
+        print(
+            f"WARNING: binding {args.host}: anyone who can reach this port and learns the URL (its token) can use the editor",
+            file=sys.stderr,
+            flush=True,
+        )
     if not (args.pack / "pack.yaml").is_file():
         print(f"expression-editor: --pack {args.pack}: no pack.yaml there", file=sys.stderr)
         return 2
@@ -103,8 +133,13 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(max(args.threads, 1))
     cv2.setNumThreads(max(args.threads, 1))
     try:  # what --pack and --performance name: exit 2, as a bad command line
-        engine = EditorEngine(args.pack, device=args.device, jpeg_quality=args.jpeg_quality,
-                              preview_scale=args.preview_scale, performance=args.performance)
+        engine = EditorEngine(
+            args.pack,
+            device=args.device,
+            jpeg_quality=args.jpeg_quality,
+            preview_scale=args.preview_scale,
+            performance=args.performance,
+        )
     except (ValueError, OSError, StageError) as exc:
         print(f"expression-editor: {exc}", file=sys.stderr)
         return 2
@@ -123,8 +158,14 @@ def spawn(pack: Path, *options: str, timeout_s: float = 300.0) -> tuple[subproce
     process and the URL it printed (with its token). The process's stderr is discarded."""
     repo = Path(__file__).resolve().parent.parent
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(repo), os.environ.get("PYTHONPATH")])))
-    process = subprocess.Popen([sys.executable, "-m", "editor.cli", "--pack", str(pack), *options], cwd=repo, env=env,
-                               stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    process = subprocess.Popen(
+        [sys.executable, "-m", "editor.cli", "--pack", str(pack), *options],
+        cwd=repo,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
     deadline = time.monotonic() + timeout_s
     line = ""
     while time.monotonic() < deadline:

@@ -100,9 +100,13 @@ class PreviewSynthesizer:
         self.synthesizer = synthesizer
         self.full_size = tuple(int(v) for v in model["size"])
         self.size = preview_size(self.full_size, scale)
-        self.compositor: Compositor = (synthesizer.compositor if self.size == self.full_size
-                                       else prepare_compositor(reduced_model(model, self.size), device=synthesizer.device,
-                                                               teeth_power=synthesizer.compositor.teeth_power))
+        self.compositor: Compositor = (
+            synthesizer.compositor
+            if self.size == self.full_size
+            else prepare_compositor(
+                reduced_model(model, self.size), device=synthesizer.device, teeth_power=synthesizer.compositor.teeth_power
+            )
+        )
         standard = np.concatenate([model["standard_points"], synthesizer.anchors])
         self.standard_points = torch.from_numpy(to_preview(standard, self.full_size, self.size)).to(synthesizer.device)
 

@@ -69,8 +69,14 @@ def answer(engine: EditorEngine, job: dict[str, Any]) -> bytes:
         raise ValueError(f"job 'op' must be 'edit' or 'inbetweens', got {job['op']!r}")
     propagate_cpu = time.thread_time() - start
     rendered = engine.preview(points[0]) if job.get("preview") else engine.render(points, lossless_last=True)
-    meta = {"seq": job["seq"], "work_ms": (time.perf_counter() - wall) * 1e3, "propagate_cpu_ms": propagate_cpu * 1e3,
-            "synth_ms": rendered.wall_s * 1e3, "synth_cpu_ms": rendered.cpu_s * 1e3, "points": points[-1].tolist()}
+    meta = {
+        "seq": job["seq"],
+        "work_ms": (time.perf_counter() - wall) * 1e3,
+        "propagate_cpu_ms": propagate_cpu * 1e3,
+        "synth_ms": rendered.wall_s * 1e3,
+        "synth_cpu_ms": rendered.cpu_s * 1e3,
+        "points": points[-1].tolist(),
+    }
     return pack_images(meta, rendered)
 
 
@@ -112,7 +118,9 @@ class Renderers:
         if not isinstance(processes, int) or processes < 0:
             raise ValueError(f"processes must be an integer >= 0, got {processes!r}")
         if processes and torch.get_num_threads() != 1:
-            raise ValueError(f"renderer processes fork from a server with one torch thread (--threads 1), got {torch.get_num_threads()}")
+            raise ValueError(
+                f"renderer processes fork from a server with one torch thread (--threads 1), got {torch.get_num_threads()}"
+            )
         self.engine = engine
         self.timeout_s = timeout_s
         self.idle: queue.SimpleQueue[Connection] = queue.SimpleQueue()
@@ -122,7 +130,9 @@ class Renderers:
         for k in range(processes):
             ours, theirs = context.Pipe(duplex=True)
             self.ends.append(ours)
-            process = context.Process(target=_worker, args=(engine, theirs, list(self.ends)), name=f"editor-render-{k}", daemon=True)
+            process = context.Process(
+                target=_worker, args=(engine, theirs, list(self.ends)), name=f"editor-render-{k}", daemon=True
+            )
             process.start()
             theirs.close()
             self.processes.append(process)

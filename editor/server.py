@@ -149,8 +149,12 @@ async def handle_render(request: web.Request) -> web.Response:
     preview = validate.flag(body, "preview")
     if not claim(request.app, client, seq):
         return json_error(409, "superseded")
-    job = {"op": "edit", "pinned": [[i, *map(float, xy)] for i, xy in pinned.items()], "preview": preview,
-           "base": None if base is None else base.tolist()}
+    job = {
+        "op": "edit",
+        "pinned": [[i, *map(float, xy)] for i, xy in pinned.items()],
+        "preview": preview,
+        "base": None if base is None else base.tolist(),
+    }
     return await render_images(request, client, seq, job)
 
 
@@ -177,8 +181,11 @@ async def handle_export(request: web.Request) -> web.Response:
     body = await read_json(request)
     async with request.app[EXPORTS]:
         data = await asyncio.get_running_loop().run_in_executor(None, export_bytes, request.app[ENGINE], body)
-    return web.Response(body=data, content_type="application/octet-stream",
-                        headers={"Content-Disposition": 'attachment; filename="keyframes.npz"'})
+    return web.Response(
+        body=data,
+        content_type="application/octet-stream",
+        headers={"Content-Disposition": 'attachment; filename="keyframes.npz"'},
+    )
 
 
 async def handle_describe(request: web.Request) -> web.Response:

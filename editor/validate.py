@@ -117,12 +117,18 @@ def export_request(body: Any, *, n_points: int, limit: float) -> tuple[np.ndarra
     keys = _field(body, "keyframes")
     if not isinstance(keys, list) or not 1 <= len(keys) <= MAX_KEYFRAMES:
         raise ValueError(f"field 'keyframes': expected a list of 1..{MAX_KEYFRAMES} keyframes, got {keys!r:.80}")
-    times = np.array([_number(_field(k, "time_s"), f"keyframes[{i}].time_s", low=0.0, high=MAX_SECONDS) for i, k in enumerate(keys)])
+    times = np.array(
+        [_number(_field(k, "time_s"), f"keyframes[{i}].time_s", low=0.0, high=MAX_SECONDS) for i, k in enumerate(keys)]
+    )
     if (np.diff(times) <= 0).any():
         raise ValueError(f"field 'keyframes': times must increase strictly, got {times.tolist()}")
     frames = math.floor((times[-1] - times[0]) * fps) + 1
     if frames > MAX_EXPORT_FRAMES:
-        raise ValueError(f"the export would have {frames} frames ({times[-1] - times[0]:g} s at {fps:g} fps), at most "
-                         f"{MAX_EXPORT_FRAMES}: lower fps or export a shorter span")
-    geoms = np.stack([geometry(_field(k, "points"), f"keyframes[{i}].points", n_points=n_points, limit=limit) for i, k in enumerate(keys)])
+        raise ValueError(
+            f"the export would have {frames} frames ({times[-1] - times[0]:g} s at {fps:g} fps), at most "
+            f"{MAX_EXPORT_FRAMES}: lower fps or export a shorter span"
+        )
+    geoms = np.stack(
+        [geometry(_field(k, "points"), f"keyframes[{i}].points", n_points=n_points, limit=limit) for i, k in enumerate(keys)]
+    )
     return times, geoms, fps

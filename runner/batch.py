@@ -97,8 +97,9 @@ def job_cpus(*, jobs: int, cpus: int, at_once: int, node_cpus: int) -> int:
     return max(1, min(cpus // min(jobs, at_once), node_cpus))
 
 
-def job_options(job: Job, *, cpus: int, cache_dir: Path, device: str, log: Callable[[dict[str, Any]], None],
-                warn: Callable[[str], None]) -> Options:
+def job_options(
+    job: Job, *, cpus: int, cache_dir: Path, device: str, log: Callable[[dict[str, Any]], None], warn: Callable[[str], None]
+) -> Options:
     """The :class:`runner.execute.Options` of ``job`` on ``cpus`` CPUs: those ``runner run``
     uses on a machine of that many cores.
 
@@ -123,12 +124,19 @@ def job_options(job: Job, *, cpus: int, cache_dir: Path, device: str, log: Calla
     """
     from runner.execute import Options  # the stages' imports: on the worker only
 
-    return Options(cache=CacheStore(cache_dir), device=device, out=Path(job.out), producers=max(cpus, 2),
-                   offload=cpus >= 2, overrides=tuple(job.overrides), log=log, warn=warn)
+    return Options(
+        cache=CacheStore(cache_dir),
+        device=device,
+        out=Path(job.out),
+        producers=max(cpus, 2),
+        offload=cpus >= 2,
+        overrides=tuple(job.overrides),
+        log=log,
+        warn=warn,
+    )
 
 
-def run_job(job: Job, *, cpus: int, cache_dir: Path, device: str,
-            emit: Callable[[dict[str, Any]], None]) -> dict[str, Any]:
+def run_job(job: Job, *, cpus: int, cache_dir: Path, device: str, emit: Callable[[dict[str, Any]], None]) -> dict[str, Any]:
     """Run one job in this process, as ``runner run`` runs its command line on ``cpus`` cores.
 
     Parameters
@@ -169,8 +177,14 @@ def run_job(job: Job, *, cpus: int, cache_dir: Path, device: str,
         loaded = load_pipeline(Path(job.pipeline), Registry.from_entry_points(), overrides=list(job.overrides))
         chunk_frames = loaded.chunk_frames
         bound = bind_inputs(loaded, clip=None if job.clip is None else Path(job.clip), named=list(job.named))
-        options = job_options(job, cpus=cpus, cache_dir=cache_dir, device=resolve_device(device), log=log,
-                              warn=lambda line: emit({"event": "warning", "line": line}))
+        options = job_options(
+            job,
+            cpus=cpus,
+            cache_dir=cache_dir,
+            device=resolve_device(device),
+            log=log,
+            warn=lambda line: emit({"event": "warning", "line": line}),
+        )
         runner = Runner(loaded, bound, options)
         reports = runner.run()
     except (StageFailed, ConfigError) as exc:
@@ -181,8 +195,12 @@ def run_job(job: Job, *, cpus: int, cache_dir: Path, device: str,
     seconds = time.perf_counter() - started
     emit({"event": "run_end", "status": "ok", "exit_code": 0, "seconds": seconds})
     ran = sum(r.status in ("ran", "partial") for r in reports)
-    return {"status": "done" if ran else "cached", "seconds": seconds, "ran": ran,
-            "cached": sum(r.status == "cached" for r in reports)}
+    return {
+        "status": "done" if ran else "cached",
+        "seconds": seconds,
+        "ran": ran,
+        "cached": sum(r.status == "cached" for r in reports),
+    }
 
 
 class EventSink:
@@ -230,9 +248,17 @@ class _State:
     result: dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
-def run_batch(jobs: list[Job], *, cache_dir: Path, device: str = "auto", workers: int | None = None,
-              address: str | None = None, retries: int = 2, log: Callable[[dict[str, Any]], None] = lambda e: None,
-              echo: Callable[[str], None] = print) -> int:
+def run_batch(
+    jobs: list[Job],
+    *,
+    cache_dir: Path,
+    device: str = "auto",
+    workers: int | None = None,
+    address: str | None = None,
+    retries: int = 2,
+    log: Callable[[dict[str, Any]], None] = lambda e: None,
+    echo: Callable[[str], None] = print,
+) -> int:
     """Run ``jobs`` on Ray; returns 0 if every job is done or cached, 1 if one failed.
 
     Parameters
@@ -280,15 +306,28 @@ def run_batch(jobs: list[Job], *, cache_dir: Path, device: str = "auto", workers
         ray.init(address=address, **RAY_OPTIONS)
         stop_ray, sink_cpus = ray.shutdown, 0
         nodes = [int(node["Resources"].get("CPU", 0)) for node in ray.nodes() if node.get("Alive")]
-        cpus = job_cpus(jobs=len(jobs), cpus=max(1, sum(nodes)), at_once=len(jobs),
-                        node_cpus=max(1, min((n for n in nodes if n > 0), default=1)))
+        cpus = job_cpus(
+            jobs=len(jobs),
+            cpus=max(1, sum(nodes)),
+            at_once=len(jobs),
+            node_cpus=max(1, min((n for n in nodes if n > 0), default=1)),
+        )
     if on_sigterm is not None and threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, on_sigterm)  # ray.init replaced it (an exit with a native stack dump)
     ray_init_s = time.perf_counter() - started
     states: dict[str, _State] = {job.name: _State(job) for job in jobs}
     try:
-        log({"event": "batch_start", "time": time.time(), "jobs": len(jobs), "address": address,
-             "cpus": ray.cluster_resources().get("CPU", 0) - sink_cpus, "job_cpus": cpus, "ray_init_s": ray_init_s})
+        log(
+            {
+                "event": "batch_start",
+                "time": time.time(),
+                "jobs": len(jobs),
+                "address": address,
+                "cpus": ray.cluster_resources().get("CPU", 0) - sink_cpus,
+                "job_cpus": cpus,
+                "ray_init_s": ray_init_s,
+            }
+        )
         here = NodeAffinitySchedulingStrategy(node_id=ray.get_runtime_context().get_node_id(), soft=False)
         sink = ray.remote(num_cpus=sink_cpus, scheduling_strategy=here)(EventSink).remote()  # lost with the driver only
         if sink_cpus:  # created, holding its CPU, before a job can take that CPU; else its worker
@@ -322,15 +361,12 @@ def run_batch(jobs: list[Job], *, cache_dir: Path, device: str = "auto", workers
     code = EXIT_FAILED if counts["failed"] else EXIT_OK
     for line in _table(states.values()):
         echo(line)
-    echo(f"{len(jobs)} jobs: {counts['done']} done, {counts['cached']} cached, {counts['failed']} failed "
-         f"in {seconds:.1f} s")
-    log({"event": "batch_end", "time": time.time(), "exit_code": code, "seconds": seconds, "shutdown_s": shutdown_s,
-         **counts})
+    echo(f"{len(jobs)} jobs: {counts['done']} done, {counts['cached']} cached, {counts['failed']} failed in {seconds:.1f} s")
+    log({"event": "batch_end", "time": time.time(), "exit_code": code, "seconds": seconds, "shutdown_s": shutdown_s, **counts})
     return code
 
 
-def _show(state: _State, event: dict[str, Any], log: Callable[[dict[str, Any]], None],
-          echo: Callable[[str], None]) -> None:
+def _show(state: _State, event: dict[str, Any], log: Callable[[dict[str, Any]], None], echo: Callable[[str], None]) -> None:
     """Log ``event`` of ``state``'s job and print a line if the job's state changed."""
     name, kind = state.job.name, event.get("event")
     log({"time": time.time(), "job": name, **event})
@@ -340,8 +376,7 @@ def _show(state: _State, event: dict[str, Any], log: Callable[[dict[str, Any]], 
     elif kind == "job_start":
         state.attempts += 1
         state.status = "running"
-        line = f"running on {event['host']} (pid {event['pid']})" + (
-            f", attempt {state.attempts}" if state.attempts > 1 else "")
+        line = f"running on {event['host']} (pid {event['pid']})" + (f", attempt {state.attempts}" if state.attempts > 1 else "")
     elif kind == "chunk" and event.get("chunks"):
         now = time.monotonic()
         if event["stage"] not in state.stages or now - state.shown_at >= PROGRESS_EVERY_S:
@@ -352,8 +387,11 @@ def _show(state: _State, event: dict[str, Any], log: Callable[[dict[str, Any]], 
         line = event["line"]
     elif kind == "job_end":
         state.status = event["status"]
-        line = (f"failed: {event['error']}" if state.status == "failed"
-                else f"{state.status} in {event['seconds']:.1f} s ({event['ran']} stages ran, {event['cached']} cached)")
+        line = (
+            f"failed: {event['error']}"
+            if state.status == "failed"
+            else f"{state.status} in {event['seconds']:.1f} s ({event['ran']} stages ran, {event['cached']} cached)"
+        )
     if line is not None:
         echo(f"[{name}] {line}")
 

@@ -141,8 +141,7 @@ def _read_fields(r: _Reader, node: yaml.Node, key: str, allowed: tuple[str, ...]
                 continue
             value = os.path.normpath(base / value)
         elif name == "inputs":
-            if not isinstance(value, dict) or not all(isinstance(k, str) and isinstance(v, str) and v
-                                                      for k, v in value.items()):
+            if not isinstance(value, dict) or not all(isinstance(k, str) and isinstance(v, str) and v for k, v in value.items()):
                 r.error(vnode, fkey, f"wrong type: expected a mapping of input name to path, got {value!r}")
                 continue
             value = {k: os.path.normpath(base / v) for k, v in value.items()}
@@ -154,8 +153,17 @@ def _read_fields(r: _Reader, node: yaml.Node, key: str, allowed: tuple[str, ...]
     return fields
 
 
-def _job(r: _Reader, name: str, knode: yaml.Node, vnode: yaml.Node, own: _Fields, defaults: _Fields, base: Path,
-         registry: Registry, pipelines: dict) -> Job | None:
+def _job(
+    r: _Reader,
+    name: str,
+    knode: yaml.Node,
+    vnode: yaml.Node,
+    own: _Fields,
+    defaults: _Fields,
+    base: Path,
+    registry: Registry,
+    pipelines: dict,
+) -> Job | None:
     """The job ``name`` checked as ``runner run`` checks its command line; None (issues
     recorded) if it is invalid."""
     key = f"jobs.{name}"
@@ -176,8 +184,11 @@ def _job(r: _Reader, name: str, knode: yaml.Node, vnode: yaml.Node, own: _Fields
         named.update({k: (v, fields.nodes["inputs"]) for k, v in fields.values.get("inputs", {}).items()})
         if "target" in fields.values:
             named["target"] = (fields.values["target"], fields.nodes["target"])
-    overrides = [(text, fields.nodes["set"].value[i])  # each string's own node
-                 for fields in (defaults, own) for i, text in enumerate(fields.values.get("set", []))]
+    overrides = [
+        (text, fields.nodes["set"].value[i])  # each string's own node
+        for fields in (defaults, own)
+        for i, text in enumerate(fields.values.get("set", []))
+    ]
     clip = field_of("clip")
 
     loaded_key = (pipeline[0], tuple(text for text, _ in overrides))
@@ -214,12 +225,19 @@ def _job(r: _Reader, name: str, knode: yaml.Node, vnode: yaml.Node, own: _Fields
         r.error(own.nodes.get("out", knode), f"{key}.out", problem)
     if len(r.issues) > count:
         return None
-    return Job(name=name, pipeline=pipeline[0], clip=None if clip is None else clip[0],
-               named=tuple(f"{k}={v}" for k, (v, _) in named.items()), overrides=loaded_key[1], out=str(out))
+    return Job(
+        name=name,
+        pipeline=pipeline[0],
+        clip=None if clip is None else clip[0],
+        named=tuple(f"{k}={v}" for k, (v, _) in named.items()),
+        overrides=loaded_key[1],
+        out=str(out),
+    )
 
 
-def _check_inputs(r: _Reader, key: str, loaded: Pipeline, clip: tuple[str, yaml.Node] | None,
-                  named: dict[str, tuple[str, yaml.Node]]) -> None:
+def _check_inputs(
+    r: _Reader, key: str, loaded: Pipeline, clip: tuple[str, yaml.Node] | None, named: dict[str, tuple[str, yaml.Node]]
+) -> None:
     """Record an issue, at its manifest node, for each input of job ``key`` that the pipeline
     does not declare or that does not exist (a file, or a folder for a ``dir`` input)."""
     clips = clip_inputs(loaded)
@@ -229,8 +247,11 @@ def _check_inputs(r: _Reader, key: str, loaded: Pipeline, clip: tuple[str, yaml.
     for name, value in named.items():
         field_name = "target" if name == "target" else "inputs"
         if name not in loaded.inputs:
-            r.error(value[1], f"{key}.{field_name}", f"unknown pipeline input {name!r} of {loaded.path} "
-                                                     f"(declared: {', '.join(loaded.inputs) or 'none'})")
+            r.error(
+                value[1],
+                f"{key}.{field_name}",
+                f"unknown pipeline input {name!r} of {loaded.path} (declared: {', '.join(loaded.inputs) or 'none'})",
+            )
         else:
             given.append((field_name, name, value))
     for field_name, name, (path, node) in given:

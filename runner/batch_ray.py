@@ -52,7 +52,9 @@ def start_local_ray(cpus: int, *, note: Callable[[str], None]) -> Callable[[], N
         raise ValueError(f"cpus must be a positive int, got {cpus!r}")
     try:
         from ray._private.authentication.authentication_token_setup import (
-            enable_token_auth_by_default, ensure_token_if_auth_enabled)
+            enable_token_auth_by_default,
+            ensure_token_if_auth_enabled,
+        )
         from ray._private.node import Node
         from ray._private.parameter import RayParams
     except ImportError as exc:
@@ -68,8 +70,9 @@ def start_local_ray(cpus: int, *, note: Callable[[str], None]) -> Callable[[], N
 
     enable_token_auth_by_default()  # as ray.init() does for a local Ray: RAY_AUTH_MODE=token unless set
     ensure_token_if_auth_enabled({}, create_token_if_missing=True)
-    params = RayParams(num_cpus=cpus, include_dashboard=False, no_monitor=True, include_log_monitor=False,
-                       _system_config=SYSTEM_CONFIG)
+    params = RayParams(
+        num_cpus=cpus, include_dashboard=False, no_monitor=True, include_log_monitor=False, _system_config=SYSTEM_CONFIG
+    )
     node = BatchNode(ray_params=params, head=True, shutdown_at_exit=False, spawn_reaper=True, ray_init_cluster=True)
     try:
         ray.init(address=node.gcs_address, **RAY_OPTIONS)

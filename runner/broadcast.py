@@ -142,8 +142,14 @@ class Broadcast:
         or computes inside :func:`unbounded`)."""
         me = threading.current_thread()
         with waiting(), self._changed:
-            self._changed.wait_for(lambda: resolved() or not self._producers or me in self._producers
-                                   or (not self._room(chunk, None) and self._room(chunk, me)))
+            self._changed.wait_for(
+                lambda: (
+                    resolved()
+                    or not self._producers
+                    or me in self._producers
+                    or (not self._room(chunk, None) and self._room(chunk, me))
+                )
+            )
 
     def resolved(self) -> None:
         """A chunk was resolved: wake the readers waiting for their turn."""

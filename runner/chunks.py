@@ -154,8 +154,18 @@ class FrameChunks:
     ``entries`` (one per chunk, None until resolved) and :meth:`redo` serve publishing.
     """
 
-    def __init__(self, run: RunServices, node: StageNode, stage: FrameStage, inputs: dict[str, Value],
-                 info: StreamInfo, *, forced: bool, lazy: bool, keep: int = 3):
+    def __init__(
+        self,
+        run: RunServices,
+        node: StageNode,
+        stage: FrameStage,
+        inputs: dict[str, Value],
+        info: StreamInfo,
+        *,
+        forced: bool,
+        lazy: bool,
+        keep: int = 3,
+    ):
         self.run, self.node, self.stage, self.inputs, self.info = run, node, stage, inputs, info
         self.forced, self.lazy = forced, lazy
         at_once = max(run.jobs, run.producers)  # chunks of this stage's readers computed at once
@@ -186,8 +196,11 @@ class FrameChunks:
         start, stop = self.ranges[i]
         size, window = self.run.keys.chunk_frames, self.node.cls.window
         plain = [Read(port, v) for port, v in self.inputs.items() if v.type != "frames"]
-        streams = [Read(port, v, (max(0, start - window) // size, (min(v.info.frames, stop + window) - 1) // size))
-                   for port, v in self.inputs.items() if v.type == "frames"]
+        streams = [
+            Read(port, v, (max(0, start - window) // size, (min(v.info.frames, stop + window) - 1) // size))
+            for port, v in self.inputs.items()
+            if v.type == "frames"
+        ]
         return plain + streams
 
     def _key_of(self, i: int, reads: list[Read], digests: list[str | list[str]]) -> str:
@@ -198,8 +211,14 @@ class FrameChunks:
                 plain[read.port] = digest
             else:
                 used[read.port] = {"info": asdict(read.value.info), "stream" if read.chunks is None else "chunks": digest}
-        return cache_key({**self.run.keys.material(self.node, plain), "chunk": list(self.ranges[i]),
-                          "info": asdict(self.info), "chunk_inputs": used})
+        return cache_key(
+            {
+                **self.run.keys.material(self.node, plain),
+                "chunk": list(self.ranges[i]),
+                "info": asdict(self.info),
+                "chunk_inputs": used,
+            }
+        )
 
     def key(self, i: int) -> str:
         """Cache key of chunk ``i``, resolving the upstream chunks it reads."""
@@ -301,8 +320,12 @@ class FrameChunks:
         threads = self.run.producers
         running = [threads]  # producers still running, under the lock that hands out the chunks
         claim = threading.Lock()
-        producers = [threading.Thread(target=self._produce, args=(claimed, running, claim),
-                                      name=f"produce-{self.node.name}-{k}", daemon=True) for k in range(threads)]
+        producers = [
+            threading.Thread(
+                target=self._produce, args=(claimed, running, claim), name=f"produce-{self.node.name}-{k}", daemon=True
+            )
+            for k in range(threads)
+        ]
         if not self.complete() and self.broadcast.produce(producers):
             for thread in producers:
                 thread.start()
@@ -367,17 +390,32 @@ class FrameChunks:
             with timing, store.writing(key) as tmp:
                 with stage_errors(node):
                     with recording(set()) as files, notes.recording() as warned:
-                        result = self.stage.process(start, stop, self._inputs(), dict(node.params),
-                                                    entry_context(tmp, device=keys.device, progress=lambda n: None))
+                        result = self.stage.process(
+                            start,
+                            stop,
+                            self._inputs(),
+                            dict(node.params),
+                            entry_context(tmp, device=keys.device, progress=lambda n: None),
+                        )
                     record = save_outputs(node.cls.outputs, result, tmp, frames=(stop - start, self.info))
                 with self._book:  # a stage may read such a file once, for all its chunks
                     self._depends |= files
                     files = set(self._depends)
                 with stage_errors(node):
                     self.run.inputs.check(node.name)
-                entry = store.commit(key, tmp, {"stage": node.name, "uses": node.uses, "range": [start, stop],
-                                                **record, "depends": keys.depends(files), "warnings": warned},
-                                     replace=self.forced)
+                entry = store.commit(
+                    key,
+                    tmp,
+                    {
+                        "stage": node.name,
+                        "uses": node.uses,
+                        "range": [start, stop],
+                        **record,
+                        "depends": keys.depends(files),
+                        "warnings": warned,
+                    },
+                    replace=self.forced,
+                )
         self.broadcast.offer(i, {port: np.asarray(result[port]) for port in self._frame_ports()})
         return entry, True
 
@@ -401,16 +439,20 @@ class FrameChunks:
             if self.run.keys.dry_run:
                 return
             start, stop = self.ranges[i]
-            progress.log({"event": "chunk", "stage": self.node.name, "start": start, "stop": stop,
-                          "status": "ran" if ran else "cached"})
+            progress.log(
+                {"event": "chunk", "stage": self.node.name, "start": start, "stop": stop, "status": "ran" if ran else "cached"}
+            )
             if not ran:
                 progress.replay(self.node.name, entry.record)
             if self._bar is None:
                 self._bar = progress.bar(self.node, self.info.frames)
             self._bar.update(stop - start)
             if ran and self.lazy:
-                self._readers += [reader for reader in dict.fromkeys([progress.current, *self.broadcast.readers()])
-                                  if reader not in (None, self.node.name, *self._readers)]
+                self._readers += [
+                    reader
+                    for reader in dict.fromkeys([progress.current, *self.broadcast.readers()])
+                    if reader not in (None, self.node.name, *self._readers)
+                ]
         self.broadcast.resolved()
         self.run.store.touch(entry)
 
@@ -468,12 +510,21 @@ class FrameChunks:
         handed over as computed, or computed again if no registered reader kept it; of an
         uncached stage, chunks computed as read."""
         if self.node.cls.cached:
-            return SharedStream(self.info, self.ranges, lambda i, lo, hi: self._frames(i, port, lo, hi),
-                                lambda i: None if reader is None else self.passed(reader, i))
+            return SharedStream(
+                self.info,
+                self.ranges,
+                lambda i, lo, hi: self._frames(i, port, lo, hi),
+                lambda i: None if reader is None else self.passed(reader, i),
+            )
         with self._book:
             if port not in self._streams:
-                self._streams[port] = ComputedStream(self.info, self.ranges, lambda i, p=port: self._process(*self.ranges[i])[p],
-                                                     keep=self.run.jobs + 2, read_ahead=is_source(self.node.cls))
+                self._streams[port] = ComputedStream(
+                    self.info,
+                    self.ranges,
+                    lambda i, p=port: self._process(*self.ranges[i])[p],
+                    keep=self.run.jobs + 2,
+                    read_ahead=is_source(self.node.cls),
+                )
             return self._streams[port]
 
     def _frame_ports(self) -> list[str]:
@@ -505,8 +556,9 @@ class FrameChunks:
 
     def _read(self, i: int, read: Callable[[Entry], Any]) -> Any:
         """``read`` of chunk ``i``'s entry, recomputing the chunk if it is damaged."""
-        return read_or_redo(read, self.entries[i], redo=lambda: self.redo(i),
-                            on_damaged=lambda exc: self.run.progress.damaged(self.node, exc))
+        return read_or_redo(
+            read, self.entries[i], redo=lambda: self.redo(i), on_damaged=lambda exc: self.run.progress.damaged(self.node, exc)
+        )
 
     def load(self, port: str) -> dict[str, np.ndarray]:
         """A bundle output, its chunks concatenated, once every chunk is resolved."""
@@ -521,8 +573,9 @@ class FrameChunks:
         makes a resumed run's outputs differ from an uninterrupted run's. Reported, not fatal
         (a ``nondeterministic`` event and one warning line per stage)."""
         recorded = self.entries[i].record.get("outputs", {})
-        differ = [port for port, frames in computed.items()
-                  if port in recorded and array_digest(frames) != recorded[port]["digest"]]
+        differ = [
+            port for port, frames in computed.items() if port in recorded and array_digest(frames) != recorded[port]["digest"]
+        ]
         if differ:
             start, stop = self.ranges[i]
             self.run.progress.nondeterministic(self.node, start, stop, differ)

@@ -28,8 +28,12 @@ from runner.stage import FrameStage
 EXIT_OK, EXIT_STAGE, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 
 cache_dir_option = click.option(
-    "--cache-dir", type=click.Path(file_okay=False, path_type=Path), envvar=ENV_VAR, default=None,
-    help=f"Cache folder [env {ENV_VAR}; default {DEFAULT_DIR} under the current folder].")
+    "--cache-dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    envvar=ENV_VAR,
+    default=None,
+    help=f"Cache folder [env {ENV_VAR}; default {DEFAULT_DIR} under the current folder].",
+)
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -42,31 +46,63 @@ def cli() -> None:
 @click.argument("pipeline", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--in", "clip", type=click.Path(path_type=Path), help="The clip bound to the pipeline's video input.")
 @click.option("--input", "named", multiple=True, metavar="NAME=PATH", help="Bind any pipeline input (repeatable).")
-@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("out"), show_default=True,
-              help="Where `files` outputs are published, one folder per stage.")
+@click.option(
+    "--out",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=Path("out"),
+    show_default=True,
+    help="Where `files` outputs are published, one folder per stage.",
+)
 @click.option("--dry-run", is_flag=True, help="Say, per stage, whether it is cached or will run and why; run nothing.")
 @click.option("--force", multiple=True, metavar="STAGE", help="Recompute STAGE even if cached (repeatable).")
-@click.option("--until", metavar="STAGE", multiple=True,
-              help="Run only STAGE and the stages it depends on (repeatable).")
-@click.option("--set", "overrides", multiple=True, metavar="STAGE.PARAM=VALUE",
-              help="Override a parameter, typed by its schema (repeatable).")
-@click.option("--device", type=click.Choice(["cpu", "cuda", "auto"]), default="auto", show_default=True,
-              help="Where torch stages compute; auto = CUDA when available.")
-@click.option("--jobs", type=click.IntRange(min=1), default=1, show_default=True,
-              help="Chunks of a frame stage computed at once (threads).")
-@click.option("--log-json", type=click.Path(dir_okay=False, path_type=Path),
-              help="Write one JSON event per line (stages, chunks, outcome) to this file.")
+@click.option("--until", metavar="STAGE", multiple=True, help="Run only STAGE and the stages it depends on (repeatable).")
+@click.option(
+    "--set",
+    "overrides",
+    multiple=True,
+    metavar="STAGE.PARAM=VALUE",
+    help="Override a parameter, typed by its schema (repeatable).",
+)
+@click.option(
+    "--device",
+    type=click.Choice(["cpu", "cuda", "auto"]),
+    default="auto",
+    show_default=True,
+    help="Where torch stages compute; auto = CUDA when available.",
+)
+@click.option(
+    "--jobs", type=click.IntRange(min=1), default=1, show_default=True, help="Chunks of a frame stage computed at once (threads)."
+)
+@click.option(
+    "--log-json",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Write one JSON event per line (stages, chunks, outcome) to this file.",
+)
 @cache_dir_option
-def run(pipeline: Path, clip: Path | None, named: tuple[str, ...], out: Path, dry_run: bool, force: tuple[str, ...],
-        until: tuple[str, ...], overrides: tuple[str, ...], device: str, jobs: int, log_json: Path | None,
-        cache_dir: Path | None) -> int:
+def run(
+    pipeline: Path,
+    clip: Path | None,
+    named: tuple[str, ...],
+    out: Path,
+    dry_run: bool,
+    force: tuple[str, ...],
+    until: tuple[str, ...],
+    overrides: tuple[str, ...],
+    device: str,
+    jobs: int,
+    log_json: Path | None,
+    cache_dir: Path | None,
+) -> int:
     """Run PIPELINE (a pipeline.yaml)."""
     from runner.execute import Options, Runner, resolve_device  # here: `dag`, `stages` start faster without it
 
     loaded = load_pipeline(pipeline, Registry.from_entry_points(), overrides=list(overrides))
-    unknown = [Issue(Where(flag), name, "unknown stage in this pipeline")
-               for flag, names in (("--force", force), ("--until", until))
-               for name in names if name not in loaded.stages]
+    unknown = [
+        Issue(Where(flag), name, "unknown stage in this pipeline")
+        for flag, names in (("--force", force), ("--until", until))
+        for name in names
+        if name not in loaded.stages
+    ]
     if unknown:
         raise ConfigError(unknown)
     bound = bind_inputs(loaded, clip=clip, named=list(named))
@@ -86,11 +122,21 @@ def run(pipeline: Path, clip: Path | None, named: tuple[str, ...], out: Path, dr
         if _INTERRUPTED.is_set() and event.get("event") != "run_end":
             raise KeyboardInterrupt  # the signal's own exception was lost (see _interrupt)
 
-    options = Options(cache=CacheStore(cache_dir or default_cache_dir()), device=resolved, jobs=jobs,
-                      force=frozenset(force), until=until, dry_run=dry_run, out=out,
-                      offload=not dry_run, overrides=tuple(overrides),
-                      progress=sys.stderr.isatty(), log=log, echo=click.echo,
-                      warn=lambda line: click.echo(line, err=True))
+    options = Options(
+        cache=CacheStore(cache_dir or default_cache_dir()),
+        device=resolved,
+        jobs=jobs,
+        force=frozenset(force),
+        until=until,
+        dry_run=dry_run,
+        out=out,
+        offload=not dry_run,
+        overrides=tuple(overrides),
+        progress=sys.stderr.isatty(),
+        log=log,
+        echo=click.echo,
+        warn=lambda line: click.echo(line, err=True),
+    )
     if dry_run:
         click.echo(f"dry run of {pipeline}: nothing is run")
     started = time.perf_counter()
@@ -99,9 +145,12 @@ def run(pipeline: Path, clip: Path | None, named: tuple[str, ...], out: Path, dr
         seconds = time.perf_counter() - started
         log({"event": "run_end", "status": "ok", "exit_code": EXIT_OK, "seconds": seconds})
     except StageFailed as exc:
-        media = [str(bound[ref.port]) for name in loaded.ancestors(exc.node.name)
-                 for ref in loaded.stages[name].inputs.values()
-                 if ref.stage is None and loaded.inputs[ref.port].type == "video" and ref.port in bound]
+        media = [
+            str(bound[ref.port])
+            for name in loaded.ancestors(exc.node.name)
+            for ref in loaded.stages[name].inputs.values()
+            if ref.stage is None and loaded.inputs[ref.port].type == "video" and ref.port in bound
+        ]
         if media:  # name the clip whose content failed the stage
             exc.args = (f"{exc} [{', '.join(dict.fromkeys(media))}]",)
         log({"event": "run_end", "status": "failed", "exit_code": EXIT_STAGE, "error": str(exc)})
@@ -121,15 +170,35 @@ def run(pipeline: Path, clip: Path | None, named: tuple[str, ...], out: Path, dr
 @click.argument("manifest", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--workers", type=click.IntRange(min=1), help="Jobs at once on the local Ray [default: the CPUs].")
 @click.option("--address", help="Join this Ray cluster (`auto`, HOST:PORT) instead of starting a local Ray.")
-@click.option("--retries", type=click.IntRange(min=0), default=2, show_default=True,
-              help="Retries of a job whose worker died or raised (a failed stage is not retried).")
-@click.option("--device", type=click.Choice(["cpu", "cuda", "auto"]), default="auto", show_default=True,
-              help="Where torch stages compute, resolved on each worker.")
-@click.option("--log-json", type=click.Path(dir_okay=False, path_type=Path),
-              help="Write one JSON event per line (every job's `runner run` events, with `job`) to this file.")
+@click.option(
+    "--retries",
+    type=click.IntRange(min=0),
+    default=2,
+    show_default=True,
+    help="Retries of a job whose worker died or raised (a failed stage is not retried).",
+)
+@click.option(
+    "--device",
+    type=click.Choice(["cpu", "cuda", "auto"]),
+    default="auto",
+    show_default=True,
+    help="Where torch stages compute, resolved on each worker.",
+)
+@click.option(
+    "--log-json",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Write one JSON event per line (every job's `runner run` events, with `job`) to this file.",
+)
 @cache_dir_option
-def batch(manifest: Path, workers: int | None, address: str | None, retries: int, device: str,
-          log_json: Path | None, cache_dir: Path | None) -> int:
+def batch(
+    manifest: Path,
+    workers: int | None,
+    address: str | None,
+    retries: int,
+    device: str,
+    log_json: Path | None,
+    cache_dir: Path | None,
+) -> int:
     """Run the jobs of MANIFEST (shots.yaml, see docs/batch.md) on Ray, each as `runner run` would."""
     from runner.batch_manifest import load_manifest
 
@@ -141,13 +210,22 @@ def batch(manifest: Path, workers: int | None, address: str | None, retries: int
     except ImportError as exc:
         raise click.UsageError(f"runner batch needs Ray ({exc}): pip install 'expression-mapping[batch]'") from None
     with open(log_json, "w", encoding="utf-8") if log_json else contextlib.nullcontext() as log_file:
+
         def log(event: dict) -> None:
             if log_file is not None:
                 log_file.write(json.dumps(event) + "\n")
                 log_file.flush()
 
-        return run_batch(jobs, cache_dir=cache_dir or default_cache_dir(), device=device, workers=workers,
-                         address=address, retries=retries, log=log, echo=click.echo)
+        return run_batch(
+            jobs,
+            cache_dir=cache_dir or default_cache_dir(),
+            device=device,
+            workers=workers,
+            address=address,
+            retries=retries,
+            log=log,
+            echo=click.echo,
+        )
 
 
 @cli.command()
@@ -200,8 +278,10 @@ def cache_ls(cache_dir: Path | None) -> int:
         record = entry.record
         what = "chunk {}-{}".format(*record["range"]) if "range" in record else ("stream info" if "info" in record else "whole")
         age = time.time() - entry.path.stat().st_mtime
-        click.echo(f"{entry.key[:16]}  {record.get('stage', '?'):<14} {record.get('uses', '?'):<18} "
-                   f"{what:<14} {size / 1e6:9.2f} MB  used {age / 3600:7.1f} h ago")
+        click.echo(
+            f"{entry.key[:16]}  {record.get('stage', '?'):<14} {record.get('uses', '?'):<18} "
+            f"{what:<14} {size / 1e6:9.2f} MB  used {age / 3600:7.1f} h ago"
+        )
     for path, holder in store.locks():
         state = "stale" if holder and holder_is_stale(holder) else "held"
         click.echo(f"lock {path.name[:16]}  pid {holder.get('pid') if holder else '?'}  {state}")
@@ -210,10 +290,14 @@ def cache_ls(cache_dir: Path | None) -> int:
 
 
 @cache.command("gc")
-@click.option("--older-than", type=click.FloatRange(min=0), metavar="DAYS",
-              help="Also remove entries not used for DAYS days.")
-@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("out"), show_default=True,
-              help="An output folder whose leftovers of killed publishes (.STAGE.PID.tmp/.old) are removed.")
+@click.option("--older-than", type=click.FloatRange(min=0), metavar="DAYS", help="Also remove entries not used for DAYS days.")
+@click.option(
+    "--out",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=Path("out"),
+    show_default=True,
+    help="An output folder whose leftovers of killed publishes (.STAGE.PID.tmp/.old) are removed.",
+)
 @cache_dir_option
 def cache_gc(older_than: float | None, out: Path, cache_dir: Path | None) -> int:
     """Remove leftovers of dead runs (temporary folders, stale locks, half-published output
@@ -223,8 +307,10 @@ def cache_gc(older_than: float | None, out: Path, cache_dir: Path | None) -> int
     store = CacheStore(cache_dir or default_cache_dir())
     counts = store.gc(older_than_s=None if older_than is None else older_than * 86400)
     published = remove_leftovers(out)
-    click.echo(f"removed {counts['entries']} entries, {counts['tmp']} temporary folders, {counts['locks']} stale locks "
-               f"({counts['bytes'] / 1e6:.2f} MB), {published} leftover output folders in {out}")
+    click.echo(
+        f"removed {counts['entries']} entries, {counts['tmp']} temporary folders, {counts['locks']} stale locks "
+        f"({counts['bytes'] / 1e6:.2f} MB), {published} leftover output folders in {out}"
+    )
     return EXIT_OK
 
 

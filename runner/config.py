@@ -233,8 +233,9 @@ def load_pipeline(path: Path, registry: Registry, *, overrides: list[str] = ()) 
         ref = next(ref for ref in first.inputs.values() if ref.stage == exc.cycle[-1])
         cycle = " -> ".join([*exc.cycle, exc.cycle[0]])
         raise ConfigError([Issue(ref.where, f"stages.{first.name}.inputs", f"cycle: {cycle}")]) from None
-    return Pipeline(path=path, chunk_frames=chunk_frames, inputs=inputs,
-                    stages={name: stages[name] for name in order}, edges=edges)
+    return Pipeline(
+        path=path, chunk_frames=chunk_frames, inputs=inputs, stages={name: stages[name] for name in order}, edges=edges
+    )
 
 
 def _read_inputs(r: _Reader, node: yaml.Node | None, base: Path) -> dict[str, PipelineInput]:
@@ -293,8 +294,9 @@ def _read_stages(r: _Reader, node: yaml.Node, registry: Registry, inputs: dict[s
         except RegistryError as exc:
             r.error(uses_node, f"{key}.uses", str(exc))
             continue
-        stage = StageNode(name=name, uses=uses, cls=cls, params={p.name: p.default for p in cls.params},
-                          inputs={}, where=_where(r.path, knode))
+        stage = StageNode(
+            name=name, uses=uses, cls=cls, params={p.name: p.default for p in cls.params}, inputs={}, where=_where(r.path, knode)
+        )
         schema = {p.name: p for p in cls.params}
         if "params" in fields:
             for pname, pknode, pvnode in r.mapping(fields["params"][1], f"{key}.params", None):
@@ -397,13 +399,21 @@ def _check_references(r: _Reader, stages: dict[str, StageNode], inputs: dict[str
                     continue
                 outputs = stages[ref.stage].cls.outputs
                 if ref.port not in outputs:
-                    r.error(ref.where, key, f"missing input: {ref.stage} ({stages[ref.stage].uses}) has no output "
-                                            f"{ref.port!r} (outputs: {', '.join(outputs) or 'none'})")
+                    r.error(
+                        ref.where,
+                        key,
+                        f"missing input: {ref.stage} ({stages[ref.stage].uses}) has no output "
+                        f"{ref.port!r} (outputs: {', '.join(outputs) or 'none'})",
+                    )
                     continue
                 got = outputs[ref.port]
                 if got == "files" and issubclass(stages[ref.stage].cls, FrameStage):
-                    r.error(ref.where, key, f"port type mismatch: {ref} is written chunk by chunk and is only "
-                                            "published to --out, not passed to other stages")
+                    r.error(
+                        ref.where,
+                        key,
+                        f"port type mismatch: {ref} is written chunk by chunk and is only "
+                        "published to --out, not passed to other stages",
+                    )
                     continue
             if got != expected:
                 r.error(ref.where, key, f"port type mismatch: {port!r} takes {expected}, {ref} gives {got}")
@@ -429,9 +439,15 @@ def bind_inputs(pipeline: Pipeline, *, clip: Path | None, named: list[str]) -> d
     clip_names = clip_inputs(pipeline)
     if clip is not None:
         if len(clip_names) != 1:
-            issues.append(Issue(Where("--in"), "--in", f"the pipeline has {len(clip_names)} clip inputs "
-                                                     f"({', '.join(clip_names) or 'no video or folder input'}); "
-                                                     "name one with --input NAME=PATH"))
+            issues.append(
+                Issue(
+                    Where("--in"),
+                    "--in",
+                    f"the pipeline has {len(clip_names)} clip inputs "
+                    f"({', '.join(clip_names) or 'no video or folder input'}); "
+                    "name one with --input NAME=PATH",
+                )
+            )
         else:
             values[clip_names[0]] = Path(clip)
     for text in named:
@@ -439,7 +455,9 @@ def bind_inputs(pipeline: Pipeline, *, clip: Path | None, named: list[str]) -> d
         if not eq or not value:
             issues.append(Issue(Where("--input"), text, "expected --input NAME=PATH"))
         elif name not in pipeline.inputs:
-            issues.append(Issue(Where("--input"), name, f"unknown pipeline input (declared: {', '.join(pipeline.inputs) or 'none'})"))
+            issues.append(
+                Issue(Where("--input"), name, f"unknown pipeline input (declared: {', '.join(pipeline.inputs) or 'none'})")
+            )
         else:
             values[name] = Path(value)
     for decl in pipeline.inputs.values():

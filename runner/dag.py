@@ -47,7 +47,7 @@ def _find_cycle(nodes: list[str], edges: list[tuple[str, str]]) -> list[str]:
     while node not in path:
         path.append(node)
         node = upstream[node][0]
-    cycle = path[path.index(node):][::-1]
+    cycle = path[path.index(node) :][::-1]
     first = min(range(len(cycle)), key=lambda i: nodes.index(cycle[i]))  # start where the file does
     return cycle[first:] + cycle[:first]
 

@@ -122,12 +122,12 @@ class Runner:
         self.values: dict[tuple[str | None, str], Value] = {}
         self.inputs = Inputs(pipeline, bound)
         for name, path in bound.items():
-            self.values[(None, name)] = Value(pipeline.inputs[name].type, self.inputs.digest(name),
-                                              load=lambda p=path: Path(p))
+            self.values[(None, name)] = Value(pipeline.inputs[name].type, self.inputs.digest(name), load=lambda p=path: Path(p))
         self.entries: dict[str, list[Entry]] = {}  # per stage, its entries (one per chunk of a frame stage)
         self.redo: dict[str, Callable[[int], Entry]] = {}  # per stage, recompute its entry i (found damaged)
-        self.keys = Keys(self.store, pipeline.path, device=options.device, chunk_frames=pipeline.chunk_frames,
-                         dry_run=options.dry_run)
+        self.keys = Keys(
+            self.store, pipeline.path, device=options.device, chunk_frames=pipeline.chunk_frames, dry_run=options.dry_run
+        )
         lock = threading.Lock()  # stages on several threads log events
         self._stopping = threading.Event()
         self._scheduler = threading.current_thread()
@@ -140,8 +140,9 @@ class Runner:
 
         self.log = log
         self.progress = Progress(log=log, warn=options.warn, bars=options.progress)
-        self.services = RunServices(self.keys, self.store, self.progress, options.jobs, self.inputs,
-                                    producers=options.producers or os.cpu_count() or 1)
+        self.services = RunServices(
+            self.keys, self.store, self.progress, options.jobs, self.inputs, producers=options.producers or os.cpu_count() or 1
+        )
         self._lazy: list[FrameChunks] = []  # lazy frame stages not reported yet
         self._joined: dict[str, list[tuple[FrameChunks, str, threading.Thread]]] = {}  # per stage, the readers it registered
         self._producers: dict[FrameChunks, None] = {}  # lazy frame stages given a producer thread (ordered set)
@@ -150,8 +151,11 @@ class Runner:
         self._imported: set[str] = set()  # modules imported ahead (_import_ahead)
 
     def selected(self) -> list[StageNode]:
-        names = (set().union(*(self.pipeline.ancestors(name) for name in self.opts.until)) if self.opts.until
-                 else set(self.pipeline.stages))
+        names = (
+            set().union(*(self.pipeline.ancestors(name) for name in self.opts.until))
+            if self.opts.until
+            else set(self.pipeline.stages)
+        )
         return [node for name, node in self.pipeline.stages.items() if name in names]
 
     def run(self) -> list[Report]:
@@ -201,8 +205,12 @@ class Runner:
                 if self.entries.get(node.name):
                     item = Published(node.name, node.uses, ports, self.entries[node.name], self.redo[node.name])
                     with stage_errors(node):
-                        publish(self.opts.out, item, records=self.store.published_dir,
-                                on_damaged=lambda exc, n=node: self.progress.damaged(n, exc))
+                        publish(
+                            self.opts.out,
+                            item,
+                            records=self.store.published_dir,
+                            on_damaged=lambda exc, n=node: self.progress.damaged(n, exc),
+                        )
         if not self.opts.dry_run:
             self.store.break_stale_locks()
         return reports
@@ -235,8 +243,7 @@ class Runner:
             for node in ready:
                 threaded, joins = self._stream_reads(node)
                 if threaded:
-                    thread = threading.Thread(target=lambda n=node: ended.put(visit(n)), name=f"stage-{node.name}",
-                                              daemon=True)
+                    thread = threading.Thread(target=lambda n=node: ended.put(visit(n)), name=f"stage-{node.name}", daemon=True)
                     for chunks, reader in joins:
                         chunks.broadcast.join(reader, thread)
                     self._joined[node.name] = [(chunks, reader, thread) for chunks, reader in joins]
@@ -262,19 +269,31 @@ class Runner:
             child per spare core)."""
             if not self.opts.offload or len(set(children.values())) >= self.services.producers - 1:
                 return False
-            choices = ((n, self._offload_stages(n, waiting, done)) for n in waiting
-                       if n.name not in offered and n.name not in children)
-            node, stages = next(((n, s) for n, s in choices if s and any(r.name not in s for r in ready)),
-                                (None, []))
+            choices = (
+                (n, self._offload_stages(n, waiting, done)) for n in waiting if n.name not in offered and n.name not in children
+            )
+            node, stages = next(((n, s) for n, s in choices if s and any(r.name not in s for r in ready)), (None, []))
             if node is None:
                 return False
             offered.update(stages)  # once: after a failed child, the run computes them
-            child = offload_fork(lambda **events: Runner(self.pipeline, self._bound, Options(
-                cache=CacheStore(self.store.root), device=self.opts.device, until=tuple(stages), **events)))
+            child = offload_fork(
+                lambda **events: Runner(
+                    self.pipeline,
+                    self._bound,
+                    Options(cache=CacheStore(self.store.root), device=self.opts.device, until=tuple(stages), **events),
+                )
+            )
             if child is None:
-                child = offload_start(offload_spec(pipeline=self.pipeline.path, overrides=list(self.opts.overrides),
-                                                   bound=self._bound, cache=self.store.root, device=self.opts.device,
-                                                   stages=stages))
+                child = offload_start(
+                    offload_spec(
+                        pipeline=self.pipeline.path,
+                        overrides=list(self.opts.overrides),
+                        bound=self._bound,
+                        cache=self.store.root,
+                        device=self.opts.device,
+                        stages=stages,
+                    )
+                )
             children.update(dict.fromkeys(stages, child))
 
             def relay() -> None:
@@ -285,15 +304,29 @@ class Runner:
                     ended.put((node, in_child, None))
 
             threading.Thread(target=relay, daemon=True, name=f"child-{node.name}").start()
-            self.log({"event": "offload", "stage": node.name, "stages": stages, "pid": child.pid,
-                      "started": "fork" if isinstance(child, Forked) else "interpreter"})
+            self.log(
+                {
+                    "event": "offload",
+                    "stage": node.name,
+                    "stages": stages,
+                    "pid": child.pid,
+                    "started": "fork" if isinstance(child, Forked) else "interpreter",
+                }
+            )
             return True
 
         try:
             while waiting or running or children:
-                ready = [] if failure is not None else [
-                    node for node in waiting if node.name not in children
-                    and all(ref.stage is None or ref.stage in done for ref in node.inputs.values())]
+                ready = (
+                    []
+                    if failure is not None
+                    else [
+                        node
+                        for node in waiting
+                        if node.name not in children
+                        and all(ref.stage is None or ref.stage in done for ref in node.inputs.values())
+                    ]
+                )
                 setups = [node for node in ready if self._sets_up_only(node)]
                 if ready and not setups and (launch(ready) or offload(ready)):
                     continue
@@ -331,8 +364,7 @@ class Runner:
     def _sets_up_only(self, node: StageNode) -> bool:
         """True for a frame stage whose turn computes nothing: uncached, or lazy (read by a
         selected stage), outside a dry run."""
-        return (issubclass(node.cls, FrameStage) and not self.opts.dry_run
-                and (not node.cls.cached or self._is_read(node)))
+        return issubclass(node.cls, FrameStage) and not self.opts.dry_run and (not node.cls.cached or self._is_read(node))
 
     def _leave(self, node: StageNode) -> None:
         """Unregister the readers ``node`` registered (it reads no more streams as computed)."""
@@ -390,18 +422,22 @@ class Runner:
             return []
         waiting_names = {other.name for other in waiting}
         before = self.pipeline.ancestors(node.name) & waiting_names - {node.name}
-        if any(not self._child_may_run(self.pipeline.stages[name]) or self._stored(self.pipeline.stages[name], done)
-               for name in before):
+        if any(
+            not self._child_may_run(self.pipeline.stages[name]) or self._stored(self.pipeline.stages[name], done)
+            for name in before
+        ):
             return []  # e.g. a stage it waits for is found in the cache: decide once it is visited
         stages = [other.name for other in waiting if other.name in before] + [node.name]
         grown = True
         while grown:
             grown = False
             for other in waiting:
-                if (other.name not in stages and self._child_may_run(other)
-                        and any(ref.stage in stages for ref in other.inputs.values())
-                        and all(ref.stage is None or ref.stage in done or ref.stage in stages
-                                for ref in other.inputs.values())):
+                if (
+                    other.name not in stages
+                    and self._child_may_run(other)
+                    and any(ref.stage in stages for ref in other.inputs.values())
+                    and all(ref.stage is None or ref.stage in done or ref.stage in stages for ref in other.inputs.values())
+                ):
                     stages.append(other.name)
                     grown = True
         return stages
@@ -419,8 +455,9 @@ class Runner:
             if event.get("event") == "warning":
                 self.opts.warn(event.get("line", ""))
             if event.get("event") == "log":
-                logging.getLogger(event.get("logger", "runner.stage")).log(event.get("level", logging.WARNING), "%s",
-                                                                          event.get("message", ""))
+                logging.getLogger(event.get("logger", "runner.stage")).log(
+                    event.get("level", logging.WARNING), "%s", event.get("message", "")
+                )
             if event.get("event") == "stage" and event.get("status") == "ran":
                 self._in_child[event["stage"]] = (event.get("seconds", 0.0), event.get("cpu_seconds", 0.0))
             try:
@@ -434,8 +471,7 @@ class Runner:
         reads no frames: decoding, ``done``), whose entry is not known to be stored."""
         if not self._child_may_run(node) or self.opts.dry_run:
             return False
-        if not any(ref.stage in done and is_source(self.pipeline.stages[ref.stage].cls)
-                   for ref in node.inputs.values()):
+        if not any(ref.stage in done and is_source(self.pipeline.stages[ref.stage].cls) for ref in node.inputs.values()):
             return False
         return not self._stored(node, done)
 
@@ -495,8 +531,7 @@ class Runner:
 
     def _unknown(self, node: StageNode) -> list[str | None]:
         """Dry run: the upstream stages whose outputs are not known (they will run)."""
-        return [ref.stage for ref in node.inputs.values()
-                if self.values[(ref.stage, ref.port)].known_digest() is None]
+        return [ref.stage for ref in node.inputs.values() if self.values[(ref.stage, ref.port)].known_digest() is None]
 
     # -- sequence stages -------------------------------------------------------------------
 
@@ -531,8 +566,11 @@ class Runner:
             names = ", ".join(dict.fromkeys(node.inputs[port].stage for port in pending))
             report.reason = f"read {names} while it was computed"
         self.store.touch(entry)
-        streams = {port: v.chunks.digests(v.port, 0, len(v.chunks.ranges) - 1)
-                   for port, v in inputs.items() if v.chunks is not None and v.type == "frames"}
+        streams = {
+            port: v.chunks.digests(v.port, 0, len(v.chunks.ranges) - 1)
+            for port, v in inputs.items()
+            if v.chunks is not None and v.type == "frames"
+        }
         self.keys.remember(node, {**self.keys.material(node, input_digests(inputs)), "input_chunks": streams})
         self._set_outputs(node, entry, inputs)
         return report
@@ -555,8 +593,7 @@ class Runner:
             if v.type != "frames":
                 continue
             count = len(v.chunks.ranges)
-            first = next((i for i in range(count) if v.chunks.computed(i) or v.chunks.known_digests(v.port, i, i) is None),
-                         None)
+            first = next((i for i in range(count) if v.chunks.computed(i) or v.chunks.known_digests(v.port, i, i) is None), None)
             if first is None:
                 continue
             if not v.chunks.node.cls.cached and defines_stream_info(v.chunks.node.cls):
@@ -565,12 +602,11 @@ class Runner:
             # chunk 0; the chunks they computed before (at most the broadcast's keep) are held.
             with unbounded():
                 now = v.chunks.digests(v.port, first, first)
-            if read.get(port, [])[first:first + 1] != now:
+            if read.get(port, [])[first : first + 1] != now:
                 return True
         return False
 
-    def _run_sequence(self, node: StageNode, inputs: dict[str, Value], key: str | None,
-                      forced: bool) -> tuple[Entry, bool]:
+    def _run_sequence(self, node: StageNode, inputs: dict[str, Value], key: str | None, forced: bool) -> tuple[Entry, bool]:
         """Run a sequence stage under its entry's lock and commit its entry; with ``key`` None
         (inputs computed while read) the key is taken after the run, and the first commit of
         that key wins. Returns the entry and whether this run computed it."""
@@ -583,15 +619,19 @@ class Runner:
             with self.store.writing(key or f"pending-{node.name}") as tmp:
                 values = {port: v.get(node.name) for port, v in inputs.items()}
                 with recording(set()) as files, notes.recording() as warned:
-                    result = node.cls().run(values, dict(node.params),
-                                            entry_context(tmp, device=self.opts.device, progress=bar.update))
+                    result = node.cls().run(
+                        values, dict(node.params), entry_context(tmp, device=self.opts.device, progress=bar.update)
+                    )
                 record = save_outputs(node.cls.outputs, result, tmp, frames=None)
                 if key is None:
                     key = cache_key(self.keys.material(node, input_digests(inputs)))
                 self.inputs.check(node.name)
-                return self.store.commit(key, tmp, {"stage": node.name, "uses": node.uses, **record,
-                                                    "depends": self.keys.depends(files), "warnings": warned},
-                                         replace=forced), True
+                return self.store.commit(
+                    key,
+                    tmp,
+                    {"stage": node.name, "uses": node.uses, **record, "depends": self.keys.depends(files), "warnings": warned},
+                    replace=forced,
+                ), True
 
     # -- frame stages ----------------------------------------------------------------------
 
@@ -607,8 +647,10 @@ class Runner:
         counts = {port: v.info.frames for port, v in inputs.items() if v.type == "frames" and v.info is not None}
         if any(count != info.frames for count in counts.values()):
             with stage_errors(node):
-                raise StageError(f"its output stream has {info.frames} frames, its frames inputs {counts}: a frame "
-                                 f"stage computes output frame t from input frames t ± window (its size may differ)")
+                raise StageError(
+                    f"its output stream has {info.frames} frames, its frames inputs {counts}: a frame "
+                    f"stage computes output frame t from input frames t ± window (its size may differ)"
+                )
         lazy = node.cls.cached and not self.opts.dry_run and self._is_read(node)
         chunks = FrameChunks(self.services, node, stage, inputs, info, forced=forced, lazy=lazy, keep=self._keep(node))
         self.entries[node.name], self.redo[node.name] = chunks.entries, chunks.redo
@@ -616,8 +658,7 @@ class Runner:
             load = None if kind == "frames" else (lambda p=port: chunks.load(p))
             self.values[(node.name, port)] = Value(kind, load=load, chunks=chunks, port=port, info=info)
         if not node.cls.cached:
-            return Report(node.name, node.uses, "on demand", "computed while downstream stages read it",
-                          frames=info.frames)
+            return Report(node.name, node.uses, "on demand", "computed while downstream stages read it", frames=info.frames)
         if self.opts.dry_run:
             report = chunks.report
             count = len(chunks.ranges)
@@ -643,8 +684,14 @@ class Runner:
         """How many chunks of ``node`` may be computed past its slowest reader's position: the
         chunks one read spans (the largest window of a frame stage reading it, each side),
         and two more so that readers of different speeds overlap."""
-        window = max((other.cls.window for other in self.selected() if issubclass(other.cls, FrameStage)
-                      and any(ref.stage == node.name for ref in other.inputs.values())), default=0)
+        window = max(
+            (
+                other.cls.window
+                for other in self.selected()
+                if issubclass(other.cls, FrameStage) and any(ref.stage == node.name for ref in other.inputs.values())
+            ),
+            default=0,
+        )
         return 3 + 2 * -(-window // self.pipeline.chunk_frames)
 
     def _is_read(self, node: StageNode) -> bool:
@@ -669,8 +716,9 @@ class Runner:
                 return info
             self.inputs.check(node.name)
             with self.store.writing(key) as tmp:
-                entry = self.store.commit(key, tmp, {"stage": node.name, "uses": node.uses, "info": asdict(info),
-                                                     "warnings": warned})
+                entry = self.store.commit(
+                    key, tmp, {"stage": node.name, "uses": node.uses, "info": asdict(info), "warnings": warned}
+                )
         elif not self.opts.dry_run:
             self.progress.replay(node.name, entry.record)
         return StreamInfo(**entry.record["info"])
@@ -695,13 +743,18 @@ class Runner:
         self.redo[node.name] = redo
         for port, kind in node.cls.outputs.items():
             read = (lambda e, p=port: verify_files(e, p)) if kind == "files" else (lambda e, p=port: load_bundle(e, p))
-            self.values[(node.name, port)] = Value(kind, entry.record["outputs"][port]["digest"],
-                                                   lambda r=read: self._read_stored(node, r))
+            self.values[(node.name, port)] = Value(
+                kind, entry.record["outputs"][port]["digest"], lambda r=read: self._read_stored(node, r)
+            )
 
     def _read_stored(self, node: StageNode, read: Callable[[Entry], Any]) -> Any:
         """``read`` of a sequence stage's entry, recomputing it if it is damaged."""
-        return read_or_redo(read, self.entries[node.name][0], redo=lambda: self.redo[node.name](0),
-                            on_damaged=lambda exc: self.progress.damaged(node, exc))
+        return read_or_redo(
+            read,
+            self.entries[node.name][0],
+            redo=lambda: self.redo[node.name](0),
+            on_damaged=lambda exc: self.progress.damaged(node, exc),
+        )
 
 
 def _after(stages: list[str | None]) -> str:

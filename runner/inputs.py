@@ -80,8 +80,7 @@ class BoundInput:
         """The first file of this input whose stat record differs from the one its digest was
         taken under (``"."``: the input itself), or None."""
         now = stat_record(self.kind, self.path)
-        return next((name for name in sorted(set(now) | set(self.record)) if now.get(name) != self.record.get(name)),
-                    None)
+        return next((name for name in sorted(set(now) | set(self.record)) if now.get(name) != self.record.get(name)), None)
 
 
 class Inputs:
@@ -99,13 +98,19 @@ class Inputs:
         """Raise :class:`InputChanged` if an input that ``stage`` or a stage above it reads has
         changed since its digest was taken (call it before committing an entry of ``stage``)."""
         if stage not in self._reads:
-            names = {ref.port for up in self._pipeline.ancestors(stage) for ref in self._pipeline.stages[up].inputs.values()
-                     if ref.stage is None}
+            names = {
+                ref.port
+                for up in self._pipeline.ancestors(stage)
+                for ref in self._pipeline.stages[up].inputs.values()
+                if ref.stage is None
+            }
             self._reads[stage] = [self.bound[name] for name in sorted(names) if name in self.bound]
         for bound in self._reads[stage]:
             file = bound.changed()
             if file is not None:
                 where = bound.path if file == "." else bound.path / file
-                raise InputChanged(f"input {bound.name!r} changed while the run read it ({where} was replaced, "
-                                   f"written, added or removed since its digest was taken); nothing computed from it "
-                                   f"since was stored: run again once it stays unchanged")
+                raise InputChanged(
+                    f"input {bound.name!r} changed while the run read it ({where} was replaced, "
+                    f"written, added or removed since its digest was taken); nothing computed from it "
+                    f"since was stored: run again once it stays unchanged"
+                )

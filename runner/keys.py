@@ -62,8 +62,11 @@ class Keys:
             "device": self.device,
             "libs": library_versions(),
         }
-        files = {k: file_digest(Path(v)) for k, v in node.params.items()
-                 if k in schema and schema[k].file and isinstance(v, str) and Path(v).is_file()}
+        files = {
+            k: file_digest(Path(v))
+            for k, v in node.params.items()
+            if k in schema and schema[k].file and isinstance(v, str) and Path(v).is_file()
+        }
         if files:
             material["param_files"] = files
         if issubclass(node.cls, FrameStage):

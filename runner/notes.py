@@ -117,8 +117,9 @@ def bounded(line: str) -> str:
     return f"{line[:MAX_LINE]}... ({len(line) - MAX_LINE} more characters)"
 
 
-def _as_log_line(message: Warning | str, category: type[Warning], filename: str, lineno: int,
-                 file: Any = None, line: str | None = None) -> None:
+def _as_log_line(
+    message: Warning | str, category: type[Warning], filename: str, lineno: int, file: Any = None, line: str | None = None
+) -> None:
     """:func:`warnings.showwarning` as one ``warning:`` line on the ``runner.stage`` logger,
     naming the warning's kind and where it was raised (the library's file)."""
     where = Path(filename)

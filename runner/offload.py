@@ -41,13 +41,20 @@ from runner.stage import SUMMARY
 SPEC_VERSION = 2
 
 
-def spec(*, pipeline: Path, overrides: list[str], bound: dict[str, Path], cache: Path, device: str,
-         stages: list[str]) -> str:
+def spec(*, pipeline: Path, overrides: list[str], bound: dict[str, Path], cache: Path, device: str, stages: list[str]) -> str:
     """The child's command-line argument: what it needs to run ``pipeline`` up to ``stages`` as
     the parent would (JSON)."""
-    return json.dumps({"version": SPEC_VERSION, "pipeline": str(pipeline), "overrides": list(overrides),
-                       "bound": {name: str(path) for name, path in bound.items()}, "cache": str(cache),
-                       "device": device, "until": list(stages)})
+    return json.dumps(
+        {
+            "version": SPEC_VERSION,
+            "pipeline": str(pipeline),
+            "overrides": list(overrides),
+            "bound": {name: str(path) for name, path in bound.items()},
+            "cache": str(cache),
+            "device": device,
+            "until": list(stages),
+        }
+    )
 
 
 def start(argument: str) -> subprocess.Popen:
@@ -55,9 +62,15 @@ def start(argument: str) -> subprocess.Popen:
     standard output (text), its standard error is dropped."""
     package_root = str(Path(runner.__file__).resolve().parent.parent)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [package_root, os.environ.get("PYTHONPATH")]))}
-    return subprocess.Popen([sys.executable, "-c", "from runner.offload import main; main()", argument, str(os.getpid())],
-                            env=env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                            text=True, bufsize=1)
+    return subprocess.Popen(
+        [sys.executable, "-c", "from runner.offload import main; main()", argument, str(os.getpid())],
+        env=env,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+        bufsize=1,
+    )
 
 
 class Forked:
@@ -90,8 +103,7 @@ def can_fork() -> bool:
     """Whether :func:`fork` may fork now: ``os.fork`` exists, no other Python thread runs, and no
     library of :data:`FORK_UNSAFE` is loaded (at a run's start none is: the stages import them
     when they run)."""
-    return (hasattr(os, "fork") and threading.active_count() == 1
-            and not any(name in sys.modules for name in FORK_UNSAFE))
+    return hasattr(os, "fork") and threading.active_count() == 1 and not any(name in sys.modules for name in FORK_UNSAFE)
 
 
 def fork(make_runner: Callable[..., Any]) -> Forked | None:
@@ -181,7 +193,10 @@ def main(argv: list[str] | None = None) -> None:
     def make_runner(**events: Any) -> Runner:
         loaded = load_pipeline(Path(args["pipeline"]), Registry.from_entry_points(), overrides=args["overrides"])
         bound = {name: Path(path) for name, path in args["bound"].items()}
-        return Runner(loaded, bound, Options(cache=CacheStore(Path(args["cache"])), device=args["device"],
-                                             until=tuple(args["until"]), **events))
+        return Runner(
+            loaded,
+            bound,
+            Options(cache=CacheStore(Path(args["cache"])), device=args["device"], until=tuple(args["until"]), **events),
+        )
 
     _child(make_runner, parent=int(parent))

@@ -58,8 +58,7 @@ def check_frames(port: str, frames: np.ndarray, count: int, info: StreamInfo) ->
         raise StageError(f"output {port!r}: expected frames ({count}, {info.height}, {info.width}, C), got {frames.shape}")
 
 
-def save_outputs(declared: Mapping[str, str], result: Any, tmp: Path, *,
-                 frames: tuple[int, StreamInfo] | None) -> dict[str, Any]:
+def save_outputs(declared: Mapping[str, str], result: Any, tmp: Path, *, frames: tuple[int, StreamInfo] | None) -> dict[str, Any]:
     """Store a stage's result in the entry folder ``tmp``; return the record's ``outputs``.
 
     Parameters
@@ -102,8 +101,7 @@ def save_outputs(declared: Mapping[str, str], result: Any, tmp: Path, *,
             name = BUNDLE_FILE.format(port=port)
             with _naming(tmp / name):
                 np.savez(tmp / name, **arrays)
-            outputs[port] = {"type": kind, "file": name, "digest": bundle_digest(arrays),
-                             "sha256": file_digest(tmp / name)}
+            outputs[port] = {"type": kind, "file": name, "digest": bundle_digest(arrays), "sha256": file_digest(tmp / name)}
     if verified:
         (tmp / VERIFIED).write_text(json.dumps(verified, sort_keys=True))
     return {"outputs": outputs}
@@ -228,8 +226,9 @@ def clone_or_copy(source: Path, dest: Path) -> None:
         raise OSError(exc.errno, exc.strerror or str(exc), str(dest)) from exc
 
 
-def read_or_redo(read: Callable[[Entry], Any], entry: Entry, *, redo: Callable[[], Entry],
-                 on_damaged: Callable[[Damaged], None]) -> Any:
+def read_or_redo(
+    read: Callable[[Entry], Any], entry: Entry, *, redo: Callable[[], Entry], on_damaged: Callable[[Damaged], None]
+) -> Any:
     """``read(entry)``; if that raises :class:`Damaged`, report it to ``on_damaged``, recompute
     the entry with ``redo`` and read the new one. Raises :class:`StageError` if the new entry is
     damaged too (a failing disk)."""
@@ -246,6 +245,7 @@ def read_or_redo(read: Callable[[Entry], Any], entry: Entry, *, redo: Callable[[
 def entry_context(tmp: Path, *, device: str, progress: Callable[[int], None]) -> Context:
     """The :class:`Context` of a stage computing the entry written in ``tmp``: its ``files``
     outputs go to ``tmp/files/<port>/``."""
+
     def files_dir(port: str) -> Path:
         folder = tmp / "files" / port
         folder.mkdir(parents=True, exist_ok=True)

@@ -69,11 +69,13 @@ class Progress:
         from tqdm import tqdm  # here: importing it costs start-up time
 
         tqdm.monitor_interval = 0  # no monitor thread: the run forks child processes (runner.offload)
-        return tqdm(total=total, desc=node.name, unit="frame", file=sys.stderr, leave=False,
-                    disable=not self.bars, dynamic_ncols=True)
+        return tqdm(
+            total=total, desc=node.name, unit="frame", file=sys.stderr, leave=False, disable=not self.bars, dynamic_ncols=True
+        )
 
     def waiting(self, node: StageNode) -> Callable[[dict[str, Any]], None]:
         """``on_wait`` for :meth:`runner.cache.CacheStore.locked`: a ``wait`` event."""
+
         def on_wait(holder: dict[str, Any]) -> None:
             self.log({"event": "wait", "stage": node.name, "holder_pid": holder.get("pid")})
 
@@ -93,7 +95,9 @@ class Progress:
             first = node.name not in self._nondeterministic
             self._nondeterministic.add(node.name)
         if first:
-            self.warn(f"warning: stage {node.name!r} computed frames {start}-{stop - 1} again and they differ from "
-                      f"those its cache entry recorded ({', '.join(ports)}): the stage is not deterministic, so "
-                      f"outputs of this resumed run may differ from an uninterrupted run's "
-                      f"(`--force {node.name}` computes it again, and what reads it follows its new frames)")
+            self.warn(
+                f"warning: stage {node.name!r} computed frames {start}-{stop - 1} again and they differ from "
+                f"those its cache entry recorded ({', '.join(ports)}): the stage is not deterministic, so "
+                f"outputs of this resumed run may differ from an uninterrupted run's "
+                f"(`--force {node.name}` computes it again, and what reads it follows its new frames)"
+            )

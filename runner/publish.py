@@ -68,8 +68,10 @@ def conflicts(out: Path, stages: Iterable[str]) -> list[str]:
             continue
         reason = _not_ours(folder, stage)
         if reason:
-            problems.append(f"{folder}: {reason}; it would be replaced by the outputs of stage {stage!r} "
-                            "(move it away or choose another --out)")
+            problems.append(
+                f"{folder}: {reason}; it would be replaced by the outputs of stage {stage!r} "
+                "(move it away or choose another --out)"
+            )
     return problems
 
 
@@ -100,8 +102,11 @@ def _not_ours(folder: Path, stage: str) -> str | None:
         return f"exists without a {MANIFEST} of runner"
     if not ours:
         return f"its {MANIFEST} was not written by runner for this stage"
-    extra = sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*")
-                   if (p.is_file() or p.is_symlink()) and p.relative_to(folder).as_posix() not in listed | {MANIFEST})
+    extra = sorted(
+        p.relative_to(folder).as_posix()
+        for p in folder.rglob("*")
+        if (p.is_file() or p.is_symlink()) and p.relative_to(folder).as_posix() not in listed | {MANIFEST}
+    )
     if extra:
         return f"holds {len(extra)} file(s) runner did not publish, e.g. {extra[0]!r}"
     return None
@@ -132,16 +137,19 @@ def _ours_and_dead(path: Path, match: re.Match) -> bool:
     except (OSError, ValueError):
         marker = None
     if isinstance(marker, dict):
-        return (marker.get("tool") == TOOL and marker.get("stage") == stage and marker.get("pid") == pid
-                and holder_is_stale(marker))
-    return (path.name.endswith(".old") and _not_ours(path, stage) is None
-            and holder_is_stale({"pid": pid, "host": socket.gethostname()}))
+        return (
+            marker.get("tool") == TOOL and marker.get("stage") == stage and marker.get("pid") == pid and holder_is_stale(marker)
+        )
+    return (
+        path.name.endswith(".old")
+        and _not_ours(path, stage) is None
+        and holder_is_stale({"pid": pid, "host": socket.gethostname()})
+    )
 
 
 def _mark(folder: Path, stage: str) -> None:
     """Write the :data:`MARKER` of this process into ``folder``."""
-    (folder / MARKER).write_text(json.dumps({"tool": TOOL, "stage": stage, "pid": os.getpid(),
-                                             "host": socket.gethostname()}))
+    (folder / MARKER).write_text(json.dumps({"tool": TOOL, "stage": stage, "pid": os.getpid(), "host": socket.gethostname()}))
 
 
 def _remove_marked(folder: Path) -> None:
@@ -169,9 +177,12 @@ def is_current(out: Path, item: Published, records: Path) -> bool:
     try:
         published = json.loads((final / MANIFEST).read_text())
         kept = json.loads(_record_path(records, final).read_text())
-        return (published.get("keys") == keys and kept.get("keys") == keys
-                and sorted(kept["stats"]) == sorted(f["path"] for f in published["files"])
-                and all(file_stat(final / path) == stat for path, stat in kept["stats"].items()))
+        return (
+            published.get("keys") == keys
+            and kept.get("keys") == keys
+            and sorted(kept["stats"]) == sorted(f["path"] for f in published["files"])
+            and all(file_stat(final / path) == stat for path, stat in kept["stats"].items())
+        )
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return False
 
@@ -261,8 +272,7 @@ def _build(out: Path, item: Published, tmp: Path, on_damaged: Callable[[Damaged]
             on_damaged(exc.damaged)
             item.entries[exc.index] = item.redo(exc.index)
             redone.add(exc.index)
-    manifest = {"tool": TOOL, "stage": item.stage, "uses": item.uses, "keys": [e.key for e in item.entries],
-                "files": listed}
+    manifest = {"tool": TOOL, "stage": item.stage, "uses": item.uses, "keys": [e.key for e in item.entries], "files": listed}
     (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1))
     problems = conflicts(out, [item.stage])
     if problems:

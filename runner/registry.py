@@ -50,9 +50,7 @@ class Registry:
         targets: dict[str, str] = {}
         for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
             if ep.name in targets and targets[ep.name] != ep.value:
-                raise RegistryError(
-                    f"stage {ep.name!r} is registered twice: {targets[ep.name]} and {ep.value}"
-                )
+                raise RegistryError(f"stage {ep.name!r} is registered twice: {targets[ep.name]} and {ep.value}")
             targets[ep.name] = ep.value
         return cls(entry_points=targets)
 
@@ -106,8 +104,11 @@ def check_stage_class(stage_cls: type[Stage]) -> None:
             raise RegistryError(f"{where}: only frame stages produce 'frames' outputs")
         if issubclass(stage_cls, FrameStage) and not stage_cls.cached and kind != "frames":
             raise RegistryError(f"{where}: a stage with cached = False may only have 'frames' outputs")
-    if issubclass(stage_cls, FrameStage) and "frames" not in stage_cls.inputs.values() \
-            and stage_cls.stream_info is FrameStage.stream_info:
+    if (
+        issubclass(stage_cls, FrameStage)
+        and "frames" not in stage_cls.inputs.values()
+        and stage_cls.stream_info is FrameStage.stream_info
+    ):
         raise RegistryError(f"{where}: a frame stage without a frames input must define stream_info")
     seen: set[str] = set()
     for param in stage_cls.params:

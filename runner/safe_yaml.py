@@ -34,11 +34,11 @@ class StrictLoader(yaml.SafeLoader):
     def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node:
         if self.check_event(yaml.AliasEvent):
             event = self.peek_event()
-            raise yaml.composer.ComposerError(None, None, f"alias *{event.anchor} is not allowed (aliases are refused)",
-                                              event.start_mark)
+            raise yaml.composer.ComposerError(
+                None, None, f"alias *{event.anchor} is not allowed (aliases are refused)", event.start_mark
+            )
         if self.check_event(yaml.SequenceStartEvent, yaml.MappingStartEvent) and self._depth >= MAX_DEPTH:
-            raise yaml.composer.ComposerError(None, None, f"nested deeper than {MAX_DEPTH} levels",
-                                              self.peek_event().start_mark)
+            raise yaml.composer.ComposerError(None, None, f"nested deeper than {MAX_DEPTH} levels", self.peek_event().start_mark)
         self._depth += 1
         try:
             node = super().compose_node(parent, index)
@@ -58,8 +58,11 @@ class StrictLoader(yaml.SafeLoader):
             if seen is not key:
                 mark = seen.start_mark
                 raise yaml.composer.ComposerError(
-                    None, None, f"duplicate key {key.value!r} (first at line {mark.line + 1}, column {mark.column + 1})",
-                    key.start_mark)
+                    None,
+                    None,
+                    f"duplicate key {key.value!r} (first at line {mark.line + 1}, column {mark.column + 1})",
+                    key.start_mark,
+                )
         return node
 
 
@@ -79,8 +82,9 @@ def read_text(path: str | Path) -> str:
     except UnicodeDecodeError as exc:
         line_start = data.rfind(b"\n", 0, exc.start) + 1
         mark = yaml.Mark(str(path), exc.start, data.count(b"\n", 0, exc.start), exc.start - line_start, None, None)
-        raise yaml.MarkedYAMLError(problem=f"not UTF-8 text (byte 0x{data[exc.start]:02x}: {exc.reason})",
-                                   problem_mark=mark) from None
+        raise yaml.MarkedYAMLError(
+            problem=f"not UTF-8 text (byte 0x{data[exc.start]:02x}: {exc.reason})", problem_mark=mark
+        ) from None
 
 
 def compose(text: str) -> yaml.Node | None:

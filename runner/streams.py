@@ -57,7 +57,7 @@ class ChunkedStream:
             frames = self.rows(int(index), int(rows.min()), int(rows.max()) + 1)
             rows = rows - rows.min()
             # A slice (a view) where no frame repeats, so that the result is copied only once.
-            parts.append(frames[rows[0]:rows[-1] + 1] if rows[-1] - rows[0] + 1 == rows.size else frames[rows])
+            parts.append(frames[rows[0] : rows[-1] + 1] if rows[-1] - rows[0] + 1 == rows.size else frames[rows])
         return np.concatenate(parts) if len(parts) > 1 else np.array(parts[0])
 
     def chunks(self) -> Iterator[tuple[int, np.ndarray]]:
@@ -82,8 +82,13 @@ class SharedStream(ChunkedStream):
     (:class:`runner.broadcast.Broadcast`): ``fetch(index, lo, hi)`` gives frames ``[lo, hi)`` of
     a chunk (kept, or computed), ``asked(index)`` tells the producer where this reader is."""
 
-    def __init__(self, info: StreamInfo, ranges: list[tuple[int, int]],
-                 fetch: Callable[[int, int, int], np.ndarray], asked: Callable[[int], None]):
+    def __init__(
+        self,
+        info: StreamInfo,
+        ranges: list[tuple[int, int]],
+        fetch: Callable[[int, int, int], np.ndarray],
+        asked: Callable[[int], None],
+    ):
         super().__init__(info, ranges)
         self._fetch, self._asked = fetch, asked
 
@@ -116,8 +121,15 @@ class ComputedStream(ChunkedStream):
     stage that reads no frames: its chunks depend on nothing another thread must drive.
     """
 
-    def __init__(self, info: StreamInfo, ranges: list[tuple[int, int]], compute: Callable[[int], np.ndarray],
-                 *, keep: int = 3, read_ahead: bool = False):
+    def __init__(
+        self,
+        info: StreamInfo,
+        ranges: list[tuple[int, int]],
+        compute: Callable[[int], np.ndarray],
+        *,
+        keep: int = 3,
+        read_ahead: bool = False,
+    ):
         super().__init__(info, ranges)
         self._compute = compute
         self._keep = keep

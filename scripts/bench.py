@@ -23,7 +23,24 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 
-AREAS = ("runner", "geometry", "propagation", "synthesis", "writers", "e2e", "landmarks", "smoothing", "real", "editor", "eigen", "reenact", "render3d", "batch", "photo_identity", "shot")
+AREAS = (
+    "runner",
+    "geometry",
+    "propagation",
+    "synthesis",
+    "writers",
+    "e2e",
+    "landmarks",
+    "smoothing",
+    "real",
+    "editor",
+    "eigen",
+    "reenact",
+    "render3d",
+    "batch",
+    "photo_identity",
+    "shot",
+)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -36,8 +53,11 @@ def main(argv: list[str] | None = None) -> int:
     args.extra = rest
     sys.path.insert(0, str(REPO))
     module = importlib.import_module(f"scripts.bench_{args.area}")
-    started = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-               "load_start": os.getloadavg()[0], "commit": commit()}
+    started = {
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "load_start": os.getloadavg()[0],
+        "commit": commit(),
+    }
     rows = module.run(args)
     if args.record:
         record(args.area, rows, started, argv if argv is not None else sys.argv[1:])
@@ -57,8 +77,9 @@ def commit() -> str:
     """The checkout's commit, ``-dirty`` when a tracked file differs from it; ``unknown`` outside git."""
     try:
         head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO, capture_output=True,
-                               text=True, check=True).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO, capture_output=True, text=True, check=True
+        ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
     return head + ("-dirty" if dirty else "")
@@ -68,11 +89,19 @@ def record(area: str, rows: list[dict], started: dict, argv: list[str]) -> Path:
     """Append ``rows`` to ``benchmarks/results/<area>.jsonl``, each with the run's provenance."""
     path = REPO / "benchmarks" / "results" / f"{area}.jsonl"
     path.parent.mkdir(parents=True, exist_ok=True)
-    machine = {"cores": os.cpu_count(), "load_start": round(started["load_start"], 2),
-               "load_end": round(os.getloadavg()[0], 2), "platform": platform.platform(),
-               "python": platform.python_version()}
-    run = {"commit": started["commit"], "date": started["date"], "command": " ".join(["scripts/bench.py", *argv]),
-           "machine": machine}
+    machine = {
+        "cores": os.cpu_count(),
+        "load_start": round(started["load_start"], 2),
+        "load_end": round(os.getloadavg()[0], 2),
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+    }
+    run = {
+        "commit": started["commit"],
+        "date": started["date"],
+        "command": " ".join(["scripts/bench.py", *argv]),
+        "machine": machine,
+    }
     with path.open("a", encoding="utf-8") as out:
         for row in rows:
             out.write(json.dumps({**row, **run}, sort_keys=True) + "\n")

@@ -68,8 +68,11 @@ def _jobs(clips: Path) -> dict[str, dict]:
     jobs = {}
     for clip in ("calm", "live"):
         jobs[f"{clip}_landmarks"] = {"pipeline": str(REPO / "pipeline.yaml"), "clip": str(clips / f"{clip}.mp4")}
-        jobs[f"{clip}_paper"] = {"pipeline": str(REPO / "pipeline_paper.yaml"), "clip": str(clips / f"{clip}.mp4"),
-                                 "inputs": {"init": str(clips / f"{clip}_track0.csv")}}
+        jobs[f"{clip}_paper"] = {
+            "pipeline": str(REPO / "pipeline_paper.yaml"),
+            "clip": str(clips / f"{clip}.mp4"),
+            "inputs": {"init": str(clips / f"{clip}_track0.csv")},
+        }
     return jobs
 
 
@@ -78,11 +81,18 @@ def _e2e_job(work: Path) -> dict[str, dict]:
     from scripts.bench_geometry import fixture_set
 
     root = fixture_set(None, work, demo=True)
-    return {"demo": {"pipeline": str(REPO / "pipeline_paper.yaml"), "clip": str(root / "clips" / "live.mp4"),
-                     "inputs": {"init": str(root / "clips" / "live_track0.csv"),
-                                "performer": str(root / "packs" / "performer"),
-                                "target": str(root / "packs" / "target")},
-                     "set": ["synthesize.mode=full"]}}
+    return {
+        "demo": {
+            "pipeline": str(REPO / "pipeline_paper.yaml"),
+            "clip": str(root / "clips" / "live.mp4"),
+            "inputs": {
+                "init": str(root / "clips" / "live_track0.csv"),
+                "performer": str(root / "packs" / "performer"),
+                "target": str(root / "packs" / "target"),
+            },
+            "set": ["synthesize.mode=full"],
+        }
+    }
 
 
 def _run_args(job: dict, out: Path) -> list[str]:
@@ -130,8 +140,13 @@ def _timed(*commands: list[str], cache: Path, env: dict[str, str] | None = None)
     shutil.rmtree(cache, ignore_errors=True)
     started = time.perf_counter()
     for args in commands:
-        done = subprocess.run([sys.executable, "-m", "runner.cli", *args, "--cache-dir", str(cache)],
-                              cwd=REPO, capture_output=True, text=True, env=env)
+        done = subprocess.run(
+            [sys.executable, "-m", "runner.cli", *args, "--cache-dir", str(cache)],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            env=env,
+        )
         if done.returncode != 0:
             raise RuntimeError(f"runner {' '.join(args)} failed ({done.returncode}): {done.stderr.strip()[-2000:]}")
     return time.perf_counter() - started
@@ -143,19 +158,23 @@ def _batch(jobs: dict[str, dict], folder: Path, workers: int | None = None, addr
     shutil.rmtree(folder, ignore_errors=True)
     folder.mkdir(parents=True)
     manifest = folder / "shots.yaml"
-    manifest.write_text(json.dumps({"jobs": {name: {**job, "out": str(folder / "out" / name)}
-                                             for name, job in jobs.items()}}, indent=1))
+    manifest.write_text(
+        json.dumps({"jobs": {name: {**job, "out": str(folder / "out" / name)} for name, job in jobs.items()}}, indent=1)
+    )
     where = ["--address", address] if address else ["--workers", str(workers)] if workers else []
     return ["batch", str(manifest), *where, "--log-json", str(folder / "log.jsonl")]
 
 
 def _start_up(log: Path, launched: float) -> dict[str, float]:
     """The start-up parts of a one-job batch launched at ``launched`` (epoch s), from its events."""
-    events = {e["event"]: e for e in map(json.loads, log.read_text().splitlines()) if "job" not in e or
-              e["event"] == "job_start"}
+    events = {e["event"]: e for e in map(json.loads, log.read_text().splitlines()) if "job" not in e or e["event"] == "job_start"}
     begun = events["batch_start"]["time"] - events["batch_start"]["ray_init_s"]
-    return {"driver_s": begun - launched, "ray_init_s": events["batch_start"]["ray_init_s"],
-            "job_start_s": events["job_start"]["time"] - launched, "shutdown_s": events["batch_end"]["shutdown_s"]}
+    return {
+        "driver_s": begun - launched,
+        "ray_init_s": events["batch_start"]["ray_init_s"],
+        "job_start_s": events["job_start"]["time"] - launched,
+        "shutdown_s": events["batch_end"]["shutdown_s"],
+    }
 
 
 def _attached(jobs: dict[str, dict], work: Path, name: str) -> float:
@@ -167,8 +186,13 @@ def _attached(jobs: dict[str, dict], work: Path, name: str) -> float:
     saved = os.environ.get("PYTHONPATH")
     os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), saved]))  # for the Ray processes
     try:
-        ray.init(num_cpus=os.cpu_count(), include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR,
-                 _system_config={"worker_niceness": 0})
+        ray.init(
+            num_cpus=os.cpu_count(),
+            include_dashboard=False,
+            log_to_driver=False,
+            logging_level=logging.ERROR,
+            _system_config={"worker_niceness": 0},
+        )
     finally:
         if saved is None:
             del os.environ["PYTHONPATH"]
@@ -218,15 +242,26 @@ def run(args) -> list[dict]:
         e2e_job = _e2e_job(Path(args.work).resolve())
         run_e2e, batch_e2e, _ = _one_job(e2e_job, work, "e2e", None)
         attached_e2e = _attached(e2e_job, work, "e2e")
-        e2e = [("batch_e2e_overhead_ratio", batch_e2e / run_e2e, "x"), ("batch_e2e_one_job_s", batch_e2e, "s"),
-               ("run_e2e_one_job_s", run_e2e, "s"), ("batch_e2e_attached_overhead_ratio", attached_e2e / run_e2e, "x"),
-               ("batch_e2e_attached_one_job_s", attached_e2e, "s")]
+        e2e = [
+            ("batch_e2e_overhead_ratio", batch_e2e / run_e2e, "x"),
+            ("batch_e2e_one_job_s", batch_e2e, "s"),
+            ("run_e2e_one_job_s", run_e2e, "s"),
+            ("batch_e2e_attached_overhead_ratio", attached_e2e / run_e2e, "x"),
+            ("batch_e2e_attached_one_job_s", attached_e2e, "s"),
+        ]
     load = f"{' '.join(load_before)} -> {' '.join(Path('/proc/loadavg').read_text().split()[:3])}"
-    rows = [("batch_speedup_2workers", seq / two, "x"), ("batch_overhead_ratio", batch_one / run_one, "x"),
-            ("batch_attached_overhead_ratio", attached / run_one, "x"), ("batch_attached_one_job_s", attached, "s"),
-            ("batch_seq_s", seq, "s"), ("batch_2workers_s", two, "s"), ("batch_one_job_s", batch_one, "s"),
-            ("run_one_job_s", run_one, "s"), *[(f"batch_{name}", value, "s") for name, value in start_up.items()],
-            ("batch_outputs_identical", int(identical), "bool"),
-            ("batch_outputs_pixels_identical", int(same_pixels), "bool"), *e2e]
-    return [{"bench": "batch", "metric": m, "value": v, "unit": u, "load": load, "cpus": os.cpu_count()}
-            for m, v, u in rows]
+    rows = [
+        ("batch_speedup_2workers", seq / two, "x"),
+        ("batch_overhead_ratio", batch_one / run_one, "x"),
+        ("batch_attached_overhead_ratio", attached / run_one, "x"),
+        ("batch_attached_one_job_s", attached, "s"),
+        ("batch_seq_s", seq, "s"),
+        ("batch_2workers_s", two, "s"),
+        ("batch_one_job_s", batch_one, "s"),
+        ("run_one_job_s", run_one, "s"),
+        *[(f"batch_{name}", value, "s") for name, value in start_up.items()],
+        ("batch_outputs_identical", int(identical), "bool"),
+        ("batch_outputs_pixels_identical", int(same_pixels), "bool"),
+        *e2e,
+    ]
+    return [{"bench": "batch", "metric": m, "value": v, "unit": u, "load": load, "cpus": os.cpu_count()} for m, v, u in rows]

@@ -53,14 +53,29 @@ def row(metric: str, value: float, unit: str) -> dict[str, Any]:
 def run_pipeline(root: Path, clip: str, out: Path, cache: Path, *extra: str, paper: bool = True) -> float:
     """Run ``pipeline_paper.yaml`` (or, ``paper`` False, the default ``pipeline.yaml``) on
     ``root``'s fixture set; return the wall time in s."""
-    tracker = ["--input", f"init={root / 'clips' / f'{clip}_track0.csv'}",
-               "--input", f"performer={root / 'packs' / 'performer'}"] if paper else []
+    tracker = (
+        ["--input", f"init={root / 'clips' / f'{clip}_track0.csv'}", "--input", f"performer={root / 'packs' / 'performer'}"]
+        if paper
+        else []
+    )
     command = [
-        sys.executable, "-c", "from runner.cli import main; main()", "run",
+        sys.executable,
+        "-c",
+        "from runner.cli import main; main()",
+        "run",
         str(REPO / ("pipeline_paper.yaml" if paper else "pipeline.yaml")),
-        "--in", str(root / "clips" / f"{clip}.mp4"), *tracker,
-        "--input", f"target={root / 'packs' / 'target'}",
-        "--out", str(out), "--cache-dir", str(cache), "--log-json", str(out.parent / f"{out.name}.log.jsonl"), *extra,
+        "--in",
+        str(root / "clips" / f"{clip}.mp4"),
+        *tracker,
+        "--input",
+        f"target={root / 'packs' / 'target'}",
+        "--out",
+        str(out),
+        "--cache-dir",
+        str(cache),
+        "--log-json",
+        str(out.parent / f"{out.name}.log.jsonl"),
+        *extra,
     ]
     out.parent.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ, PYTHONPATH=str(REPO))
@@ -77,8 +92,12 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     parser.add_argument("--clip", default="live", choices=("calm", "live"), help="demo clip to map")
     parser.add_argument("--ci", action="store_true", help="also the target geometry error on the CI clips")
     parser.add_argument("--default", action="store_true", help="also frames/s of the default pipeline.yaml")
-    parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"),
-                        help="cuda: only the full run, with `runner run --device cuda` (row e2e_fps_cuda)")
+    parser.add_argument(
+        "--device",
+        default="cpu",
+        choices=("cpu", "cuda"),
+        help="cuda: only the full run, with `runner run --device cuda` (row e2e_fps_cuda)",
+    )
     options = parser.parse_args(args.extra)
     from scripts.bench_geometry import fixture_set
 
@@ -89,14 +108,23 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
 
     if options.device == "cuda":
         shutil.rmtree(work / "cuda", ignore_errors=True)
-        seconds = run_pipeline(root, options.clip, work / "cuda" / "out", work / "cuda" / "cache", "--device", "cuda",
-                               "--set", "synthesize.mode=full")
+        seconds = run_pipeline(
+            root,
+            options.clip,
+            work / "cuda" / "out",
+            work / "cuda" / "cache",
+            "--device",
+            "cuda",
+            "--set",
+            "synthesize.mode=full",
+        )
         return [row("e2e_frames", frames, "frames"), row("e2e_fps_cuda", frames / seconds, "frames/s")]
     timings = {}
     for mode in ("full", "warp-only"):
         shutil.rmtree(work / mode, ignore_errors=True)
-        timings[mode] = run_pipeline(root, options.clip, work / mode / "out", work / mode / "cache",
-                                     "--set", f"synthesize.mode={mode}")
+        timings[mode] = run_pipeline(
+            root, options.clip, work / mode / "out", work / mode / "cache", "--set", f"synthesize.mode={mode}"
+        )
         if mode == "full":
             cache_mb = folder_bytes(work / mode / "cache") / 1e6
     rerun = run_pipeline(root, options.clip, work / "full" / "again", work / "full" / "cache", "--set", "synthesize.mode=full")
@@ -140,5 +168,7 @@ def target_errors(root: Path, clip: str, out: Path, suffix: str) -> list[dict[st
     ideal = np.load(root / "clips" / f"{clip}_truth.npz")["target_points"]
     data = np.load(out / "data" / "data.npz")
     neutral = load_pack(root / "packs" / "target").neutral.points
-    return [row(f"e2e_target_err_px{suffix}", float(np.linalg.norm(data["target_xy"] - ideal, axis=-1).mean()), "px"),
-            row(f"e2e_target_err_neutral_px{suffix}", float(np.linalg.norm(neutral[None] - ideal, axis=-1).mean()), "px")]
+    return [
+        row(f"e2e_target_err_px{suffix}", float(np.linalg.norm(data["target_xy"] - ideal, axis=-1).mean()), "px"),
+        row(f"e2e_target_err_neutral_px{suffix}", float(np.linalg.norm(neutral[None] - ideal, axis=-1).mean()), "px"),
+    ]

@@ -79,7 +79,12 @@ def bench_pack(work: Path) -> Path:
     shutil.copytree(source, tmp)
     manifest = read_yaml(tmp / "pack.yaml", what="actor pack", noun="manifest")
     with np.load(tmp / "truth.npz", allow_pickle=False) as truth:
-        index, images, points, names = truth["heldout_index"], truth["heldout_image"], truth["captured_points"], truth["point_names"]
+        index, images, points, names = (
+            truth["heldout_index"],
+            truth["heldout_image"],
+            truth["captured_points"],
+            truth["point_names"],
+        )
     extra = [(k, str(image)) for k, image in zip(index, images) if image][: max(EXAMPLES - len(manifest["examples"]), 0)]
     for k, image in extra:
         name = Path(image).stem
@@ -108,7 +113,7 @@ def process_cpu_s(server: int) -> dict[str, float]:
             cmdline = (stat.parent / "cmdline").read_bytes()
         except OSError:  # the process ended meanwhile
             continue
-        fields = text[text.rindex(")") + 2:].split()  # after the command name, which may hold spaces
+        fields = text[text.rindex(")") + 2 :].split()  # after the command name, which may hold spaces
         table[int(stat.parent.name)] = (int(fields[1]), (int(fields[11]) + int(fields[12])) / tick, cmdline)
     mine, grew = {os.getpid()}, True
     while grew:
@@ -118,8 +123,7 @@ def process_cpu_s(server: int) -> dict[str, float]:
     totals = dict.fromkeys(("server", "renderers", "browser", "driver"), 0.0)
     for pid in mine - {os.getpid()}:
         ppid, cpu, cmdline = table[pid]
-        role = ("server" if pid == server else "renderers" if ppid == server
-                else "browser" if b"chromium" in cmdline else "driver")
+        role = "server" if pid == server else "renderers" if ppid == server else "browser" if b"chromium" in cmdline else "driver"
         totals[role] += cpu
     return totals
 
@@ -163,7 +167,9 @@ def drag_session(page, *, point: str, seconds: float, move_ms: float, server: in
 
 def measure(pack: Path, opts: argparse.Namespace, *, preview_scale: float, screenshot: Path | None = None) -> dict:
     """Serve ``pack`` with ``preview_scale``, drag in Chromium; the stats of the measured drag."""
-    process, url = spawn(pack, "--threads", str(opts.threads), "--processes", str(opts.processes), "--preview-scale", str(preview_scale))
+    process, url = spawn(
+        pack, "--threads", str(opts.threads), "--processes", str(opts.processes), "--preview-scale", str(preview_scale)
+    )
     try:
         with chromium() as browser:
             page = browser.new_page(viewport={"width": 1000, "height": 840})
@@ -183,23 +189,30 @@ def measure(pack: Path, opts: argparse.Namespace, *, preview_scale: float, scree
 
 def run(args: argparse.Namespace) -> list[dict]:
     parser = argparse.ArgumentParser(prog="bench.py editor")
-    parser.add_argument("--pack", type=Path, help="target pack (default: the 600x800 demo target with 15 examples, made under --work)")
+    parser.add_argument(
+        "--pack", type=Path, help="target pack (default: the 600x800 demo target with 15 examples, made under --work)"
+    )
     parser.add_argument("--seconds", type=float, default=8.0, help="dragging time measured")
     parser.add_argument("--move-ms", type=float, default=8.0, help="pause between pointer moves, ms")
     parser.add_argument("--point", default="mouth_outer_12", help="the feature point dragged")
     parser.add_argument("--threads", type=int, default=1, help="torch/OpenCV threads of the server (its --threads)")
     parser.add_argument("--processes", type=int, default=2, help="renderer processes of the server (its --processes; 0: threads)")
-    parser.add_argument("--preview-scale", type=float, default=1.0, help="the server's --preview-scale in the first drag (its default 1)")
+    parser.add_argument(
+        "--preview-scale", type=float, default=1.0, help="the server's --preview-scale in the first drag (its default 1)"
+    )
     parser.add_argument("--no-half", action="store_true", help="skip the second drag with half-size images (--preview-scale 0.5)")
     parser.add_argument("--screenshot", type=Path, help="also save a screenshot of the editor (PNG, subregions shown)")
-    parser.add_argument("--parts", action="store_true", help="only the CPU time of each part of an update, in this process (no browser)")
+    parser.add_argument(
+        "--parts", action="store_true", help="only the CPU time of each part of an update, in this process (no browser)"
+    )
     opts = parser.parse_args(getattr(args, "extra", []))
     pack = opts.pack or bench_pack(Path(args.work))
     row = lambda metric, value, unit: {"bench": "editor", "metric": metric, "value": value, "unit": unit}  # noqa: E731
     if opts.parts:
         parts = profile_parts(pack, point=opts.point)
         return [row(f"editor_part_{name}_cpu_ms", value, "ms") for name, value in parts.items()] + [
-            row("editor_part_load_avg", os.getloadavg()[0], "processes")]
+            row("editor_part_load_avg", os.getloadavg()[0], "processes")
+        ]
     runs = [("editor", opts.preview_scale)] + ([] if opts.no_half else [("editor_half", 0.5)])
     rows = []
     for prefix, scale in runs:
@@ -215,8 +228,10 @@ def run(args: argparse.Namespace) -> list[dict]:
             row(f"{prefix}_decode_ms_p50", percentile(result["decode_ms"], 50), "ms"),
             row(f"{prefix}_updates", len(result["latencies"]), "images"),
             row(f"{prefix}_answers", result["answers"], "images"),
-            *[row(f"{prefix}_cpu_ms_per_update_{role}", ms / max(len(result["latencies"]), 1), "ms")
-              for role, ms in result["cpu_ms"].items()],
+            *[
+                row(f"{prefix}_cpu_ms_per_update_{role}", ms / max(len(result["latencies"]), 1), "ms")
+                for role, ms in result["cpu_ms"].items()
+            ],
             row(f"{prefix}_errors", result["errors"], "responses"),
             row(f"{prefix}_preview_scale", scale, "fraction"),
             row(f"{prefix}_load_avg", os.getloadavg()[0], "processes"),

@@ -112,8 +112,13 @@ def training_renders(rig: PerformerRig, sampling: str, *, samples: int, work: Pa
     controls, angles = rig.sampling(sampling, samples=samples, seed=0)
     start = time.perf_counter()
     images, sims = zip(*training_samples(rig, controls, angles))
-    out = {"images": np.stack(images), "similarity": np.stack(sims), "controls": controls, "angles": angles,
-           "render_s": np.array(time.perf_counter() - start)}
+    out = {
+        "images": np.stack(images),
+        "similarity": np.stack(sims),
+        "controls": controls,
+        "angles": angles,
+        "render_s": np.array(time.perf_counter() - start),
+    }
     work.mkdir(parents=True, exist_ok=True)
     np.savez(path, **out)
     return out
@@ -122,8 +127,9 @@ def training_renders(rig: PerformerRig, sampling: str, *, samples: int, work: Pa
 def trained(rig: PerformerRig, renders: dict[str, np.ndarray], **options: Any) -> tuple[EigenModel, float]:
     """A model from cached renders and its training time (s): the renders' time plus the fit's."""
     start = time.perf_counter()
-    model = train_on_renders(rig, renders["controls"], renders["angles"],
-                             samples=zip(renders["images"], renders["similarity"]), **options)
+    model = train_on_renders(
+        rig, renders["controls"], renders["angles"], samples=zip(renders["images"], renders["similarity"]), **options
+    )
     return model, float(renders["render_s"]) + time.perf_counter() - start
 
 
@@ -142,8 +148,14 @@ def tracked_path(root: Path, kind: str, frames: list[np.ndarray]) -> dict[str, n
     columns = np.array([layout.index(n) for n in names])
     model3d = adapt_to_reference(pack.model3d[columns], smoothed[0], pose["R"][0], pose["tvec"][0], pack.intrinsics)
     frontal, _ = frontalize(smoothed, model3d, pose["R"], pose["tvec"], pack.intrinsics, reference=0)
-    return {"xy": smoothed, "d": frontal - smoothed[:1], "columns": columns, "similarity": sim["params"],
-            "valid": sim["frame_valid"] & pose["valid"], "angles": rotation_angles(pose["R"])}
+    return {
+        "xy": smoothed,
+        "d": frontal - smoothed[:1],
+        "columns": columns,
+        "similarity": sim["params"],
+        "valid": sim["frame_valid"] & pose["valid"],
+        "angles": rotation_angles(pose["R"]),
+    }
 
 
 def distances(xy: np.ndarray, truth: np.ndarray, visible: np.ndarray) -> float:
@@ -160,8 +172,15 @@ def feature_columns(model: EigenModel, columns: np.ndarray) -> dict[str, np.ndar
     return out
 
 
-def clip_rows(model: EigenModel, sampling: str, kind: str, frames: list[np.ndarray], truth: dict[str, np.ndarray],
-              tracked: dict[str, np.ndarray], ridge: float) -> tuple[list[dict[str, Any]], np.ndarray, float]:
+def clip_rows(
+    model: EigenModel,
+    sampling: str,
+    kind: str,
+    frames: list[np.ndarray],
+    truth: dict[str, np.ndarray],
+    tracked: dict[str, np.ndarray],
+    ridge: float,
+) -> tuple[list[dict[str, Any]], np.ndarray, float]:
     """Rows of one model on one clip; returns them, the parameters estimated on the tracked
     path and the analysis frames/s."""
     T = len(frames)
@@ -172,9 +191,11 @@ def clip_rows(model: EigenModel, sampling: str, kind: str, frames: list[np.ndarr
     ridge_mu, _ = analyze_frames(model, frames, tracked["similarity"], tracked["valid"], tracked["angles"], ridge=ridge)
     controls = truth["controls"]
     suffix = f"_{sampling}_{kind}"
-    rows = [row(f"eigen_param_err{suffix}", np.nanmean(np.abs(mu - controls)[1:]), "control units"),
-            row(f"eigen_param_err{suffix}_truepose", np.nanmean(np.abs(true_mu - controls)[1:]), "control units"),
-            row(f"eigen_param_err{suffix}_ridge", np.nanmean(np.abs(ridge_mu - controls)[1:]), "control units")]
+    rows = [
+        row(f"eigen_param_err{suffix}", np.nanmean(np.abs(mu - controls)[1:]), "control units"),
+        row(f"eigen_param_err{suffix}_truepose", np.nanmean(np.abs(true_mu - controls)[1:]), "control units"),
+        row(f"eigen_param_err{suffix}_ridge", np.nanmean(np.abs(ridge_mu - controls)[1:]), "control units"),
+    ]
     mu = np.nan_to_num(mu)
     xy = parameters_to_points(model, mu, tracked["similarity"])
     d = parameters_to_points(model, mu) - model.neutral
@@ -182,38 +203,53 @@ def clip_rows(model: EigenModel, sampling: str, kind: str, frames: list[np.ndarr
     ideal_d = parameters_to_points(model, controls) - model.neutral
     points, visible, cols = truth["points"], truth["visible"], tracked["columns"]
     everywhere = np.ones_like(visible)
-    rows += [row(f"eigen_disp_err_px{suffix}", distances(d, true_d, everywhere), "px"),
-             row(f"eigen_disp_err_px_on_tracked{suffix}", distances(d[:, cols], true_d[:, cols], everywhere[:, cols]),
-                 "px"),
-             row(f"eigen_disp_err_px_trueparams{suffix}", distances(ideal_d, true_d, everywhere), "px"),
-             row(f"eigen_geom_err_px{suffix}", distances(xy, points, visible), "px"),
-             row(f"eigen_geom_err_px_on_tracked{suffix}", distances(xy[:, cols], points[:, cols], visible[:, cols]),
-                 "px")]
+    rows += [
+        row(f"eigen_disp_err_px{suffix}", distances(d, true_d, everywhere), "px"),
+        row(f"eigen_disp_err_px_on_tracked{suffix}", distances(d[:, cols], true_d[:, cols], everywhere[:, cols]), "px"),
+        row(f"eigen_disp_err_px_trueparams{suffix}", distances(ideal_d, true_d, everywhere), "px"),
+        row(f"eigen_geom_err_px{suffix}", distances(xy, points, visible), "px"),
+        row(f"eigen_geom_err_px_on_tracked{suffix}", distances(xy[:, cols], points[:, cols], visible[:, cols]), "px"),
+    ]
     for feature, use in feature_columns(model, cols).items():
-        rows.append(row(f"eigen_disp_err_px_{feature}{suffix}",
-                        distances(d[:, cols[use]], true_d[:, cols[use]], everywhere[:, cols[use]]), "px"))
+        rows.append(
+            row(
+                f"eigen_disp_err_px_{feature}{suffix}",
+                distances(d[:, cols[use]], true_d[:, cols[use]], everywhere[:, cols[use]]),
+                "px",
+            )
+        )
     return rows, mu, fps
 
 
-def tracked_rows(model: EigenModel, kind: str, truth: dict[str, np.ndarray], tracked: dict[str, np.ndarray]
-                 ) -> list[dict[str, Any]]:
+def tracked_rows(
+    model: EigenModel, kind: str, truth: dict[str, np.ndarray], tracked: dict[str, np.ndarray]
+) -> list[dict[str, Any]]:
     """The point tracker's and the do-nothing baseline's rows on one clip."""
     points, visible, cols = truth["points"], truth["visible"], tracked["columns"]
     true_d = (truth["expression_points"] - truth["neutral_points"])[:, cols]
     everywhere = np.ones_like(true_d[..., 0], dtype=bool)
     neutral = parameters_to_points(model, np.zeros((len(points), len(model.param_names))), tracked["similarity"])
-    rows = [row(f"eigen_disp_err_px_tracked_{kind}", distances(tracked["d"], true_d, everywhere), "px"),
-            row(f"eigen_disp_err_px_neutral_{kind}", distances(0 * true_d, true_d, everywhere), "px"),
-            row(f"eigen_geom_err_px_tracked_{kind}", distances(tracked["xy"], points[:, cols], visible[:, cols]), "px"),
-            row(f"eigen_geom_err_px_neutral_{kind}", distances(neutral, points, visible), "px"),
-            row(f"eigen_geom_err_px_neutral_on_tracked_{kind}",
-                distances(neutral[:, cols], points[:, cols], visible[:, cols]), "px"),
-            row(f"eigen_param_err_neutral_{kind}", np.abs(truth["controls"][1:]).mean(), "control units")]
+    rows = [
+        row(f"eigen_disp_err_px_tracked_{kind}", distances(tracked["d"], true_d, everywhere), "px"),
+        row(f"eigen_disp_err_px_neutral_{kind}", distances(0 * true_d, true_d, everywhere), "px"),
+        row(f"eigen_geom_err_px_tracked_{kind}", distances(tracked["xy"], points[:, cols], visible[:, cols]), "px"),
+        row(f"eigen_geom_err_px_neutral_{kind}", distances(neutral, points, visible), "px"),
+        row(f"eigen_geom_err_px_neutral_on_tracked_{kind}", distances(neutral[:, cols], points[:, cols], visible[:, cols]), "px"),
+        row(f"eigen_param_err_neutral_{kind}", np.abs(truth["controls"][1:]).mean(), "control units"),
+    ]
     for feature, use in feature_columns(model, cols).items():
-        rows += [row(f"eigen_disp_err_px_tracked_{feature}_{kind}",
-                     distances(tracked["d"][:, use], true_d[:, use], everywhere[:, use]), "px"),
-                 row(f"eigen_disp_err_px_neutral_{feature}_{kind}",
-                     distances(0 * true_d[:, use], true_d[:, use], everywhere[:, use]), "px")]
+        rows += [
+            row(
+                f"eigen_disp_err_px_tracked_{feature}_{kind}",
+                distances(tracked["d"][:, use], true_d[:, use], everywhere[:, use]),
+                "px",
+            ),
+            row(
+                f"eigen_disp_err_px_neutral_{feature}_{kind}",
+                distances(0 * true_d[:, use], true_d[:, use], everywhere[:, use]),
+                "px",
+            ),
+        ]
     return rows
 
 
@@ -279,8 +315,7 @@ def fixture_rows(own: argparse.Namespace, work: Path) -> list[dict[str, Any]]:
         models[sampling], seconds = trained(rig, renders[sampling], q=own.q, blur_px=own.blur)
         rows.append(row(f"eigen_train_s_{sampling}", seconds, "s"))
         for label, options in VARIANTS.items():
-            variants[(sampling, label)] = trained(rig, renders[sampling], **{"q": own.q, "blur_px": own.blur,
-                                                                             **options})[0]
+            variants[(sampling, label)] = trained(rig, renders[sampling], **{"q": own.q, "blur_px": own.blur, **options})[0]
     estimates = {}
     for kind in ("calm", "live"):
         frames = decode(root / "clips" / f"{kind}.mp4")
@@ -295,10 +330,16 @@ def fixture_rows(own: argparse.Namespace, work: Path) -> list[dict[str, Any]]:
                 rows.append(row(f"eigen_fps_{sampling}", fps, "frames/s"))
             estimates[(sampling, kind)] = (frames, mu, tracked["angles"])
             for label in VARIANTS:
-                v_mu, _ = analyze_frames(variants[(sampling, label)], frames, tracked["similarity"], tracked["valid"],
-                                         tracked["angles"])
-                rows.append(row(f"eigen_param_err_{sampling}_{kind}_{label}",
-                                np.nanmean(np.abs(v_mu - truth["controls"])[1:]), "control units"))
+                v_mu, _ = analyze_frames(
+                    variants[(sampling, label)], frames, tracked["similarity"], tracked["valid"], tracked["angles"]
+                )
+                rows.append(
+                    row(
+                        f"eigen_param_err_{sampling}_{kind}_{label}",
+                        np.nanmean(np.abs(v_mu - truth["controls"])[1:]),
+                        "control units",
+                    )
+                )
     leak = leak_renders(rig, work)
     for sampling in SAMPLINGS:
         rows += leak_rows(models[sampling], sampling, leak)
@@ -311,10 +352,25 @@ def run_pipeline(pipeline: Path, clip: Path, out: Path, cache: Path, *extra: str
     """Run ``pipeline`` on ``clip`` up to its ``data`` stage (outputs under ``out``, stages cached
     in ``cache``); return each stage's own seconds (from ``--log-json``)."""
     log = out.parent / f"{out.name}.jsonl"
-    command = [sys.executable, "-c", "from runner.cli import main; main()", "run", str(pipeline), "--in", str(clip),
-               "--out", str(out), "--cache-dir", str(cache), "--log-json", str(log), "--until", "data", *extra]
-    result = subprocess.run(command, cwd=REPO, env=dict(os.environ, PYTHONPATH=str(REPO)), capture_output=True,
-                            text=True)
+    command = [
+        sys.executable,
+        "-c",
+        "from runner.cli import main; main()",
+        "run",
+        str(pipeline),
+        "--in",
+        str(clip),
+        "--out",
+        str(out),
+        "--cache-dir",
+        str(cache),
+        "--log-json",
+        str(log),
+        "--until",
+        "data",
+        *extra,
+    ]
+    result = subprocess.run(command, cwd=REPO, env=dict(os.environ, PYTHONPATH=str(REPO)), capture_output=True, text=True)
     if result.returncode != 0:
         raise SystemExit(f"{pipeline.name} failed on {clip} ({result.returncode}): {result.stderr.strip()[-2000:]}")
     events = [json.loads(line) for line in log.read_text().splitlines()]
@@ -353,16 +409,19 @@ def real_clip_rows(clip_path: Path, work: Path, build_fraction: float) -> list[d
     print(f"bench eigen: {stem}: pack built from frames 0-{build - 1} in {pack_dir}", file=sys.stderr, flush=True)
     cache = work / "cache"
     run_pipeline(REPO / "pipeline.yaml", clip_path, work / "points", cache)
-    seconds = run_pipeline(REPO / "pipeline_eigen_real.yaml", clip_path, work / "eigen", cache,
-                           "--input", f"performer_pack={pack_dir}")
+    seconds = run_pipeline(
+        REPO / "pipeline_eigen_real.yaml", clip_path, work / "eigen", cache, "--input", f"performer_pack={pack_dir}"
+    )
     test = np.arange(T) >= build
     rows = follow_rows(work / "eigen" / "data" / "data.npz", test, "eigen_real", stem)
     rows += follow_rows(work / "points" / "data" / "data.npz", test, "eigen_real_points", stem)
-    return rows + [row(f"eigen_real_params_{stem}", len(pca_parameters(load(pack_dir).captured_points)), "parameters"),
-                   row(f"eigen_real_train_s_{stem}", seconds["train_eigen"], "s"),
-                   row(f"eigen_real_fps_{stem}", T / max(seconds["eigen"], 1e-9), "frames/s"),
-                   row(f"eigen_real_test_frames_{stem}", T - build, "frames"),
-                   row(f"eigen_real_load_{stem}", load_1min, "load")]
+    return rows + [
+        row(f"eigen_real_params_{stem}", len(pca_parameters(load(pack_dir).captured_points)), "parameters"),
+        row(f"eigen_real_train_s_{stem}", seconds["train_eigen"], "s"),
+        row(f"eigen_real_fps_{stem}", T / max(seconds["eigen"], 1e-9), "frames/s"),
+        row(f"eigen_real_test_frames_{stem}", T - build, "frames"),
+        row(f"eigen_real_load_{stem}", load_1min, "load"),
+    ]
 
 
 def run(args: argparse.Namespace) -> list[dict[str, Any]]:
@@ -387,8 +446,6 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     return rows
 
 
-
-
 def headline_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """The rows the team's checks read: the default (``rich``) sampling's in-frame geometry error,
     the neutral's and the point tracker's, each the mean over the two clips, and its pose leak
@@ -398,8 +455,10 @@ def headline_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     def over_clips(name: str) -> float:
         return float(np.mean([value[f"{name}_{kind}"] for kind in ("calm", "live")]))
 
-    return [row("eigen_geom_err_px", over_clips("eigen_geom_err_px_rich"), "px"),
-            row("eigen_geom_err_px_neutral", over_clips("eigen_geom_err_px_neutral"), "px"),
-            row("eigen_geom_err_px_tracked", over_clips("eigen_geom_err_px_tracked"), "px"),
-            row("eigen_pose_leak", value["eigen_pose_leak_rich"], "fraction of range"),
-            row("eigen_pose_leak_norot", value["eigen_pose_leak_norot_rich"], "fraction of range")]
+    return [
+        row("eigen_geom_err_px", over_clips("eigen_geom_err_px_rich"), "px"),
+        row("eigen_geom_err_px_neutral", over_clips("eigen_geom_err_px_neutral"), "px"),
+        row("eigen_geom_err_px_tracked", over_clips("eigen_geom_err_px_tracked"), "px"),
+        row("eigen_pose_leak", value["eigen_pose_leak_rich"], "fraction of range"),
+        row("eigen_pose_leak_norot", value["eigen_pose_leak_norot_rich"], "fraction of range"),
+    ]

@@ -63,8 +63,13 @@ def row(metric: str, value: float, unit: str) -> dict[str, Any]:
 def truth_points(truth: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     """The clip's true positions of the tracked subset as a ``points`` bundle."""
     tracked = truth["tracked"]
-    return {"xy": truth["points"][:, tracked], "valid": np.ones((len(truth["points"]), len(tracked)), bool),
-            "names": truth["point_names"][tracked], "fps": truth["fps"], "size": truth["size"]}
+    return {
+        "xy": truth["points"][:, tracked],
+        "valid": np.ones((len(truth["points"]), len(tracked)), bool),
+        "names": truth["point_names"][tracked],
+        "fps": truth["fps"],
+        "size": truth["size"],
+    }
 
 
 def ports(pack: Bundles, *names: str) -> Bundles:
@@ -82,49 +87,67 @@ def tracker_points(clip: Path, init: Path, performer: Bundles, ctx: Context) -> 
     frames = np.stack(decode(clip))
     height, width = frames.shape[1:3]
     ranges = chunk_ranges(len(frames), 16)
-    stream = ComputedStream(StreamInfo(len(frames), 25.0, width, height), ranges,  # fps: no row reads it
-                            lambda index: frames[ranges[index][0]:ranges[index][1]])
+    stream = ComputedStream(
+        StreamInfo(len(frames), 25.0, width, height),
+        ranges,  # fps: no row reads it
+        lambda index: frames[ranges[index][0] : ranges[index][1]],
+    )
     inputs = {"frames": stream, "init": init, **ports(performer, "model3d", "geometry", "camera")}
     tracked = CorrelationTrack().run(inputs, {}, ctx)["points"]
     return GaussianSmooth().run({"points": tracked}, {}, ctx)["points"]
 
 
-def pose(points: Mapping[str, np.ndarray], performer: Bundles, ctx: Context,
-         params: Mapping[str, Any] | None = None) -> dict[str, np.ndarray]:
+def pose(
+    points: Mapping[str, np.ndarray], performer: Bundles, ctx: Context, params: Mapping[str, Any] | None = None
+) -> dict[str, np.ndarray]:
     """The ``pose.pnp`` stage's pose with ``params`` (its defaults when None)."""
     inputs = {"points": points, **ports(performer, "layout", "model3d", "camera", "geometry")}
     return PnPPose().run(inputs, dict(params or {}), ctx)["pose"]
 
 
-def pose_compensate(points: Mapping[str, np.ndarray], pose: Mapping[str, np.ndarray], performer: Bundles,
-                    ctx: Context) -> dict[str, np.ndarray]:
+def pose_compensate(
+    points: Mapping[str, np.ndarray], pose: Mapping[str, np.ndarray], performer: Bundles, ctx: Context
+) -> dict[str, np.ndarray]:
     """The ``compensate.pose3d`` stage's displacements."""
     inputs = {"points": points, "pose": pose, **ports(performer, "model3d")}
     return PoseCompensate().run(inputs, {}, ctx)["displacements"]
 
 
-def compensations(points: Mapping[str, np.ndarray], performer: Bundles, ctx: Context,
-                  truth: Mapping[str, np.ndarray] | None = None, pose_params: Mapping[str, Any] | None = None
-                  ) -> dict[str, dict[str, np.ndarray]]:
+def compensations(
+    points: Mapping[str, np.ndarray],
+    performer: Bundles,
+    ctx: Context,
+    truth: Mapping[str, np.ndarray] | None = None,
+    pose_params: Mapping[str, Any] | None = None,
+) -> dict[str, dict[str, np.ndarray]]:
     """Displacement bundles of ``compensate2d``, ``compensate3d`` (the ``pose.pnp`` stage with
     ``pose_params``) and, given the truth, ``compensate3d_truepose``."""
     solved = pose(points, performer, ctx, pose_params)
-    out = {"compensate2d": SimilarityCompensate().run({"points": points}, {}, ctx)["displacements"],
-           "compensate3d": pose_compensate(points, solved, performer, ctx)}
+    out = {
+        "compensate2d": SimilarityCompensate().run({"points": points}, {}, ctx)["displacements"],
+        "compensate3d": pose_compensate(points, solved, performer, ctx),
+    }
     if truth is not None:
-        true_pose = {"R": truth["R"], "tvec": truth["tvec"], "rvec": truth["rvec"],
-                     "valid": np.ones(len(truth["R"]), bool), "camera": truth["intrinsics"]}
+        true_pose = {
+            "R": truth["R"],
+            "tvec": truth["tvec"],
+            "rvec": truth["rvec"],
+            "valid": np.ones(len(truth["R"]), bool),
+            "camera": truth["intrinsics"],
+        }
         out["compensate3d_truepose"] = pose_compensate(points, true_pose, performer, ctx)
     return out
 
 
-def chain_error(displacements: Mapping[str, np.ndarray], target: Bundles, pca_model: Any, ideal: np.ndarray,
-                mode: str, ctx: Context) -> float:
+def chain_error(
+    displacements: Mapping[str, np.ndarray], target: Bundles, pca_model: Any, ideal: np.ndarray, mode: str, ctx: Context
+) -> float:
     """Mean px distance over all points of map.expression -> propagate.hierarchical to ``ideal (T, N, 2)``."""
     inputs = {"displacements": displacements, **ports(target, "layout", "geometry")}
     mapped = ExpressionMap().run(inputs, {"mode": mode}, ctx)["points"]
-    result = HierarchicalPropagation().run({"pca_model": pca_model, "points": mapped},
-                                           {"stop_progress_px": 1e-3, "max_iterations": 200}, ctx)["points"]
+    result = HierarchicalPropagation().run(
+        {"pca_model": pca_model, "points": mapped}, {"stop_progress_px": 1e-3, "max_iterations": 200}, ctx
+    )["points"]
     return float(np.linalg.norm(result["xy"] - ideal, axis=-1).mean())
 
 
@@ -158,8 +181,9 @@ def bench_rows(fixtures: Path = Path("fixtures"), *, tracker: bool = True) -> li
     ctx = Context(device="cpu", files_dir=lambda port: Path("/nonexistent"))
     performer = pack_to_bundles(load_pack(fixtures / "packs" / "performer"))
     target = pack_to_bundles(load_pack(fixtures / "packs" / "target"))
-    pca_model = TrainHierarchicalPCA().run(ports(target, "layout", "geometry"), {"n_components": 8, "variance_kept": 1.0},
-                                           ctx)["pca_model"]
+    pca_model = TrainHierarchicalPCA().run(ports(target, "layout", "geometry"), {"n_components": 8, "variance_kept": 1.0}, ctx)[
+        "pca_model"
+    ]
     target_neutral = target["geometry"]["neutral"]
     rows = []
     for clip in CLIPS:
@@ -172,23 +196,42 @@ def bench_rows(fixtures: Path = Path("fixtures"), *, tracker: bool = True) -> li
             rows.append(row(f"{name}_err_px_{clip}", error, "px"))
         for name in ("compensate2d", "compensate3d"):
             for mode in MAP_MODES:
-                rows.append(row(f"{name}_chain_err_px_{clip}_{mode}",
-                                chain_error(results[name], target, pca_model, truth["target_points"], mode, ctx), "px"))
-        rows.append(row(f"chain_neutral_err_px_{clip}",
-                        np.linalg.norm(target_neutral[None] - truth["target_points"], axis=-1).mean(), "px"))
+                rows.append(
+                    row(
+                        f"{name}_chain_err_px_{clip}_{mode}",
+                        chain_error(results[name], target, pca_model, truth["target_points"], mode, ctx),
+                        "px",
+                    )
+                )
+        rows.append(
+            row(
+                f"chain_neutral_err_px_{clip}",
+                np.linalg.norm(target_neutral[None] - truth["target_points"], axis=-1).mean(),
+                "px",
+            )
+        )
         if tracker:
             clips = fixtures / "clips"
             tracked = tracker_points(clips / f"{clip}.mp4", clips / f"{clip}_track0.csv", performer, ctx)
             for name, bundle in compensations(tracked, performer, ctx, pose_params=PIPELINE_POSE).items():
-                rows.append(row(f"{name}_tracked_chain_err_px_{clip}_none",
-                                chain_error(bundle, target, pca_model, truth["target_points"], "none", ctx), "px"))
+                rows.append(
+                    row(
+                        f"{name}_tracked_chain_err_px_{clip}_none",
+                        chain_error(bundle, target, pca_model, truth["target_points"], "none", ctx),
+                        "px",
+                    )
+                )
             bundle = pose_compensate(tracked, pose(tracked, performer, ctx, {"points": EYES_NOSE}), performer, ctx)
-            rows.append(row(f"compensate3d_tracked_chain_err_px_{clip}_none_eyes_nose",
-                            chain_error(bundle, target, pca_model, truth["target_points"], "none", ctx), "px"))
+            rows.append(
+                row(
+                    f"compensate3d_tracked_chain_err_px_{clip}_none_eyes_nose",
+                    chain_error(bundle, target, pca_model, truth["target_points"], "none", ctx),
+                    "px",
+                )
+            )
         if clip == "live":
             fps_3d, fps_2d = speeds(points, performer, ctx)
-            rows += [row("compensate3d_fps_live", fps_3d, "fps"),
-                     row("compensate3d_fps_ratio_vs_2d", fps_3d / fps_2d, "x")]
+            rows += [row("compensate3d_fps_live", fps_3d, "fps"), row("compensate3d_fps_ratio_vs_2d", fps_3d / fps_2d, "x")]
     return rows
 
 

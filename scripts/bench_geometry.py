@@ -95,8 +95,9 @@ def fixture_set(root: Path | None, work: Path, *, demo: bool, seed: int = 1) -> 
     return target
 
 
-def timed_tracking(frames: list[np.ndarray], init: np.ndarray, method: str, *, repeats: int = 1,
-                   **options: Any) -> tuple[Any, float]:
+def timed_tracking(
+    frames: list[np.ndarray], init: np.ndarray, method: str, *, repeats: int = 1, **options: Any
+) -> tuple[Any, float]:
     """Tracks and frames per second, the best of ``repeats`` runs (the machine is shared: the
     fastest run is the least disturbed one)."""
     best = np.inf
@@ -123,8 +124,9 @@ def angle_deg(r1: np.ndarray, r2: np.ndarray) -> np.ndarray:
     return np.degrees((Rotation.from_matrix(r1).inv() * Rotation.from_matrix(r2)).magnitude())
 
 
-def evaluate_clip(root: Path, kind: str, suffix: str, *, alternatives: tuple[str, ...], alt_frames: int | None
-                  ) -> list[dict[str, Any]]:
+def evaluate_clip(
+    root: Path, kind: str, suffix: str, *, alternatives: tuple[str, ...], alt_frames: int | None
+) -> list[dict[str, Any]]:
     """All metrics of one clip; ``suffix`` is appended to the metric names."""
     layout = load_layout("zhang134")
     truth = np.load(root / "clips" / f"{kind}_truth.npz", allow_pickle=False)
@@ -140,16 +142,20 @@ def evaluate_clip(root: Path, kind: str, suffix: str, *, alternatives: tuple[str
     face_model = pack_face_model(pack, names, init, rigid, pack.intrinsics)
     tracks, fps = timed_tracking(frames, init, "ncc", repeats=REPEATS, face_model=face_model)
     error = track_errors(tracks.xy, gt, visible)
-    rows += [row(f"track_err_px{suffix}", error.mean(), "px"),
-             row(f"track_err_p95_px{suffix}", np.percentile(error, 95), "px"),
-             row(f"track_valid_frac{suffix}", tracks.valid[1:][visible[1:]].mean(), "fraction")]
+    rows += [
+        row(f"track_err_px{suffix}", error.mean(), "px"),
+        row(f"track_err_p95_px{suffix}", np.percentile(error, 95), "px"),
+        row(f"track_valid_frac{suffix}", tracks.valid[1:][visible[1:]].mean(), "fraction"),
+    ]
     plain, _ = timed_tracking(frames, init, "ncc")
     rows.append(row(f"track_err_px{suffix}_2d_only", track_errors(plain.xy, gt, visible).mean(), "px"))
     rigid_error = track_errors(tracks.xy[:, rigid], gt[:, rigid], visible[:, rigid])
     rows.append(row(f"track_err_px_rigid{suffix}", rigid_error.mean(), "px"))
     _, lk_fps = timed_tracking(frames, init, "lk", repeats=REPEATS)
-    rows += [row("track_fps" + ("" if suffix == "_live" else suffix), fps, "frames/s"),
-             row("track_fps_ratio_vs_lk" + ("" if suffix == "_live" else suffix), fps / lk_fps, "x")]
+    rows += [
+        row("track_fps" + ("" if suffix == "_live" else suffix), fps, "frames/s"),
+        row("track_fps_ratio_vs_lk" + ("" if suffix == "_live" else suffix), fps / lk_fps, "x"),
+    ]
     if alternatives and alt_frames:
         first = track_errors(tracks.xy[:alt_frames], gt[:alt_frames], visible[:alt_frames])
         rows.append(row(f"track_err_px{suffix}_first{alt_frames}", first.mean(), "px"))
@@ -157,41 +163,57 @@ def evaluate_clip(root: Path, kind: str, suffix: str, *, alternatives: tuple[str
         count = alt_frames if (method in SLOW and alt_frames) else len(frames)
         alt, alt_fps = timed_tracking(frames[:count], init, method)
         alt_error = track_errors(alt.xy, gt[:count], visible[:count])
-        rows += [row(f"track_err_px{suffix}_{method}", alt_error.mean(), "px"),
-                 row(f"track_err_p95_px{suffix}_{method}", np.percentile(alt_error, 95), "px"),
-                 row(f"track_fps{'' if suffix == '_live' else suffix}_{method}", alt_fps, "frames/s")]
+        rows += [
+            row(f"track_err_px{suffix}_{method}", alt_error.mean(), "px"),
+            row(f"track_err_p95_px{suffix}_{method}", np.percentile(alt_error, 95), "px"),
+            row(f"track_fps{'' if suffix == '_live' else suffix}_{method}", alt_fps, "frames/s"),
+        ]
 
     smoothed, valid = gaussian_smooth(tracks.xy, tracks.valid, sigma=SMOOTH_SIGMA)
-    rows += [row(f"smooth_jitter_ratio{suffix}", jitter(smoothed, gt, visible) / jitter(tracks.xy, gt, visible), "x"),
-             row(f"smooth_err_px{suffix}", track_errors(smoothed, gt, visible).mean(), "px")]
+    rows += [
+        row(f"smooth_jitter_ratio{suffix}", jitter(smoothed, gt, visible) / jitter(tracks.xy, gt, visible), "x"),
+        row(f"smooth_err_px{suffix}", track_errors(smoothed, gt, visible).mean(), "px"),
+    ]
 
     result = compensate(smoothed, valid, smoothed[0], rigid)
     ideal = compensate(gt, np.ones_like(visible), gt[0], rigid)
     disp_error = np.linalg.norm(result["d"] - ideal["d"], axis=2)[1:][visible[1:]]
-    rows += [row(f"compensate_residual_px{suffix}", np.nanmean(result["residual_px"]), "px"),
-             row(f"compensate_disp_err_px{suffix}", disp_error.mean(), "px")]
+    rows += [
+        row(f"compensate_residual_px{suffix}", np.nanmean(result["residual_px"]), "px"),
+        row(f"compensate_disp_err_px{suffix}", disp_error.mean(), "px"),
+    ]
 
     target = load_pack(root / "packs" / "target")
     columns = np.arange(len(names))
-    regions = [named_columns(np.array(names), tuple(layout.point_names[i] for i in s.points))
-               for s in layout.feature_point_sets if s.level == 1]
+    regions = [
+        named_columns(np.array(names), tuple(layout.point_names[i] for i in s.points))
+        for s in layout.feature_point_sets
+        if s.level == 1
+    ]
     for mode in MAP_MODES:
-        transforms = displacement_transforms(smoothed[0], target.neutral.points[tracked], rigid, mode=mode,
-                                             regions=regions)
+        transforms = displacement_transforms(smoothed[0], target.neutral.points[tracked], rigid, mode=mode, regions=regions)
         mapped = map_expression(result["d"], target.neutral.points[tracked], transforms)
-        rows.append(row(f"map_err_px{suffix}_{mode}",
-                        np.linalg.norm(mapped - truth["target_points"][:, tracked], axis=2)[:, columns].mean(), "px"))
+        rows.append(
+            row(
+                f"map_err_px{suffix}_{mode}",
+                np.linalg.norm(mapped - truth["target_points"][:, tracked], axis=2)[:, columns].mean(),
+                "px",
+            )
+        )
 
     face = estimate_face_poses(smoothed, valid, face_model)
-    rows += [row(f"pose_err_deg{suffix}", angle_deg(face["R"], truth["R"]).mean(), "deg"),
-             row(f"pose_trans_err{suffix}", np.linalg.norm(face["tvec"] - truth["tvec"], axis=1).mean(), "mm")]
+    rows += [
+        row(f"pose_err_deg{suffix}", angle_deg(face["R"], truth["R"]).mean(), "deg"),
+        row(f"pose_trans_err{suffix}", np.linalg.norm(face["tvec"] - truth["tvec"], axis=1).mean(), "mm"),
+    ]
     for label, point_names in (("_rigid_pnp", [layout.point_names[i] for i in layout.rigid]), ("_eyes_nose", EYES_NOSE)):
         use = [names.index(n) for n in point_names]
         model = pack.model3d[[layout.index(n) for n in point_names]]
         pose = estimate_poses(smoothed[:, use], valid[:, use], model, pack.intrinsics, adapt=True)
-        rows += [row(f"pose_err_deg{suffix}{label}", angle_deg(pose["R"], truth["R"]).mean(), "deg"),
-                 row(f"pose_trans_err{suffix}{label}", np.linalg.norm(pose["tvec"] - truth["tvec"], axis=1).mean(),
-                     "mm")]
+        rows += [
+            row(f"pose_err_deg{suffix}{label}", angle_deg(pose["R"], truth["R"]).mean(), "deg"),
+            row(f"pose_trans_err{suffix}{label}", np.linalg.norm(pose["tvec"] - truth["tvec"], axis=1).mean(), "mm"),
+        ]
     return rows
 
 

@@ -78,18 +78,24 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
 
         xyz, valid, seconds, cpu = detect_clip(clip)
         _, _, seconds_whole, _ = detect_clip(clip, crop_scale=0.0)
-        rows += [row("fps", len(valid) / seconds, "frames/s"), row("fps_cpu", len(valid) / cpu, "frames/CPU s"),
-                 row("fps_whole_frame", len(valid) / seconds_whole, "frames/s"), row("valid", valid.mean(), "ratio")]
+        rows += [
+            row("fps", len(valid) / seconds, "frames/s"),
+            row("fps_cpu", len(valid) / cpu, "frames/CPU s"),
+            row("fps_whole_frame", len(valid) / seconds_whole, "frames/s"),
+            row("valid", valid.mean(), "ratio"),
+        ]
         if valid.sum() < 2:
             continue
         points = layout_from_mesh(xyz[valid], correspondence)
         eyes = layout.indices(["eye_l_6", "eye_r_6"])
         eye_distance = float(np.linalg.norm(points[:, eyes[0], :2] - points[:, eyes[1], :2], axis=-1).mean())
         rigid = list(layout.rigid)
-        rows += [row("rigid_2d", pair_spread(points[:, rigid, :2], eye_distance), "% eye distance"),
-                 row("rigid_3d", pair_spread(points[:, rigid], eye_distance), "% eye distance"),
-                 row("mouth_3d", pair_spread(points[:, list(layout.indices(MOUTH))], eye_distance), "% eye distance"),
-                 row("eye_distance", eye_distance, "px")]
+        rows += [
+            row("rigid_2d", pair_spread(points[:, rigid, :2], eye_distance), "% eye distance"),
+            row("rigid_3d", pair_spread(points[:, rigid], eye_distance), "% eye distance"),
+            row("mouth_3d", pair_spread(points[:, list(layout.indices(MOUTH))], eye_distance), "% eye distance"),
+            row("eye_distance", eye_distance, "px"),
+        ]
     return rows
 
 

@@ -74,8 +74,9 @@ def run(args: argparse.Namespace) -> list[dict]:
                 continue
             caught = []
             for _ in range(extra.folders):
-                folder = np.concatenate([sa[rng.choice(len(sa), MAJORITY, replace=False)],
-                                         sb[rng.choice(len(sb), INTRUDERS, replace=False)]])
+                folder = np.concatenate(
+                    [sa[rng.choice(len(sa), MAJORITY, replace=False)], sb[rng.choice(len(sb), INTRUDERS, replace=False)]]
+                )
                 differs = majority_outliers(folder, threshold=extra.max_distance)[1]
                 named_same.append(differs[:MAJORITY])
                 caught.append(differs[MAJORITY:])

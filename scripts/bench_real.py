@@ -83,19 +83,32 @@ def row(metric: str, value: float, unit: str) -> dict[str, Any]:
     return {"bench": BENCH, "metric": metric, "value": float(value), "unit": unit}
 
 
-def run_pipeline(clip: Path, work: Path, *extra: str, cache: Path | None = None,
-                 pipeline: Path = PIPELINE) -> tuple[float, dict[str, float]]:
+def run_pipeline(
+    clip: Path, work: Path, *extra: str, cache: Path | None = None, pipeline: Path = PIPELINE
+) -> tuple[float, dict[str, float]]:
     """Run ``pipeline`` on ``clip`` into ``work/out``, from an empty cache ``work/cache`` unless
     ``cache`` is given; return the wall time (s) and each stage's own seconds (from ``--log-json``)."""
     work.mkdir(parents=True, exist_ok=True)
     log = work / "log.jsonl"
     log.unlink(missing_ok=True)
-    command = [sys.executable, "-c", "from runner.cli import main; main()", "run", str(pipeline),
-               "--in", str(clip), "--out", str(work / "out"), "--cache-dir", str(cache or work / "cache"),
-               "--log-json", str(log), *extra]
+    command = [
+        sys.executable,
+        "-c",
+        "from runner.cli import main; main()",
+        "run",
+        str(pipeline),
+        "--in",
+        str(clip),
+        "--out",
+        str(work / "out"),
+        "--cache-dir",
+        str(cache or work / "cache"),
+        "--log-json",
+        str(log),
+        *extra,
+    ]
     start = time.perf_counter()
-    result = subprocess.run(command, cwd=REPO, env=dict(os.environ, PYTHONPATH=str(REPO)), capture_output=True,
-                            text=True)
+    result = subprocess.run(command, cwd=REPO, env=dict(os.environ, PYTHONPATH=str(REPO)), capture_output=True, text=True)
     elapsed = time.perf_counter() - start
     if result.returncode != 0:
         raise SystemExit(f"pipeline failed on {clip} ({result.returncode}): {result.stderr.strip()[-2000:]}")
@@ -126,8 +139,11 @@ def landmark_layout_points(frames: list[np.ndarray]) -> tuple[np.ndarray, np.nda
         for rgb in frames:
             meshes.append(landmarker.detect(rgb))
     xy = np.stack([m.xy for m in meshes])
-    return (layout_from_mesh(xy, load_correspondence("zhang134_mediapipe")), np.array([m.valid for m in meshes]),
-            np.stack([m.matrix for m in meshes]))
+    return (
+        layout_from_mesh(xy, load_correspondence("zhang134_mediapipe")),
+        np.array([m.valid for m in meshes]),
+        np.stack([m.matrix for m in meshes]),
+    )
 
 
 #: MediaPipe's face frame (x right, y up, z towards the camera) to the camera frame used here and
@@ -169,7 +185,7 @@ def contact_sheet(preview: Path, path: Path, count: int = SHEET_FRAMES) -> None:
 
     frames = read_frames(preview)
     picks = [frames[i] for i in np.linspace(0, len(frames) - 1, count).round().astype(int)]
-    rows = [np.concatenate(picks[k:k + 2], axis=1) for k in range(0, count, 2)]
+    rows = [np.concatenate(picks[k : k + 2], axis=1) for k in range(0, count, 2)]
     sheet = np.concatenate(rows, axis=0)
     cv2.imwrite(str(path), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
 
@@ -205,11 +221,16 @@ def clip_rows(clip: Path, work: Path) -> list[dict[str, Any]]:
     target = expression_signals(target_xy, names)
     stem = clip.stem
     rows = follow_rows(data, "real", stem)
-    rows += [row(f"real_target_jitter_px_{stem}", jitter(target_xy), "px"),
-             row(f"real_landmark_jitter_px_{stem}", jitter(performer_xy[valid]), "px"),
-             row(f"real_target_jitter_eye_{stem}", jitter(target_xy) / np.nanmedian(target["eye_distance_px"]), "eye"),
-             row(f"real_landmark_jitter_eye_{stem}",
-                 jitter(performer_xy[valid]) / np.nanmedian(performer["eye_distance_px"][valid]), "eye")]
+    rows += [
+        row(f"real_target_jitter_px_{stem}", jitter(target_xy), "px"),
+        row(f"real_landmark_jitter_px_{stem}", jitter(performer_xy[valid]), "px"),
+        row(f"real_target_jitter_eye_{stem}", jitter(target_xy) / np.nanmedian(target["eye_distance_px"]), "eye"),
+        row(
+            f"real_landmark_jitter_eye_{stem}",
+            jitter(performer_xy[valid]) / np.nanmedian(performer["eye_distance_px"][valid]),
+            "eye",
+        ),
+    ]
     rendered, found, _ = landmark_layout_points(read_frames(work / "out" / "video" / "result.mp4"))
     seen = expression_signals(rendered, names)
     r, ratio = follow(performer["mouth_open"], seen["mouth_open"], valid & found)
@@ -220,14 +241,19 @@ def clip_rows(clip: Path, work: Path) -> list[dict[str, Any]]:
     frontal = expression_signals(frontal_points(performer_xy, data["tracked_z"], head, reference), names)
     for signal, short in (("mouth_open", "mouth"), ("brow_raise", "brow")):
         r, ratio = follow(frontal[signal], target[signal], valid)
-        rows += [row(f"real_{short}_follow_r_frontal_{stem}", r, "r"), row(f"real_{short}_amp_ratio_frontal_{stem}", ratio, "ratio")]
+        rows += [
+            row(f"real_{short}_follow_r_frontal_{stem}", r, "r"),
+            row(f"real_{short}_amp_ratio_frontal_{stem}", ratio, "ratio"),
+        ]
     ours, theirs = relative_ypr(data["pose_R"], reference), relative_ypr(head, reference)
     for k, axis in enumerate(("yaw", "pitch", "roll")):
         r, _ = follow(theirs[:, k], ours[:, k], valid)
         rows.append(row(f"real_pose_agree_r_{axis}_{stem}", r, "r"))
-    rows += [row(f"real_pipeline_fps_{stem}", frames / wall, "frames/s"),
-             row(f"real_landmarker_fps_{stem}", frames / max(seconds.get("landmarks", np.nan), 1e-9), "frames/s"),
-             row(f"real_reference_frame_{stem}", reference, "frame")]
+    rows += [
+        row(f"real_pipeline_fps_{stem}", frames / wall, "frames/s"),
+        row(f"real_landmarker_fps_{stem}", frames / max(seconds.get("landmarks", np.nan), 1e-9), "frames/s"),
+        row(f"real_reference_frame_{stem}", reference, "frame"),
+    ]
     contact_sheet(work / "out" / "preview" / "preview.mp4", work / "sheet.png")
     return rows
 
@@ -272,8 +298,7 @@ def points_panel(xy: np.ndarray, names: list[str], side: int, *, box: np.ndarray
     scale = (side - 1) / max(box[2] - box[0], box[3] - box[1])
     centre = (np.asarray(box[:2]) + box[2:]) / 2
     shift = 4  # fixed-point bits of cv2's sub-pixel drawing
-    where = np.round(((xy - centre) * scale + (side - 1) / 2) * (1 << shift)).astype(np.int64) \
-        if np.isfinite(xy).all() else None
+    where = np.round(((xy - centre) * scale + (side - 1) / 2) * (1 << shift)).astype(np.int64) if np.isfinite(xy).all() else None
     if where is None:
         return panel
     for columns, closed in layout_polylines(names):
@@ -303,16 +328,20 @@ def cross_sheet(runs: list[tuple[Any, Path]], path: Path, *, count: int = SHEET_
             result = frames[t]
             height = side
             width = int(round(result.shape[1] * height / result.shape[0]))
-            cells += [points_panel(xy[t], names, side, box=box),
-                      cv2.resize(result, (width, height), interpolation=cv2.INTER_AREA),
-                      np.full((side, 4, 3), 255, np.uint8)]
+            cells += [
+                points_panel(xy[t], names, side, box=box),
+                cv2.resize(result, (width, height), interpolation=cv2.INTER_AREA),
+                np.full((side, 4, 3), 255, np.uint8),
+            ]
         rows.append(np.concatenate(cells[:-1], axis=1))
     width = max(r.shape[1] for r in rows)
-    sheet = np.concatenate([np.pad(r, ((0, 4), (0, width - r.shape[1]), (0, 0)), constant_values=255)
-                            for r in rows], axis=0)[:-4]
+    sheet = np.concatenate([np.pad(r, ((0, 4), (0, width - r.shape[1]), (0, 0)), constant_values=255) for r in rows], axis=0)[:-4]
     jpeg = Path(path).suffix.lower() in (".jpg", ".jpeg")  # format by suffix: .png or .jpg
-    cv2.imwrite(str(path), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR),
-                [cv2.IMWRITE_JPEG_QUALITY, 88] if jpeg else [cv2.IMWRITE_PNG_COMPRESSION, 9])
+    cv2.imwrite(
+        str(path),
+        cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR),
+        [cv2.IMWRITE_JPEG_QUALITY, 88] if jpeg else [cv2.IMWRITE_PNG_COMPRESSION, 9],
+    )
 
 
 def cross_rows(clips: list[Path], work: Path, target: Path, sheet: Path | None) -> list[dict[str, Any]]:
@@ -338,9 +367,14 @@ def aggregate(rows: list[dict[str, Any]], stems: list[str]) -> list[dict[str, An
     """The min / max rows over the clips run."""
     value = {r["metric"]: r["value"] for r in rows}
     out = []
-    for base, kinds in (("real_mouth_follow_r", ("min",)), ("real_mouth_amp_ratio", ("min", "max")),
-                        ("real_brow_follow_r", ("min",)), ("real_brow_amp_ratio", ("min", "max")),
-                        ("real_image_mouth_follow_r", ("min",)), ("real_brow_amp_ratio_frontal", ("min", "max"))):
+    for base, kinds in (
+        ("real_mouth_follow_r", ("min",)),
+        ("real_mouth_amp_ratio", ("min", "max")),
+        ("real_brow_follow_r", ("min",)),
+        ("real_brow_amp_ratio", ("min", "max")),
+        ("real_image_mouth_follow_r", ("min",)),
+        ("real_brow_amp_ratio_frontal", ("min", "max")),
+    ):
         values = [value[f"{base}_{stem}"] for stem in stems]
         for kind in kinds:
             unit = "r" if base.endswith("_r") else "ratio"
@@ -381,8 +415,10 @@ def realtex_rows(work: Path, frames: int, seeds: list[int]) -> list[dict[str, An
     rows = []
     for method in ("landmarker", "default", "correlation"):
         err = np.concatenate(errors[method])
-        rows += [row(f"real_track_err_px_{method}", err.mean(), "px"),
-                 row(f"real_track_err_px_{method}_p95", np.percentile(err, 95), "px")]
+        rows += [
+            row(f"real_track_err_px_{method}", err.mean(), "px"),
+            row(f"real_track_err_px_{method}_p95", np.percentile(err, 95), "px"),
+        ]
         if method != "correlation":
             for name, cols in groups.items():
                 rows.append(row(f"real_track_err_px_{method}_{name}", err[:, cols].mean(), "px"))
@@ -428,8 +464,11 @@ def states_rows(clips: list[Path], work: Path, pack_clips: list[Path]) -> list[d
             run_pipeline(clip, folder / name, *extra, cache=cache)
             data = np.load(folder / name / "out" / "data" / "data.npz")
             measured[name] = states.state_measures(data) | states.coverage_measures(data)
-            rows += [row(f"real_{key}_{stem}_onto_{name}", value, states.unit_of(key))
-                     for key, value in measured[name].items() if np.isfinite(value)]
+            rows += [
+                row(f"real_{key}_{stem}_onto_{name}", value, states.unit_of(key))
+                for key, value in measured[name].items()
+                if np.isfinite(value)
+            ]
             amp_onto.setdefault(name, {})[stem] = measured[name]["mouth_amp_ratio"]
         worst: dict[str, float] = {}
         for key in set().union(*measured.values()):
@@ -442,15 +481,24 @@ def states_rows(clips: list[Path], work: Path, pack_clips: list[Path]) -> list[d
             if name in ("bundled", stem):
                 continue
             for mode in ("full", "warp-only"):
-                run_pipeline(clip, folder / f"pops_{name}_{mode}", "--input", f"target={targets[name]}", "--set",
-                             "synthesize.head_motion=none", "--set", f"synthesize.mode={mode}", cache=cache)
+                run_pipeline(
+                    clip,
+                    folder / f"pops_{name}_{mode}",
+                    "--input",
+                    f"target={targets[name]}",
+                    "--set",
+                    "synthesize.head_motion=none",
+                    "--set",
+                    f"synthesize.mode={mode}",
+                    cache=cache,
+                )
             pops[name] = states.pops_measures(folder / f"pops_{name}_full" / "out", folder / f"pops_{name}_warp-only" / "out")
             rows += [row(f"real_{key}_{stem}_onto_{name}", value, states.unit_of(key)) for key, value in pops[name].items()]
         worst |= {key: max(m[key] for m in pops.values()) for key in next(iter(pops.values()))}
-        worst |= states.cutstart_measures(clip, folder / "bundled" / "out", folder,
-                                          lambda c, f: run_pipeline(c, f, cache=cache))
-        rows += [row(f"real_{key}_{stem}", value, states.unit_of(key)) for key, value in sorted(worst.items())
-                 if np.isfinite(value)]
+        worst |= states.cutstart_measures(clip, folder / "bundled" / "out", folder, lambda c, f: run_pipeline(c, f, cache=cache))
+        rows += [
+            row(f"real_{key}_{stem}", value, states.unit_of(key)) for key, value in sorted(worst.items()) if np.isfinite(value)
+        ]
         per_clip[stem] = worst
         rows += occlusion_variant_rows(clip, folder / "occlusion", cache)
     rows += states.aggregate(per_clip)
@@ -482,7 +530,7 @@ def occlusion_variant_rows(clip: Path, work: Path, cache: Path) -> list[dict[str
     truth = np.load(work / "occluded_truth.npz")
     away = np.ones(len(a["target_xy"]), bool)
     for first, stop in truth["events"]:
-        away[max(0, first - 3):stop + 3] = False
+        away[max(0, first - 3) : stop + 3] = False
     out = []
     for key, label in (("target", "outside_diff"), ("tracked", "outside_landmark_diff")):
         scale = eye_distance(np.nanmedian(b[f"{key}_xy"], axis=0), names)
@@ -499,12 +547,19 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     parser.add_argument("--no-realtex", action="store_true", help="skip the real-texture clips")
     parser.add_argument("--no-clips", action="store_true", help="skip the real clips' own rows (--target still maps them)")
     parser.add_argument("--target", type=Path, help="also map each clip onto this actor pack (real_cross_ rows)")
-    parser.add_argument("--cross-sheet", type=Path, help="with --target: write the points | result sheet here (.png, or .jpg at quality 88)")
+    parser.add_argument(
+        "--cross-sheet", type=Path, help="with --target: write the points | result sheet here (.png, or .jpg at quality 88)"
+    )
     parser.add_argument("--no-states", action="store_true", help="skip the expression-state rows (scripts/real_states.py)")
     parser.add_argument("--states-sheet", type=Path, help="write the real-texture states contact sheet here (.png or .jpg)")
-    parser.add_argument("--pack-from", action="append", type=Path, default=[],
-                        help="state rows: also map onto a pack built from this clip (repeatable; default: the dev "
-                             f"clips {', '.join(PACK_CLIPS)})")
+    parser.add_argument(
+        "--pack-from",
+        action="append",
+        type=Path,
+        default=[],
+        help="state rows: also map onto a pack built from this clip (repeatable; default: the dev "
+        f"clips {', '.join(PACK_CLIPS)})",
+    )
     options = parser.parse_args(args.extra)
     work = Path(args.work) / BENCH
     rows: list[dict[str, Any]] = []
@@ -521,6 +576,7 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
         rows += cross_rows(clips, work, options.target.resolve(), options.cross_sheet)
     if options.states_sheet is not None:
         from scripts.real_states import states_sheet
+
         states_sheet(work / "states_sheet", options.states_sheet, lambda c, f: run_pipeline(c, f))
     if not options.no_states and clips:
         pack_clips = options.pack_from or [DEV_CLIPS / name for name in PACK_CLIPS if (DEV_CLIPS / name).is_file()]

@@ -54,8 +54,16 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 DEV_CLIPS = REPO.parent / "shared" / "dev-clips"
 BENCH = "reenact"
-METHODS = {"full": "", "warponly": "_warponly", "global": "_global", "nearest": "_nearest", "oracle": "_oracle",
-           "oracleglobal": "_oracleglobal", "footage": "_footage", "footageglobal": "_footageglobal"}
+METHODS = {
+    "full": "",
+    "warponly": "_warponly",
+    "global": "_global",
+    "nearest": "_nearest",
+    "oracle": "_oracle",
+    "oracleglobal": "_oracleglobal",
+    "footage": "_footage",
+    "footageglobal": "_footageglobal",
+}
 WRINKLE_SUBREGIONS = ("forehead", "glabella", "eyezone_l", "eyezone_r", "cheek_l", "cheek_r")
 BATCH = 8
 SHEET_FRAMES = 3
@@ -70,6 +78,7 @@ class Frames:
 
     def __init__(self, frames: np.ndarray, fps: float) -> None:
         from runner.stage import StreamInfo
+
         self.frames = frames
         self.info = StreamInfo(frames=len(frames), fps=fps, width=frames.shape[2], height=frames.shape[1])
 
@@ -78,11 +87,12 @@ class Frames:
 
     def chunks(self) -> Iterator[tuple[int, np.ndarray]]:
         for start in range(0, len(self.frames), 16):
-            yield start, self.frames[start:start + 16]
+            yield start, self.frames[start : start + 16]
 
 
 def decode(clip: Path) -> Frames:
     import av
+
     with av.open(str(clip)) as container:
         stream = container.streams.video[0]
         fps = float(stream.average_rate or 25)
@@ -93,8 +103,9 @@ def decode(clip: Path) -> Frames:
 def head(bundle: dict[str, np.ndarray], frames: int, total: int) -> dict[str, np.ndarray]:
     """The first ``frames`` frames of a per-frame bundle (numeric arrays whose first axis is
     ``total``; names and scalars pass whole)."""
-    return {k: (v[:frames] if np.ndim(v) and len(v) == total and np.asarray(v).dtype.kind != "U" else v)
-            for k, v in bundle.items()}
+    return {
+        k: (v[:frames] if np.ndim(v) and len(v) == total and np.asarray(v).dtype.kind != "U" else v) for k, v in bundle.items()
+    }
 
 
 def build_pack(
@@ -106,16 +117,21 @@ def build_pack(
     from runner.stage import Context
     from stages.landmarks.stage import FaceLandmarks, LayoutPoints
     from stages.packbuild.stage import PackFilter, PackSelect, PackWrite
+
     ctx = Context(device="cpu", files_dir=lambda port: work / port, log=logging.getLogger("bench.reenact"))
     marks = FaceLandmarks().run({"frames": clip}, {}, ctx)["landmarks"]
     points = LayoutPoints().run({"landmarks": marks}, {}, ctx)["points"]
     T = clip.info.frames
-    part = {"frames": Frames(clip.frames[:build], clip.info.fps), "landmarks": head(marks, build, T),
-            "points": head(points, build, T)}
+    part = {
+        "frames": Frames(clip.frames[:build], clip.info.fps),
+        "landmarks": head(marks, build, T),
+        "points": head(points, build, T),
+    }
     part["filter"] = PackFilter().run(part, {}, ctx)["filter"]
     selection = PackSelect().run(part, select, ctx)["selection"]
     if (work / "pack").exists():
         import shutil
+
         shutil.rmtree(work / "pack")
     PackWrite().run({**part, "selection": selection}, {}, ctx)
     return work / "pack", points, selection, part["filter"]
@@ -165,14 +181,18 @@ def evaluate(
         truth = np.stack([align_image(clip.frames[t], p, size)[0] for p, t in zip(params, frames)])
         dst = np.concatenate([geometry, np.broadcast_to(anchors, (len(frames),) + anchors.shape)], 1)
         images = torch.from_numpy(truth).permute(0, 3, 1, 2).float() / 255.0
-        standard = warp_images(images, torch.from_numpy(dst), synth.standard_points[None].expand(len(frames), -1, -1), model["triangles"])
+        standard = warp_images(
+            images, torch.from_numpy(dst), synth.standard_points[None].expand(len(frames), -1, -1), model["triangles"]
+        )
         return geometry, truth, dst, standard
 
-    learned = [aligned(footage[s:s + BATCH]) for s in range(0, len(footage), BATCH)]
-    footage_qp = FootageCoefficients(model, np.concatenate([g for g, _, _, _ in learned]), torch.cat([st for _, _, _, st in learned]))
+    learned = [aligned(footage[s : s + BATCH]) for s in range(0, len(footage), BATCH)]
+    footage_qp = FootageCoefficients(
+        model, np.concatenate([g for g, _, _, _ in learned]), torch.cat([st for _, _, _, st in learned])
+    )
     del learned
     for start in range(0, len(test), BATCH):
-        frames = test[start:start + BATCH]
+        frames = test[start : start + BATCH]
         geometry, truth, dst, standard = aligned(frames)
         out = {m: synth.render(geometry, mode=m.replace("warponly", "warp-only"))[0] for m in ("full", "warponly", "global")}
         for m, mode in (("oracle", "full"), ("oracleglobal", "global")):
@@ -181,7 +201,9 @@ def evaluate(
             out[m] = synth.render(geometry, mode=mode, coeffs=footage_qp.coefficients(geometry, mode=mode))[0]
         nearest = np.argmin(np.sqrt(((geometry[:, None] - example_points[None]) ** 2).sum(-1).mean(-1)), axis=1)
         src = np.concatenate([example_points[nearest], np.broadcast_to(anchors, (len(frames),) + anchors.shape)], 1)
-        out["nearest"] = warp_images(example_images[nearest], torch.from_numpy(src), torch.from_numpy(dst), model["triangles"]).clamp(0, 1)
+        out["nearest"] = warp_images(
+            example_images[nearest], torch.from_numpy(src), torch.from_numpy(dst), model["triangles"]
+        ).clamp(0, 1)
         for k, t in enumerate(frames):
             region = subregion_mask(layout, geometry[k], size)
             face, wr = torch.from_numpy(region >= 0), torch.from_numpy(np.isin(region, wrinkle))
@@ -194,8 +216,12 @@ def evaluate(
                 scores[m]["subregions"].append(subregion_errors(img, real, region, names))
             if int(t) in sheet_at:
                 as_u8 = lambda x: (x.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)  # noqa: E731
-                tiles += [(f"truth {t}", truth[k]), ("full", as_u8(out["full"][k])), ("warp-only", as_u8(out["warponly"][k])),
-                          ("global", as_u8(out["global"][k]))]
+                tiles += [
+                    (f"truth {t}", truth[k]),
+                    ("full", as_u8(out["full"][k])),
+                    ("warp-only", as_u8(out["warponly"][k])),
+                    ("global", as_u8(out["global"][k])),
+                ]
     return scores, tiles, footage_qp.k
 
 
@@ -208,14 +234,19 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     parser.add_argument("--pose-deg", type=float, help="pack.select's pose_deg (default: the stage's)")
     parser.add_argument("--detail-power", type=float, help="band-pass blending power (default: the Synthesizer's)")
     parser.add_argument("--detail-sigma-px", type=float, help="band-pass split, Gaussian sigma, px (default: the Synthesizer's)")
-    parser.add_argument("--flow-max-px", type=float, help="optical-flow refinement bound, px, 0: off (default: the Synthesizer's)")
-    parser.add_argument("--ridge-px", type=float, help="coefficient regularisation of the QPs, px, 0: plain eq. 2 (default: the Synthesizer's)")
+    parser.add_argument(
+        "--flow-max-px", type=float, help="optical-flow refinement bound, px, 0: off (default: the Synthesizer's)"
+    )
+    parser.add_argument(
+        "--ridge-px", type=float, help="coefficient regularisation of the QPs, px, 0: plain eq. 2 (default: the Synthesizer's)"
+    )
     extra = parser.parse_args(args.extra)
     clips = extra.clip or sorted(DEV_CLIPS.glob("*.mp4"))
     if not clips:
         raise SystemExit(f"bench reenact: no clip given and none in {DEV_CLIPS}")
     from stages.packbuild.writing import contact_sheet, write_png
     from stages.synthesis.metrics import pooled_psnr
+
     rows: list[dict[str, Any]] = []
     margins: dict[str, list[float]] = {"warponly": [], "global": []}
     footage_margins: list[float] = []
@@ -231,7 +262,11 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
         print(f"bench reenact: {stem}: pack built from frames 0-{build - 1} in {pack_dir}", file=sys.stderr, flush=True)
         valid = np.asarray(points["valid"], bool).all(axis=1)
         test = np.flatnonzero(valid[build:])[:: max(1, extra.stride)] + build
-        remedies = {k: getattr(extra, k) for k in ("detail_power", "detail_sigma_px", "flow_max_px", "ridge_px") if getattr(extra, k) is not None}
+        remedies = {
+            k: getattr(extra, k)
+            for k in ("detail_power", "detail_sigma_px", "flow_max_px", "ridge_px")
+            if getattr(extra, k) is not None
+        }
         footage = np.flatnonzero(np.asarray(filt["keep"], bool))
         scores, clip_tiles, footage_k = evaluate(clip, points, pack_dir, test, footage, **remedies)
         tiles += clip_tiles

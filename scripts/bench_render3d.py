@@ -195,7 +195,7 @@ def run(args: argparse.Namespace) -> list[dict]:
         p3 = truth["captured_points3d"][held[j]]
         R = rotation(yaw, pitch, roll) @ R0
         true_img = render(face, p3, R, t0, camera, supersample=2).image.astype(np.float32) / 255.0
-        true_pts = ((p3 @ R.T + t0) @ camera.A.T)
+        true_pts = (p3 @ R.T + t0) @ camera.A.T
         true_pts = true_pts[:, :2] / true_pts[:, 2:3]
         mask = face_hull(true_pts[skin], size)
         g2 = truth["captured_points"][held[j]]
@@ -287,7 +287,10 @@ def contact_sheet(clip: Path, out: Path, png: Path, *, frames: tuple[int, ...] =
     columns = [decode(clip), decode(out / "video" / "result.mp4"), decode(out / "video3d" / "result3d.mp4")]
     rows = []
     for f in frames:
-        cells = [cv2.resize(c[f], (round(c[f].shape[1] * height / c[f].shape[0]), height), interpolation=cv2.INTER_AREA) for c in columns]
+        cells = [
+            cv2.resize(c[f], (round(c[f].shape[1] * height / c[f].shape[0]), height), interpolation=cv2.INTER_AREA)
+            for c in columns
+        ]
         rows.append(np.hstack(cells))
     cv2.imwrite(str(png), cv2.cvtColor(np.vstack(rows), cv2.COLOR_RGB2BGR), [cv2.IMWRITE_PNG_COMPRESSION, 9])
 

@@ -62,6 +62,7 @@ stages:
 
 def _timed(fn) -> tuple[float, float]:
     """(wall s, CPU s) of one call; CPU time covers this process's threads and its children."""
+
     def cpu() -> float:
         children = os.times()
         return time.process_time() + children.children_user + children.children_system
@@ -152,8 +153,19 @@ def run(args) -> list[dict]:
     rows.append({"bench": "runner", "metric": "runner_overhead_cpu_ratio", "value": runner_cpu / direct_cpu, "unit": "x"})
 
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(site or ""), str(REPO)]))}
-    command = [sys.executable, "-m", "runner.cli", "run", str(pipeline), "--in", str(clip), "--out", str(work / "out"),
-               "--cache-dir", str(cache)]
+    command = [
+        sys.executable,
+        "-m",
+        "runner.cli",
+        "run",
+        str(pipeline),
+        "--in",
+        str(clip),
+        "--out",
+        str(work / "out"),
+        "--cache-dir",
+        str(cache),
+    ]
     [(rerun_s, rerun_cpu)] = _best(lambda: subprocess.run(command, env=env, check=True, capture_output=True))
     rows.append({"bench": "runner", "metric": "runner_noop_rerun_s", "value": rerun_s, "unit": "s"})
     rows.append({"bench": "runner", "metric": "runner_noop_rerun_cpu_s", "value": rerun_cpu, "unit": "s"})
@@ -165,14 +177,25 @@ def _pipeline_rows(work: Path, env: dict[str, str]) -> list[dict]:
     live clip, each a new process (best of ``REPEATS``)."""
     runner = [sys.executable, "-m", "runner.cli"]
     [(dag_s, dag_cpu)] = _best(lambda: _run_checked([*runner, "dag", "pipeline.yaml"], env))
-    command = [*runner, "run", "pipeline.yaml", "--in", "fixtures/clips/live.mp4", "--out", str(work / "pipeline_out"),
-               "--cache-dir", str(work / "pipeline_cache")]
+    command = [
+        *runner,
+        "run",
+        "pipeline.yaml",
+        "--in",
+        "fixtures/clips/live.mp4",
+        "--out",
+        str(work / "pipeline_out"),
+        "--cache-dir",
+        str(work / "pipeline_cache"),
+    ]
     _run_checked(command, env)  # fills the cache once
     [(rerun_s, rerun_cpu)] = _best(lambda: _run_checked(command, env))
-    return [{"bench": "runner", "metric": "runner_cli_startup_s", "value": dag_s, "unit": "s"},
-            {"bench": "runner", "metric": "runner_cli_startup_cpu_s", "value": dag_cpu, "unit": "s"},
-            {"bench": "runner", "metric": "runner_cached_pipeline_rerun_s", "value": rerun_s, "unit": "s"},
-            {"bench": "runner", "metric": "runner_cached_pipeline_rerun_cpu_s", "value": rerun_cpu, "unit": "s"}]
+    return [
+        {"bench": "runner", "metric": "runner_cli_startup_s", "value": dag_s, "unit": "s"},
+        {"bench": "runner", "metric": "runner_cli_startup_cpu_s", "value": dag_cpu, "unit": "s"},
+        {"bench": "runner", "metric": "runner_cached_pipeline_rerun_s", "value": rerun_s, "unit": "s"},
+        {"bench": "runner", "metric": "runner_cached_pipeline_rerun_cpu_s", "value": rerun_cpu, "unit": "s"},
+    ]
 
 
 def _run_checked(command: list[str], env: dict[str, str]) -> None:

@@ -90,8 +90,22 @@ def runner(pipeline: str, clip: Path, out: Path, cache: Path, *extra: str) -> tu
     log = out.parent / f"{out.name}.log.jsonl"
     out.parent.mkdir(parents=True, exist_ok=True)
     log.unlink(missing_ok=True)
-    command = [sys.executable, "-c", "from runner.cli import main; main()", "run", str(REPO / pipeline), "--in", str(clip),
-               "--out", str(out), "--cache-dir", str(cache), "--log-json", str(log), *extra]
+    command = [
+        sys.executable,
+        "-c",
+        "from runner.cli import main; main()",
+        "run",
+        str(REPO / pipeline),
+        "--in",
+        str(clip),
+        "--out",
+        str(out),
+        "--cache-dir",
+        str(cache),
+        "--log-json",
+        str(log),
+        *extra,
+    ]
     start = time.perf_counter()
     result = subprocess.run(command, cwd=REPO, env=dict(os.environ, PYTHONPATH=str(REPO)), capture_output=True, text=True)
     elapsed = time.perf_counter() - start
@@ -110,6 +124,7 @@ def build_pack(clip: Path, work: Path, *extra: str) -> Path:
 def read_exr(path: Path) -> tuple[dict[str, np.ndarray], Any]:
     """An EXR's channels by name (float32 planes) and its OpenImageIO spec."""
     import OpenImageIO as oiio
+
     image = oiio.ImageInput.open(str(path))
     if image is None:
         raise SystemExit(f"cannot open {path}: {oiio.geterror()}")
@@ -122,6 +137,7 @@ def read_exr(path: Path) -> tuple[dict[str, np.ndarray], Any]:
 def plate_srgb(channels: dict[str, np.ndarray]) -> np.ndarray:
     """``(H, W, 3)`` float sRGB in [0, 1] of an EXR's ``plate`` layer (the whole frame)."""
     from stages.color import linear_to_srgb
+
     linear = np.stack([channels[f"plate.{c}"] for c in "RGB"], -1)
     return np.clip(linear_to_srgb(np.clip(linear, 0.0, None)), 0.0, 1.0)
 
@@ -136,6 +152,7 @@ def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
 def ssim(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
     """SSIM of RGB images in [0, 1] (skimage, Gaussian window), its map averaged over ``mask``."""
     from skimage.metrics import structural_similarity
+
     _, full = structural_similarity(a, b, channel_axis=2, data_range=1.0, gaussian_weights=True, full=True)
     full = full.mean(-1)
     return float(full.mean() if mask is None else full[mask].mean())
@@ -143,13 +160,18 @@ def ssim(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
 
 # -- head turns against truth ---------------------------------------------------------------------
 
+
 def turn_motion(frames_still: int = 8, frames_sweep: int = 32) -> np.ndarray:
     """``(T, 3)`` yaw, pitch, roll (deg) of the performance: still and frontal, then smooth sweeps
     of yaw (+-30), pitch (+-15), yaw with pitch (+-20, +-10), roll (+-10)."""
     s = np.sin(2 * np.pi * np.arange(frames_sweep) / frames_sweep)
-    parts = [np.zeros((frames_still, 3)), np.column_stack([30 * s, 0 * s, 0 * s]), np.column_stack([0 * s, 15 * s, 0 * s]),
-             np.column_stack([20 * s, 10 * np.sin(4 * np.pi * np.arange(frames_sweep) / frames_sweep), 0 * s]),
-             np.column_stack([0 * s, 0 * s, 10 * s])]
+    parts = [
+        np.zeros((frames_still, 3)),
+        np.column_stack([30 * s, 0 * s, 0 * s]),
+        np.column_stack([0 * s, 15 * s, 0 * s]),
+        np.column_stack([20 * s, 10 * np.sin(4 * np.pi * np.arange(frames_sweep) / frames_sweep), 0 * s]),
+        np.column_stack([0 * s, 0 * s, 10 * s]),
+    ]
     return np.concatenate(parts)
 
 
@@ -158,13 +180,16 @@ def target_expressions(frames: int = 60) -> np.ndarray:
     neutral start, then each expression and mixes rising and falling."""
     t = np.arange(frames)
     bump = lambda start, length: np.clip(np.sin(np.pi * (t - start) / length), 0, None) * ((t >= start) & (t < start + length))  # noqa: E731
-    return np.column_stack([bump(6, 16) + bump(40, 14), bump(20, 12) + 0.6 * bump(40, 14), bump(30, 14) + 0.5 * bump(46, 10)]).clip(0, 1)
+    return np.column_stack(
+        [bump(6, 16) + bump(40, 14), bump(20, 12) + 0.6 * bump(40, 14), bump(30, 14) + 0.5 * bump(46, 10)]
+    ).clip(0, 1)
 
 
 def render_clip(face, path: Path, params: np.ndarray, angles: np.ndarray, fps: int = 25) -> dict[str, np.ndarray]:
     """Render a real-texture clip (H.264, crf 12) and return its truth: frames, landmark points, coverage."""
     from scripts.realface.clip import render_state
     from stages.video import VideoWriter
+
     size = face.mesh.size
     truth = {"frames": [], "points": [], "coverage": []}
     with VideoWriter(path, fps=fps, width=size, height=size, codec="h264", crf=12) as writer:
@@ -181,6 +206,7 @@ def face_region(points: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """``(H, W) bool``: inside the face oval of MediaPipe landmarks ``points (478, 2)``."""
     import cv2
     from scripts.realface.landmarks import FACE_OVAL
+
     mask = np.zeros(shape, np.uint8)
     cv2.fillPoly(mask, [np.round(points[list(FACE_OVAL)]).astype(np.int32)], 1)
     return mask.astype(bool)
@@ -202,11 +228,26 @@ def turn_rows(work: Path) -> list[dict[str, Any]]:
     truth = render_clip(face, work / "performer.mp4", np.zeros((len(angles), 3)), angles)
     # self-reenactment: the rest frame is the reference, the target's own rest pose is the performer's
     # (absolute=false), and its lips are as they are (the portrait's rest face shows its teeth)
-    same = ("--input", f"target={pack}", "--set", "compensate.neutral_frame=0", "--set", "compensate.close_lips=false",
-            "--set", "head3d.absolute=false")
+    same = (
+        "--input",
+        f"target={pack}",
+        "--set",
+        "compensate.neutral_frame=0",
+        "--set",
+        "compensate.close_lips=false",
+        "--set",
+        "head3d.absolute=false",
+    )
     runner("pipeline_3d.yaml", work / "performer.mp4", work / "depth", work / "cache", *same)
-    runner("pipeline.yaml", work / "performer.mp4", work / "similarity", work / "cache", *same,
-           "--set", "synthesize.head_motion=similarity")
+    runner(
+        "pipeline.yaml",
+        work / "performer.mp4",
+        work / "similarity",
+        work / "cache",
+        *same,
+        "--set",
+        "synthesize.head_motion=similarity",
+    )
     manifest = yaml.safe_load((pack / "pack.yaml").read_text())
     W, H = manifest["image_size"]
     a, b, tx, ty = manifest["neutral"]["similarity"]
@@ -218,8 +259,9 @@ def turn_rows(work: Path) -> list[dict[str, Any]]:
     shown = {}
     for t in range(len(angles)):
         true = cv2.warpAffine(truth["frames"][t], M, (W, H), flags=cv2.INTER_LINEAR).astype(np.float32) / 255.0
-        region = cv2.warpAffine(face_region(truth["points"][t], truth["frames"].shape[1:3]).astype(np.uint8), M, (W, H),
-                                flags=cv2.INTER_NEAREST).astype(bool)
+        region = cv2.warpAffine(
+            face_region(truth["points"][t], truth["frames"].shape[1:3]).astype(np.uint8), M, (W, H), flags=cv2.INTER_NEAREST
+        ).astype(bool)
         images = {k: plate_srgb(read_exr(folder / f"frame.{t:06d}.exr")[0]) for k, folder in outputs.items()}
         if t in turned:
             for k, image in images.items():
@@ -231,17 +273,25 @@ def turn_rows(work: Path) -> list[dict[str, Any]]:
     for k, (p_all, p_face, s_all, s_face) in means.items():
         stem = "shot_turn3d" if k == "3d" else "shot_turn"
         suffix = "" if k == "3d" else k
-        rows += [row(f"{stem}_psnr_db{suffix}", p_all, "dB"), row(f"{stem}_psnr_db{suffix}_face", p_face, "dB"),
-                 row(f"{stem}_ssim{suffix}", s_all, "ratio"), row(f"{stem}_ssim{suffix}_face", s_face, "ratio")]
+        rows += [
+            row(f"{stem}_psnr_db{suffix}", p_all, "dB"),
+            row(f"{stem}_psnr_db{suffix}_face", p_face, "dB"),
+            row(f"{stem}_ssim{suffix}", s_all, "ratio"),
+            row(f"{stem}_ssim{suffix}_face", s_face, "ratio"),
+        ]
     rows += [row("shot_fill_frames", len(fills["pushpull"]), "frames")]
     if fills["pushpull"]:
-        rows += [row("shot_fill_psnr_db_pushpull", np.mean(fills["pushpull"]), "dB"),
-                 row("shot_fill_psnr_db_telea", np.mean(fills["telea"]), "dB"),
-                 row("shot_fill_ms_pushpull", np.mean(fills["pushpull_ms"]), "ms"),
-                 row("shot_fill_ms_telea", np.mean(fills["telea_ms"]), "ms")]
-    rows += [row("shot_turn_gain_db", means[""][0] - means["_2dsim"][0], "dB"),
-             row("shot_turn_gain_db_face", means[""][1] - means["_2dsim"][1], "dB"),
-             row("shot_turn3d_gap_db", means["3d"][0] - means[""][0], "dB")]
+        rows += [
+            row("shot_fill_psnr_db_pushpull", np.mean(fills["pushpull"]), "dB"),
+            row("shot_fill_psnr_db_telea", np.mean(fills["telea"]), "dB"),
+            row("shot_fill_ms_pushpull", np.mean(fills["pushpull_ms"]), "ms"),
+            row("shot_fill_ms_telea", np.mean(fills["telea_ms"]), "ms"),
+        ]
+    rows += [
+        row("shot_turn_gain_db", means[""][0] - means["_2dsim"][0], "dB"),
+        row("shot_turn_gain_db_face", means[""][1] - means["_2dsim"][1], "dB"),
+        row("shot_turn3d_gap_db", means["3d"][0] - means[""][0], "dB"),
+    ]
     picks = [int(turned[np.argmax(np.abs(angles[turned, k]))]) for k in (0, 1)]
     tiles = []
     for t in picks:
@@ -259,6 +309,7 @@ def fill_scores(channels: dict[str, np.ndarray], true: np.ndarray, fills: dict[s
     fewer than 50 such pixels are skipped)."""
     import cv2
     from stages.fill import fill_invalid
+
     missing = channels["filled.A"] > 0.5
     if missing.sum() < 50:
         return
@@ -276,12 +327,14 @@ def fill_scores(channels: dict[str, np.ndarray], true: np.ndarray, fills: dict[s
 
 # -- invented pixels -------------------------------------------------------------------------------
 
+
 def indicator_pack(pack: Path, out: Path) -> Path:
     """A copy of ``pack`` whose images are white where they come from inside their footage's frame
     and black where from beyond it, from each entry's recorded similarity and the footage size (the
     writer's images and mattes are not read)."""
     import cv2
     import yaml
+
     shutil.rmtree(out, ignore_errors=True)
     shutil.copytree(pack, out)
     manifest = yaml.safe_load((pack / "pack.yaml").read_text())
@@ -290,8 +343,14 @@ def indicator_pack(pack: Path, out: Path) -> Path:
     inside = np.full((fh, fw), 255, np.uint8)
     for entry in [manifest["neutral"], manifest["standard"], *manifest["examples"], *manifest["teeth_examples"]]:
         a, b, tx, ty = entry["similarity"]
-        image = cv2.warpAffine(inside, np.array([[a, -b, tx], [b, a, ty]]), (W, H), flags=cv2.INTER_LINEAR,
-                               borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        image = cv2.warpAffine(
+            inside,
+            np.array([[a, -b, tx], [b, a, ty]]),
+            (W, H),
+            flags=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0,
+        )
         cv2.imwrite(str(out / entry["image"]), cv2.merge([image] * 3))
         (out / entry["matte"]).unlink(missing_ok=True)
         entry.pop("matte")
@@ -317,7 +376,9 @@ def invented_fraction(pack: Path, out: Path) -> tuple[float, float]:
         channels, spec = read_exr(out / "exr" / f"frame.{t:06d}.exr")
         R = np.array(spec.getattribute("exmap:head_R"), np.float64).reshape(3, 3)
         shift = np.array(spec.getattribute("exmap:head_t_mm"), np.float64)
-        rgba, _, _ = synth.render_rgba(xy[t:t + 1], turn=HeadTurn(R[None], shift[None], depth, indicator.intrinsics), fill=False)
+        rgba, _, _ = synth.render_rgba(
+            xy[t : t + 1], turn=HeadTurn(R[None], shift[None], depth, indicator.intrinsics), fill=False
+        )
         beyond = 1.0 - rgba[0, 0].numpy()
         invented += float(np.clip(beyond - channels["filled.A"], 0.0, None).mean())
         filled += float(channels["filled.A"].mean())
@@ -336,23 +397,30 @@ def invented_rows(work: Path, clips: list[Path], targets: list[Path]) -> list[di
             fractions.append(invented_fraction(pack, out))
         invented, filled = np.mean(fractions, axis=0)
         worst = max(worst, invented)
-        rows += [row(f"shot_invented_px_frac_{clip.stem}", invented, "ratio"), row(f"shot_filled_px_frac_{clip.stem}", filled, "ratio")]
+        rows += [
+            row(f"shot_invented_px_frac_{clip.stem}", invented, "ratio"),
+            row(f"shot_filled_px_frac_{clip.stem}", filled, "ratio"),
+        ]
     return rows + [row("shot_invented_px_frac_max", worst, "ratio")]
 
 
 # -- speed and size --------------------------------------------------------------------------------
 
+
 def speed_rows(work: Path, clip: Path, pack: Path, label: str) -> list[dict[str, Any]]:
     """``pipeline.yaml`` end to end from an empty cache: frames/s, peak memory, cache, profile."""
     from scripts.bench_e2e import folder_bytes
+
     shutil.rmtree(work / label, ignore_errors=True)
     before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     seconds, events = runner("pipeline.yaml", clip, work / label / "out", work / label / "cache", "--input", f"target={pack}")
     peak_kb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     frames = max(int(e["frames"]) for e in events if e.get("event") == "stage" and e.get("frames"))
-    rows = [row(f"shot_fps_{label}", frames / seconds, "frames/s"),
-            row(f"shot_peak_mb_{label}", max(peak_kb, before) / 1024.0, "MB"),
-            row(f"shot_cache_mb_per_100_frames_{label}", folder_bytes(work / label / "cache") / 1e6 / frames * 100.0, "MB")]
+    rows = [
+        row(f"shot_fps_{label}", frames / seconds, "frames/s"),
+        row(f"shot_peak_mb_{label}", max(peak_kb, before) / 1024.0, "MB"),
+        row(f"shot_cache_mb_per_100_frames_{label}", folder_bytes(work / label / "cache") / 1e6 / frames * 100.0, "MB"),
+    ]
     cpu: dict[str, set[float]] = {}
     for e in events:  # a stage run in a child process is reported by the child and again by the run
         if e.get("event") == "stage" and e.get("status") in ("ran", "on demand") and e.get("cpu_seconds"):
@@ -362,20 +430,35 @@ def speed_rows(work: Path, clip: Path, pack: Path, label: str) -> list[dict[str,
     # the baseline in the same run: traditional expression mapping (the neutral warped, the 2D
     # similarity, the face-only EXR), everything else as above
     shutil.rmtree(work / f"{label}_baseline", ignore_errors=True)
-    base, _ = runner("pipeline.yaml", clip, work / f"{label}_baseline" / "out", work / f"{label}_baseline" / "cache",
-                     "--input", f"target={pack}", "--set", "synthesize.mode=warp-only", "--set",
-                     "synthesize.head_motion=similarity", "--set", "exr.layers=face")
-    rows += [row(f"shot_fps_{label}_warponly", frames / base, "frames/s"),
-             row(f"shot_fps_{label}_ratio_warponly", base / seconds, "ratio")]
+    base, _ = runner(
+        "pipeline.yaml",
+        clip,
+        work / f"{label}_baseline" / "out",
+        work / f"{label}_baseline" / "cache",
+        "--input",
+        f"target={pack}",
+        "--set",
+        "synthesize.mode=warp-only",
+        "--set",
+        "synthesize.head_motion=similarity",
+        "--set",
+        "exr.layers=face",
+    )
+    rows += [
+        row(f"shot_fps_{label}_warponly", frames / base, "frames/s"),
+        row(f"shot_fps_{label}_ratio_warponly", base / seconds, "ratio"),
+    ]
     return rows
 
 
 # -- contact sheets --------------------------------------------------------------------------------
 
+
 def sheet(clip: Path, pack: Path, work: Path) -> Path:
     """performer | 2D | 3D at the largest yaw, pitch and roll of ``clip`` (``pipeline_3d.yaml``)."""
     from scripts.bench_real import read_frames
     from stages.packbuild.writing import contact_sheet, write_png
+
     out = work / clip.stem
     runner("pipeline_3d.yaml", clip, out, work / "cache", "--input", f"target={pack}")
     ypr = np.load(out / "data" / "data.npz")["pose_ypr_deg"]
@@ -415,8 +498,14 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
         rows += invented_rows(work / "invented", clips, targets)
     if not options.no_speed:
         narrow = build_pack(targets[0], work / "packs" / targets[0].stem)
-        wide = build_pack(options.wide_clip, work / "packs" / f"{options.wide_clip.stem}_{options.wide_width}",
-                          "--set", f"pack.width={options.wide_width}", "--set", "pack.max_upscale=4")
+        wide = build_pack(
+            options.wide_clip,
+            work / "packs" / f"{options.wide_clip.stem}_{options.wide_width}",
+            "--set",
+            f"pack.width={options.wide_width}",
+            "--set",
+            "pack.max_upscale=4",
+        )
         rows += speed_rows(work / "speed", options.speed_clip, narrow, "384")
         rows += speed_rows(work / "speed", options.speed_clip, wide, str(options.wide_width))
     if options.sheets:

@@ -50,7 +50,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from stages.geometry.mapping import NORMALIZATION_POINTS, eye_distance  # noqa: E402
 from stages.geometry.smooth import (  # noqa: E402
-    GaussianSmooth, OneEuroSmooth, gaussian_smooth, one_euro_smooth, one_euro_smooth_face,
+    GaussianSmooth,
+    OneEuroSmooth,
+    gaussian_smooth,
+    one_euro_smooth,
+    one_euro_smooth_face,
 )
 
 AREA = "smoothing"
@@ -66,8 +70,9 @@ def raised_cosine(frames: np.ndarray, *, peak: float, width: float) -> np.ndarra
     return np.where(np.abs(u) < 1.0, 0.5 * (1.0 + np.cos(np.pi * u)), 0.0)
 
 
-def opening_face(n_points: int, n_frames: int, *, fps: float, seed: int = 0,
-                 amplitude_px: tuple[float, float] = (10.0, 40.0)) -> dict[str, np.ndarray]:
+def opening_face(
+    n_points: int, n_frames: int, *, fps: float, seed: int = 0, amplitude_px: tuple[float, float] = (10.0, 40.0)
+) -> dict[str, np.ndarray]:
     """Noise-free trajectories ``(T, M)`` px of M points of one face: a slow head motion shared by
     all, plus mouth openings on the first ``ceil(M / 3)`` (the mouth's points).
 
@@ -86,9 +91,8 @@ def opening_face(n_points: int, n_frames: int, *, fps: float, seed: int = 0,
     quiet = np.ones(n_frames, bool)
     for peak, width, amplitude in zip(peaks, widths, amplitudes):
         truth[:, :mouth] += amplitude * raised_cosine(t, peak=peak, width=width)
-        quiet[max(0, peak - width - 3): peak + width + 4] = False
-    return {"truth": truth, "head": head, "peaks": peaks, "widths": widths, "amplitudes": amplitudes,
-            "quiet": quiet}
+        quiet[max(0, peak - width - 3) : peak + width + 4] = False
+    return {"truth": truth, "head": head, "peaks": peaks, "widths": widths, "amplitudes": amplitudes, "quiet": quiet}
 
 
 def retention(smoothed: np.ndarray, clip: dict[str, np.ndarray], width: int) -> float:
@@ -141,19 +145,29 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
             smoothed = smooth(noisy)
             tag = f"{name}_n{noise:g}"
             rows += [row(f"retention_w{w}_{tag}", retention(smoothed, clip, w), "ratio") for w in WIDTHS]
-            rows += [row(f"retention_min_w3_a10_{tag}", retention(smooth(noisy_small), small, 3), "ratio"),
-                     row(f"jitter_{tag}", jitter(smoothed, clip["quiet"]), "px"),
-                     row(f"rms_{tag}", np.sqrt(np.mean((smoothed - clip["truth"]) ** 2)), "px")]
+            rows += [
+                row(f"retention_min_w3_a10_{tag}", retention(smooth(noisy_small), small, 3), "ratio"),
+                row(f"jitter_{tag}", jitter(smoothed, clip["quiet"]), "px"),
+                row(f"rms_{tag}", np.sqrt(np.mean((smoothed - clip["truth"]) ** 2)), "px"),
+            ]
     for path in opts.clip:
         xy, names, fps = clip_points(path)
         opening = inner_lip_opening(xy, names)
         widest = np.argsort(opening)[-10:]
         for name, smooth in methods(fps).items():
             smoothed = smooth(xy)
-            rows += [row(f"real_peak_ratio_{name}_{path.stem}",
-                         np.mean(inner_lip_opening(smoothed, names)[widest] / opening[widest]), "ratio"),
-                     row(f"real_jitter_ratio_{name}_{path.stem}",
-                         face_relative_jitter(smoothed, names) / face_relative_jitter(xy, names), "ratio")]
+            rows += [
+                row(
+                    f"real_peak_ratio_{name}_{path.stem}",
+                    np.mean(inner_lip_opening(smoothed, names)[widest] / opening[widest]),
+                    "ratio",
+                ),
+                row(
+                    f"real_jitter_ratio_{name}_{path.stem}",
+                    face_relative_jitter(smoothed, names) / face_relative_jitter(xy, names),
+                    "ratio",
+                ),
+            ]
     return rows
 
 

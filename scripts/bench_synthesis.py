@@ -90,14 +90,19 @@ def wrinkle_mask(layout: Layout, points: np.ndarray, size: tuple[int, int]) -> n
     def poly(names: list[str]) -> None:
         cv2.fillPoly(mask, [np.round(np.array([P(n) for n in names]) * 16).astype(np.int32)], 1, cv2.LINE_8, 4)
 
-    poly([f"hairline_{k}" for k in range(5)] + ["brow_r_4", "brow_r_5", "brow_r_6", "brow_r_7", "brow_l_7", "brow_l_6", "brow_l_5", "brow_l_4"])
+    poly(
+        [f"hairline_{k}" for k in range(5)]
+        + ["brow_r_4", "brow_r_5", "brow_r_6", "brow_r_7", "brow_l_7", "brow_l_6", "brow_l_5", "brow_l_4"]
+    )
     poly(["brow_l_7", "brow_r_7", "brow_r_0", "nose_bridge_0", "brow_l_0"])
     mouth_w = float(np.linalg.norm(P("mouth_outer_0") - P("mouth_outer_8")))
     for s, sx in (("l", -1.0), ("r", 1.0)):
         eye_w = float(np.linalg.norm(P(f"eye_{s}_0") - P(f"eye_{s}_6")))
         c = P(f"eye_{s}_6") + np.array([sx * 0.5 * eye_w, 0.0])
         cv2.circle(mask, tuple(int(v) for v in np.round(c)), int(round(0.6 * eye_w)), 1, -1)
-        line = np.array([P(f"nose_ala_{s}")] + [P(f"nasolabial_{s}_{k}") for k in range(3)]) + np.array([sx * 0.06 * mouth_w, 0.0])
+        line = np.array([P(f"nose_ala_{s}")] + [P(f"nasolabial_{s}_{k}") for k in range(3)]) + np.array(
+            [sx * 0.06 * mouth_w, 0.0]
+        )
         cv2.polylines(mask, [np.round(line * 16).astype(np.int32)], False, 1, max(1, int(round(0.25 * mouth_w))), cv2.LINE_8, 4)
     return mask.astype(bool)
 
@@ -150,8 +155,10 @@ def quality(pack: ActorPack, truths: list[Expression], sheet_path: Path, **synth
         renders[mode] = torch.cat(out).double()
     truth_std = torch.stack([warp_to_standard(synth, t) for t in truths])
     for mode, suffix in ORACLES:
-        out = [synth.render(points[k : k + 8], mode=mode, coeffs=texture_oracle(model, truth_std[k : k + 8], mode=mode))[0]
-               for k in range(0, len(points), 8)]
+        out = [
+            synth.render(points[k : k + 8], mode=mode, coeffs=texture_oracle(model, truth_std[k : k + 8], mode=mode))[0]
+            for k in range(0, len(points), 8)
+        ]
         renders[suffix] = torch.cat(out).double()
     for k, truth in enumerate(truths):
         ref = to_tensor(truth.image)
@@ -187,7 +194,12 @@ def quality(pack: ActorPack, truths: list[Expression], sheet_path: Path, **synth
         out += [
             {"bench": "synthesis", "metric": f"synth_psnr_db{suffix}", "value": float(np.mean(s["psnr"])), "unit": "dB"},
             {"bench": "synthesis", "metric": f"synth_ssim{suffix}", "value": float(np.mean(s["ssim"])), "unit": "1"},
-            {"bench": "synthesis", "metric": f"synth_wrinkle_psnr_db{suffix}", "value": float(np.mean(s["wrinkle"])), "unit": "dB"},
+            {
+                "bench": "synthesis",
+                "metric": f"synth_wrinkle_psnr_db{suffix}",
+                "value": float(np.mean(s["wrinkle"])),
+                "unit": "dB",
+            },
         ]
         out += [
             {"bench": "synthesis", "metric": f"synth_subregion_psnr_db_{name}{suffix}", "value": value, "unit": "dB"}
@@ -221,14 +233,23 @@ def speed_pack(pack: ActorPack, truths: list[Expression]) -> ActorPack:
     while len(examples) < SPEED_EXAMPLES:
         examples.append(examples[len(examples) % len(pack.examples)])
     return ActorPack(
-        path=pack.path, name=pack.name, layout=pack.layout, neutral=r(pack.neutral), standard=r(pack.standard),
-        examples=examples, teeth_examples=[r(e) for e in pack.teeth_examples], captured_points=pack.captured_points,
-        model3d=pack.model3d, intrinsics=pack.intrinsics, image_size=size,
+        path=pack.path,
+        name=pack.name,
+        layout=pack.layout,
+        neutral=r(pack.neutral),
+        standard=r(pack.standard),
+        examples=examples,
+        teeth_examples=[r(e) for e in pack.teeth_examples],
+        captured_points=pack.captured_points,
+        model3d=pack.model3d,
+        intrinsics=pack.intrinsics,
+        image_size=size,
     )
 
 
-def speed(pack: ActorPack, truths: list[Expression], *, frames: int, chunk: int, repeats: int, device: str = "cpu",
-          **synthesis: float) -> list[dict]:
+def speed(
+    pack: ActorPack, truths: list[Expression], *, frames: int, chunk: int, repeats: int, device: str = "cpu", **synthesis: float
+) -> list[dict]:
     """synth_fps (sparse) and synth_fps_direct, interleaved runs, best of ``repeats`` each; on
     ``device`` ``cuda`` the rows are named ``synth_fps_cuda`` ... (each timed run waits for the GPU).
 
@@ -245,8 +266,9 @@ def speed(pack: ActorPack, truths: list[Expression], *, frames: int, chunk: int,
     def run(variant: str) -> tuple[float, float]:
         t0, c0 = time.perf_counter(), time.process_time()
         for k in range(0, frames, chunk):
-            synth.render_half(geometry[k : k + chunk], direct=variant == "direct",
-                              mode="warp-only" if variant == "warponly" else "full")
+            synth.render_half(
+                geometry[k : k + chunk], direct=variant == "direct", mode="warp-only" if variant == "warponly" else "full"
+            )
         if device == "cuda":
             torch.cuda.synchronize()
         return frames / (time.perf_counter() - t0), (time.process_time() - c0) / frames * 1e3
@@ -276,19 +298,32 @@ def speed(pack: ActorPack, truths: list[Expression], *, frames: int, chunk: int,
 
 def run(args: argparse.Namespace) -> list[dict]:
     parser = argparse.ArgumentParser(prog="bench.py synthesis")
-    parser.add_argument("--pack", type=Path, default=None, help="target actor pack with truth.npz (default: the 600x800 demo target, generated under --work)")
-    parser.add_argument("--combo", action="store_true", help="the 600x800 combinatorial pack (generated under --work); rows synth_combo_*")
+    parser.add_argument(
+        "--pack",
+        type=Path,
+        default=None,
+        help="target actor pack with truth.npz (default: the 600x800 demo target, generated under --work)",
+    )
+    parser.add_argument(
+        "--combo", action="store_true", help="the 600x800 combinatorial pack (generated under --work); rows synth_combo_*"
+    )
     parser.add_argument("--frames", type=int, default=16, help="frames timed per speed run")
     parser.add_argument("--repeats", type=int, default=5, help="speed runs per variant (the best counts)")
     parser.add_argument("--chunk", type=int, default=8, help="frames per render call")
     parser.add_argument("--only", choices=("all", "quality", "speed"), default="all", help="run one half of the benchmark")
     parser.add_argument("--threads", type=int, default=2, help="torch threads (the target: 2 CPU cores)")
-    parser.add_argument("--sheet", type=Path, default=None, help="contact sheet PNG (default: <work>/synthesis/synthesis_sheet.png)")
+    parser.add_argument(
+        "--sheet", type=Path, default=None, help="contact sheet PNG (default: <work>/synthesis/synthesis_sheet.png)"
+    )
     parser.add_argument("--detail-power", type=float, default=DETAIL_POWER, help="band-pass blending power (1: plain eq. 6)")
     parser.add_argument("--detail-sigma-px", type=float, default=DETAIL_SIGMA_PX, help="band-pass split, Gaussian sigma, px")
     parser.add_argument("--flow-max-px", type=float, default=FLOW_MAX_PX, help="optical-flow refinement bound, px (0: off)")
-    parser.add_argument("--ridge-px", type=float, default=RIDGE_PX, help="coefficient regularisation of the QPs, px (0: plain eq. 2)")
-    parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="speed rows on this device (cuda: synth_fps_cuda ...)")
+    parser.add_argument(
+        "--ridge-px", type=float, default=RIDGE_PX, help="coefficient regularisation of the QPs, px (0: plain eq. 2)"
+    )
+    parser.add_argument(
+        "--device", default="cpu", choices=("cpu", "cuda"), help="speed rows on this device (cuda: synth_fps_cuda ...)"
+    )
     opts = parser.parse_args(getattr(args, "extra", []))
     if opts.device == "cuda" and not torch.cuda.is_available():
         parser.error("--device cuda: CUDA is not available on this machine")
@@ -300,7 +335,12 @@ def run(args: argparse.Namespace) -> list[dict]:
     pack_dir = opts.pack or demo_pack(Path(args.work), part="pack:combo" if opts.combo else "pack:target")
     pack = load_pack(pack_dir)
     truths = held_out(pack)
-    remedies = {"detail_power": opts.detail_power, "detail_sigma_px": opts.detail_sigma_px, "flow_max_px": opts.flow_max_px, "ridge_px": opts.ridge_px}
+    remedies = {
+        "detail_power": opts.detail_power,
+        "detail_sigma_px": opts.detail_sigma_px,
+        "flow_max_px": opts.flow_max_px,
+        "ridge_px": opts.ridge_px,
+    }
     rows = quality(pack, truths, opts.sheet, **remedies) if opts.only in ("all", "quality") else []
     if opts.only in ("all", "speed"):
         rows += speed(pack, truths, frames=opts.frames, chunk=opts.chunk, repeats=opts.repeats, device=opts.device, **remedies)

@@ -59,13 +59,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from runner.stage import Context, StreamInfo  # noqa: E402
 from stages.video import VideoWriter, X264_PRESETS  # noqa: E402
 from stages.writers.exr import (  # noqa: E402
-    COMPRESSIONS, WriteExr, exr_name, frame_attributes, oiio_write_exr, to_linear_rgba,
+    COMPRESSIONS,
+    WriteExr,
+    exr_name,
+    frame_attributes,
+    oiio_write_exr,
+    to_linear_rgba,
 )
 from stages.writers.exr_file import ZIP_LEVEL, ZIP_LEVELS  # noqa: E402
 from stages.writers.preview import SideBySide  # noqa: E402
 
 WIDTH, HEIGHT = 600, 800  # the demo target's size (W x H)
-PRESETS = X264_PRESETS[:X264_PRESETS.index("medium") + 1]  # ultrafast .. medium (x264's default)
+PRESETS = X264_PRESETS[: X264_PRESETS.index("medium") + 1]  # ultrafast .. medium (x264's default)
 # write.video's parameters for the result and the preview in pipeline_paper.yaml (bench.py e2e's run).
 RESULT_PARAMS = {"codec": "h264", "crf": 18, "filename": "result"}
 PREVIEW_PARAMS = {"codec": "h264", "crf": 20, "filename": "preview", "preset": "ultrafast", "threads": 1}
@@ -77,6 +82,7 @@ def clip_frames(clip: Path, frames: int) -> tuple[np.ndarray, np.ndarray]:
     import cv2
 
     from stages.video import VideoDecode
+
     performer = VideoDecode().process(0, frames, {"video": clip}, {}, None)["frames"]
     scaled = [cv2.resize(f, (WIDTH, HEIGHT), interpolation=cv2.INTER_LINEAR) for f in performer]
     return performer, (np.stack(scaled) / np.float32(255)).astype(np.float16)
@@ -96,8 +102,9 @@ CHUNK = 16  # frames per chunk, as pipeline_paper.yaml's chunk_frames
 def _stream(frames: np.ndarray, fps: float = 30.0) -> SimpleNamespace:
     info = StreamInfo(frames=len(frames), fps=fps, width=frames.shape[2], height=frames.shape[1])
     return SimpleNamespace(
-        info=info, read=lambda start, stop: frames[start:stop],
-        chunks=lambda: ((start, frames[start:start + CHUNK]) for start in range(0, len(frames), CHUNK)),
+        info=info,
+        read=lambda start, stop: frames[start:stop],
+        chunks=lambda: ((start, frames[start : start + CHUNK]) for start in range(0, len(frames), CHUNK)),
     )
 
 
@@ -115,14 +122,14 @@ def best_of(repeats: int, work: Callable[[], Any]) -> tuple[float, float, Any]:
 
 def encode(path: Path, frames: np.ndarray, *, preset: str, crf: int) -> None:
     """``write.video``'s encoder (1 thread) over uint8 ``frames``."""
-    with VideoWriter(path, fps=30.0, width=frames.shape[2], height=frames.shape[1], crf=crf, preset=preset,
-                     threads=1) as writer:
+    with VideoWriter(path, fps=30.0, width=frames.shape[2], height=frames.shape[1], crf=crf, preset=preset, threads=1) as writer:
         writer.write(frames)
 
 
 def psnr_db(path: Path, frames: np.ndarray) -> float:
     """PSNR (dB, peak 255) of ``path``'s decoded RGB frames against ``frames``."""
     import av
+
     with av.open(str(path)) as container:
         decoded = np.stack([f.to_ndarray(format="rgb24") for f in container.decode(video=0)])
     mse = np.mean((decoded.astype(np.float64) - frames) ** 2)
@@ -133,19 +140,21 @@ def x264_rows(result: np.ndarray, work: Path, repeats: int) -> list[dict]:
     """Result encode per preset: CPU ms, PSNR, kB per frame."""
     from stages.color import to_uint8
     from stages.writers.lut import apply_elementwise
+
     frames = apply_elementwise(to_uint8, result)
     rows = []
     for preset in PRESETS:
         path = work / f"result_{preset}.mp4"
         cpu, _, _ = best_of(repeats, lambda: encode(path, frames, preset=preset, crf=18))
-        rows += [_row(f"writers_x264_ms_{preset}", 1e3 * cpu / len(frames), "ms/frame"),
-                 _row(f"writers_x264_psnr_db_{preset}", psnr_db(path, frames), "dB"),
-                 _row(f"writers_x264_kb_{preset}", path.stat().st_size / 1e3 / len(frames), "kB/frame")]
+        rows += [
+            _row(f"writers_x264_ms_{preset}", 1e3 * cpu / len(frames), "ms/frame"),
+            _row(f"writers_x264_psnr_db_{preset}", psnr_db(path, frames), "dB"),
+            _row(f"writers_x264_kb_{preset}", path.stat().st_size / 1e3 / len(frames), "kB/frame"),
+        ]
     return rows
 
 
-def preview_ms(performer: np.ndarray, result: np.ndarray, work: Path, *, scale: float, preset: str,
-               repeats: int) -> float:
+def preview_ms(performer: np.ndarray, result: np.ndarray, work: Path, *, scale: float, preset: str, repeats: int) -> float:
     """CPU ms per frame of ``preview.side_by_side`` at ``scale`` and its encode with ``preset``."""
     stage, params = SideBySide(), {"height": 0, "scale": scale}
     inputs = {"performer": _stream(performer), "result": _stream(result)}
@@ -157,8 +166,9 @@ def preview_ms(performer: np.ndarray, result: np.ndarray, work: Path, *, scale: 
     return 1e3 * best_of(repeats, run)[0] / len(result)
 
 
-def write_exr(srgb: np.ndarray, alpha: np.ndarray, folder: Path, *, threads: int, compression: str,
-              zip_level: int = ZIP_LEVEL) -> None:
+def write_exr(
+    srgb: np.ndarray, alpha: np.ndarray, folder: Path, *, threads: int, compression: str, zip_level: int = ZIP_LEVEL
+) -> None:
     """One ``write.exr`` chunk over all of ``srgb`` into an emptied ``folder``."""
     shutil.rmtree(folder, ignore_errors=True)
     ctx = Context(device="cpu", files_dir=lambda port: folder)
@@ -173,8 +183,12 @@ def write_exr_oiio(srgb: np.ndarray, alpha: np.ndarray, folder: Path, *, compres
     shutil.rmtree(folder, ignore_errors=True)
     folder.mkdir(parents=True)
     for i in range(len(srgb)):
-        oiio_write_exr(folder / exr_name(i), to_linear_rgba(srgb[i], alpha[i]),
-                       attributes=frame_attributes(i, fps=30.0), compression=compression)
+        oiio_write_exr(
+            folder / exr_name(i),
+            to_linear_rgba(srgb[i], alpha[i]),
+            attributes=frame_attributes(i, fps=30.0),
+            compression=compression,
+        )
 
 
 def exr_rows(result: np.ndarray, work: Path, repeats: int, threads: int) -> list[dict]:
@@ -196,17 +210,20 @@ def exr_rows(result: np.ndarray, work: Path, repeats: int, threads: int) -> list
     try:
         oiio.attribute("exr_threads", 1)  # OpenEXR's own pool off: one core's work
         for compression in COMPRESSIONS:
-            new, ms[compression], wall = measure(compression, lambda: write_exr(result, alpha, folder, threads=1,
-                                                                                compression=compression))
+            new, ms[compression], wall = measure(
+                compression, lambda: write_exr(result, alpha, folder, threads=1, compression=compression)
+            )
             rows += new
             if compression == "zip":
                 rows.append(_row("writers_exr_fps_zip_serial", 1 / wall, "frames/s"))
         for level in ZIP_LEVELS:
-            rows += measure(f"zip_level{level}", lambda: write_exr(result, alpha, folder, threads=1, compression="zip",
-                                                                  zip_level=level))[0]
+            rows += measure(
+                f"zip_level{level}", lambda: write_exr(result, alpha, folder, threads=1, compression="zip", zip_level=level)
+            )[0]
         for compression in ("zip", "none"):
-            before, ms_before, _ = measure(f"{compression}_oiio",
-                                           lambda: write_exr_oiio(result, alpha, folder, compression=compression))
+            before, ms_before, _ = measure(
+                f"{compression}_oiio", lambda: write_exr_oiio(result, alpha, folder, compression=compression)
+            )
             rows += before + [_row(f"writers_exr_cpu_ratio_{compression}", ms[compression] / ms_before, "after/before")]
     finally:
         oiio.attribute("exr_threads", pool)
@@ -223,6 +240,7 @@ def stream_rows(performer: np.ndarray, result: np.ndarray, work: Path, repeats: 
     ``RESULT_PARAMS``) and ``preview`` (``preview.side_by_side`` and ``write.video`` of it,
     ``PREVIEW_PARAMS``: ``ultrafast``, one thread)."""
     from stages.video import WriteVideo
+
     alpha = face_mask(len(result))
     video_defaults = {param.name: param.default for param in WriteVideo.params}
     side_defaults = {param.name: param.default for param in SideBySide.params}
@@ -234,8 +252,10 @@ def stream_rows(performer: np.ndarray, result: np.ndarray, work: Path, repeats: 
     def preview() -> None:
         stage, inputs = SideBySide(), {"performer": _stream(performer), "result": _stream(result)}
         info = stage.stream_info(inputs, side_defaults)
-        chunks = ((start, stage.process(start, min(start + CHUNK, len(result)), inputs, side_defaults, None)["frames"])
-                  for start in range(0, len(result), CHUNK))
+        chunks = (
+            (start, stage.process(start, min(start + CHUNK, len(result)), inputs, side_defaults, None)["frames"])
+            for start in range(0, len(result), CHUNK)
+        )
         video(SimpleNamespace(info=info, chunks=lambda: chunks), **PREVIEW_PARAMS)
 
     parts = {
@@ -246,7 +266,8 @@ def stream_rows(performer: np.ndarray, result: np.ndarray, work: Path, repeats: 
     ms = {name: 1e3 * best_of(repeats, part)[0] / len(result) for name, part in parts.items()}
     shutil.rmtree(work / "exr", ignore_errors=True)
     return [_row(f"writers_stream_ms_{name}", value, "ms/frame") for name, value in ms.items()] + [
-        _row("writers_stream_ms_total", sum(ms.values()), "ms/frame")]
+        _row("writers_stream_ms_total", sum(ms.values()), "ms/frame")
+    ]
 
 
 def _row(metric: str, value: float, unit: str) -> dict:
@@ -266,6 +287,7 @@ def run(args: argparse.Namespace) -> list[dict]:
     clip = opts.clip
     if clip is None:
         from scripts.bench_geometry import fixture_set
+
         clip = fixture_set(None, Path(args.work), demo=True) / "clips" / "live.mp4"
     performer, result = clip_frames(clip, opts.frames)
     rows = stream_rows(performer, result, work, opts.repeats)
@@ -274,17 +296,20 @@ def run(args: argparse.Namespace) -> list[dict]:
     rows += x264_rows(result, work, opts.repeats)
     defaults = {param.name: param.default for param in SideBySide.params}
     from stages.video import WriteVideo
+
     preset = next(param.default for param in WriteVideo.params if param.name == "preset")
     before = preview_ms(performer, result, work, scale=1.0, preset="medium", repeats=opts.repeats)
     after = preview_ms(performer, result, work, scale=defaults["scale"], preset=preset, repeats=opts.repeats)
-    rows += [_row("writers_preview_ms_1.0_medium", before, "ms/frame"),
-             _row(f"writers_preview_ms_{defaults['scale']}_{preset}", after, "ms/frame")]
+    rows += [
+        _row("writers_preview_ms_1.0_medium", before, "ms/frame"),
+        _row(f"writers_preview_ms_{defaults['scale']}_{preset}", after, "ms/frame"),
+    ]
     rows += exr_rows(result, work, opts.repeats, opts.threads)
     value = {r["metric"]: r["value"] for r in rows}
-    rows += [_row("writers_total_ms_before", value["writers_x264_ms_medium"] + before + value["writers_exr_ms_zip"],
-                  "ms/frame"),
-             _row("writers_total_ms", value[f"writers_x264_ms_{preset}"] + after + value["writers_exr_ms_zip"],
-                  "ms/frame")]
+    rows += [
+        _row("writers_total_ms_before", value["writers_x264_ms_medium"] + before + value["writers_exr_ms_zip"], "ms/frame"),
+        _row("writers_total_ms", value[f"writers_x264_ms_{preset}"] + after + value["writers_exr_ms_zip"], "ms/frame"),
+    ]
     return rows
 
 

@@ -69,10 +69,26 @@ class Spec:
     supersample: int
 
 
-CI = Spec(target_size=(240, 320), clip_size=(320, 240), clip_frames=48, fps=30, captured=40, examples=14,
-          heldout_images=6, supersample=2)
-DEMO = Spec(target_size=(600, 800), clip_size=(640, 480), clip_frames=300, fps=30, captured=40, examples=14,
-            heldout_images=None, supersample=1)
+CI = Spec(
+    target_size=(240, 320),
+    clip_size=(320, 240),
+    clip_frames=48,
+    fps=30,
+    captured=40,
+    examples=14,
+    heldout_images=6,
+    supersample=2,
+)
+DEMO = Spec(
+    target_size=(600, 800),
+    clip_size=(640, 480),
+    clip_frames=300,
+    fps=30,
+    captured=40,
+    examples=14,
+    heldout_images=None,
+    supersample=1,
+)
 
 
 def pack_pose(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
@@ -80,9 +96,20 @@ def pack_pose(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     return np.eye(3), framing_translation(camera, head_mm=PACK_HEAD_MM)
 
 
-def write_pack(folder: Path, face: FaceModel, camera: Camera, R: np.ndarray, t: np.ndarray, spec: Spec, *,
-               name: str, captured: np.ndarray, captured_names: list[str], examples: np.ndarray | None = None,
-               heldout_images: int | None = None) -> dict[str, np.ndarray]:
+def write_pack(
+    folder: Path,
+    face: FaceModel,
+    camera: Camera,
+    R: np.ndarray,
+    t: np.ndarray,
+    spec: Spec,
+    *,
+    name: str,
+    captured: np.ndarray,
+    captured_names: list[str],
+    examples: np.ndarray | None = None,
+    heldout_images: int | None = None,
+) -> dict[str, np.ndarray]:
     """Render and write one actor pack (pack.yaml, images, points, model3d, captured, truth.npz).
 
     ``captured`` ``(K, C)`` are the controls of the captured expressions, ``captured_names`` their
@@ -127,8 +154,9 @@ def write_pack(folder: Path, face: FaceModel, camera: Camera, R: np.ndarray, t: 
     teeth_c = np.stack([controls_of(**c) for c in TEETH])
     entries["teeth_examples"] = [save(f"teeth{k}", c) for k, c in enumerate(teeth_c)]
     limit = len(heldout) if heldout_images is None else heldout_images
-    held_paths = [save(cap_names[k], cap_c[k], "heldout", captured=int(k))["image"] if j < limit else ""
-                  for j, k in enumerate(heldout)]
+    held_paths = [
+        save(cap_names[k], cap_c[k], "heldout", captured=int(k))["image"] if j < limit else "" for j, k in enumerate(heldout)
+    ]
     for k in range(len(cap_c)):
         if k not in cap_vis:  # no image written: visibility from a cheap render
             cap_vis[k] = render(face, cap_p3[k], R, t, camera, supersample=1).visible
@@ -138,7 +166,9 @@ def write_pack(folder: Path, face: FaceModel, camera: Camera, R: np.ndarray, t: 
         "identity_seed": np.array(face.identity.seed),
         "point_names": np.array(names),
         "control_names": np.array(CONTROLS),
-        "R": R, "t": t, "intrinsics": camera.A,
+        "R": R,
+        "t": t,
+        "intrinsics": camera.A,
         "neutral_points3d": face.neutral,
         "standard_controls": standard_c,
         "teeth_controls": teeth_c,
@@ -208,14 +238,24 @@ def write_contact_sheet(path: Path, images: list[tuple[str, np.ndarray]], *, col
     tw = thumbs[0].shape[1]
     rows = []
     for r in range(0, len(thumbs), columns):
-        row = thumbs[r:r + columns]
+        row = thumbs[r : r + columns]
         row += [np.full_like(thumbs[0], 255)] * (columns - len(row))
         rows.append(np.hstack([np.pad(t, ((2, 2), (2, 2), (0, 0)), constant_values=255) for t in row]))
     write_png(path, np.vstack(rows)[:, : columns * (tw + 4)])
 
 
-def write_clip(folder: Path, kind: str, performer: FaceModel, target: FaceModel, camera: Camera, t0: np.ndarray,
-               target_camera: Camera, target_R: np.ndarray, target_t: np.ndarray, spec: Spec) -> None:
+def write_clip(
+    folder: Path,
+    kind: str,
+    performer: FaceModel,
+    target: FaceModel,
+    camera: Camera,
+    t0: np.ndarray,
+    target_camera: Camera,
+    target_R: np.ndarray,
+    target_t: np.ndarray,
+    spec: Spec,
+) -> None:
     """Render a performer clip with its ground truth (``<kind>.mp4``, ``<kind>_truth.npz``,
     ``<kind>_track0.csv``) and a strip of frames (``<kind>_strip.png`` next to ``folder``)."""
     layout = performer.layout
@@ -254,30 +294,41 @@ def write_clip(folder: Path, kind: str, performer: FaceModel, target: FaceModel,
     rigid = np.array(layout.rigid)
     sim = np.stack([similarity_eq9(neutral_pts[rigid], pts[f, rigid]) for f in range(T)])
     rvec = np.stack([cv2.Rodrigues(R)[0].ravel() for R in Rs])
-    save_npz(folder / f"{kind}_truth.npz", {
-        "point_names": np.array(layout.point_names),
-        "control_names": np.array(CONTROLS),
-        "detail_names": np.array(DETAILS),
-        "fps": np.array(float(spec.fps)),
-        "size": np.array(camera.size, dtype=np.int64),
-        "intrinsics": camera.A,
-        "points": pts, "visible": vis, "points3d": p3d,
-        "R": Rs, "rvec": rvec, "tvec": ts,
-        "angles_deg": angles,
-        "neutral_points": neutral_pts,
-        "expression_points": expr_pts,
-        "similarity": sim,
-        "rigid": rigid.astype(np.int64),
-        "tracked": np.array(layout.tracked, dtype=np.int64),
-        "controls": controls,
-        "detail_strengths": strengths,
-        "target_points": tgt_pts, "target_points3d": tgt_p3d,
-        "target_intrinsics": target_camera.A, "target_R": target_R, "target_t": target_t,
-        "target_size": np.array(target_camera.size, dtype=np.int64),
-    })
+    save_npz(
+        folder / f"{kind}_truth.npz",
+        {
+            "point_names": np.array(layout.point_names),
+            "control_names": np.array(CONTROLS),
+            "detail_names": np.array(DETAILS),
+            "fps": np.array(float(spec.fps)),
+            "size": np.array(camera.size, dtype=np.int64),
+            "intrinsics": camera.A,
+            "points": pts,
+            "visible": vis,
+            "points3d": p3d,
+            "R": Rs,
+            "rvec": rvec,
+            "tvec": ts,
+            "angles_deg": angles,
+            "neutral_points": neutral_pts,
+            "expression_points": expr_pts,
+            "similarity": sim,
+            "rigid": rigid.astype(np.int64),
+            "tracked": np.array(layout.tracked, dtype=np.int64),
+            "controls": controls,
+            "detail_strengths": strengths,
+            "target_points": tgt_pts,
+            "target_points3d": tgt_p3d,
+            "target_intrinsics": target_camera.A,
+            "target_R": target_R,
+            "target_t": target_t,
+            "target_size": np.array(target_camera.size, dtype=np.int64),
+        },
+    )
     tracked = list(layout.tracked)
-    write_points_csv(folder / f"{kind}_track0.csv", [layout.point_names[i] for i in tracked], pts[0, tracked],
-                     frame_size=camera.size)
+    write_points_csv(
+        folder / f"{kind}_track0.csv", [layout.point_names[i] for i in tracked], pts[0, tracked], frame_size=camera.size
+    )
     write_png(folder.parent / f"{kind}_strip.png", np.hstack(strip))
 
 
@@ -303,22 +354,48 @@ def make_part(out: Path, part: str, *, seed: int, spec: Spec) -> None:
     if part in ("pack:performer", "pack:target"):
         identity = seed if name == "performer" else seed + 1
         camera, R, t = (clip_cam, np.eye(3), t0) if name == "performer" else (target_cam, tR, tt)
-        controls = captured_controls(np.random.default_rng(np.random.SeedSequence([identity, 1])), spec.captured,
-                                     jaw_max=1.0 if name == "target" else JAW_HINGE_END)
-        write_pack(out / "packs" / name, make_face(identity, layout), camera, R, t, spec, name=name, captured=controls,
-                   captured_names=[f"cap{k:02d}" for k in range(len(controls))], heldout_images=spec.heldout_images)
+        controls = captured_controls(
+            np.random.default_rng(np.random.SeedSequence([identity, 1])),
+            spec.captured,
+            jaw_max=1.0 if name == "target" else JAW_HINGE_END,
+        )
+        write_pack(
+            out / "packs" / name,
+            make_face(identity, layout),
+            camera,
+            R,
+            t,
+            spec,
+            name=name,
+            captured=controls,
+            captured_names=[f"cap{k:02d}" for k in range(len(controls))],
+            heldout_images=spec.heldout_images,
+        )
     elif part == COMBO:
         controls, names, n_examples = combo_controls()
-        write_pack(out / "packs" / "combo", make_face(seed + 1, layout), target_cam, tR, tt, spec, name="combo",
-                   captured=controls, captured_names=names, examples=np.arange(n_examples))
+        write_pack(
+            out / "packs" / "combo",
+            make_face(seed + 1, layout),
+            target_cam,
+            tR,
+            tt,
+            spec,
+            name="combo",
+            captured=controls,
+            captured_names=names,
+            examples=np.arange(n_examples),
+        )
     elif kind == "clip":
-        write_clip(out / "clips", name, make_face(seed, layout), make_face(seed + 1, layout), clip_cam, t0, target_cam, tR, tt, spec)
+        write_clip(
+            out / "clips", name, make_face(seed, layout), make_face(seed + 1, layout), clip_cam, t0, target_cam, tR, tt, spec
+        )
     else:
         raise ValueError(f"unknown part {part!r}; known: {', '.join(PARTS + (COMBO,))}")
 
 
-def make_set(out: Path, *, seed: int = 1, demo: bool = False, spec: Spec | None = None, jobs: int = 1,
-             combo: bool = False) -> None:
+def make_set(
+    out: Path, *, seed: int = 1, demo: bool = False, spec: Spec | None = None, jobs: int = 1, combo: bool = False
+) -> None:
     """Write the whole fixture set for performer ``seed``, target ``seed + 1``.
 
     ``spec`` defaults to :data:`DEMO` with ``demo`` else :data:`CI` (tests pass a smaller one).
@@ -345,9 +422,18 @@ def make_set(out: Path, *, seed: int = 1, demo: bool = False, spec: Spec | None 
         raise RuntimeError(f"fixture parts failed: {', '.join(failed)}")
 
 
-def render_identity(seed: int, controls: dict[str, float] | np.ndarray | None = None, *, yaw: float = 0.0, pitch: float = 0.0,
-                    roll: float = 0.0, translation: tuple[float, float, float] = (0.0, 0.0, 0.0),
-                    size: tuple[int, int] = (240, 320), head_mm: float = PACK_HEAD_MM, supersample: int = 2) -> dict[str, np.ndarray]:
+def render_identity(
+    seed: int,
+    controls: dict[str, float] | np.ndarray | None = None,
+    *,
+    yaw: float = 0.0,
+    pitch: float = 0.0,
+    roll: float = 0.0,
+    translation: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    size: tuple[int, int] = (240, 320),
+    head_mm: float = PACK_HEAD_MM,
+    supersample: int = 2,
+) -> dict[str, np.ndarray]:
     """Render identity ``seed`` at the given controls and pose, returning image and truth.
 
     The camera is :func:`make_camera` of ``size``; the pose is ``R = rotation(yaw, pitch, roll)``
@@ -369,8 +455,16 @@ def render_identity(seed: int, controls: dict[str, float] | np.ndarray | None = 
     t = framing_translation(camera, head_mm=head_mm) + np.asarray(translation, dtype=np.float64)
     p3 = expression_points3d(face.neutral, c, layout)
     r = render(face, p3, R, t, camera, supersample=supersample)
-    return {"image": r.image, "points": r.points, "visible": r.visible, "points3d": p3, "R": R, "t": t,
-            "intrinsics": camera.A, "controls": c}
+    return {
+        "image": r.image,
+        "points": r.points,
+        "visible": r.visible,
+        "points3d": p3,
+        "R": R,
+        "t": t,
+        "intrinsics": camera.A,
+        "controls": c,
+    }
 
 
 def _render_main(argv: list[str]) -> int:
@@ -391,12 +485,25 @@ def _render_main(argv: list[str]) -> int:
     if len(pose) not in (3, 6):
         parser.error("--pose takes 3 or 6 numbers")
     w, _, h = args.size.partition("x")
-    res = render_identity(args.identity, controls, yaw=pose[0], pitch=pose[1], roll=pose[2],
-                          translation=tuple(pose[3:]) if len(pose) == 6 else (0.0, 0.0, 0.0), size=(int(w), int(h)))
+    res = render_identity(
+        args.identity,
+        controls,
+        yaw=pose[0],
+        pitch=pose[1],
+        roll=pose[2],
+        translation=tuple(pose[3:]) if len(pose) == 6 else (0.0, 0.0, 0.0),
+        size=(int(w), int(h)),
+    )
     write_png(args.out.with_suffix(".png"), res["image"])
     layout = load_layout("zhang134")
-    save_npz(args.out.with_suffix(".npz"), {**{k: v for k, v in res.items() if k != "image"},
-                                             "point_names": np.array(layout.point_names), "control_names": np.array(CONTROLS)})
+    save_npz(
+        args.out.with_suffix(".npz"),
+        {
+            **{k: v for k, v in res.items() if k != "image"},
+            "point_names": np.array(layout.point_names),
+            "control_names": np.array(CONTROLS),
+        },
+    )
     return 0
 
 
@@ -409,8 +516,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=1, help="performer identity seed; the target is seed + 1")
     parser.add_argument("--demo", action="store_true", help="paper-sized set: 600x800 target, 300-frame 640x480 clips")
     parser.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
-    parser.add_argument("--combo", action="store_true",
-                        help="also write packs/combo: one-region examples, held-out combinations (docs/fixtures.md)")
+    parser.add_argument(
+        "--combo",
+        action="store_true",
+        help="also write packs/combo: one-region examples, held-out combinations (docs/fixtures.md)",
+    )
     parser.add_argument("--part", choices=PARTS + (COMBO,), help="write only this piece of the set")
     args = parser.parse_args(argv)
     if args.part:

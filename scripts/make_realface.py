@@ -38,16 +38,27 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     wall, cpu = time.perf_counter(), time.process_time()
     try:
-        clip, truth = make_clip(args.out, frames=args.frames, seed=args.seed, size=args.size, fps=args.fps,
-                                codec="ffv1" if args.lossless else "h264", crf=args.crf,
-                                supersample=args.supersample, name=args.name, model_path=args.model,
-                                backdrop=args.backdrop)
+        clip, truth = make_clip(
+            args.out,
+            frames=args.frames,
+            seed=args.seed,
+            size=args.size,
+            fps=args.fps,
+            codec="ffv1" if args.lossless else "h264",
+            crf=args.crf,
+            supersample=args.supersample,
+            name=args.name,
+            model_path=args.model,
+            backdrop=args.backdrop,
+        )
     except ValueError as exc:
         print(f"make_realface: {exc}", file=sys.stderr)
         return 2
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
-    print(f"{clip}\n{truth}\n{args.frames} frames {args.size}x{args.size} in {wall:.1f} s wall, {cpu:.1f} s CPU "
-          f"({args.frames / wall:.1f} frames/s wall, fit and encoding included)")
+    print(
+        f"{clip}\n{truth}\n{args.frames} frames {args.size}x{args.size} in {wall:.1f} s wall, {cpu:.1f} s CPU "
+        f"({args.frames / wall:.1f} frames/s wall, fit and encoding included)"
+    )
     return 0
 
 

@@ -28,12 +28,13 @@ def synthetic_frames(start: int, stop: int, *, width: int, height: int) -> np.nd
         size = max(4, min(width, height) // 5)
         x0 = (5 * i) % max(width - size, 1)
         y0 = (3 * i) % max(height - size, 1)
-        out[k, y0:y0 + size, x0:x0 + size] = 240
+        out[k, y0 : y0 + size, x0 : x0 + size] = 240
     return out
 
 
-def write_clip(path: Path, *, frames: int, width: int, height: int, fps: float = 25.0, codec: str = "h264",
-               crf: int = 18) -> Path:
+def write_clip(
+    path: Path, *, frames: int, width: int, height: int, fps: float = 25.0, codec: str = "h264", crf: int = 18
+) -> Path:
     """Encode :func:`synthetic_frames` ``[0, frames)`` to ``path``."""
     path.parent.mkdir(parents=True, exist_ok=True)
     with VideoWriter(path, fps=fps, width=width, height=height, codec=codec, crf=crf) as writer:
@@ -52,8 +53,7 @@ def main() -> None:
     parser.add_argument("--codec", choices=("h264", "ffv1"), default="h264")
     parser.add_argument("--crf", type=int, default=23)
     args = parser.parse_args()
-    write_clip(args.out, frames=args.frames, width=args.width, height=args.height, fps=args.fps,
-               codec=args.codec, crf=args.crf)
+    write_clip(args.out, frames=args.frames, width=args.width, height=args.height, fps=args.fps, codec=args.codec, crf=args.crf)
 
 
 if __name__ == "__main__":

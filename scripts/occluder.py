@@ -70,6 +70,7 @@ class Event:
 
 # --- the hand ---------------------------------------------------------------------------------------
 
+
 @dataclass(frozen=True)
 class Hand:
     """A hand drawn on a square canvas, fingers up, palm centre at the canvas centre.
@@ -180,6 +181,7 @@ def paste_hand(frame: np.ndarray, hand: Hand, transform: np.ndarray, colour: np.
 
 # --- where the hand goes -------------------------------------------------------------------------
 
+
 def _columns(names: list[str], wanted: tuple[str, ...] | list[str]) -> list[int]:
     return [names.index(n) for n in wanted]
 
@@ -215,8 +217,12 @@ def hand_pose(event: Event, t: int, xy: np.ndarray, names: list[str]) -> tuple[n
     left = event.region == "eye_l"
     centre = xy[[names.index(f"{event.region}_{k}") for k in range(12)]].mean(axis=0)
     outwards = -along if left else along
-    return (centre + 0.2 * eye * outwards - 0.05 * eye * down + drift, 0.85 * eye,
-            roll + (25.0 if left else -25.0) + wobble, left)
+    return (
+        centre + 0.2 * eye * outwards - 0.05 * eye * down + drift,
+        0.85 * eye,
+        roll + (25.0 if left else -25.0) + wobble,
+        left,
+    )
 
 
 def region_polygons(xy: np.ndarray, names: list[str]) -> dict[str, np.ndarray]:
@@ -264,8 +270,9 @@ def coverage(alpha: np.ndarray, xy: np.ndarray, names: list[str]) -> np.ndarray:
     return out
 
 
-def skin_colour(frames: Iterator[tuple[int, np.ndarray]], xy: np.ndarray, names: list[str], valid: np.ndarray,
-                *, samples: int = 12) -> np.ndarray:
+def skin_colour(
+    frames: Iterator[tuple[int, np.ndarray]], xy: np.ndarray, names: list[str], valid: np.ndarray, *, samples: int = 12
+) -> np.ndarray:
     """The performer's skin colour (sRGB, 3 floats): the median over ``samples`` frames spread
     over the clip of the pixels within 0.06 eye distances of :data:`SKIN_POINTS`."""
     eye, _ = eye_axis(xy, names)
@@ -279,7 +286,7 @@ def skin_colour(frames: Iterator[tuple[int, np.ndarray]], xy: np.ndarray, names:
                 continue
             r = max(2, int(0.06 * eye[t]))
             for x, y in np.round(xy[t, columns]).astype(int):
-                patch = frame[max(y - r, 0):y + r + 1, max(x - r, 0):x + r + 1]
+                patch = frame[max(y - r, 0) : y + r + 1, max(x - r, 0) : x + r + 1]
                 pixels.append(patch.reshape(-1, 3))
     return np.median(np.concatenate(pixels), axis=0)
 
@@ -290,8 +297,9 @@ def other_tone(skin: np.ndarray) -> np.ndarray:
     return TONES[int(np.argmax(np.abs(TONES @ luma - skin @ luma)))]
 
 
-def default_events(xy: np.ndarray, names: list[str], valid: np.ndarray, skin: np.ndarray, *,
-                   frames: int = EVENT_FRAMES) -> list[Event]:
+def default_events(
+    xy: np.ndarray, names: list[str], valid: np.ndarray, skin: np.ndarray, *, frames: int = EVENT_FRAMES
+) -> list[Event]:
     """The benchmark's two events of ``frames`` frames each: the mouth from the first frame
     (the performer's own skin), then the eye seen larger (its outline's mean area over the clip)
     in the frames around the middle of the clip (another tone)."""
@@ -302,8 +310,10 @@ def default_events(xy: np.ndarray, names: list[str], valid: np.ndarray, skin: np
     area = {side: np.mean([_area(p[f"eye_{side}"]) for p in polygons]) for side in "lr"}
     eye = "eye_l" if area["l"] >= area["r"] else "eye_r"
     start = max(total // 2 - frames // 2, frames + 5)
-    return [Event("mouth", 0, frames, tuple(float(c) for c in skin)),
-            Event(eye, start, start + frames, tuple(float(c) for c in other_tone(skin)))]
+    return [
+        Event("mouth", 0, frames, tuple(float(c) for c in skin)),
+        Event(eye, start, start + frames, tuple(float(c) for c in other_tone(skin))),
+    ]
 
 
 def _area(polygon: np.ndarray) -> float:
@@ -311,8 +321,9 @@ def _area(polygon: np.ndarray) -> float:
     return 0.5 * abs(float(x @ np.roll(y, -1) - y @ np.roll(x, -1)))
 
 
-def occlude(frames: Iterator[tuple[int, np.ndarray]], xy: np.ndarray, names: list[str], events: list[Event],
-            *, seed: int = 0) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+def occlude(
+    frames: Iterator[tuple[int, np.ndarray]], xy: np.ndarray, names: list[str], events: list[Event], *, seed: int = 0
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """Paste the hand of each event over its frames.
 
     Parameters
@@ -356,6 +367,7 @@ def write_variant(clip: Path, out: Path, xy: np.ndarray, names: list[str], event
 
 # --- running the detector ------------------------------------------------------------------------
 
+
 def clip_stream(clip: Path) -> Any:
     """The clip's frames as a :class:`runner.stage.FrameStream`, decoded chunk by chunk
     (``video.decode``), never held whole."""
@@ -393,6 +405,7 @@ def detect(clip: Path, cache: Path | None = None) -> tuple[dict[str, np.ndarray]
 
 # --- rows ----------------------------------------------------------------------------------------
 
+
 def row(metric: str, value: float, unit: str) -> dict[str, Any]:
     return {"bench": BENCH, "metric": metric, "value": float(value), "unit": unit}
 
@@ -411,8 +424,9 @@ def half_events(events: list[Event], frames: int) -> list[Event]:
     return [Event("mouth", 0, frames // 2, mouth.colour), Event(eye.region, frames // 2, frames, eye.colour)]
 
 
-def variant_rows(clip: Path, work: Path, name: str, prefix: str, events: list[Event], xy: np.ndarray,
-                 names: list[str]) -> list[dict[str, Any]]:
+def variant_rows(
+    clip: Path, work: Path, name: str, prefix: str, events: list[Event], xy: np.ndarray, names: list[str]
+) -> list[dict[str, Any]]:
     """Paste the hands of ``events`` over ``clip`` (``work/<name>.mp4``, truth in
     ``work/<name>_truth.npz``), run the detector on it and score it against the truth:
     ``<prefix>_recall``, ``_precision``, ``_noface_frac`` and ``_recall_<region>``, each suffixed
@@ -421,16 +435,27 @@ def variant_rows(clip: Path, work: Path, name: str, prefix: str, events: list[Ev
     variant = work / f"{name}.mp4"
     fraction = write_variant(clip, variant, xy, names, events)
     truth = fraction > 0.5
-    np.savez(work / f"{name}_truth.npz", regions=np.array(REGIONS), covered=truth, fraction=fraction.astype(np.float32),
-             events=np.array([[e.start, e.stop] for e in events]), event_regions=np.array([e.region for e in events]),
-             colours=np.array([e.colour for e in events]))
+    np.savez(
+        work / f"{name}_truth.npz",
+        regions=np.array(REGIONS),
+        covered=truth,
+        fraction=fraction.astype(np.float32),
+        events=np.array([[e.start, e.stop] for e in events]),
+        event_regions=np.array([e.region for e in events]),
+        colours=np.array([e.colour for e in events]),
+    )
     _, found = detect(variant)
     recall, precision = recall_precision(found["occluded"], truth)
-    rows = [row(f"{prefix}_recall_{stem}", recall, "fraction"), row(f"{prefix}_precision_{stem}", precision, "fraction"),
-            row(f"{prefix}_noface_frac_{stem}", (truth & ~found["valid"][:, None]).sum() / max(truth.sum(), 1),
-                "fraction")]
-    return rows + [row(f"{prefix}_recall_{region}_{stem}", recall_precision(found["occluded"][:, r], truth[:, r])[0],
-                       "fraction") for r, region in enumerate(REGIONS) if truth[:, r].any()]
+    rows = [
+        row(f"{prefix}_recall_{stem}", recall, "fraction"),
+        row(f"{prefix}_precision_{stem}", precision, "fraction"),
+        row(f"{prefix}_noface_frac_{stem}", (truth & ~found["valid"][:, None]).sum() / max(truth.sum(), 1), "fraction"),
+    ]
+    return rows + [
+        row(f"{prefix}_recall_{region}_{stem}", recall_precision(found["occluded"][:, r], truth[:, r])[0], "fraction")
+        for r, region in enumerate(REGIONS)
+        if truth[:, r].any()
+    ]
 
 
 def occlusion_rows(clip: Path, work: Path, *, event_frames: int = EVENT_FRAMES, half: bool = True) -> list[dict[str, Any]]:
@@ -448,8 +473,10 @@ def occlusion_rows(clip: Path, work: Path, *, event_frames: int = EVENT_FRAMES, 
     events = default_events(xy, names, valid, skin, frames=event_frames)
     judged = clean["valid"]
     rows = [row(f"real_occlusion_false_frac_{stem}", clean["occluded"][judged].mean(), "fraction")]
-    rows += [row(f"real_occlusion_false_frac_{region}_{stem}", clean["occluded"][judged, r].mean(), "fraction")
-             for r, region in enumerate(REGIONS)]
+    rows += [
+        row(f"real_occlusion_false_frac_{region}_{stem}", clean["occluded"][judged, r].mean(), "fraction")
+        for r, region in enumerate(REGIONS)
+    ]
     rows += variant_rows(clip, work, "occluded", "real_occlusion", events, xy, names)
     if half:
         rows += variant_rows(clip, work, "half", "real_occlusion_half", half_events(events, len(xy)), xy, names)
@@ -462,10 +489,14 @@ def aggregate_rows(rows: list[dict[str, Any]], stems: list[str]) -> list[dict[st
     and ``real_occlusion_false_frac_max``."""
     value = {r["metric"]: r["value"] for r in rows}
     prefixes = ["real_occlusion"] + (["real_occlusion_half"] if f"real_occlusion_half_recall_{stems[0]}" in value else [])
-    out = [row(f"{prefix}_{kind}_min", np.nanmin([value[f"{prefix}_{kind}_{s}"] for s in stems]), "fraction")
-           for prefix in prefixes for kind in ("recall", "precision")]  # a precision with no flag is NaN: left out
-    return out + [row("real_occlusion_false_frac_max", np.nanmax([value[f"real_occlusion_false_frac_{s}"] for s in stems]),
-                      "fraction")]
+    out = [
+        row(f"{prefix}_{kind}_min", np.nanmin([value[f"{prefix}_{kind}_{s}"] for s in stems]), "fraction")
+        for prefix in prefixes
+        for kind in ("recall", "precision")
+    ]  # a precision with no flag is NaN: left out
+    return out + [
+        row("real_occlusion_false_frac_max", np.nanmax([value[f"real_occlusion_false_frac_{s}"] for s in stems]), "fraction")
+    ]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -75,8 +75,10 @@ def eye_states(performer: np.ndarray, target: np.ndarray, valid: np.ndarray) -> 
 
 def recall_precision(truth: np.ndarray, found: np.ndarray) -> tuple[float, float]:
     hits = float((truth & found).sum())
-    return (hits / truth.sum() if truth.any() else float("nan"),
-            hits / found.sum() if found.any() else (1.0 if not truth.any() else 0.0))
+    return (
+        hits / truth.sum() if truth.any() else float("nan"),
+        hits / found.sum() if found.any() else (1.0 if not truth.any() else 0.0),
+    )
 
 
 def state_measures(data: Mapping[str, np.ndarray], frames: np.ndarray | None = None) -> dict[str, float]:
@@ -97,8 +99,9 @@ def state_measures(data: Mapping[str, np.ndarray], frames: np.ndarray | None = N
     out["eyes_shut_recall"] = recall if enough else np.nan
     out["eyes_shut_precision"] = precision if enough else np.nan
     out["eyes_shut_frames"] = float(pooled_p.sum())
-    out["lid_follow_r"] = float(np.nanmean([pearson(np.where(valid, performer[f"eye_open_{s}"], np.nan),
-                                                    target[f"eye_open_{s}"]) for s in "lr"]))
+    out["lid_follow_r"] = float(
+        np.nanmean([pearson(np.where(valid, performer[f"eye_open_{s}"], np.nan), target[f"eye_open_{s}"]) for s in "lr"])
+    )
     for side, other in (("l", "r"), ("r", "l")):
         wink = shut[side][0] & ~shut[other][0]
         hit = wink & shut[side][1] & ~shut[other][1]
@@ -132,8 +135,17 @@ def coverage_measures(data: Mapping[str, np.ndarray]) -> dict[str, float]:
     return out
 
 
-UNITS = (("recall", "fraction"), ("precision", "fraction"), ("_frac", "fraction"), ("_frames", "frames"),
-         ("_frame", "frame"), ("_grey", "grey levels"), ("_diff", "fraction"), ("ratio", "ratio"), ("_r", "r"))
+UNITS = (
+    ("recall", "fraction"),
+    ("precision", "fraction"),
+    ("_frac", "fraction"),
+    ("_frames", "frames"),
+    ("_frame", "frame"),
+    ("_grey", "grey levels"),
+    ("_diff", "fraction"),
+    ("ratio", "ratio"),
+    ("_r", "r"),
+)
 
 
 def unit_of(name: str) -> str:
@@ -143,6 +155,7 @@ def unit_of(name: str) -> str:
 
 
 # -- texture pops ------------------------------------------------------------------------------
+
 
 def master_greys(out: Path) -> Iterator[np.ndarray]:
     """The EXR result frames' grey levels, 0-255 (scene-linear colour unpremultiplied, the sRGB curve)."""
@@ -232,6 +245,7 @@ def pops_measures(full: Path, warp_only: Path) -> dict[str, float]:
 
 # -- cut start ---------------------------------------------------------------------------------
 
+
 def most_expressive_frame(data: Mapping[str, np.ndarray]) -> int:
     """The frame whose performer geometry is farthest from the clip's median geometry once a
     similarity on the eye corners and nose is taken out (RMS, eye distances)."""
@@ -241,7 +255,7 @@ def most_expressive_frame(data: Mapping[str, np.ndarray]) -> int:
     names = [str(n) for n in data["tracked_names"]]
     xy = np.asarray(data["tracked_xy"], np.float64)
     valid = np.asarray(data["tracked_valid"], bool).all(axis=1)
-    valid[int(len(valid) * 2 / 3):] = False  # a third of the clip at least is left to compare
+    valid[int(len(valid) * 2 / 3) :] = False  # a third of the clip at least is left to compare
     stable = [names.index(n) for n in NORMALIZATION_POINTS]
     median = np.median(xy[valid], axis=0)
     scale = eye_distance(median, names)
@@ -283,8 +297,11 @@ def cutstart_measures(clip: Path, whole: Path, work: Path, run: Callable[..., An
     shared = np.arange(start, len(data["target_xy"]))
     a = state_measures(data, shared)
     b = state_measures(cut_data)
-    diffs = [abs(a[k] - b[k]) for k in a if k != "eyes_shut_frames" and np.isfinite(a[k]) and np.isfinite(b[k])
-             and not k.endswith("amp_ratio")]
+    diffs = [
+        abs(a[k] - b[k])
+        for k in a
+        if k != "eyes_shut_frames" and np.isfinite(a[k]) and np.isfinite(b[k]) and not k.endswith("amp_ratio")
+    ]
     return {"cutstart_expr_diff": max(diffs) if diffs else np.nan, "cutstart_frame": float(start)}
 
 
@@ -292,16 +309,26 @@ def aggregate(per_clip: dict[str, dict[str, float]]) -> list[dict[str, Any]]:
     """The minima / maxima over the clips the issue's targets are judged on; a clip without the
     state is left out and named on stderr."""
     rows = []
-    wanted = (("eyes_shut_recall", "min"), ("eyes_shut_precision", "min"), ("mouth_closed_recall", "min"),
-              ("mouth_closed_precision", "min"), ("brow_furrow_follow_r", "min"), ("lid_follow_r", "min"),
-              ("pops_ratio", "max"), ("texture_change_ratio", "max"), ("pops_ratio_calm", "max"),
-              ("texture_change_ratio_calm", "max"), ("cutstart_expr_diff", "max"))
+    wanted = (
+        ("eyes_shut_recall", "min"),
+        ("eyes_shut_precision", "min"),
+        ("mouth_closed_recall", "min"),
+        ("mouth_closed_precision", "min"),
+        ("brow_furrow_follow_r", "min"),
+        ("lid_follow_r", "min"),
+        ("pops_ratio", "max"),
+        ("texture_change_ratio", "max"),
+        ("pops_ratio_calm", "max"),
+        ("texture_change_ratio_calm", "max"),
+        ("cutstart_expr_diff", "max"),
+    )
     for name, kind in wanted:
         values = {stem: m[name] for stem, m in per_clip.items() if name in m and np.isfinite(m[name])}
         left = sorted(set(per_clip) - set(values))
         if left:
-            print(f"real_{name}_{kind}: left out (the performer never does it, or not measured): {', '.join(left)}",
-                  file=sys.stderr)
+            print(
+                f"real_{name}_{kind}: left out (the performer never does it, or not measured): {', '.join(left)}", file=sys.stderr
+            )
         if values:
             rows.append(row(f"real_{name}_{kind}", (min if kind == "min" else max)(values.values()), unit_of(name)))
     return rows
@@ -335,11 +362,13 @@ def states_sheet(work: Path, path: Path, run: Callable[..., Any], *, size: int =
     (x0, y0), (x1, y1) = np.nanmin(points, axis=(0, 1)), np.nanmax(points, axis=(0, 1))
     pad = 0.15 * max(x1 - x0, y1 - y0)
     box = [int(max(v, 0)) for v in (y0 - pad, y1 + pad, x0 - pad, x1 + pad)]
-    performer = {f: image[box[0]:box[1], box[2]:box[3]] for f, image in performer.items()}
+    performer = {f: image[box[0] : box[1], box[2] : box[3]] for f, image in performer.items()}
     columns = []
     for name, f in middle.items():
-        cells = [cv2.resize(image, (int(round(image.shape[1] * height / image.shape[0])), height),
-                            interpolation=cv2.INTER_AREA) for image in (performer[f], result[f])]
+        cells = [
+            cv2.resize(image, (int(round(image.shape[1] * height / image.shape[0])), height), interpolation=cv2.INTER_AREA)
+            for image in (performer[f], result[f])
+        ]
         width = max(c.shape[1] for c in cells)
         cells = [np.pad(c, ((0, 0), (0, width - c.shape[1]), (0, 0)), constant_values=255) for c in cells]
         label = np.full((22, width, 3), 255, np.uint8)

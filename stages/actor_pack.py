@@ -146,12 +146,18 @@ class _PackReader:
         bundled = "/" not in layout_ref and not Path(layout_ref).suffix and not (self.root / layout_ref).exists()
         self.layout = load_layout(layout_ref if bundled else self.file(layout_ref, "layout"))
         size = self.field("image_size")
-        if not (isinstance(size, list) and len(size) == 2
-                and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in size)):
+        if not (
+            isinstance(size, list)
+            and len(size) == 2
+            and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in size)
+        ):
             raise self.fail(self.manifest, "image_size", f"expected [W, H] positive integers, got {size!r}")
         if size[0] * size[1] > MAX_PACK_PIXELS:
-            raise self.fail(self.manifest, "image_size", f"{size[0]}x{size[1]} is more than the {MAX_PACK_PIXELS} "
-                                                         "pixels a pack image may have")
+            raise self.fail(
+                self.manifest,
+                "image_size",
+                f"{size[0]}x{size[1]} is more than the {MAX_PACK_PIXELS} pixels a pack image may have",
+            )
         self.size = (size[0], size[1])
         intrinsics = self.intrinsics()
         model3d = self.model3d()
@@ -162,8 +168,11 @@ class _PackReader:
         names = [e.name for e in examples + teeth]
         repeated = next((n for n in names if names.count(n) > 1), None)
         if repeated is not None:
-            raise self.fail(self.manifest, "examples", f"name {repeated!r} is given to two examples "
-                                                       "(the names of examples and teeth examples must differ)")
+            raise self.fail(
+                self.manifest,
+                "examples",
+                f"name {repeated!r} is given to two examples (the names of examples and teeth examples must differ)",
+            )
         captured = self.captured()
         return ActorPack(
             path=self.root,
@@ -260,7 +269,9 @@ class _PackReader:
             raise self.fail(path, field, "npz has no array 'points'")
         pts = np.asarray(arrays["points"], dtype=np.float64)
         if pts.ndim < 2 or pts.shape[-2:] != (n, 2):
-            raise self.fail(path, field, f"expected points of shape (..., {n}, 2) for layout {self.layout.name!r}, got {pts.shape}")
+            raise self.fail(
+                path, field, f"expected points of shape (..., {n}, 2) for layout {self.layout.name!r}, got {pts.shape}"
+            )
         if not np.all(np.isfinite(pts)):
             raise self.fail(path, field, "points must be finite")
         self.check_spread(pts, path, field)
@@ -272,8 +283,9 @@ class _PackReader:
         flat = np.flatnonzero((np.ptp(faces, axis=1) <= 1e-9).any(axis=1))
         if flat.size:
             which = f"face {flat[0]}: " if len(faces) > 1 else ""
-            raise self.fail(path, field, f"{which}its {self.layout.n_points} points all coincide or lie on one "
-                                         "horizontal or vertical line")
+            raise self.fail(
+                path, field, f"{which}its {self.layout.n_points} points all coincide or lie on one horizontal or vertical line"
+            )
 
     def check_inside(self, pts: np.ndarray, path: Path, field: str) -> None:
         w, h = self.size
@@ -287,6 +299,7 @@ class _PackReader:
 
     def image(self, path: Path, field: str) -> np.ndarray:
         import cv2
+
         try:
             header = image_size(path, max_pixels=MAX_PACK_PIXELS, verify=True)
         except ImageTooLarge as exc:
@@ -294,8 +307,9 @@ class _PackReader:
         if header is None:
             raise self.fail(path, field, "cannot read image (not a PNG, JPEG, TIFF or WebP file)")
         if header != self.size:
-            raise self.fail(path, field, f"image is {header[0]}x{header[1]}, the manifest's image_size is "
-                                         f"{self.size[0]}x{self.size[1]}")
+            raise self.fail(
+                path, field, f"image is {header[0]}x{header[1]}, the manifest's image_size is {self.size[0]}x{self.size[1]}"
+            )
         img = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if img is None:
             raise self.fail(path, field, "cannot read image")
@@ -318,6 +332,7 @@ class _PackReader:
 
     def matte(self, path: Path, field: str) -> np.ndarray:
         import cv2
+
         matte = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if matte is None:
             raise self.fail(path, field, "cannot read image")

@@ -122,6 +122,7 @@ def _half_to_uint8(image: np.ndarray) -> np.ndarray:
     (5 to 8 times less CPU on a 600x800 frame).
     """
     import cv2
+
     flat = np.ascontiguousarray(image).reshape(1, -1)
     out = cv2.multiply(flat, 255.0, dtype=cv2.CV_8U)
     cv2.bitwise_or(out, cv2.compare(flat.view(np.uint16), HALF_INF_BITS, cv2.CMP_EQ), dst=out)
@@ -132,13 +133,15 @@ def _half_to_uint8(image: np.ndarray) -> np.ndarray:
 # uint8 values: with Kr = 0.299, Kb = 0.114 (E'y = Kr E'r + (1 - Kr - Kb) E'g + Kb E'b),
 #   Y' = 16 + 219 E'y,   Cb = 128 + 224 (E'b - E'y) / 1.772,   Cr = 128 + 224 (E'r - E'y) / 1.402,
 # E' = value / 255 (sections 2.5.1-2.5.4 of the Recommendation; swscale's and OpenCV's matrix).
-BT601_LIMITED = np.array([[65.481, 128.553, 24.966, 16 * 255],
-                          [-37.797, -74.203, 112.0, 128 * 255],
-                          [112.0, -93.786, -18.214, 128 * 255]]) / 255
+BT601_LIMITED = (
+    np.array([[65.481, 128.553, 24.966, 16 * 255], [-37.797, -74.203, 112.0, 128 * 255], [112.0, -93.786, -18.214, 128 * 255]])
+    / 255
+)
 
 
-def rgb_to_ycbcr420(image: np.ndarray, *, out: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def rgb_to_ycbcr420(
+    image: np.ndarray, *, out: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """8-bit R'G'B' to planar Y'CbCr 4:2:0, BT.601 limited range (``BT601_LIMITED``).
 
     Y' is the matrix applied to each pixel; Cb and Cr of each 2x2 block the matrix applied to the
@@ -158,20 +161,26 @@ def rgb_to_ycbcr420(image: np.ndarray, *, out: tuple[np.ndarray, np.ndarray, np.
     (Y', Cb, Cr) : the ``out`` arrays, or new ones of those shapes.
     """
     import cv2
+
     if not isinstance(image, np.ndarray) or image.dtype != np.uint8:
-        raise TypeError(f"rgb_to_ycbcr420: expected a uint8 ndarray, got {type(image).__name__} "
-                        f"{getattr(image, 'dtype', '')}")
-    if image.ndim not in (2, 3) or image.ndim == 3 and image.shape[2] not in (1, 3) \
-            or image.shape[0] % 2 or image.shape[1] % 2 or not image.size:
-        raise ValueError(f"rgb_to_ycbcr420: expected (H, W, 3), (H, W, 1) or (H, W) with H, W even and > 0, "
-                         f"got {image.shape}")
+        raise TypeError(f"rgb_to_ycbcr420: expected a uint8 ndarray, got {type(image).__name__} {getattr(image, 'dtype', '')}")
+    if (
+        image.ndim not in (2, 3)
+        or image.ndim == 3
+        and image.shape[2] not in (1, 3)
+        or image.shape[0] % 2
+        or image.shape[1] % 2
+        or not image.size
+    ):
+        raise ValueError(f"rgb_to_ycbcr420: expected (H, W, 3), (H, W, 1) or (H, W) with H, W even and > 0, got {image.shape}")
     height, width = image.shape[:2]
     shapes = ((height, width), (height // 2, width // 2), (height // 2, width // 2))
     if out is None:
         out = tuple(np.empty(shape, np.uint8) for shape in shapes)
     elif tuple(plane.shape for plane in out) != shapes or any(plane.dtype != np.uint8 for plane in out):
-        raise ValueError(f"rgb_to_ycbcr420: expected out planes {shapes} uint8, "
-                         f"got {[(plane.shape, plane.dtype.name) for plane in out]}")
+        raise ValueError(
+            f"rgb_to_ycbcr420: expected out planes {shapes} uint8, got {[(plane.shape, plane.dtype.name) for plane in out]}"
+        )
     if image.ndim == 2 or image.shape[2] == 1:
         image = cv2.cvtColor(image.reshape(height, width), cv2.COLOR_GRAY2RGB)
     # All three rows of the matrix each time: OpenCV's SIMD path (3 -> 1 or 2 channels is not).

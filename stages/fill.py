@@ -49,6 +49,7 @@ def push_pull_fill(premultiplied: np.ndarray, valid: np.ndarray) -> np.ndarray:
     as one ``cv2.accumulateProduct``.
     """
     import cv2
+
     H, W = valid.shape
     if premultiplied.shape != (H, W, 3):
         raise ValueError(f"premultiplied must be ({H}, {W}, 3), got {premultiplied.shape}")
@@ -79,6 +80,7 @@ def fill_invalid(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
     (H, W, 3) float32, a new array; equal to ``image`` where ``valid`` is 1.
     """
     import cv2
+
     valid = np.clip(np.asarray(valid, np.float32), 0.0, 1.0)
     premultiplied = cv2.multiply(np.asarray(image, np.float32), cv2.merge([valid] * 3))
     return cv2.cvtColor(push_pull_fill(premultiplied, valid), cv2.COLOR_RGBA2RGB)
@@ -96,6 +98,7 @@ def fill_regions(image: np.ndarray, valid: np.ndarray) -> int:
     regions.
     """
     import cv2
+
     H, W = valid.shape
     holes = (valid < 0.5).astype(np.uint8)
     n, _, stats, _ = cv2.connectedComponentsWithStats(holes, connectivity=8)

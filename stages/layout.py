@@ -243,6 +243,7 @@ def subregion_mask(layout: Layout, points: np.ndarray, size: tuple[int, int]) ->
         ``(H, W)`` int16: the subregion index (position in ``layout.subregions``), -1 outside.
     """
     import cv2
+
     points = np.asarray(points, dtype=np.float64)
     if points.shape != (layout.n_points, 2):
         raise ValueError(f"expected points of shape ({layout.n_points}, 2), got {points.shape}")

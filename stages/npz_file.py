@@ -55,8 +55,9 @@ def read_npz(path: str | Path, keys: Collection[str], *, max_values: int) -> dic
                     if dtype.hasobject:
                         raise NpzError(f"{path}: array {key!r} holds Python objects (pickle is refused)")
                     if count > max_values:
-                        raise NpzError(f"{path}: array {key!r} has shape {shape}: {count} values, more than the "
-                                       f"{max_values} allowed here")
+                        raise NpzError(
+                            f"{path}: array {key!r} has shape {shape}: {count} values, more than the {max_values} allowed here"
+                        )
                 with archive.open(members[key]) as member:
                     arrays[key] = np.lib.format.read_array(member, allow_pickle=False)
     except NpzError:

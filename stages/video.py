@@ -32,6 +32,7 @@ _TV_RANGE, _BT709_PRIMARIES, _SRGB_TRC = 1, 1, 13
 def _open(path: Path) -> tuple[av.container.InputContainer, av.video.stream.VideoStream]:
     """Open ``path`` and its first video stream, or raise a one-line :class:`StageError`."""
     import av
+
     if not path.is_file():
         raise StageError(f"{path}: no such file")
     try:
@@ -53,6 +54,7 @@ def _to_rgb(frame: av.VideoFrame, path: Path) -> np.ndarray:
     stores landscape pixels and a rotation) is applied as FFmpeg's players do, by quarter turns
     (``frame.rotation`` is counterclockwise in degrees)."""
     import av
+
     try:
         rgb = frame.to_ndarray(format="rgb24")
     except (av.FFmpegError, OSError, ValueError) as exc:
@@ -72,6 +74,7 @@ def probe(path: Path) -> StreamInfo:
     constant rate.
     """
     import av
+
     container, stream = _open(path)
     with container:
         rate = stream.average_rate or stream.guessed_rate
@@ -100,7 +103,12 @@ def _warn_if_variable_rate(path: Path, pts: list[int | None], time_base: Fractio
     if durations.max() - durations.min() > 0.1 / fps:
         logging.getLogger("stages.video").warning(
             "warning: %s: variable frame rate (frame durations %.4f..%.4f s); the outputs' time fields "
-            "assume a constant %.3f fps (time_s = frame / fps)", path, durations.min(), durations.max(), fps)
+            "assume a constant %.3f fps (time_s = frame / fps)",
+            path,
+            durations.min(),
+            durations.max(),
+            fps,
+        )
 
 
 class _Reader:
@@ -115,6 +123,7 @@ class _Reader:
 
     def read(self, start: int, stop: int) -> np.ndarray:
         import av
+
         if start < self.position:
             self.close()
             self.__init__(self.path)
@@ -123,14 +132,14 @@ class _Reader:
             while self.position < stop:
                 frame = next(self._frames, None)
                 if frame is None:
-                    raise StageError(f"{self.path}: truncated stream: frame {self.position} missing "
-                                     f"(expected at least {stop} frames)")
+                    raise StageError(
+                        f"{self.path}: truncated stream: frame {self.position} missing (expected at least {stop} frames)"
+                    )
                 if self.position >= start:
                     out.append(_to_rgb(frame, self.path))
                 self.position += 1
         except av.FFmpegError as exc:
-            raise StageError(f"{self.path}: corrupt or truncated stream at frame {self.position} "
-                             f"({_reason(exc)})") from None
+            raise StageError(f"{self.path}: corrupt or truncated stream at frame {self.position} ({_reason(exc)})") from None
         return np.stack(out)
 
     def close(self) -> None:
@@ -159,8 +168,9 @@ class VideoDecode(FrameStage):
     def stream_info(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> StreamInfo:
         return probe(Path(inputs["video"]))
 
-    def process(self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any],
-                ctx: Context) -> dict[str, Any]:
+    def process(
+        self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context
+    ) -> dict[str, Any]:
         """Frames ``[start, stop)`` as ``(stop - start, H, W, 3)`` uint8 RGB."""
         path = Path(inputs["video"])
         reader = getattr(self._local, "reader", None)
@@ -180,8 +190,9 @@ class ImageGray(FrameStage):
     inputs = {"frames": "frames"}
     outputs = {"frames": "frames"}
 
-    def process(self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any],
-                ctx: Context) -> dict[str, Any]:
+    def process(
+        self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context
+    ) -> dict[str, Any]:
         """``(B, H, W, 3)`` uint8 RGB -> ``(B, H, W, 1)`` uint8, Y = 0.299 R + 0.587 G + 0.114 B."""
         return {"frames": to_gray(inputs["frames"].read(start, stop))}
 
@@ -189,6 +200,7 @@ class ImageGray(FrameStage):
 def to_gray(frames: np.ndarray) -> np.ndarray:
     """``(B, H, W, 3)`` uint8 RGB -> ``(B, H, W, 1)`` uint8 BT.601 luma."""
     import cv2
+
     b, h, w, _ = frames.shape
     gray = cv2.cvtColor(np.ascontiguousarray(frames).reshape(b * h, w, 3), cv2.COLOR_RGB2GRAY)
     return gray.reshape(b, h, w, 1)
@@ -234,9 +246,21 @@ class VideoWriter:
     Output is bit-exact across runs (``+bitexact`` muxing, frame i at pts i).
     """
 
-    def __init__(self, path: Path, *, fps: float, width: int, height: int, codec: str = "h264", crf: int = 18,
-                 preset: str = "medium", threads: int = 2, audio_from: Path | None = None):
+    def __init__(
+        self,
+        path: Path,
+        *,
+        fps: float,
+        width: int,
+        height: int,
+        codec: str = "h264",
+        crf: int = 18,
+        preset: str = "medium",
+        threads: int = 2,
+        audio_from: Path | None = None,
+    ):
         import av
+
         if codec not in CODECS:
             raise StageError(f"{path}: unknown codec {codec!r} (expected one of {', '.join(CODECS)})")
         if not 0 <= crf <= 51:
@@ -279,18 +303,26 @@ class VideoWriter:
         audio = source.streams.audio[0]
         if codec == "h264" and audio.codec_context.name not in MP4_AUDIO:
             logging.getLogger("runner.stage").warning(
-                "%s: audio codec %s is not copied into the MP4 (copied: %s)", clip, audio.codec_context.name,
-                ", ".join(sorted(MP4_AUDIO)))
+                "%s: audio codec %s is not copied into the MP4 (copied: %s)",
+                clip,
+                audio.codec_context.name,
+                ", ".join(sorted(MP4_AUDIO)),
+            )
             source.close()
             return None, None
         return audio, self._container.add_stream_from_template(audio)
 
     def write(self, frames: np.ndarray) -> None:
         """Append frames ``(B, H, W, 3)`` uint8 RGB or ``(B, H, W, 1)`` uint8 gray."""
-        if frames.dtype != np.uint8 or frames.ndim != 4 or frames.shape[1:3] != (self.height, self.width) \
-                or frames.shape[3] not in (1, 3):
-            raise StageError(f"{self.path}: expected frames (B, {self.height}, {self.width}, 3 or 1) uint8, "
-                             f"got {frames.shape} {frames.dtype}")
+        if (
+            frames.dtype != np.uint8
+            or frames.ndim != 4
+            or frames.shape[1:3] != (self.height, self.width)
+            or frames.shape[3] not in (1, 3)
+        ):
+            raise StageError(
+                f"{self.path}: expected frames (B, {self.height}, {self.width}, 3 or 1) uint8, got {frames.shape} {frames.dtype}"
+            )
         if any(self._pad):
             frames = np.pad(frames, ((0, 0), (0, self._pad[0]), (0, self._pad[1]), (0, 0)), mode="edge")
         for image in frames:
@@ -311,10 +343,12 @@ class VideoWriter:
         conversion inside ``encode()`` is not bit-exact from one run to the next).
         """
         import av
+
         if self._stream.pix_fmt == "yuv420p":
             frame = av.VideoFrame(image.shape[1], image.shape[0], "yuv420p")
-            planes = (np.frombuffer(plane, np.uint8).reshape(plane.height, plane.line_size)[:, :plane.width]
-                      for plane in frame.planes)  # views of the frame's padded lines
+            planes = (
+                np.frombuffer(plane, np.uint8).reshape(plane.height, plane.line_size)[:, : plane.width] for plane in frame.planes
+            )  # views of the frame's padded lines
             rgb_to_ycbcr420(image, out=tuple(planes))
             return frame
         if image.shape[2] == 1:
@@ -369,13 +403,16 @@ class WriteVideo(SequenceStage):
     optional_inputs = frozenset({"audio"})
     outputs = {"video": "files"}
     params = (
-        Param("codec", str, "h264", "h264 (yuv420p MP4, plays in browsers) or ffv1 (lossless RGB MKV)",
-              choices=tuple(CODECS)),
+        Param("codec", str, "h264", "h264 (yuv420p MP4, plays in browsers) or ffv1 (lossless RGB MKV)", choices=tuple(CODECS)),
         Param("crf", int, 18, "x264 constant rate factor 0..51 (lower = better); ignored by ffv1", min=0, max=51),
-        Param("preset", str, "superfast", "x264 preset: encoder time against file size at the same crf "
-              "(docs/writers.md); ignored by ffv1", choices=X264_PRESETS),
-        Param("threads", int, 2, "x264 slice threads (the bytes depend on the count); ignored by ffv1",
-              min=1, max=16),
+        Param(
+            "preset",
+            str,
+            "superfast",
+            "x264 preset: encoder time against file size at the same crf (docs/writers.md); ignored by ffv1",
+            choices=X264_PRESETS,
+        ),
+        Param("threads", int, 2, "x264 slice threads (the bytes depend on the count); ignored by ffv1", min=1, max=16),
         Param("filename", str, "video", "file name without extension"),
     )
 
@@ -385,9 +422,17 @@ class WriteVideo(SequenceStage):
         stream = inputs["frames"]
         info = stream.info
         path = ctx.files_dir("video") / f"{params['filename']}{CODECS[params['codec']][2]}"
-        with VideoWriter(path, fps=info.fps, width=info.width, height=info.height,
-                         codec=params["codec"], crf=params["crf"], preset=params["preset"],
-                         threads=params["threads"], audio_from=inputs.get("audio")) as writer:
+        with VideoWriter(
+            path,
+            fps=info.fps,
+            width=info.width,
+            height=info.height,
+            codec=params["codec"],
+            crf=params["crf"],
+            preset=params["preset"],
+            threads=params["threads"],
+            audio_from=inputs.get("audio"),
+        ) as writer:
             for _, frames in stream.chunks():
                 writer.write(to_uint8(frames))  # half floats: one SIMD pass (stages.color)
                 ctx.progress(len(frames))

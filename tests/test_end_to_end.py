@@ -39,8 +39,9 @@ def run_cli(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess:
 
 def _run(tmp_path_factory, pipeline: str) -> Path:
     work = tmp_path_factory.mktemp("e2e")
-    result = run_cli("run", pipeline, "--out", str(work / "out"), "--cache-dir", str(work / "cache"),
-                     "--log-json", str(work / "log.jsonl"))
+    result = run_cli(
+        "run", pipeline, "--out", str(work / "out"), "--cache-dir", str(work / "cache"), "--log-json", str(work / "log.jsonl")
+    )
     assert result.returncode == 0, result.stderr
     return work / "out"
 
@@ -174,8 +175,12 @@ def test_default_run_records_the_occluded_regions(default_run):
     "pipeline, args, code, message",
     [
         ("pipeline.yaml", ["--in", "missing.mp4"], 2, "missing.mp4"),
-        ("pipeline_paper.yaml", ["--in", "fixtures/clips/tiny.mp4"], 1,
-         "marked on a 320x240 frame, the clip's frames are 160x120"),
+        (
+            "pipeline_paper.yaml",
+            ["--in", "fixtures/clips/tiny.mp4"],
+            1,
+            "marked on a 320x240 frame, the clip's frames are 160x120",
+        ),
         ("pipeline.yaml", ["--input", "target=fixtures/clips"], 1, "pack.yaml"),
         ("pipeline.yaml", ["--set", "synthesize.mode=bogus"], 2, "synthesize.mode"),
         ("pipeline.yaml", ["--set", "smooth.beta=nan"], 2, "expected a finite number"),
@@ -196,16 +201,36 @@ def test_corrupt_pack_points_name_the_file(tmp_path):
     shutil.copytree(REPO / "fixtures" / "packs" / "target", pack)
     points = pack / "captured.npz"
     points.write_bytes(b"not an npz")
-    result = run_cli("run", "pipeline.yaml", "--input", f"target={pack}", "--out", str(tmp_path / "out"),
-                     "--cache-dir", str(tmp_path / "cache"), "--until", "build")
+    result = run_cli(
+        "run",
+        "pipeline.yaml",
+        "--input",
+        f"target={pack}",
+        "--out",
+        str(tmp_path / "out"),
+        "--cache-dir",
+        str(tmp_path / "cache"),
+        "--until",
+        "build",
+    )
     assert result.returncode == 1 and points.name in result.stderr and "Traceback" not in result.stderr
 
 
 def test_data_coefficients_are_those_of_the_synthesized_frames(tmp_path):
     """In `global` mode (one convex combination for the whole face) every face subregion of the
     data file carries the same coefficients: the ones the frames were composited with."""
-    result = run_cli("run", "pipeline.yaml", "--set", "synthesize.mode=global", "--out", str(tmp_path / "out"),
-                     "--cache-dir", str(tmp_path / "cache"), "--until", "data")
+    result = run_cli(
+        "run",
+        "pipeline.yaml",
+        "--set",
+        "synthesize.mode=global",
+        "--out",
+        str(tmp_path / "out"),
+        "--cache-dir",
+        str(tmp_path / "cache"),
+        "--until",
+        "data",
+    )
     assert result.returncode == 0, result.stderr
     data = np.load(tmp_path / "out" / "data" / "data.npz", allow_pickle=False)
     layout = load_pack(REPO / "fixtures" / "packs" / "target").layout
@@ -227,20 +252,24 @@ def test_damaged_cache_entries_are_recomputed_not_used(default_run):
     cache = default_run.parent / "cache"
     chunk = _cached_files(cache, "synthesize", "coeffs.npz")[1]
     data = chunk.read_bytes()
-    chunk.write_bytes(data[:len(data) // 2] + bytes(len(data) - len(data) // 2))
+    chunk.write_bytes(data[: len(data) // 2] + bytes(len(data) - len(data) // 2))
     exr = _cached_files(cache, "exr", "frame.*.exr")[3]
     # published files are hard links to their cache entries (docs/runner.md): damaging the entry
     # in place damages the earlier run's published copy too, so keep the undamaged bytes first
     undamaged = (default_run / "exr" / exr.name).read_bytes()
     exr.write_bytes(exr.read_bytes()[:-64] + bytes(64))
     out = default_run.parent / "repaired"
-    result = run_cli("run", "pipeline.yaml", "--set", "video.crf=17", "--force", "coefficients", "--out", str(out),
-                     "--cache-dir", str(cache))
+    result = run_cli(
+        "run", "pipeline.yaml", "--set", "video.crf=17", "--force", "coefficients", "--out", str(out), "--cache-dir", str(cache)
+    )
     assert result.returncode == 0, result.stderr
     warnings = [line for line in result.stderr.splitlines() if "damaged cache entry" in line]
     assert len(warnings) == 2 and "'synthesize'" in warnings[0] + warnings[1] and "'exr'" in warnings[0] + warnings[1]
-    chunks = [entry for entry in CacheStore(cache).iter_entries()
-              if entry.record.get("stage") == "synthesize" and "range" in entry.record]
+    chunks = [
+        entry
+        for entry in CacheStore(cache).iter_entries()
+        if entry.record.get("stage") == "synthesize" and "range" in entry.record
+    ]
     assert len(chunks) == -(-len(np.load(TRUTH)["points"]) // 16)  # one entry per chunk of 16 frames
     for entry in chunks:  # the recomputed chunk reads back verified
         load_bundle(entry, "coeffs")
@@ -269,8 +298,9 @@ def _write_clip(path: Path, frames: list[np.ndarray], fps: int = 25) -> Path:
 
 def test_clip_without_a_face_is_one_line_naming_the_clip(tmp_path):
     clip = _write_clip(tmp_path / "empty_room.mp4", [np.full((128, 160, 3), 90 + k, np.uint8) for k in range(12)])
-    result = run_cli("run", "pipeline.yaml", "--in", str(clip), "--out", str(tmp_path / "out"),
-                     "--cache-dir", str(tmp_path / "cache"))
+    result = run_cli(
+        "run", "pipeline.yaml", "--in", str(clip), "--out", str(tmp_path / "out"), "--cache-dir", str(tmp_path / "cache")
+    )
     assert result.returncode == 1 and "Traceback" not in result.stderr
     lines = [line for line in result.stderr.splitlines() if line.startswith("error:")]
     assert len(lines) == 1 and "no face" in lines[0] and "empty_room.mp4" in lines[0]
@@ -284,8 +314,18 @@ def test_face_lost_for_a_stretch_is_held_and_counted(tmp_path):
     for k in range(10, 20):
         frames[k] = np.full_like(frames[k], 128)
     clip = _write_clip(tmp_path / "covered.mp4", frames)
-    result = run_cli("run", "pipeline.yaml", "--in", str(clip), "--out", str(tmp_path / "out"),
-                     "--cache-dir", str(tmp_path / "cache"), "--until", "data")
+    result = run_cli(
+        "run",
+        "pipeline.yaml",
+        "--in",
+        str(clip),
+        "--out",
+        str(tmp_path / "out"),
+        "--cache-dir",
+        str(tmp_path / "cache"),
+        "--until",
+        "data",
+    )
     assert result.returncode == 0, result.stderr
     assert "no face in 10 of 32 frames" in result.stderr
     data = np.load(tmp_path / "out" / "data" / "data.npz", allow_pickle=False)

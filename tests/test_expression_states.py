@@ -28,8 +28,9 @@ def run(folder: Path, script: str, seed: int) -> tuple[dict, dict, dict]:
     from scripts.realface.clip import make_clip
 
     clip, truth = make_clip(folder, frames=0, seed=seed, size=SIZE, script=script)
-    result = run_cli("run", "pipeline.yaml", "--in", str(clip), "--out", str(folder / "out"),
-                     "--cache-dir", str(folder / "cache"))
+    result = run_cli(
+        "run", "pipeline.yaml", "--in", str(clip), "--out", str(folder / "out"), "--cache-dir", str(folder / "cache")
+    )
     assert result.returncode == 0, result.stderr
     data = dict(np.load(folder / "out" / "data" / "data.npz"))
     names = [str(n) for n in data["target_names"]]

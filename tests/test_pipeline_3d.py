@@ -28,7 +28,9 @@ def run_cli(*args: str) -> subprocess.CompletedProcess:
 def out(tmp_path_factory) -> Path:
     work = tmp_path_factory.mktemp("pipeline3d")
     for stage in ("render3d", "usd"):  # the 3D outputs and what they depend on; one cache
-        result = run_cli("run", "pipeline_3d.yaml", "--until", stage, "--out", str(work / "out"), "--cache-dir", str(work / "cache"))
+        result = run_cli(
+            "run", "pipeline_3d.yaml", "--until", stage, "--out", str(work / "out"), "--cache-dir", str(work / "cache")
+        )
         assert result.returncode == 0, result.stderr
     return work / "out"
 
@@ -90,8 +92,18 @@ def test_more_chunks_than_kept_ahead_stream_through(tmp_path):
     text = (REPO / "pipeline_3d.yaml").read_text().replace("chunk_frames: 16", "chunk_frames: 4")
     text = text.replace("default: fixtures/", f"default: {REPO}/fixtures/")
     (tmp_path / "pipeline.yaml").write_text(text)
-    result = run_cli("run", str(tmp_path / "pipeline.yaml"), "--until", "video3d", "--until", "usd",
-                     "--out", str(tmp_path / "out"), "--cache-dir", str(tmp_path / "cache"))
+    result = run_cli(
+        "run",
+        str(tmp_path / "pipeline.yaml"),
+        "--until",
+        "video3d",
+        "--until",
+        "usd",
+        "--out",
+        str(tmp_path / "out"),
+        "--cache-dir",
+        str(tmp_path / "cache"),
+    )
     assert result.returncode == 0, result.stderr
     assert len(list((tmp_path / "out" / "render3d").glob("frame.*.exr"))) == clip_frames() > 4 * 5
     assert (tmp_path / "out" / "video3d" / "result3d.mp4").stat().st_size > 0

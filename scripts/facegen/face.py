@@ -17,18 +17,18 @@ from stages.layout import Layout
 
 # Expression controls, in the order of every `controls` array (docs/fixtures.md).
 CONTROLS: tuple[str, ...] = (
-    "inner_brow_raise",    # AU1
-    "outer_brow_raise",    # AU2
-    "brow_lower",          # AU4
-    "lid_close",           # AU43 (blink)
-    "squint",              # AU7
-    "smile",               # AU12 + AU6 (lip corner pull, cheek raise)
-    "lip_stretch",         # AU20
-    "lip_pucker",          # AU18
-    "jaw_drop",            # AU26/27 (mouth open)
-    "upper_lip_raise",     # AU10
+    "inner_brow_raise",  # AU1
+    "outer_brow_raise",  # AU2
+    "brow_lower",  # AU4
+    "lid_close",  # AU43 (blink)
+    "squint",  # AU7
+    "smile",  # AU12 + AU6 (lip corner pull, cheek raise)
+    "lip_stretch",  # AU20
+    "lip_pucker",  # AU18
+    "jaw_drop",  # AU26/27 (mouth open)
+    "upper_lip_raise",  # AU10
     "lip_corner_depress",  # AU15
-    "chin_raise",          # AU17
+    "chin_raise",  # AU17
 )
 
 # Jaw drop (AU26/27) in two phases, each a rotation of the jaw-borne points about an x-parallel
@@ -51,7 +51,7 @@ def _left_template() -> dict[str, tuple[float, float]]:
     for i in range(17):
         t = np.pi * i / 16.0
         c, s = np.cos(t), np.sin(t)
-        p[f"contour_{i}"] = (-70.0 * np.sign(c) * abs(c) ** 0.75, -4.0 + 104.0 * s ** 1.35)
+        p[f"contour_{i}"] = (-70.0 * np.sign(c) * abs(c) ** 0.75, -4.0 + 104.0 * s**1.35)
     p["temple_l"] = (-67.0, -40.0)
     for i, x in enumerate((-50.0, -25.0, 0.0, 25.0, 50.0)):
         p[f"hairline_{i}"] = (x, -80.0 + 0.0075 * x * x)
@@ -241,7 +241,16 @@ def depth(x: np.ndarray, y: np.ndarray, params: dict[str, float] | None = None) 
     An ellipsoidal head with a nose, brow ridge, eye sockets, cheekbones, lips and chin, and a
     neck that falls back below the jaw.
     """
-    p = {"nose": 1.0, "brow_ridge": 1.0, "cheekbone": 1.0, "chin": 1.0, "lips": 1.0, "jaw_a": 75.0, "jaw_b": 104.0, **(params or {})}
+    p = {
+        "nose": 1.0,
+        "brow_ridge": 1.0,
+        "cheekbone": 1.0,
+        "chin": 1.0,
+        "lips": 1.0,
+        "jaw_a": 75.0,
+        "jaw_b": 104.0,
+        **(params or {}),
+    }
     x = np.asarray(x, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
     a, b, c, y0 = 86.0, 130.0, 95.0, 8.0
@@ -249,7 +258,7 @@ def depth(x: np.ndarray, y: np.ndarray, params: dict[str, float] | None = None) 
     z = c * (1.0 - np.sqrt(r))
     ty = np.clip((y + 4.0) / 39.0, 0.0, 1.0)
     width = 5.5 + 9.0 * ty
-    ridge = (2.0 + 20.0 * ty ** 1.6) * np.where(y > 35.0, np.exp(-(((y - 35.0) / 6.0) ** 2)), 1.0)
+    ridge = (2.0 + 20.0 * ty**1.6) * np.where(y > 35.0, np.exp(-(((y - 35.0) / 6.0) ** 2)), 1.0)
     ridge *= np.where(y < -4.0, np.exp(-(((y + 4.0) / 10.0) ** 2)), 1.0)
     z -= p["nose"] * ridge * np.exp(-((x / width) ** 2))
     for sx in (-1.0, 1.0):
@@ -382,12 +391,22 @@ def expression_points3d(neutral: np.ndarray, controls: np.ndarray, layout: Layou
         corner_move = smile + stretch + pucker + depress
         d[idx[f"mouth_outer_{corner_o}"]] += corner_move
         d[idx[f"mouth_inner_{corner_i}"]] += corner_move
-        d[idx[f"nasolabial_{s}_1"]] += np.array((sx * 3.0, -3.5, -2.5)) * c["smile"] + np.array((0, -2.0, 0)) * c["upper_lip_raise"]
-        d[idx[f"nasolabial_{s}_2"]] += np.array((sx * 4.5, -4.0, -2.0)) * c["smile"] + np.array((sx * 3.0, 0.5, 0)) * c["lip_stretch"]
-        d[idx[f"nasolabial_{s}_0"]] += np.array((sx * 1.0, -1.5, -1.0)) * c["smile"] + np.array((0, -1.8, 0)) * c["upper_lip_raise"]
-        d[idx[f"nose_ala_{s}"]] += np.array((sx * 0.8, -1.5, 0.0)) * c["upper_lip_raise"] + np.array((sx * 0.8, -0.5, 0)) * c["smile"]
+        d[idx[f"nasolabial_{s}_1"]] += (
+            np.array((sx * 3.0, -3.5, -2.5)) * c["smile"] + np.array((0, -2.0, 0)) * c["upper_lip_raise"]
+        )
+        d[idx[f"nasolabial_{s}_2"]] += (
+            np.array((sx * 4.5, -4.0, -2.0)) * c["smile"] + np.array((sx * 3.0, 0.5, 0)) * c["lip_stretch"]
+        )
+        d[idx[f"nasolabial_{s}_0"]] += (
+            np.array((sx * 1.0, -1.5, -1.0)) * c["smile"] + np.array((0, -1.8, 0)) * c["upper_lip_raise"]
+        )
+        d[idx[f"nose_ala_{s}"]] += (
+            np.array((sx * 0.8, -1.5, 0.0)) * c["upper_lip_raise"] + np.array((sx * 0.8, -0.5, 0)) * c["smile"]
+        )
         d[idx[f"nose_alar_crease_{s}"]] += np.array((sx * 0.6, -1.2, 0.0)) * c["upper_lip_raise"]
-        d[idx[f"lipfold_{s}"]] += np.array((sx * 3.0, -2.5, -1.0)) * c["smile"] + np.array((sx * 1.0, 3.0, 0.0)) * c["lip_corner_depress"]
+        d[idx[f"lipfold_{s}"]] += (
+            np.array((sx * 3.0, -2.5, -1.0)) * c["smile"] + np.array((sx * 1.0, 3.0, 0.0)) * c["lip_corner_depress"]
+        )
         d[idx[f"lipfold_{s}"]] += np.array((-sx * 3.0, 0.0, -1.0)) * c["lip_pucker"]
     # points along the lip lines follow the corners by their distance from the midline
     half_w = max(abs(neutral[idx["mouth_outer_0"], 0]), 1.0)

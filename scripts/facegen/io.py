@@ -39,8 +39,9 @@ def write_png(path: Path, image: np.ndarray) -> None:
     path.write_bytes(data.tobytes())
 
 
-def write_points_csv(path: Path, names: tuple[str, ...] | list[str], points: np.ndarray, *,
-                     frame_size: tuple[int, int] | None = None) -> None:
+def write_points_csv(
+    path: Path, names: tuple[str, ...] | list[str], points: np.ndarray, *, frame_size: tuple[int, int] | None = None
+) -> None:
     """Write ``name,x,y`` rows (px, 6 decimals) for ``points`` ``(N, 2)``; with ``frame_size``
     ``(W, H)``, first a comment line ``# frame_size: W H`` (the frame the points belong to)."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -69,8 +70,12 @@ class Mp4Writer:
         self.stream.codec_context.thread_count = 1
         # mb-tree and the lookahead use floating point whose results change with the FPU state
         # other libraries (BLAS) leave behind; without them the output bytes are repeatable.
-        self.stream.codec_context.options = {"crf": str(crf), "preset": "medium", "threads": "1",
-                                             "x264-params": "mbtree=0:rc-lookahead=0:sync-lookahead=0"}
+        self.stream.codec_context.options = {
+            "crf": str(crf),
+            "preset": "medium",
+            "threads": "1",
+            "x264-params": "mbtree=0:rc-lookahead=0:sync-lookahead=0",
+        }
 
     def write(self, image: np.ndarray) -> None:
         """Encode one RGB ``(H, W, 3) uint8`` frame. The RGB -> YUV 4:2:0 conversion (BT.601,

@@ -92,7 +92,10 @@ def build_mesh(identity: Identity, layout: Layout) -> FaceMesh:
     rings = [(_outline(layout, f"eye_{s}", 12), True) for s in "lr"]
     rings += [(_outline(layout, "mouth_inner", 10), True), (_outline(layout, "mouth_outer", 16), True)]
     rings += [(_outline(layout, f"brow_{s}", 8), True) for s in "lr"]
-    rings += [(_outline(layout, "contour", 17), False), ([layout.index(n) for n in ("temple_l", *[f"hairline_{k}" for k in range(5)], "temple_r")], False)]
+    rings += [
+        (_outline(layout, "contour", 17), False),
+        ([layout.index(n) for n in ("temple_l", *[f"hairline_{k}" for k in range(5)], "temple_r")], False),
+    ]
     skin_pos = {int(p): k for k, p in enumerate(skin)}
     mids, mid_rows = [], []
     for ring, closed in rings:

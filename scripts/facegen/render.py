@@ -137,9 +137,25 @@ def _draw_eyes(img: np.ndarray, face: FaceModel, R: np.ndarray, t: np.ndarray, A
                 sp_px, _ = project(spokes, R, t, A)
                 f_px, _ = project(front, R, t, A)
                 for k in range(0, len(theta), 2):
-                    cv2.line(img, tuple(_fx(f_px)[0, 0]), tuple(_fx(sp_px[k])[0, 0]), tuple(float(v) for v in colour * 0.75), 1, cv2.LINE_AA, SHIFT)
+                    cv2.line(
+                        img,
+                        tuple(_fx(f_px)[0, 0]),
+                        tuple(_fx(sp_px[k])[0, 0]),
+                        tuple(float(v) for v in colour * 0.75),
+                        1,
+                        cv2.LINE_AA,
+                        SHIFT,
+                    )
         hl_px, hl_z = project(front + np.array([-1.6, -1.6, -0.5]), R, t, A)
-        cv2.circle(img, tuple(_fx(hl_px)[0, 0]), max(int(A[0, 0] * 0.8 / hl_z * (1 << SHIFT)), 1 << SHIFT), (0.97, 0.97, 0.97), -1, cv2.LINE_AA, SHIFT)
+        cv2.circle(
+            img,
+            tuple(_fx(hl_px)[0, 0]),
+            max(int(A[0, 0] * 0.8 / hl_z * (1 << SHIFT)), 1 << SHIFT),
+            (0.97, 0.97, 0.97),
+            -1,
+            cv2.LINE_AA,
+            SHIFT,
+        )
 
 
 def _draw_mouth(img: np.ndarray, face: FaceModel, points3d: np.ndarray, R: np.ndarray, t: np.ndarray, A: np.ndarray) -> None:
@@ -150,7 +166,9 @@ def _draw_mouth(img: np.ndarray, face: FaceModel, points3d: np.ndarray, R: np.nd
     cv2.fillPoly(img, [_fx(inner_px)], (0.20, 0.06, 0.06), cv2.LINE_AA, SHIFT)
     cv2.polylines(img, [_fx(inner_px)], True, (0.20, 0.06, 0.06), 3, cv2.LINE_AA, SHIFT)
     low_mid = inner[[6, 7, 8, 9]].mean(axis=0) + np.array([0.0, -2.0, 8.0])
-    tongue = low_mid + np.column_stack([11 * np.cos(np.linspace(np.pi, 2 * np.pi, 16)), 5 * np.sin(np.linspace(np.pi, 2 * np.pi, 16)), np.zeros(16)])
+    tongue = low_mid + np.column_stack(
+        [11 * np.cos(np.linspace(np.pi, 2 * np.pi, 16)), 5 * np.sin(np.linspace(np.pi, 2 * np.pi, 16)), np.zeros(16)]
+    )
     t_px, _ = project(tongue, R, t, A)
     cv2.fillPoly(img, [_fx(t_px)], (0.55, 0.22, 0.22), cv2.LINE_AA, SHIFT)
     for prefix, gum_dir in (("teeth_upper", -1.0), ("teeth_lower", 1.0)):
@@ -172,8 +190,16 @@ def texture_ppm(camera: Camera, depth_mm: float) -> float:
     return 1.6 * float(camera.A[0, 0]) / depth_mm
 
 
-def render(face: FaceModel, points3d: np.ndarray, R: np.ndarray, t: np.ndarray, camera: Camera, *, supersample: int = 2,
-           ppm: float | None = None) -> Rendered:
+def render(
+    face: FaceModel,
+    points3d: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    camera: Camera,
+    *,
+    supersample: int = 2,
+    ppm: float | None = None,
+) -> Rendered:
     """Render identity ``face`` with expression points ``points3d`` ``(N, 3)`` mm at pose (R, t).
 
     ``ppm`` fixes the texture resolution (a clip passes one value so the texture never switches

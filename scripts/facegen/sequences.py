@@ -168,16 +168,32 @@ def clip_trajectory(kind: str, frames: int, fps: float) -> tuple[np.ndarray, np.
     s = np.arange(frames) / max(frames - 1, 1)
     sec = np.arange(frames) / fps
     if kind == "calm":
-        keys = [(0.0, controls_of()), (0.12, controls_of()), (0.3, controls_of(smile=0.8, squint=0.2)),
-                (0.45, controls_of(inner_brow_raise=0.8, outer_brow_raise=0.7, jaw_drop=0.35)),
-                (0.62, controls_of(brow_lower=0.8, lip_corner_depress=0.6, chin_raise=0.3)),
-                (0.8, controls_of(lip_pucker=0.7)), (0.92, controls_of(smile=0.4)), (1.0, controls_of())]
+        keys = [
+            (0.0, controls_of()),
+            (0.12, controls_of()),
+            (0.3, controls_of(smile=0.8, squint=0.2)),
+            (0.45, controls_of(inner_brow_raise=0.8, outer_brow_raise=0.7, jaw_drop=0.35)),
+            (0.62, controls_of(brow_lower=0.8, lip_corner_depress=0.6, chin_raise=0.3)),
+            (0.8, controls_of(lip_pucker=0.7)),
+            (0.92, controls_of(smile=0.4)),
+            (1.0, controls_of()),
+        ]
         controls = _smooth_keys(s, keys)
-        angles = np.column_stack([3.0 * np.sin(2 * np.pi * 1.0 * s), 2.0 * np.sin(2 * np.pi * 0.7 * s), 1.5 * np.sin(2 * np.pi * 1.3 * s)])
-        shift = np.column_stack([2.0 * np.sin(2 * np.pi * 0.8 * s), 1.5 * np.sin(2 * np.pi * 0.6 * s), 4.0 * np.sin(2 * np.pi * 0.5 * s)])
+        angles = np.column_stack(
+            [3.0 * np.sin(2 * np.pi * 1.0 * s), 2.0 * np.sin(2 * np.pi * 0.7 * s), 1.5 * np.sin(2 * np.pi * 1.3 * s)]
+        )
+        shift = np.column_stack(
+            [2.0 * np.sin(2 * np.pi * 0.8 * s), 1.5 * np.sin(2 * np.pi * 0.6 * s), 4.0 * np.sin(2 * np.pi * 0.5 * s)]
+        )
     elif kind == "live":
-        keys = [(0.0, controls_of()), (0.2, controls_of(smile=0.7)), (0.4, controls_of(inner_brow_raise=0.9, outer_brow_raise=0.8)),
-                (0.6, controls_of(brow_lower=0.7, lip_stretch=0.4)), (0.8, controls_of(smile=0.9, squint=0.3)), (1.0, controls_of(lip_corner_depress=0.5))]
+        keys = [
+            (0.0, controls_of()),
+            (0.2, controls_of(smile=0.7)),
+            (0.4, controls_of(inner_brow_raise=0.9, outer_brow_raise=0.8)),
+            (0.6, controls_of(brow_lower=0.7, lip_stretch=0.4)),
+            (0.8, controls_of(smile=0.9, squint=0.3)),
+            (1.0, controls_of(lip_corner_depress=0.5)),
+        ]
         controls = _smooth_keys(s, keys)
         ramp = np.clip(sec / 0.25, 0.0, 1.0)
         ci = CONTROL_INDEX
@@ -187,8 +203,12 @@ def clip_trajectory(kind: str, frames: int, fps: float) -> tuple[np.ndarray, np.
         controls[:, ci["upper_lip_raise"]] += ramp * 0.3 * np.clip(np.sin(2 * np.pi * 2.9 * sec + 1.0), 0, None) ** 2
         phase = np.mod(sec - 0.45, 1.3)
         controls[:, ci["lid_close"]] = np.clip(1.0 - np.abs(phase - 0.1) / 0.1, 0.0, 1.0) * (sec > 0.3)
-        angles = np.column_stack([25.0 * np.sin(2 * np.pi * s), 15.0 * np.sin(2 * np.pi * 1.5 * s), 10.0 * np.sin(2 * np.pi * 2.0 * s)])
-        shift = np.column_stack([15.0 * np.sin(2 * np.pi * 1.2 * s), 8.0 * np.sin(2 * np.pi * 0.9 * s), 35.0 * np.sin(2 * np.pi * 0.75 * s)])
+        angles = np.column_stack(
+            [25.0 * np.sin(2 * np.pi * s), 15.0 * np.sin(2 * np.pi * 1.5 * s), 10.0 * np.sin(2 * np.pi * 2.0 * s)]
+        )
+        shift = np.column_stack(
+            [15.0 * np.sin(2 * np.pi * 1.2 * s), 8.0 * np.sin(2 * np.pi * 0.9 * s), 35.0 * np.sin(2 * np.pi * 0.75 * s)]
+        )
     else:
         raise ValueError(f"unknown clip kind {kind!r}")
     return np.clip(controls, 0.0, 1.0), angles, shift

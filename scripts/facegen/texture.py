@@ -24,8 +24,17 @@ U0, V0, U1, V1 = -106.0, -152.0, 106.0, 168.0  # texture-space extent (mm)
 SHIFT = 4
 
 DETAILS: tuple[str, ...] = (
-    "forehead_lines", "glabella_furrows", "crows_feet_l", "crows_feet_r", "nasolabial_l", "nasolabial_r",
-    "lip_corner_l", "lip_corner_r", "chin_folds", "lid_crease_l", "lid_crease_r",
+    "forehead_lines",
+    "glabella_furrows",
+    "crows_feet_l",
+    "crows_feet_r",
+    "nasolabial_l",
+    "nasolabial_r",
+    "lip_corner_l",
+    "lip_corner_r",
+    "chin_folds",
+    "lid_crease_l",
+    "lid_crease_r",
 )
 
 
@@ -74,8 +83,10 @@ def _smooth_curve(pts: np.ndarray, n: int = 24) -> np.ndarray:
     pts = np.asarray(pts, dtype=np.float64)
     t = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
     s = np.linspace(0.0, t[-1], n)
-    return np.column_stack([np.interp(s, t, pts[:, 0]), np.interp(s, t, pts[:, 1])]) if len(pts) < 3 else np.column_stack(
-        [np.polyval(np.polyfit(t, pts[:, k], min(3, len(pts) - 1)), s) for k in range(2)]
+    return (
+        np.column_stack([np.interp(s, t, pts[:, 0]), np.interp(s, t, pts[:, 1])])
+        if len(pts) < 3
+        else np.column_stack([np.polyval(np.polyfit(t, pts[:, k], min(3, len(pts) - 1)), s) for k in range(2)])
     )
 
 
@@ -117,10 +128,22 @@ def build_texture(identity: Identity, layout: Layout, mesh: FaceMesh, *, ppm: fl
     # hair: everything above the hairline, and down the sides of the head over the ears
     hl = np.array([P("temple_l")] + [P(f"hairline_{k}") for k in range(5)] + [P("temple_r")])
     low = P("contour_3")[1] + 8 * ppm
-    left = np.array([[-10, low], [P("contour_3")[0] - 12 * ppm, low], [P("contour_1")[0] - 7 * ppm, P("contour_1")[1]],
-                     [P("contour_0")[0] - 4 * ppm, P("contour_0")[1]]])
-    right = np.array([[P("contour_16")[0] + 4 * ppm, P("contour_16")[1]], [P("contour_15")[0] + 7 * ppm, P("contour_15")[1]],
-                      [P("contour_13")[0] + 12 * ppm, low], [w + 10, low]])
+    left = np.array(
+        [
+            [-10, low],
+            [P("contour_3")[0] - 12 * ppm, low],
+            [P("contour_1")[0] - 7 * ppm, P("contour_1")[1]],
+            [P("contour_0")[0] - 4 * ppm, P("contour_0")[1]],
+        ]
+    )
+    right = np.array(
+        [
+            [P("contour_16")[0] + 4 * ppm, P("contour_16")[1]],
+            [P("contour_15")[0] + 7 * ppm, P("contour_15")[1]],
+            [P("contour_13")[0] + 12 * ppm, low],
+            [w + 10, low],
+        ]
+    )
     hair_poly = np.vstack([left, _smooth_curve(hl, 40), right, [[w + 10, -10], [-10, -10]]])
     hair = _mask(shape, [hair_poly], 1.2 * ppm)
     streak = cv2.GaussianBlur(rng.standard_normal(shape).astype(np.float32), (0, 0), sigmaX=0.4 * ppm, sigmaY=5 * ppm)
@@ -139,7 +162,15 @@ def build_texture(identity: Identity, layout: Layout, mesh: FaceMesh, *, ppm: fl
         for _ in range(int(70 * identity.brow_density)):
             k = int(rng.uniform(0, 1) * 19)
             start = lower[k] + rng.uniform(0.1, 0.9) * (upper[k] - lower[k])
-            cv2.line(strokes, tuple(_fixed(start)[0, 0]), tuple(_fixed(start + d)[0, 0]), 0.8, max(1, int(0.35 * ppm)), cv2.LINE_AA, SHIFT)
+            cv2.line(
+                strokes,
+                tuple(_fixed(start)[0, 0]),
+                tuple(_fixed(start + d)[0, 0]),
+                0.8,
+                max(1, int(0.35 * ppm)),
+                cv2.LINE_AA,
+                SHIFT,
+            )
         a = np.clip(patch + strokes * _mask(shape, [b], 0.5 * ppm), 0, 0.95)
         _blend(img, a, brow_col)
     # lips: between the outer and inner lip lines, with vertical grain, darker towards the inside
@@ -167,7 +198,17 @@ def build_texture(identity: Identity, layout: Layout, mesh: FaceMesh, *, ppm: fl
         a, n = P(f"nose_ala_{s}"), P(f"nose_nostril_{s}")
         c = 0.45 * a + 0.55 * n + (0, -0.6 * ppm)
         m = np.zeros(shape, np.float32)
-        cv2.ellipse(m, tuple(int(v) for v in c), (int(3.2 * ppm), int(1.6 * ppm)), 15.0 if s == "r" else -15.0, 0, 360, 1.0, -1, cv2.LINE_AA)
+        cv2.ellipse(
+            m,
+            tuple(int(v) for v in c),
+            (int(3.2 * ppm), int(1.6 * ppm)),
+            15.0 if s == "r" else -15.0,
+            0,
+            360,
+            1.0,
+            -1,
+            cv2.LINE_AA,
+        )
         _blend(img, cv2.GaussianBlur(m, (0, 0), 0.4 * ppm) * 0.8, np.array([0.18, 0.08, 0.07]))
     # nose and eye-socket shading painted in (ambient occlusion the Lambert term lacks)
     ao = np.zeros(shape, np.float32)
@@ -178,15 +219,30 @@ def build_texture(identity: Identity, layout: Layout, mesh: FaceMesh, *, ppm: fl
         cv2.circle(ao, tuple(int(v) for v in inner_corner), int(5 * ppm), 0.8, -1, cv2.LINE_AA)
     ao = cv2.GaussianBlur(ao, (0, 0), 2.0 * ppm)
     ridge = np.zeros(shape, np.float32)
-    cv2.line(ridge, tuple(_fixed(P("nose_bridge_1"))[0, 0]), tuple(_fixed(P("nose_tip"))[0, 0]), 1.0, max(1, int(2.5 * ppm)), cv2.LINE_AA, SHIFT)
+    cv2.line(
+        ridge,
+        tuple(_fixed(P("nose_bridge_1"))[0, 0]),
+        tuple(_fixed(P("nose_tip"))[0, 0]),
+        1.0,
+        max(1, int(2.5 * ppm)),
+        cv2.LINE_AA,
+        SHIFT,
+    )
     ridge = cv2.GaussianBlur(ridge, (0, 0), 1.5 * ppm)
     img *= (1.0 - 0.16 * ao + 0.07 * ridge)[..., None]
     details = _detail_maps(identity, layout, px, shape, ppm, rng)
     return Texture(ppm=ppm, base=np.clip(img, 0, 1).astype(np.float32), details=details)
 
 
-def _line_map(shape: tuple[int, int], curves: list[np.ndarray], ppm: float, *, width_mm: float, depth: float,
-              highlight: tuple[float, float] = (0.0, 0.0)) -> tuple[int, int, np.ndarray]:
+def _line_map(
+    shape: tuple[int, int],
+    curves: list[np.ndarray],
+    ppm: float,
+    *,
+    width_mm: float,
+    depth: float,
+    highlight: tuple[float, float] = (0.0, 0.0),
+) -> tuple[int, int, np.ndarray]:
     """Draw wrinkle curves (pixel polylines) as a darkening map cropped to their bounding box.
 
     A wrinkle is a dark groove of width ``width_mm``; ``highlight = (dx_mm, dy_mm)`` adds a lit
@@ -204,10 +260,26 @@ def _line_map(shape: tuple[int, int], curves: list[np.ndarray], ppm: float, *, w
         for k in range(n - 1):
             a, b = c[k] - (x0, y0), c[k + 1] - (x0, y0)
             t = float(0.5 * (taper[k] + taper[k + 1]))
-            cv2.line(crop, tuple(_fixed(a)[0, 0]), tuple(_fixed(b)[0, 0]), t, max(1, int(round(width_mm * ppm * 0.6))), cv2.LINE_AA, SHIFT)
+            cv2.line(
+                crop,
+                tuple(_fixed(a)[0, 0]),
+                tuple(_fixed(b)[0, 0]),
+                t,
+                max(1, int(round(width_mm * ppm * 0.6))),
+                cv2.LINE_AA,
+                SHIFT,
+            )
             if highlight != (0.0, 0.0):
                 off = np.array(highlight) * ppm
-                cv2.line(lit, tuple(_fixed(a + off)[0, 0]), tuple(_fixed(b + off)[0, 0]), t, max(1, int(round(width_mm * ppm))), cv2.LINE_AA, SHIFT)
+                cv2.line(
+                    lit,
+                    tuple(_fixed(a + off)[0, 0]),
+                    tuple(_fixed(b + off)[0, 0]),
+                    t,
+                    max(1, int(round(width_mm * ppm))),
+                    cv2.LINE_AA,
+                    SHIFT,
+                )
     sigma = max(0.35 * width_mm * ppm, 0.5)
     crop = cv2.GaussianBlur(crop, (0, 0), sigma) * depth
     if highlight != (0.0, 0.0):
@@ -215,9 +287,11 @@ def _line_map(shape: tuple[int, int], curves: list[np.ndarray], ppm: float, *, w
     return y0, x0, crop
 
 
-def _detail_maps(identity: Identity, layout: Layout, px: np.ndarray, shape: tuple[int, int], ppm: float,
-                 rng: np.random.Generator) -> dict[str, tuple[int, int, np.ndarray]]:
+def _detail_maps(
+    identity: Identity, layout: Layout, px: np.ndarray, shape: tuple[int, int], ppm: float, rng: np.random.Generator
+) -> dict[str, tuple[int, int, np.ndarray]]:
     """The expression-detail darkening maps of one identity (its wrinkle pattern)."""
+
     def P(name: str) -> np.ndarray:
         return px[layout.index(name)]
 
@@ -243,7 +317,9 @@ def _detail_maps(identity: Identity, layout: Layout, px: np.ndarray, shape: tupl
         x = g0[0] + sx * rng.uniform(3.5, 5.5) * ppm
         ys = np.linspace(g0[1] - 9 * ppm, g0[1] + 6 * ppm, 12)
         curves.append(np.column_stack([x + sx * 0.04 * (ys - ys[0]), ys]))
-    curves.append(np.column_stack([np.linspace(g0[0] - 5 * ppm, g0[0] + 5 * ppm, 8), np.full(8, (g0[1] + P("nose_bridge_0")[1]) / 2)]))
+    curves.append(
+        np.column_stack([np.linspace(g0[0] - 5 * ppm, g0[0] + 5 * ppm, 8), np.full(8, (g0[1] + P("nose_bridge_0")[1]) / 2)])
+    )
     out["glabella_furrows"] = _line_map(shape, curves, ppm, width_mm=1.0, depth=0.32 * g, highlight=(1.0, 0.0))
     for s, sx in (("l", -1.0), ("r", 1.0)):
         corner = P(f"eye_{s}_6")
@@ -258,20 +334,39 @@ def _detail_maps(identity: Identity, layout: Layout, px: np.ndarray, shape: tupl
         under = P(f"under_eye_{s}")
         e9 = P(f"eye_{s}_9")
         mid = 0.55 * e9 + 0.45 * under
-        curves.append(np.column_stack([np.linspace(mid[0] - 8 * ppm, mid[0] + 8 * ppm, 12), mid[1] + 1.2 * ppm * np.sin(np.linspace(0, np.pi, 12))]))
+        curves.append(
+            np.column_stack(
+                [np.linspace(mid[0] - 8 * ppm, mid[0] + 8 * ppm, 12), mid[1] + 1.2 * ppm * np.sin(np.linspace(0, np.pi, 12))]
+            )
+        )
         out[f"crows_feet_{s}"] = _line_map(shape, curves, ppm, width_mm=0.7, depth=0.30 * g)
         # nasolabial fold: just lateral of the nasolabial line, from the nose wing past the mouth corner
         pts = np.array([P(f"nasolabial_{s}_0"), P(f"nasolabial_{s}_1"), P(f"nasolabial_{s}_2")])
         pts = pts + np.array([sx * 2.0 * ppm, 0.0])
         pts[-1] += (sx * 1.0 * ppm, 3.0 * ppm)
-        out[f"nasolabial_{s}"] = _line_map(shape, [_smooth_curve(pts, 30)], ppm, width_mm=2.0, depth=0.30 * g, highlight=(sx * 2.2, 0.0))
+        out[f"nasolabial_{s}"] = _line_map(
+            shape, [_smooth_curve(pts, 30)], ppm, width_mm=2.0, depth=0.30 * g, highlight=(sx * 2.2, 0.0)
+        )
         corner_m = P("mouth_outer_0" if s == "l" else "mouth_outer_8")
         lf = P(f"lipfold_{s}")
-        pts = np.array([corner_m + (sx * 1.5 * ppm, 1.5 * ppm), 0.5 * (corner_m + lf) + (sx * 1.5 * ppm, 0.0), lf + (0.0, 4 * ppm)])
-        out[f"lip_corner_{s}"] = _line_map(shape, [_smooth_curve(pts, 16)], ppm, width_mm=1.3, depth=0.32 * g, highlight=(sx * 1.5, 0.0))
-        cr = np.array([P(f"eye_{s}_0") * 0.7 + P(f"crease_{s}_0") * 0.3, P(f"crease_{s}_0"), P(f"crease_{s}_1"), P(f"crease_{s}_2"),
-                       P(f"eye_{s}_6") * 0.6 + P(f"crease_{s}_2") * 0.4])
-        out[f"lid_crease_{s}"] = _line_map(shape, [_smooth_curve(cr, 20)], ppm, width_mm=0.8, depth=0.45 * g, highlight=(0.0, -0.8))
+        pts = np.array(
+            [corner_m + (sx * 1.5 * ppm, 1.5 * ppm), 0.5 * (corner_m + lf) + (sx * 1.5 * ppm, 0.0), lf + (0.0, 4 * ppm)]
+        )
+        out[f"lip_corner_{s}"] = _line_map(
+            shape, [_smooth_curve(pts, 16)], ppm, width_mm=1.3, depth=0.32 * g, highlight=(sx * 1.5, 0.0)
+        )
+        cr = np.array(
+            [
+                P(f"eye_{s}_0") * 0.7 + P(f"crease_{s}_0") * 0.3,
+                P(f"crease_{s}_0"),
+                P(f"crease_{s}_1"),
+                P(f"crease_{s}_2"),
+                P(f"eye_{s}_6") * 0.6 + P(f"crease_{s}_2") * 0.4,
+            ]
+        )
+        out[f"lid_crease_{s}"] = _line_map(
+            shape, [_smooth_curve(cr, 20)], ppm, width_mm=0.8, depth=0.45 * g, highlight=(0.0, -0.8)
+        )
     # chin: mentolabial sulcus and dimpling around the chin point
     lo = P("mouth_outer_12")
     ch = P("chin")
@@ -289,7 +384,7 @@ def _detail_maps(identity: Identity, layout: Layout, px: np.ndarray, shape: tupl
     yy0, xx0 = max(yy0, 0), max(xx0, 0)
     yy1, xx1 = min(yy1, shape[0]), min(xx1, shape[1])
     merged = dimple[yy0:yy1, xx0:xx1].copy()
-    merged[y0 - yy0:y0 - yy0 + crop.shape[0], x0 - xx0:x0 - xx0 + crop.shape[1]] += crop
+    merged[y0 - yy0 : y0 - yy0 + crop.shape[0], x0 - xx0 : x0 - xx0 + crop.shape[1]] += crop
     out["chin_folds"] = (yy0, xx0, merged)
     return out
 
@@ -321,7 +416,9 @@ def detail_strengths(neutral: np.ndarray, points: np.ndarray, layout: Layout) ->
         out[f"crows_feet_{s}"] = (y_up(f"under_eye_{s}") + y_up(f"cheek_{s}")) / 5.0
         shorter = dist(corner, f"nose_ala_{s}", neutral) - dist(corner, f"nose_ala_{s}", points)
         out[f"nasolabial_{s}"] = 0.2 + shorter / 6.0 + y_up(f"nasolabial_{s}_0") / 3.0
-        out[f"lip_corner_{s}"] = -y_up(corner) / 4.0 + (dist(corner, f"lipfold_{s}", neutral) - dist(corner, f"lipfold_{s}", points)) / 4.0
+        out[f"lip_corner_{s}"] = (
+            -y_up(corner) / 4.0 + (dist(corner, f"lipfold_{s}", neutral) - dist(corner, f"lipfold_{s}", points)) / 4.0
+        )
         gap = dist(f"crease_{s}_1", f"eye_{s}_3", neutral) - dist(f"crease_{s}_1", f"eye_{s}_3", points)
         out[f"lid_crease_{s}"] = 0.45 + gap / 2.5
     width = dist("mouth_outer_0", "mouth_outer_8", neutral) - dist("mouth_outer_0", "mouth_outer_8", points)
@@ -335,5 +432,5 @@ def frame_texture(tex: Texture, strengths: dict[str, float]) -> np.ndarray:
     for name, (y0, x0, crop) in tex.details.items():
         s = strengths.get(name, 0.0)
         if s > 1e-3:
-            factor[y0:y0 + crop.shape[0], x0:x0 + crop.shape[1]] -= s * crop
+            factor[y0 : y0 + crop.shape[0], x0 : x0 + crop.shape[1]] -= s * crop
     return tex.base * factor[..., None]

@@ -44,8 +44,14 @@ def fit_real_face(size: int, *, model_path: Path | str = MODEL_PATH, backdrop: b
         raise ValueError(f"no face found by MediaPipe in the {size} px source photo")
     mesh = build_mesh(landmarks, size=size)
     mouth = mouth_texture(photo, landmarks, eye_px=mesh.eye_px)
-    return RealFace(photo, landmarks, mesh, expression_basis(mesh), (photo.astype(np.float32), mouth.astype(np.float32)),
-                    clean_plate(photo, mesh) if backdrop else None)
+    return RealFace(
+        photo,
+        landmarks,
+        mesh,
+        expression_basis(mesh),
+        (photo.astype(np.float32), mouth.astype(np.float32)),
+        clean_plate(photo, mesh) if backdrop else None,
+    )
 
 
 def pose(face: RealFace, angles: np.ndarray, shift: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -54,8 +60,9 @@ def pose(face: RealFace, angles: np.ndarray, shift: np.ndarray) -> tuple[np.ndar
     return rotation(*angles), face.mesh.head_centre + shift
 
 
-def render_state(face: RealFace, params: np.ndarray, angles: np.ndarray, shift: np.ndarray, *,
-                 supersample: int = 2) -> tuple[Frame, np.ndarray, np.ndarray, np.ndarray]:
+def render_state(
+    face: RealFace, params: np.ndarray, angles: np.ndarray, shift: np.ndarray, *, supersample: int = 2
+) -> tuple[Frame, np.ndarray, np.ndarray, np.ndarray]:
     """One frame of expression ``params`` ``(3,)`` at head ``angles`` ``(3,)`` deg and ``shift``
     ``(3,)`` mm; returns the frame, the head-frame vertices ``(V, 3)`` mm and the pose
     ``R (3, 3)``, ``t (3,)`` mm."""
@@ -64,9 +71,21 @@ def render_state(face: RealFace, params: np.ndarray, angles: np.ndarray, shift: 
     return render(face.mesh, face.textures, vertices, R, t, supersample=supersample, backdrop=face.backdrop), vertices, R, t
 
 
-def make_clip(out: Path, *, frames: int, seed: int, size: int = 512, fps: int = 25, codec: str = "h264", crf: int = 12,
-              supersample: int = 2, name: str = "astro", model_path: Path | str = MODEL_PATH,
-              script: str | None = None, backdrop: bool = False) -> tuple[Path, Path]:
+def make_clip(
+    out: Path,
+    *,
+    frames: int,
+    seed: int,
+    size: int = 512,
+    fps: int = 25,
+    codec: str = "h264",
+    crf: int = 12,
+    supersample: int = 2,
+    name: str = "astro",
+    model_path: Path | str = MODEL_PATH,
+    script: str | None = None,
+    backdrop: bool = False,
+) -> tuple[Path, Path]:
     """Write ``out/<name>.mp4`` (or ``.mkv`` for ``codec="ffv1"``, lossless) and ``out/<name>_truth.npz``.
 
     ``script`` (:data:`scripts.realface.motion.STATE_SCRIPTS`): a states clip instead of the seeded
@@ -98,10 +117,20 @@ def make_clip(out: Path, *, frames: int, seed: int, size: int = 512, fps: int = 
             for key, value in zip(truth, (frame.points, frame.visible, frame.depth, vertices[:N_LANDMARKS], R, t)):
                 truth[key].append(value)
     arrays = {k: np.stack(v) for k, v in truth.items()}
-    arrays.update(rvec=np.stack([cv2.Rodrigues(R)[0].ravel() for R in arrays["R"]]), angles_deg=angles, expression=params,
-                  expression_names=np.array(names), intrinsics=face.mesh.intrinsics, head_centre=face.mesh.head_centre,
-                  fps=np.array(float(fps)), frame_size=np.array([size, size]), seed=np.array(seed), crop=np.array(CROP),
-                  source_landmarks=face.landmarks, mm_per_px=np.array(face.mesh.mm_per_px))
+    arrays.update(
+        rvec=np.stack([cv2.Rodrigues(R)[0].ravel() for R in arrays["R"]]),
+        angles_deg=angles,
+        expression=params,
+        expression_names=np.array(names),
+        intrinsics=face.mesh.intrinsics,
+        head_centre=face.mesh.head_centre,
+        fps=np.array(float(fps)),
+        frame_size=np.array([size, size]),
+        seed=np.array(seed),
+        crop=np.array(CROP),
+        source_landmarks=face.landmarks,
+        mm_per_px=np.array(face.mesh.mm_per_px),
+    )
     if spans:
         arrays.update(state_names=np.array([n for n, _, _ in spans]), state_spans=np.array([(a, b) for _, a, b in spans]))
     truth_path = out / f"{name}_truth.npz"

@@ -19,8 +19,9 @@ from stages.video import VideoDecode, probe
 from .landmarks import MODEL_PATH, detect, open_landmarker, point_groups
 
 
-def landmark_errors(frames: np.ndarray, truth_points: np.ndarray, visible: np.ndarray, *,
-                    model_path: Path | str = MODEL_PATH) -> np.ndarray:
+def landmark_errors(
+    frames: np.ndarray, truth_points: np.ndarray, visible: np.ndarray, *, model_path: Path | str = MODEL_PATH
+) -> np.ndarray:
     """Distances ``(T, 478)`` px between MediaPipe's landmarks on ``frames`` ``(T, H, W, 3)``
     uint8 and ``truth_points`` ``(T, 478, 2)``; NaN where ``visible`` ``(T, 478)`` is False or
     no face was found."""
@@ -37,8 +38,9 @@ def landmark_errors(frames: np.ndarray, truth_points: np.ndarray, visible: np.nd
 def summarize(errors: np.ndarray) -> dict[str, tuple[float, float]]:
     """``{group: (mean, 95th percentile)}`` px of ``errors`` ``(T, 478)`` (NaN ignored), plus ``all``."""
     groups = {**point_groups(), "all": np.arange(errors.shape[1])}
-    return {name: (float(np.nanmean(errors[:, idx])), float(np.nanpercentile(errors[:, idx], 95)))
-            for name, idx in groups.items()}
+    return {
+        name: (float(np.nanmean(errors[:, idx])), float(np.nanpercentile(errors[:, idx], 95))) for name, idx in groups.items()
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -52,8 +54,10 @@ def main(argv: list[str] | None = None) -> int:
     info = probe(args.clip)
     frames = VideoDecode().process(0, info.frames, {"video": str(args.clip)}, {}, None)["frames"]
     errors = landmark_errors(frames, points, visible, model_path=args.model)
-    print(f"{args.clip}: {info.frames} frames {info.width}x{info.height}, faces found in "
-          f"{int(np.sum(np.any(np.isfinite(errors), axis=1)))}")
+    print(
+        f"{args.clip}: {info.frames} frames {info.width}x{info.height}, faces found in "
+        f"{int(np.sum(np.any(np.isfinite(errors), axis=1)))}"
+    )
     for name, (mean, p95) in summarize(errors).items():
         print(f"{name:8s} mean {mean:6.2f} px   p95 {p95:6.2f} px")
     return 0

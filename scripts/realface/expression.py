@@ -38,8 +38,20 @@ from __future__ import annotations
 import numpy as np
 from matplotlib.path import Path as PolygonPath
 
-from .landmarks import (BROWS, CHEEKS, CHIN, FACE_OVAL, FOREHEAD, LIPS_INNER_LOWER, LIPS_INNER_UPPER, LIPS_OUTER_LOWER,
-                        LIPS_OUTER_UPPER, MOUTH_CORNERS, N_LANDMARKS, UPPER_LIDS)
+from .landmarks import (
+    BROWS,
+    CHEEKS,
+    CHIN,
+    FACE_OVAL,
+    FOREHEAD,
+    LIPS_INNER_LOWER,
+    LIPS_INNER_UPPER,
+    LIPS_OUTER_LOWER,
+    LIPS_OUTER_UPPER,
+    MOUTH_CORNERS,
+    N_LANDMARKS,
+    UPPER_LIDS,
+)
 from .mesh import MOUTH_OPEN_MAX, RealFaceMesh
 
 EXPRESSIONS = ("mouth_open", "brow_raise", "smile")

@@ -111,6 +111,7 @@ def clean_plate(photo: np.ndarray, mesh: RealFaceMesh, *, radius_px: float = 8.0
     (S, S, 3) uint8 RGB; equal to ``photo`` outside the grown region.
     """
     from .render import rasterize
+
     h, w = photo.shape[:2]
     mask = np.zeros(h * w, np.uint8)
     mask[rasterize(mesh.source_px, np.ones(len(mesh.source_px)), mesh.head, (h, w)).pixel] = 255
@@ -138,9 +139,14 @@ def _ring(landmarks_px: np.ndarray, depth: np.ndarray, centre_depth: float, size
         z.append(oval_depth + behind * EYE_CORNERS_MM)
     lo, hi = -BORDER_MARGIN * size, (1.0 + BORDER_MARGIN) * size - 1.0
     s = np.linspace(lo, hi, BORDER_POINTS, endpoint=False)
-    square = np.concatenate([np.column_stack([s, np.full_like(s, lo)]), np.column_stack([np.full_like(s, hi), s]),
-                             np.column_stack([s[::-1] + (hi - lo) / BORDER_POINTS, np.full_like(s, hi)]),
-                             np.column_stack([np.full_like(s, lo), s[::-1] + (hi - lo) / BORDER_POINTS])])
+    square = np.concatenate(
+        [
+            np.column_stack([s, np.full_like(s, lo)]),
+            np.column_stack([np.full_like(s, hi), s]),
+            np.column_stack([s[::-1] + (hi - lo) / BORDER_POINTS, np.full_like(s, hi)]),
+            np.column_stack([np.full_like(s, lo), s[::-1] + (hi - lo) / BORDER_POINTS]),
+        ]
+    )
     px.append(square)
     z.append(np.full(len(square), centre_depth + BORDER_DEPTH * EYE_CORNERS_MM))
     return np.concatenate(px), np.concatenate(z)
@@ -210,9 +216,17 @@ def build_mesh(landmarks: np.ndarray, *, size: int) -> RealFaceMesh:
     cam = _back_project(source_px, np.concatenate([skin_depth, cav_depth]), A)
     oval_mid = lm_px[list(FACE_OVAL)].mean(axis=0)
     centre = _back_project(oval_mid[None], np.array([centre_depth]), A)[0]
-    return RealFaceMesh(vertices=cam - centre, source_px=source_px, skin=_counter_clockwise(source_px, tris),
-                        cavity=_counter_clockwise(source_px, cav_tris + len(skin_px)), head_centre=centre,
-                        intrinsics=A, mm_per_px=mm_per_px, eye_px=eye_px, size=int(size))
+    return RealFaceMesh(
+        vertices=cam - centre,
+        source_px=source_px,
+        skin=_counter_clockwise(source_px, tris),
+        cavity=_counter_clockwise(source_px, cav_tris + len(skin_px)),
+        head_centre=centre,
+        intrinsics=A,
+        mm_per_px=mm_per_px,
+        eye_px=eye_px,
+        size=int(size),
+    )
 
 
 def mouth_texture(photo: np.ndarray, landmarks: np.ndarray, *, eye_px: float) -> np.ndarray:

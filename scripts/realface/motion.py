@@ -21,13 +21,13 @@ from .expression import EXPRESSIONS, STATE_EXPRESSIONS, smoothstep
 ANGLE_LIMITS_DEG = (20.0, 10.0, 10.0)  # yaw, pitch, roll
 SHIFT_LIMITS_MM = (8.0, 6.0, 15.0)  # x, y, z
 # per expression: event length range, gap range (frames), onset/offset length range (0: a sin^2 bump)
-EVENTS = {"mouth_open": ((3, 8), (4, 25), None), "brow_raise": ((8, 14), (10, 40), None),
-          "smile": ((25, 60), (10, 50), (6, 12))}
+EVENTS = {"mouth_open": ((3, 8), (4, 25), None), "brow_raise": ((8, 14), (10, 40), None), "smile": ((25, 60), (10, 50), (6, 12))}
 FIRST_EVENT_BY = 15  # every expression starts by this frame (a short clip shows all three)
 
 
-def _events(rng: np.random.Generator, frames: int, length: tuple[int, int], gap: tuple[int, int],
-            ramp: tuple[int, int] | None) -> np.ndarray:
+def _events(
+    rng: np.random.Generator, frames: int, length: tuple[int, int], gap: tuple[int, int], ramp: tuple[int, int] | None
+) -> np.ndarray:
     """``(frames,)`` in [0, 1]: events of ``length`` frames separated by ``gap`` frames, the first
     starting at a frame drawn from 3..:data:`FIRST_EVENT_BY`."""
     out = np.zeros(frames)
@@ -74,10 +74,20 @@ def make_motion(frames: int, *, seed: int, fps: float) -> tuple[np.ndarray, np.n
 #: frames. ``no_neutral`` alternates shut eyes with an open mouth, so that no frame is a neutral face,
 #: from frame 0 on (a clip cut into the middle of an expression).
 STATE_SCRIPTS = {
-    "states": (("blink", {"blink_l": 1.0, "blink_r": 1.0}), ("wink_l", {"blink_l": 1.0}), ("wink_r", {"blink_r": 1.0}),
-               ("squint", {"blink_l": 0.5, "blink_r": 0.5}), ("wide", {"eye_wide": 1.0}), ("jaw_open", {"mouth_open": 1.0}),
-               ("smile", {"smile": 1.0}), ("o_mouth", {"pucker": 1.0, "mouth_open": 0.5}), ("pucker", {"pucker": 1.0}),
-               ("lip_press", {"lip_press": 1.0}), ("brow_raise", {"brow_raise": 1.0}), ("brow_furrow", {"brow_furrow": 1.0})),
+    "states": (
+        ("blink", {"blink_l": 1.0, "blink_r": 1.0}),
+        ("wink_l", {"blink_l": 1.0}),
+        ("wink_r", {"blink_r": 1.0}),
+        ("squint", {"blink_l": 0.5, "blink_r": 0.5}),
+        ("wide", {"eye_wide": 1.0}),
+        ("jaw_open", {"mouth_open": 1.0}),
+        ("smile", {"smile": 1.0}),
+        ("o_mouth", {"pucker": 1.0, "mouth_open": 0.5}),
+        ("pucker", {"pucker": 1.0}),
+        ("lip_press", {"lip_press": 1.0}),
+        ("brow_raise", {"brow_raise": 1.0}),
+        ("brow_furrow", {"brow_furrow": 1.0}),
+    ),
     "no_neutral": (("blink", {"blink_l": 1.0, "blink_r": 1.0}), ("jaw_open", {"mouth_open": 0.6})) * 4,
 }
 STATE_RAMP, STATE_HOLD, STATE_REST = 3, 8, 4
@@ -109,7 +119,7 @@ def state_motion(script: str, *, seed: int, fps: float) -> tuple[np.ndarray, np.
         spans.append((name, max(start + STATE_RAMP, 0), start + STATE_RAMP + STATE_HOLD - 1))
         start += length + rest - overlap
     if rest == 0:  # ends holding its last state too
-        params, f = params[:spans[-1][2] + 1], f[:spans[-1][2] + 1]
+        params, f = params[: spans[-1][2] + 1], f[: spans[-1][2] + 1]
     rng = np.random.default_rng(seed)
     seconds = f / float(fps)
     angles = np.column_stack([_slow(rng, seconds, lim) for lim in STATE_ANGLE_LIMITS_DEG])

@@ -36,5 +36,5 @@ def source_photo(size: int) -> np.ndarray:
     from skimage.data import astronaut
 
     x0, y0, side = CROP
-    crop = astronaut()[y0:y0 + side, x0:x0 + side]
+    crop = astronaut()[y0 : y0 + side, x0 : x0 + side]
     return cv2.resize(crop, (int(size), int(size)), interpolation=cv2.INTER_LANCZOS4)

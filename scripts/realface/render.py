@@ -128,8 +128,16 @@ def rasterize(px: np.ndarray, depth: np.ndarray, triangles: np.ndarray, shape: t
     win = np.flatnonzero(iz >= best[pix])
     owner[pix[win]] = span[win]  # one of the equally near candidates (ties: a shared edge)
     pix = np.flatnonzero(owner >= 0)
-    return Raster(pixel=pix, x=(pix % w).astype(np.float64), span=owner[pix], corners=corners, a=a, c=c,
-                  inv_z=inv_z, inv_depth=best.reshape(h, w))
+    return Raster(
+        pixel=pix,
+        x=(pix % w).astype(np.float64),
+        span=owner[pix],
+        corners=corners,
+        a=a,
+        c=c,
+        inv_z=inv_z,
+        inv_depth=best.reshape(h, w),
+    )
 
 
 def interpolate(raster: Raster, values: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -199,8 +207,16 @@ class Frame:
     coverage: np.ndarray
 
 
-def render(mesh: RealFaceMesh, textures: tuple[np.ndarray, np.ndarray], vertices: np.ndarray, R: np.ndarray,
-           t: np.ndarray, *, supersample: int = 2, backdrop: np.ndarray | None = None) -> Frame:
+def render(
+    mesh: RealFaceMesh,
+    textures: tuple[np.ndarray, np.ndarray],
+    vertices: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    *,
+    supersample: int = 2,
+    backdrop: np.ndarray | None = None,
+) -> Frame:
     """Render head-frame ``vertices`` ``(V, 3)`` mm at pose ``X_cam = R X + t``.
 
     Parameters
@@ -244,8 +260,13 @@ def render(mesh: RealFaceMesh, textures: tuple[np.ndarray, np.ndarray], vertices
     points, depth = project(vertices[:N_LANDMARKS], R, t, mesh.intrinsics)
     cam = vertices @ R.T + t
     visible = _front_facing(cam, mesh.skin)[:N_LANDMARKS] & _unoccluded(points, depth, skin.inv_depth, ss)
-    return Frame(image=image, points=points, visible=visible, depth=depth,
-                 coverage=covered if backdrop is not None else np.ones((size, size), np.float32))
+    return Frame(
+        image=image,
+        points=points,
+        visible=visible,
+        depth=depth,
+        coverage=covered if backdrop is not None else np.ones((size, size), np.float32),
+    )
 
 
 def _front_facing(cam: np.ndarray, triangles: np.ndarray) -> np.ndarray:

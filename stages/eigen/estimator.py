@@ -35,8 +35,16 @@ def normal_equations(observations: np.ndarray, parameters: np.ndarray) -> tuple[
     return lam.T @ lam, mu.T @ lam, np.sqrt((lam**2).mean(axis=0))
 
 
-def solve_estimator(gram: np.ndarray, cross: np.ndarray, rms: np.ndarray, *, count: int, ridge: float = 0.0,
-                    rows: np.ndarray | None = None, intercept: int | None = None) -> np.ndarray:
+def solve_estimator(
+    gram: np.ndarray,
+    cross: np.ndarray,
+    rms: np.ndarray,
+    *,
+    count: int,
+    ridge: float = 0.0,
+    rows: np.ndarray | None = None,
+    intercept: int | None = None,
+) -> np.ndarray:
     """``L_S = H_S (G_SS + ridge * count * diag(s_S^2))^-1`` ``(C, |S|)`` over the observation rows ``S``.
 
     Parameters
@@ -63,8 +71,9 @@ def solve_estimator(gram: np.ndarray, cross: np.ndarray, rms: np.ndarray, *, cou
     return np.linalg.lstsq(A.T, cross[:, rows].T, rcond=None)[0].T
 
 
-def fit_linear_estimator(observations: np.ndarray, parameters: np.ndarray, *, ridge: float = 0.0,
-                         intercept: int | None = None) -> np.ndarray:
+def fit_linear_estimator(
+    observations: np.ndarray, parameters: np.ndarray, *, ridge: float = 0.0, intercept: int | None = None
+) -> np.ndarray:
     """``L`` ``(C, d)`` from training pairs (rows of ``observations (m, d)``, ``parameters (m, C)``)."""
     gram, cross, rms = normal_equations(observations, parameters)
     return solve_estimator(gram, cross, rms, count=len(observations), ridge=ridge, intercept=intercept)

@@ -58,8 +58,9 @@ class EigenModel:
 
     def vectors(self, image: np.ndarray, similarity: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
         """The frame's patch vectors and validity (:func:`.patches.patch_vectors`)."""
-        return patch_vectors(image, similarity, self.windows, blur_px=self.blur_px, normalize=self.normalize,
-                             min_inside=self.min_inside)
+        return patch_vectors(
+            image, similarity, self.windows, blur_px=self.blur_px, normalize=self.normalize, min_inside=self.min_inside
+        )
 
     @property
     def q(self) -> int:
@@ -80,8 +81,15 @@ class EigenModel:
 
     def estimator(self, feature_valid: np.ndarray, *, rotation: bool = True, ridge: float = 0.0) -> np.ndarray:
         """``L`` ``(C, |S|)`` over :meth:`rows`."""
-        return solve_estimator(self.gram, self.cross, self.rms, count=self.count, ridge=ridge,
-                               rows=self.rows(feature_valid, rotation=rotation), intercept=self.n_rows - 1)
+        return solve_estimator(
+            self.gram,
+            self.cross,
+            self.rms,
+            count=self.count,
+            ridge=ridge,
+            rows=self.rows(feature_valid, rotation=rotation),
+            intercept=self.n_rows - 1,
+        )
 
     def to_bundle(self) -> dict[str, np.ndarray]:
         """Arrays only (npz without pickle): names, neutral, per-feature windows and the
@@ -97,48 +105,99 @@ class EigenModel:
             "feature_origin": np.array([w.origin for w in self.windows], dtype=np.float64),
             "feature_step": np.array([w.step for w in self.windows], dtype=np.float64),
             "feature_shape": np.array([w.shape for w in self.windows], dtype=np.int64),
-            "neutral": self.neutral, "rigid": np.array(self.rigid, dtype=np.int64),
-            "param_low": self.param_low, "param_high": self.param_high,
+            "neutral": self.neutral,
+            "rigid": np.array(self.rigid, dtype=np.int64),
+            "param_low": self.param_low,
+            "param_high": self.param_high,
             "mean": np.concatenate(self.means),
             "basis": np.concatenate(self.bases),
-            "gram": self.gram, "cross": self.cross, "rms": self.rms, "count": np.array(self.count),
-            "geometry_base": self.geometry_base, "geometry_basis": self.geometry_basis,
-            "min_inside": np.array(self.min_inside), "blur_px": np.array(self.blur_px),
+            "gram": self.gram,
+            "cross": self.cross,
+            "rms": self.rms,
+            "count": np.array(self.count),
+            "geometry_base": self.geometry_base,
+            "geometry_basis": self.geometry_basis,
+            "min_inside": np.array(self.min_inside),
+            "blur_px": np.array(self.blur_px),
             "normalize": np.array(self.normalize),
         }
 
     @classmethod
     def from_bundle(cls, bundle: dict[str, np.ndarray]) -> "EigenModel":
         """Inverse of :meth:`to_bundle`; ValueError naming a missing or inconsistent key."""
-        keys = ("point_names", "param_names", "feature_names", "feature_points", "feature_origin", "feature_step",
-                "feature_shape", "neutral", "rigid", "param_low", "param_high", "mean", "basis", "gram", "cross", "rms", "count", "geometry_base",
-                "geometry_basis", "min_inside", "blur_px", "normalize")
+        keys = (
+            "point_names",
+            "param_names",
+            "feature_names",
+            "feature_points",
+            "feature_origin",
+            "feature_step",
+            "feature_shape",
+            "neutral",
+            "rigid",
+            "param_low",
+            "param_high",
+            "mean",
+            "basis",
+            "gram",
+            "cross",
+            "rms",
+            "count",
+            "geometry_base",
+            "geometry_basis",
+            "min_inside",
+            "blur_px",
+            "normalize",
+        )
         missing = [k for k in keys if k not in bundle]
         if missing:
             raise ValueError(f"eigen model: expected keys {missing}, got none of them")
         shapes = np.asarray(bundle["feature_shape"], dtype=np.int64)
         windows = tuple(
-            FeatureWindow(str(name), tuple(int(i) for i in np.flatnonzero(member)), (float(o[0]), float(o[1])),
-                          float(step), (int(s[0]), int(s[1])))
-            for name, member, o, step, s in zip(bundle["feature_names"], bundle["feature_points"],
-                                                bundle["feature_origin"], bundle["feature_step"], shapes))
+            FeatureWindow(
+                str(name),
+                tuple(int(i) for i in np.flatnonzero(member)),
+                (float(o[0]), float(o[1])),
+                float(step),
+                (int(s[0]), int(s[1])),
+            )
+            for name, member, o, step, s in zip(
+                bundle["feature_names"], bundle["feature_points"], bundle["feature_origin"], bundle["feature_step"], shapes
+            )
+        )
         sizes = shapes.prod(axis=1)
         mean, basis = np.asarray(bundle["mean"]), np.asarray(bundle["basis"])
         if mean.shape[0] != sizes.sum() or basis.shape[0] != sizes.sum():
-            raise ValueError(f"eigen model: expected {sizes.sum()} patch pixels in 'mean' and 'basis', "
-                             f"got {mean.shape[0]} and {basis.shape[0]}")
+            raise ValueError(
+                f"eigen model: expected {sizes.sum()} patch pixels in 'mean' and 'basis', "
+                f"got {mean.shape[0]} and {basis.shape[0]}"
+            )
         cuts = np.cumsum(sizes)[:-1]
-        model = cls(tuple(str(n) for n in bundle["point_names"]), tuple(str(n) for n in bundle["param_names"]),
-                    np.asarray(bundle["neutral"], dtype=np.float64), tuple(int(i) for i in bundle["rigid"]),
-                    np.asarray(bundle["param_low"], dtype=np.float64), np.asarray(bundle["param_high"], dtype=np.float64),
-                    windows, tuple(np.split(mean, cuts)),
-                    tuple(np.split(basis, cuts)), np.asarray(bundle["gram"]), np.asarray(bundle["cross"]),
-                    np.asarray(bundle["rms"]), int(bundle["count"]), np.asarray(bundle["geometry_base"]),
-                    np.asarray(bundle["geometry_basis"]), float(bundle["min_inside"]), float(bundle["blur_px"]),
-                    bool(bundle["normalize"]))
+        model = cls(
+            tuple(str(n) for n in bundle["point_names"]),
+            tuple(str(n) for n in bundle["param_names"]),
+            np.asarray(bundle["neutral"], dtype=np.float64),
+            tuple(int(i) for i in bundle["rigid"]),
+            np.asarray(bundle["param_low"], dtype=np.float64),
+            np.asarray(bundle["param_high"], dtype=np.float64),
+            windows,
+            tuple(np.split(mean, cuts)),
+            tuple(np.split(basis, cuts)),
+            np.asarray(bundle["gram"]),
+            np.asarray(bundle["cross"]),
+            np.asarray(bundle["rms"]),
+            int(bundle["count"]),
+            np.asarray(bundle["geometry_base"]),
+            np.asarray(bundle["geometry_basis"]),
+            float(bundle["min_inside"]),
+            float(bundle["blur_px"]),
+            bool(bundle["normalize"]),
+        )
         if model.gram.shape != (model.n_rows, model.n_rows) or model.cross.shape != (len(model.param_names), model.n_rows):
-            raise ValueError(f"eigen model: expected gram ({model.n_rows}, {model.n_rows}) and cross "
-                             f"({len(model.param_names)}, {model.n_rows}), got {model.gram.shape} and {model.cross.shape}")
+            raise ValueError(
+                f"eigen model: expected gram ({model.n_rows}, {model.n_rows}) and cross "
+                f"({len(model.param_names)}, {model.n_rows}), got {model.gram.shape} and {model.cross.shape}"
+            )
         return model
 
 
@@ -161,11 +220,23 @@ def fit_geometry_map(parameters: np.ndarray, points: np.ndarray) -> tuple[np.nda
     return coef[0].reshape(pts.shape[1:]), coef[1:].reshape(mu.shape[1], *pts.shape[1:])
 
 
-def fit_eigen_model(samples: Iterable[tuple[np.ndarray, np.ndarray]], angles: np.ndarray, parameters: np.ndarray, *,
-                    windows: tuple[FeatureWindow, ...], neutral: np.ndarray, point_names: tuple[str, ...],
-                    param_names: tuple[str, ...], rigid: tuple[int, ...], param_range: tuple[np.ndarray, np.ndarray],
-                    geometry: tuple[np.ndarray, np.ndarray], q: int,
-                    blur_px: float = 0.0, normalize: bool = False, min_inside: float = 0.98) -> EigenModel:
+def fit_eigen_model(
+    samples: Iterable[tuple[np.ndarray, np.ndarray]],
+    angles: np.ndarray,
+    parameters: np.ndarray,
+    *,
+    windows: tuple[FeatureWindow, ...],
+    neutral: np.ndarray,
+    point_names: tuple[str, ...],
+    param_names: tuple[str, ...],
+    rigid: tuple[int, ...],
+    param_range: tuple[np.ndarray, np.ndarray],
+    geometry: tuple[np.ndarray, np.ndarray],
+    q: int,
+    blur_px: float = 0.0,
+    normalize: bool = False,
+    min_inside: float = 0.98,
+) -> EigenModel:
     """Train the model from rendered samples.
 
     Parameters
@@ -192,11 +263,12 @@ def fit_eigen_model(samples: Iterable[tuple[np.ndarray, np.ndarray]], angles: np
     """
     patches: list[list[np.ndarray]] = [[] for _ in windows]
     for image, similarity in samples:
-        vectors, ok = patch_vectors(image, similarity, windows, blur_px=blur_px, normalize=normalize,
-                                    min_inside=min_inside)
+        vectors, ok = patch_vectors(image, similarity, windows, blur_px=blur_px, normalize=normalize, min_inside=min_inside)
         if not ok.all():
-            raise ValueError(f"expected every training patch inside the image, got features "
-                             f"{[w.name for w, v in zip(windows, ok) if not v]} outside in sample {len(patches[0])}")
+            raise ValueError(
+                f"expected every training patch inside the image, got features "
+                f"{[w.name for w, v in zip(windows, ok) if not v]} outside in sample {len(patches[0])}"
+            )
         for j, v in enumerate(vectors):
             patches[j].append(v)
     if len(patches[0]) != len(angles):
@@ -207,11 +279,26 @@ def fit_eigen_model(samples: Iterable[tuple[np.ndarray, np.ndarray]], angles: np
     lam = np.stack([observation(angles[i], [s[i] for s in scores]) for i in range(len(angles))])
     gram, cross, rms = normal_equations(lam, parameters)
     low, high = (np.broadcast_to(np.asarray(v, dtype=np.float64), (len(param_names),)).copy() for v in param_range)
-    return EigenModel(tuple(point_names), tuple(param_names), np.asarray(neutral, dtype=np.float64),
-                      tuple(int(i) for i in rigid), low, high, tuple(windows),
-                      tuple(m for m, _ in fitted), tuple(b for _, b in fitted), gram, cross, rms, len(lam),
-                      np.asarray(geometry[0], dtype=np.float64), np.asarray(geometry[1], dtype=np.float64),
-                      float(min_inside), float(blur_px), bool(normalize))
+    return EigenModel(
+        tuple(point_names),
+        tuple(param_names),
+        np.asarray(neutral, dtype=np.float64),
+        tuple(int(i) for i in rigid),
+        low,
+        high,
+        tuple(windows),
+        tuple(m for m, _ in fitted),
+        tuple(b for _, b in fitted),
+        gram,
+        cross,
+        rms,
+        len(lam),
+        np.asarray(geometry[0], dtype=np.float64),
+        np.asarray(geometry[1], dtype=np.float64),
+        float(min_inside),
+        float(blur_px),
+        bool(normalize),
+    )
 
 
 def frame_scores(model: EigenModel, image: np.ndarray, similarity: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
@@ -220,8 +307,15 @@ def frame_scores(model: EigenModel, image: np.ndarray, similarity: np.ndarray) -
     return [eigen_scores(v, m, b) for v, m, b in zip(vectors, model.means, model.bases)], valid
 
 
-def analyze_frames(model: EigenModel, frames: Iterable[np.ndarray], similarity: np.ndarray, valid: np.ndarray,
-                   angles: np.ndarray | None, *, ridge: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def analyze_frames(
+    model: EigenModel,
+    frames: Iterable[np.ndarray],
+    similarity: np.ndarray,
+    valid: np.ndarray,
+    angles: np.ndarray | None,
+    *,
+    ridge: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """Animation parameters of each frame.
 
     Parameters
@@ -261,8 +355,7 @@ def analyze_frames(model: EigenModel, frames: Iterable[np.ndarray], similarity: 
         if key not in estimators:
             estimators[key] = model.estimator(ok, rotation=angles is not None, ridge=ridge)
         lam = observation(np.zeros(3) if angles is None else angles[t], scores)
-        params[t] = np.clip(estimators[key] @ lam[model.rows(ok, rotation=angles is not None)], model.param_low,
-                            model.param_high)
+        params[t] = np.clip(estimators[key] @ lam[model.rows(ok, rotation=angles is not None)], model.param_low, model.param_high)
     return params, feature_valid
 
 

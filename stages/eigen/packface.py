@@ -118,8 +118,7 @@ class PackFace:
         C = len(self.param_names)
         params, angles = paper_sampling(C, levels=PAPER_LEVELS_SD)
         if kind == "rich":
-            more_p, more_a = rich_sampling(C, samples, seed=seed, active=RICH_ACTIVE, span=self.param_range,
-                                           max_deg=RICH_MAX_DEG)
+            more_p, more_a = rich_sampling(C, samples, seed=seed, active=RICH_ACTIVE, span=self.param_range, max_deg=RICH_MAX_DEG)
             params, angles = np.concatenate([params, more_p]), np.concatenate([angles, more_a])
         return params, angles
 
@@ -144,8 +143,9 @@ class PackFace:
         params = np.atleast_2d(np.asarray(params, dtype=np.float64))
         angles = np.atleast_2d(np.asarray(angles, dtype=np.float64))
         if params.shape[1] != len(self.param_names) or angles.shape != (len(params), 3):
-            raise ValueError(f"expected params (B, {len(self.param_names)}) and angles (B, 3), "
-                             f"got {params.shape} and {angles.shape}")
+            raise ValueError(
+                f"expected params (B, {len(self.param_names)}) and angles (B, 3), got {params.shape} and {angles.shape}"
+            )
         geometry = self.points(params)
         face, alpha, _ = self.synthesizer.render(geometry)
         around, _, _ = self.synthesizer.render(geometry, mode="warp-only")

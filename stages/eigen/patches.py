@@ -58,9 +58,14 @@ def feature_points(point_names: tuple[str, ...], prefixes: tuple[str, ...]) -> t
     return found
 
 
-def feature_windows(neutral: np.ndarray, point_names: tuple[str, ...], *, margin: float = 0.25,
-                    step: float = 1.0, features: dict[str, tuple[str, ...]] | None = None
-                    ) -> tuple[FeatureWindow, ...]:
+def feature_windows(
+    neutral: np.ndarray,
+    point_names: tuple[str, ...],
+    *,
+    margin: float = 0.25,
+    step: float = 1.0,
+    features: dict[str, tuple[str, ...]] | None = None,
+) -> tuple[FeatureWindow, ...]:
     """The patch of each feature around its neutral points.
 
     Parameters
@@ -112,8 +117,9 @@ def luminance(image: np.ndarray) -> np.ndarray:
     return (image.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)) / 255.0
 
 
-def cut_patches(image: np.ndarray, similarity: np.ndarray, windows: tuple[FeatureWindow, ...], *,
-                min_inside: float = 0.98) -> tuple[list[np.ndarray], np.ndarray]:
+def cut_patches(
+    image: np.ndarray, similarity: np.ndarray, windows: tuple[FeatureWindow, ...], *, min_inside: float = 0.98
+) -> tuple[list[np.ndarray], np.ndarray]:
     """Sample each feature's patch from a frame through the similarity (bilinear).
 
     Parameters
@@ -147,14 +153,27 @@ def cut_patches(image: np.ndarray, similarity: np.ndarray, windows: tuple[Featur
         if not valid[j]:
             patches.append(np.zeros(window.shape, np.float32))
             continue
-        patches.append(cv2.remap(gray, at[..., 0].astype(np.float32), at[..., 1].astype(np.float32),
-                                 cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
+        patches.append(
+            cv2.remap(
+                gray,
+                at[..., 0].astype(np.float32),
+                at[..., 1].astype(np.float32),
+                cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_REPLICATE,
+            )
+        )
     return patches, valid
 
 
-def patch_vectors(image: np.ndarray, similarity: np.ndarray, windows: tuple[FeatureWindow, ...], *,
-                  blur_px: float = 0.0, normalize: bool = False, min_inside: float = 0.98
-                  ) -> tuple[list[np.ndarray], np.ndarray]:
+def patch_vectors(
+    image: np.ndarray,
+    similarity: np.ndarray,
+    windows: tuple[FeatureWindow, ...],
+    *,
+    blur_px: float = 0.0,
+    normalize: bool = False,
+    min_inside: float = 0.98,
+) -> tuple[list[np.ndarray], np.ndarray]:
     """The patches of :func:`cut_patches`, conditioned and flattened: the vectors the eigenfeatures
     decompose (the same in training and analysis).
 

@@ -42,9 +42,15 @@ def paper_sampling(n_params: int, *, levels: tuple[float, ...] = PAPER_LEVELS) -
     return controls, angles
 
 
-def rich_sampling(n_params: int, count: int, *, seed: int = 0, active: float = 0.35,
-                  span: tuple[float, float] = (0.0, 1.0),
-                  max_deg: tuple[float, float, float] = (25.0, 15.0, 10.0)) -> tuple[np.ndarray, np.ndarray]:
+def rich_sampling(
+    n_params: int,
+    count: int,
+    *,
+    seed: int = 0,
+    active: float = 0.35,
+    span: tuple[float, float] = (0.0, 1.0),
+    max_deg: tuple[float, float, float] = (25.0, 15.0, 10.0),
+) -> tuple[np.ndarray, np.ndarray]:
     """Random combinations of parameters under a wider range of head rotations.
 
     Each parameter is active with probability ``active`` and then uniform in ``span`` (0
@@ -83,10 +89,13 @@ def rotation_matrix(angles: np.ndarray) -> np.ndarray:
     yaw, pitch, roll = np.moveaxis(np.radians(np.asarray(angles, dtype=np.float64)), -1, 0)
     c, s = np.cos, np.sin
     one, zero = np.ones_like(yaw), np.zeros_like(yaw)
-    Rx = np.stack([np.stack([one, zero, zero], -1), np.stack([zero, c(pitch), -s(pitch)], -1),
-                   np.stack([zero, s(pitch), c(pitch)], -1)], -2)
-    Ry = np.stack([np.stack([c(yaw), zero, s(yaw)], -1), np.stack([zero, one, zero], -1),
-                   np.stack([-s(yaw), zero, c(yaw)], -1)], -2)
-    Rz = np.stack([np.stack([c(roll), -s(roll), zero], -1), np.stack([s(roll), c(roll), zero], -1),
-                   np.stack([zero, zero, one], -1)], -2)
+    Rx = np.stack(
+        [np.stack([one, zero, zero], -1), np.stack([zero, c(pitch), -s(pitch)], -1), np.stack([zero, s(pitch), c(pitch)], -1)], -2
+    )
+    Ry = np.stack(
+        [np.stack([c(yaw), zero, s(yaw)], -1), np.stack([zero, one, zero], -1), np.stack([-s(yaw), zero, c(yaw)], -1)], -2
+    )
+    Rz = np.stack(
+        [np.stack([c(roll), -s(roll), zero], -1), np.stack([s(roll), c(roll), zero], -1), np.stack([zero, zero, one], -1)], -2
+    )
     return Rz @ Ry @ Rx

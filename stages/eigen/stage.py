@@ -35,36 +35,68 @@ class TrainEigenfeatures(SequenceStage):
     inputs = {"pack": "dir"}
     outputs = {"model": "eigen_model"}
     params = (
-        Param("sampling", str, "rich", "paper: each parameter alone x {-3,0,3} deg X/Y; rich: plus random "
-              "combinations under wider rotations (generator: +-25 yaw, +-15 pitch, +-10 roll, the live clip's "
-              "range; pack: +-15, +-10, +-10)", choices=("paper", "rich")),
+        Param(
+            "sampling",
+            str,
+            "rich",
+            "paper: each parameter alone x {-3,0,3} deg X/Y; rich: plus random "
+            "combinations under wider rotations (generator: +-25 yaw, +-15 pitch, +-10 roll, the live clip's "
+            "range; pack: +-15, +-10, +-10)",
+            choices=("paper", "rich"),
+        ),
         Param("samples", int, 500, "random combinations added by sampling=rich", min=1, max=100_000),
         Param("seed", int, 0, "random seed of sampling=rich", min=0, max=2**32 - 1),
         Param("q", int, 16, "eigenfeatures per feature", min=1, max=256),
         Param("margin", float, 0.25, "room around each feature's points, fraction of its box", min=0.0, max=10.0),
-        Param("blur_px", float, 1.0, "Gaussian blur of each patch before PCA, patch px (0: off; 1 measured better "
-              "than 0, docs/eigen.md)", min=0.0, max=100.0),
+        Param(
+            "blur_px",
+            float,
+            1.0,
+            "Gaussian blur of each patch before PCA, patch px (0: off; 1 measured better than 0, docs/eigen.md)",
+            min=0.0,
+            max=100.0,
+        ),
         Param("normalize", bool, False, "each patch to zero mean and unit standard deviation"),
-        Param("supersample", int, 2, "antialiasing of the generator's training renders (the fixture clips: 2)",
-              min=1, max=4),
-        Param("variance", float, 0.95, "pack face model: share of the captured geometries' variance its PCA "
-              "parameters reach", min=0.01, max=1.0),
+        Param("supersample", int, 2, "antialiasing of the generator's training renders (the fixture clips: 2)", min=1, max=4),
+        Param(
+            "variance",
+            float,
+            0.95,
+            "pack face model: share of the captured geometries' variance its PCA parameters reach",
+            min=0.01,
+            max=1.0,
+        ),
         Param("max_params", int, 8, "pack face model: most PCA parameters", min=1, max=64),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         try:
-            face = face_model(Path(inputs["pack"]), supersample=int(params["supersample"]),
-                              variance=float(params["variance"]), max_params=int(params["max_params"]))
-            controls, angles = face.sampling(params["sampling"], samples=int(params["samples"]),
-                                             seed=int(params["seed"]))
-            model = train_on_renders(face, controls, angles, q=int(params["q"]), margin=float(params["margin"]),
-                                     blur_px=float(params["blur_px"]), normalize=bool(params["normalize"]),
-                                     progress=ctx.progress)
+            face = face_model(
+                Path(inputs["pack"]),
+                supersample=int(params["supersample"]),
+                variance=float(params["variance"]),
+                max_params=int(params["max_params"]),
+            )
+            controls, angles = face.sampling(params["sampling"], samples=int(params["samples"]), seed=int(params["seed"]))
+            model = train_on_renders(
+                face,
+                controls,
+                angles,
+                q=int(params["q"]),
+                margin=float(params["margin"]),
+                blur_px=float(params["blur_px"]),
+                normalize=bool(params["normalize"]),
+                progress=ctx.progress,
+            )
         except ValueError as exc:
             raise StageError(f"{self.name}: {exc}") from exc
-        ctx.log.info("eigenfeatures: %d renders of %d parameters, patches %s, q=%d", len(controls),
-                     len(model.param_names), [w.shape for w in model.windows], model.q)
+        ctx.log.info(
+            "eigenfeatures: %d renders of %d parameters, patches %s, q=%d",
+            len(controls),
+            len(model.param_names),
+            [w.shape for w in model.windows],
+            model.q,
+        )
         return {"model": model.to_bundle()}
 
 
@@ -81,16 +113,20 @@ class AnalyzeEigenfeatures(SequenceStage):
     name = "analyze.eigenfeatures"
     version = "2"
     doc = "animation parameters and all layout points from eigenfeature scores (Valente & Dugelay)"
-    inputs = {"frames": "frames", "similarity": "similarity", "points": "points", "pose": "pose",
-              "model": "eigen_model"}
+    inputs = {"frames": "frames", "similarity": "similarity", "points": "points", "pose": "pose", "model": "eigen_model"}
     optional_inputs = frozenset({"similarity", "points", "pose", "model"})
     outputs = {"points": "points", "displacements": "displacements", "parameters": "eigen_parameters"}
     params = (
-        Param("model_file", str, "", "a trained model (.npz of train.eigenfeatures) instead of the model input",
-              file=True),
+        Param("model_file", str, "", "a trained model (.npz of train.eigenfeatures) instead of the model input", file=True),
         Param("rotation", bool, True, "head rotation from the pose input in the estimator's observation (paper)"),
-        Param("ridge", float, 0.0, "ridge of the estimator on standardized observations (0: the paper's least squares)",
-              min=0.0, max=1e6),
+        Param(
+            "ridge",
+            float,
+            0.0,
+            "ridge of the estimator on standardized observations (0: the paper's least squares)",
+            min=0.0,
+            max=1e6,
+        ),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
@@ -104,14 +140,14 @@ class AnalyzeEigenfeatures(SequenceStage):
         if params["rotation"]:
             pose = inputs.get("pose")
             if pose is None or "R" not in pose or "valid" not in pose:
-                raise StageError(f"{self.name}: rotation=true needs the input 'pose' with fields 'R' and 'valid' "
-                                 "(or set rotation=false)")
+                raise StageError(
+                    f"{self.name}: rotation=true needs the input 'pose' with fields 'R' and 'valid' (or set rotation=false)"
+                )
             if len(pose["R"]) != T:
                 raise StageError(f"{self.name}: input 'pose' field 'R' has {len(pose['R'])} frames, expected {T}")
             angles = rotation_angles(pose["R"])
             valid &= np.asarray(pose["valid"], dtype=bool)
-        mu, feature_valid = analyze_frames(model, _frames(frames, ctx), similarity, valid, angles,
-                                           ridge=float(params["ridge"]))
+        mu, feature_valid = analyze_frames(model, _frames(frames, ctx), similarity, valid, angles, ridge=float(params["ridge"]))
         read = ~np.isnan(mu).any(axis=1)
         expression = parameters_to_points(model, np.where(read[:, None], mu, 0.0))
         xy = parameters_to_points(model, np.where(read[:, None], mu, 0.0), similarity)
@@ -120,14 +156,22 @@ class AnalyzeEigenfeatures(SequenceStage):
             point_valid[np.ix_(~feature_valid[:, j], list(window.points))] = False
         names = np.array(model.point_names, dtype=str)
         points = {"xy": xy, "valid": point_valid, "names": names}
-        displacements = {"d": expression - model.neutral[None], "valid": point_valid, "names": names,
-                         "neutral": model.neutral.copy()}
+        displacements = {
+            "d": expression - model.neutral[None],
+            "valid": point_valid,
+            "names": names,
+            "neutral": model.neutral.copy(),
+        }
         for scalar in ("fps", "size"):
             if scalar in sim:
                 points[scalar] = displacements[scalar] = np.asarray(sim[scalar])
-        parameters = {"params": mu, "names": np.array(model.param_names, dtype=str), "valid": read,
-                      "feature_valid": feature_valid,
-                      "feature_names": np.array([w.name for w in model.windows], dtype=str)}
+        parameters = {
+            "params": mu,
+            "names": np.array(model.param_names, dtype=str),
+            "valid": read,
+            "feature_valid": feature_valid,
+            "feature_names": np.array([w.name for w in model.windows], dtype=str),
+        }
         return {"points": points, "displacements": displacements, "parameters": parameters}
 
     def similarity(self, inputs: Mapping[str, Any], model: EigenModel) -> tuple[np.ndarray, np.ndarray, Mapping[str, Any]]:
@@ -146,8 +190,10 @@ class AnalyzeEigenfeatures(SequenceStage):
             return np.asarray(bundle["params"], dtype=np.float64), np.asarray(bundle["valid"], dtype=bool).copy(), bundle
         names = [str(n) for n in bundle["names"]]
         if names != list(model.point_names):
-            raise StageError(f"{self.name}: input 'points' field 'names': expected the model's {len(model.point_names)} "
-                             f"layout points in its order, got {len(names)} names")
+            raise StageError(
+                f"{self.name}: input 'points' field 'names': expected the model's {len(model.point_names)} "
+                f"layout points in its order, got {len(names)} names"
+            )
         try:
             similarity, valid = similarities_from_points(model, bundle["xy"], bundle["valid"])
         except ValueError as exc:

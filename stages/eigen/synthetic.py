@@ -33,8 +33,11 @@ def generator() -> tuple[ModuleType, ModuleType, ModuleType]:
         if not (CHECKOUT / "scripts" / "facegen" / "render.py").is_file():
             raise ValueError("expected the face generator scripts/facegen beside the stages package, got none")
         sys.path.append(str(CHECKOUT))
-    return (importlib.import_module("scripts.facegen.face"), importlib.import_module("scripts.facegen.render"),
-            importlib.import_module("scripts.make_fixtures"))
+    return (
+        importlib.import_module("scripts.facegen.face"),
+        importlib.import_module("scripts.facegen.render"),
+        importlib.import_module("scripts.make_fixtures"),
+    )
 
 
 @dataclass
@@ -110,14 +113,23 @@ def performer_rig(pack_dir: Path, *, supersample: int = 2) -> PerformerRig:
     manifest = read_yaml(Path(pack_dir) / "pack.yaml", what="actor pack", noun="manifest")
     gen = manifest.get("generator") if isinstance(manifest, dict) else None
     if not isinstance(gen, dict) or "identity_seed" not in gen or "truth" not in gen:
-        raise ValueError(f"{pack_dir}/pack.yaml: field 'generator': expected the generator's identity_seed and truth "
-                         "of the face generator), got none")
+        raise ValueError(
+            f"{pack_dir}/pack.yaml: field 'generator': expected the generator's identity_seed and truth "
+            "of the face generator), got none"
+        )
     face_mod, render, fixtures = generator()
     truth = np.load(Path(pack_dir) / str(gen["truth"]), allow_pickle=False)
     size = tuple(int(v) for v in manifest["image_size"])
     camera = render.Camera(np.asarray(truth["intrinsics"], dtype=np.float64), size)
     face = render.make_face(int(gen["identity_seed"]), load_layout(manifest.get("layout", "zhang134")))
     t0 = np.asarray(truth["t"], dtype=np.float64)
-    return PerformerRig(face, camera, np.asarray(truth["R"], dtype=np.float64), t0, render.texture_ppm(camera, t0[2]),
-                        np.asarray(fixtures.NECK_PIVOT, dtype=np.float64), tuple(face_mod.CONTROLS), int(supersample))
-
+    return PerformerRig(
+        face,
+        camera,
+        np.asarray(truth["R"], dtype=np.float64),
+        t0,
+        render.texture_ppm(camera, t0[2]),
+        np.asarray(fixtures.NECK_PIVOT, dtype=np.float64),
+        tuple(face_mod.CONTROLS),
+        int(supersample),
+    )

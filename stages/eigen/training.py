@@ -51,30 +51,43 @@ def face_model(pack_dir: Path, *, supersample: int = 2, variance: float = 0.95, 
     manifest = read_yaml(Path(pack_dir) / "pack.yaml", what="actor pack", noun="manifest")
     if isinstance(manifest, dict) and "generator" in manifest:
         from stages.eigen.synthetic import performer_rig
+
         return performer_rig(Path(pack_dir), supersample=supersample)
     from stages.actor_pack import load_pack
     from stages.eigen.packface import PackFace
+
     return PackFace(load_pack(pack_dir), variance=variance, max_params=max_params)
 
 
-def training_samples(face: FaceModel, params: np.ndarray, angles: np.ndarray, *, batch: int = 8,
-                     progress: Callable[[int], None] = lambda n: None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+def training_samples(
+    face: FaceModel, params: np.ndarray, angles: np.ndarray, *, batch: int = 8, progress: Callable[[int], None] = lambda n: None
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """Render each sample (``batch`` at a time): ``(image (H, W, 3) uint8, similarity (4,))`` with
     the similarity of its rigid points to the neutral's (the paper's "known feature locations
     and pose")."""
     rigid = list(face.rigid)
     neutral = face.points(np.zeros(len(face.param_names)))
     for start in range(0, len(params), batch):
-        images, points = face.render_batch(params[start:start + batch], angles[start:start + batch])
+        images, points = face.render_batch(params[start : start + batch], angles[start : start + batch])
         for image, pts in zip(images, points):
             yield image, fit_similarity(neutral[rigid], pts[rigid])
         progress(len(images))
 
 
-def train_on_renders(face: FaceModel, params: np.ndarray, angles: np.ndarray, *, q: int, margin: float = 0.25,
-                     step: float = 1.0, blur_px: float = 0.0, normalize: bool = False, min_inside: float = 0.98,
-                     samples: Iterable[tuple[np.ndarray, np.ndarray]] | None = None,
-                     progress: Callable[[int], None] = lambda n: None) -> EigenModel:
+def train_on_renders(
+    face: FaceModel,
+    params: np.ndarray,
+    angles: np.ndarray,
+    *,
+    q: int,
+    margin: float = 0.25,
+    step: float = 1.0,
+    blur_px: float = 0.0,
+    normalize: bool = False,
+    min_inside: float = 0.98,
+    samples: Iterable[tuple[np.ndarray, np.ndarray]] | None = None,
+    progress: Callable[[int], None] = lambda n: None,
+) -> EigenModel:
     """Render every sample (or take ``samples``, the renders of :func:`training_samples` made
     before), cut its patches and fit the model.
 
@@ -94,6 +107,19 @@ def train_on_renders(face: FaceModel, params: np.ndarray, angles: np.ndarray, *,
     if samples is None:
         samples = training_samples(face, params, angles, progress=progress)
     geometry = fit_geometry_map(params, np.stack([face.points(p) for p in params]))
-    return fit_eigen_model(samples, angles, params, windows=windows, neutral=neutral, point_names=face.point_names,
-                           param_names=face.param_names, rigid=face.rigid, param_range=face.param_range,
-                           geometry=geometry, q=q, blur_px=blur_px, normalize=normalize, min_inside=min_inside)
+    return fit_eigen_model(
+        samples,
+        angles,
+        params,
+        windows=windows,
+        neutral=neutral,
+        point_names=face.point_names,
+        param_names=face.param_names,
+        rigid=face.rigid,
+        param_range=face.param_range,
+        geometry=geometry,
+        q=q,
+        blur_px=blur_px,
+        normalize=normalize,
+        min_inside=min_inside,
+    )

@@ -18,6 +18,7 @@ class LKTracker:
 
     def __init__(self, *, template_px: int = 15, levels: int = 2, fb_px: float = 1.0) -> None:
         import cv2
+
         self.params = dict(
             winSize=(template_px, template_px),
             maxLevel=levels,
@@ -35,6 +36,7 @@ class LKTracker:
 
     def step(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         import cv2
+
         gray = self._gray8(frame)
         p0 = self.last.astype(np.float32).reshape(-1, 1, 2)
         p1, st1, _ = cv2.calcOpticalFlowPyrLK(self.previous, gray, p0, None, **self.params)
@@ -101,4 +103,3 @@ class OpenCVTracker:
         valid &= inside(found, self.width, self.height)
         self.last = np.where(valid[:, None], found, self.last)
         return self.last.copy(), valid, valid.astype(np.float32)
-

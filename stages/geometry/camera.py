@@ -30,8 +30,7 @@ def project(camera_xyz: np.ndarray, camera: np.ndarray) -> tuple[np.ndarray, np.
         return image[..., :2] / depth[..., None], depth > 0
 
 
-def project_pose(points: np.ndarray, R: np.ndarray, t: np.ndarray, camera: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def project_pose(points: np.ndarray, R: np.ndarray, t: np.ndarray, camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``pi(A (R X + t))`` (eq. 10) of head points ``points (..., N, 3)`` mm with one pose
     ``R (3, 3)``, ``t (3,)`` mm: pixels ``(..., N, 2)`` and ``(..., N)`` bool, True in front of
     the camera."""
@@ -74,8 +73,9 @@ def rotation_vector(R: np.ndarray) -> np.ndarray:
     choice = np.concatenate([diagonal, trace[:, None]], axis=1).argmax(axis=1)
     quat = np.empty((len(m), 4))  # (x, y, z, w)
     w_largest = choice == 3
-    quat[w_largest] = np.stack([m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1],
-                                1.0 + trace], axis=1)[w_largest]
+    quat[w_largest] = np.stack([m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1], 1.0 + trace], axis=1)[
+        w_largest
+    ]
     for i in range(3):
         rows = choice == i
         j, k = (i + 1) % 3, (i + 2) % 3
@@ -90,6 +90,5 @@ def rotation_vector(R: np.ndarray) -> np.ndarray:
     sin_half = np.linalg.norm(quat[:, :3], axis=1)
     angle = 2.0 * np.arctan2(sin_half, quat[:, 3])
     small = angle <= 1e-3
-    scale = np.where(small, 2.0 + angle**2 / 12.0 + 7.0 * angle**4 / 2880.0,
-                     angle / np.sin(np.where(small, 1.0, angle) / 2.0))
+    scale = np.where(small, 2.0 + angle**2 / 12.0 + 7.0 * angle**4 / 2880.0, angle / np.sin(np.where(small, 1.0, angle) / 2.0))
     return (scale[:, None] * quat[:, :3]).reshape(R.shape[:-2] + (3,))

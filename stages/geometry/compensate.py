@@ -22,8 +22,15 @@ from stages.geometry.subset import named_columns, rigid_columns
 from stages.layout import load_layout
 
 
-def compensate(xy: np.ndarray, valid: np.ndarray, neutral: np.ndarray, rigid: np.ndarray, *,
-               huber_px: float | None = None, min_points: int = 2) -> dict[str, np.ndarray]:
+def compensate(
+    xy: np.ndarray,
+    valid: np.ndarray,
+    neutral: np.ndarray,
+    rigid: np.ndarray,
+    *,
+    huber_px: float | None = None,
+    min_points: int = 2,
+) -> dict[str, np.ndarray]:
     """Per-frame similarity (eq. 8-9) from the rigid points, and compensated displacements.
 
     Parameters
@@ -67,8 +74,7 @@ def compensate(xy: np.ndarray, valid: np.ndarray, neutral: np.ndarray, rigid: np
     for k in range(4):
         params[:, k] = np.interp(frames, frames[fitted], params[fitted, k])
     d = np.stack([invert_similarity(params[t], xy[t]) for t in range(n_frames)]) - neutral[None]
-    return {"params": params, "residual_px": residual, "frame_valid": fitted, "d": d,
-            "d_valid": valid & fitted[:, None]}
+    return {"params": params, "residual_px": residual, "frame_valid": fitted, "d": d, "d_valid": valid & fitted[:, None]}
 
 
 class SimilarityCompensate(SequenceStage):
@@ -102,13 +108,20 @@ class SimilarityCompensate(SequenceStage):
                 raise StageError(f"{self.name}: the neutral input lacks some of the tracked points {list(names)}")
             neutral = np.asarray(given["xy"], dtype=np.float64)[0, columns]
         result = compensate(
-            points["xy"], points["valid"], neutral, rigid,
+            points["xy"],
+            points["valid"],
+            neutral,
+            rigid,
             huber_px=float(params["huber_px"]) if params["robust"] else None,
             min_points=min_points,
         )
         return {
-            "similarity": {"params": result["params"], "residual_px": result["residual_px"],
-                           "valid": result["frame_valid"]},
-            "displacements": {"d": result["d"], "valid": result["d_valid"], "names": names,
-                              "neutral": neutral, **{k: points[k] for k in ("fps", "size") if k in points}},
+            "similarity": {"params": result["params"], "residual_px": result["residual_px"], "valid": result["frame_valid"]},
+            "displacements": {
+                "d": result["d"],
+                "valid": result["d_valid"],
+                "names": names,
+                "neutral": neutral,
+                **{k: points[k] for k in ("fps", "size") if k in points},
+            },
         }

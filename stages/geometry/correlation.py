@@ -18,6 +18,7 @@ def to_gray(frame: np.ndarray) -> np.ndarray:
     """An ``(H, W)``, ``(H, W, 1)`` or RGB ``(H, W, 3)`` frame as an ``(H, W)`` float32 image in
     the frame's own intensity units."""
     import cv2
+
     if frame.ndim == 3 and frame.shape[2] == 3:
         frame = cv2.cvtColor(np.ascontiguousarray(frame), cv2.COLOR_RGB2GRAY)
     elif frame.ndim == 3:
@@ -97,8 +98,9 @@ def carry_along(last: np.ndarray, found: np.ndarray, valid: np.ndarray) -> np.nd
     return np.where(valid[:, None], found, moved)
 
 
-def local_affines(src: np.ndarray, dst: np.ndarray, weight: np.ndarray, *, sigma_px: float,
-                  ridge: float = 0.05, exclude_self: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def local_affines(
+    src: np.ndarray, dst: np.ndarray, weight: np.ndarray, *, sigma_px: float, ridge: float = 0.05, exclude_self: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
     """Local affine motions of N points: linear parts ``M_i (N, 2, 2)`` and positions ``b_i (N, 2)``.
 
     For each point ``i``, the affine ``y = M_i (x - src_i) + b_i`` minimizing
@@ -125,15 +127,15 @@ def local_affines(src: np.ndarray, dst: np.ndarray, weight: np.ndarray, *, sigma
         pull = 1e-6 * use.sum() * (src[use].var(axis=0).sum() + 1.0)
         gram = x[use].T @ x[use] + pull * np.diag([1.0, 1.0, 0.0])
         m_global = np.linalg.solve(gram, x[use].T @ dst[use] + pull * np.eye(3, 2))[:2].T
-    rel = src[None, :, :] - src[:, None, :]                              # (N, N, 2): src_j - src_i
-    w = weight[None, :] * np.exp(-(rel ** 2).sum(axis=2) / (2.0 * sigma_px ** 2))
+    rel = src[None, :, :] - src[:, None, :]  # (N, N, 2): src_j - src_i
+    w = weight[None, :] * np.exp(-(rel**2).sum(axis=2) / (2.0 * sigma_px**2))
     if exclude_self:
         np.fill_diagonal(w, 0.0)
     design = np.concatenate([rel, np.ones(rel.shape[:2] + (1,))], axis=2)  # (N, N, 3)
-    weighted = np.transpose(design * w[:, :, None], (0, 2, 1))            # (N, 3, N)
+    weighted = np.transpose(design * w[:, :, None], (0, 2, 1))  # (N, 3, N)
     gram = weighted @ design
     rhs = weighted @ dst
-    lam = ridge * sigma_px ** 2 * w.sum(axis=1)
+    lam = ridge * sigma_px**2 * w.sum(axis=1)
     gram[:, 0, 0] += lam
     gram[:, 1, 1] += lam
     rhs[:, :2, :] += lam[:, None, None] * m_global.T[None]
@@ -150,12 +152,12 @@ def patch_grid(side: int) -> np.ndarray:
     return np.stack([np.tile(grid, side), np.repeat(grid, side)])
 
 
-def sample_patches(image: np.ndarray, centres: np.ndarray, side: int, linear: np.ndarray | None = None
-                   ) -> np.ndarray:
+def sample_patches(image: np.ndarray, centres: np.ndarray, side: int, linear: np.ndarray | None = None) -> np.ndarray:
     """Square patches ``(N, side, side)`` float32 of ``image`` (bicubic, replicated border): patch
     cell ``(r, c)`` of point ``n`` is the image at ``centres[n] + linear[n] @ (c - h, r - h)``,
     ``h = (side - 1) / 2`` (``linear (N, 2, 2)``: identity if omitted)."""
     import cv2
+
     ux, uy = patch_grid(side)
     cx, cy = centres.astype(np.float32).T
     if linear is None:
@@ -164,7 +166,5 @@ def sample_patches(image: np.ndarray, centres: np.ndarray, side: int, linear: np
         m = linear.astype(np.float32)
         map_x = cx[:, None] + m[:, 0, :1] * ux + m[:, 0, 1:] * uy
         map_y = cy[:, None] + m[:, 1, :1] * ux + m[:, 1, 1:] * uy
-    patches = cv2.remap(image, map_x.reshape(-1, side), map_y.reshape(-1, side), cv2.INTER_CUBIC,
-                        borderMode=cv2.BORDER_REPLICATE)
+    patches = cv2.remap(image, map_x.reshape(-1, side), map_y.reshape(-1, side), cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
     return patches.reshape(-1, side, side)
-

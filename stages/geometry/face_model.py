@@ -70,8 +70,16 @@ class FaceModel:
         return FaceFit(np.eye(3), self.t0.copy(), c, self.project(np.eye(3), self.t0, c))
 
 
-def build_face_model(generic: np.ndarray, first_xy: np.ndarray, rigid: np.ndarray, camera: np.ndarray,
-                     pack_neutral: np.ndarray, captured: np.ndarray, *, components: int = 8) -> FaceModel:
+def build_face_model(
+    generic: np.ndarray,
+    first_xy: np.ndarray,
+    rigid: np.ndarray,
+    camera: np.ndarray,
+    pack_neutral: np.ndarray,
+    captured: np.ndarray,
+    *,
+    components: int = 8,
+) -> FaceModel:
     """The face model of N tracked points.
 
     Parameters
@@ -97,7 +105,7 @@ def build_face_model(generic: np.ndarray, first_xy: np.ndarray, rigid: np.ndarra
     neutral = adapt_to_reference(generic, first_xy, np.eye(3), t0, camera)
     a, b = fit_similarity(pack_neutral[rigid], first_xy[rigid])[:2]
     linear = np.array([[a, -b], [b, a]])
-    displacement = (np.asarray(captured, dtype=np.float64) - pack_neutral) @ linear.T   # (K, N, 2) clip px
+    displacement = (np.asarray(captured, dtype=np.float64) - pack_neutral) @ linear.T  # (K, N, 2) clip px
     lifted = np.stack([adapt_to_reference(generic, first_xy + d, np.eye(3), t0, camera) for d in displacement])
     delta = (lifted - neutral).reshape(len(lifted), -1)
     _, singular, rows = np.linalg.svd(delta, full_matrices=False)
@@ -106,23 +114,32 @@ def build_face_model(generic: np.ndarray, first_xy: np.ndarray, rigid: np.ndarra
     return FaceModel(neutral, basis, singular[:m] / np.sqrt(len(delta)), t0, np.asarray(camera, dtype=np.float64))
 
 
-def bundle_face_model(model3d: Mapping[str, np.ndarray], geometry: Mapping[str, np.ndarray], names: Sequence[str],
-                      first_xy: np.ndarray, rigid: np.ndarray, camera: np.ndarray, *, components: int = 8) -> FaceModel:
+def bundle_face_model(
+    model3d: Mapping[str, np.ndarray],
+    geometry: Mapping[str, np.ndarray],
+    names: Sequence[str],
+    first_xy: np.ndarray,
+    rigid: np.ndarray,
+    camera: np.ndarray,
+    *,
+    components: int = 8,
+) -> FaceModel:
     """:func:`build_face_model` of the points ``names`` from ``pack.load``'s ``pack_model3d`` and
     ``pack_geometry`` bundles (the generic model, the neutral and the captured geometries at those
     points); ValueError naming a point the pack does not have."""
     generic = model3d_from_bundle(model3d, names)
     pack = geometry_from_bundle(geometry)
     rows = pack.rows(names)
-    return build_face_model(generic, first_xy, rigid, camera, pack.neutral[rows], pack.captured[:, rows],
-                            components=components)
+    return build_face_model(generic, first_xy, rigid, camera, pack.neutral[rows], pack.captured[:, rows], components=components)
 
 
-def pack_face_model(pack: ActorPack, names: Sequence[str], first_xy: np.ndarray, rigid: np.ndarray,
-                    camera: np.ndarray, *, components: int = 8) -> FaceModel:
+def pack_face_model(
+    pack: ActorPack, names: Sequence[str], first_xy: np.ndarray, rigid: np.ndarray, camera: np.ndarray, *, components: int = 8
+) -> FaceModel:
     """:func:`bundle_face_model` of a loaded actor pack (scripts use the library directly)."""
-    return bundle_face_model(model3d_to_bundle(pack), geometry_to_bundle(pack), names, first_xy, rigid, camera,
-                             components=components)
+    return bundle_face_model(
+        model3d_to_bundle(pack), geometry_to_bundle(pack), names, first_xy, rigid, camera, components=components
+    )
 
 
 @dataclass
@@ -136,8 +153,16 @@ class FaceFit:
     xy: np.ndarray
 
 
-def fit_face_model(model: FaceModel, observed: np.ndarray, information: np.ndarray, start: FaceFit, *,
-                   ridge: float = 1.0, huber_px: float = 1.0, iterations: int = 3) -> FaceFit:
+def fit_face_model(
+    model: FaceModel,
+    observed: np.ndarray,
+    information: np.ndarray,
+    start: FaceFit,
+    *,
+    ridge: float = 1.0,
+    huber_px: float = 1.0,
+    iterations: int = 3,
+) -> FaceFit:
     """Pose and expression of one frame: Gauss-Newton on
 
     ``sum_i rho(r_i^T W_i r_i) + ridge * |c / scale|^2``,  ``r_i = pi(A (R X_i(c) + t)) - m_i``
@@ -165,18 +190,17 @@ def fit_face_model(model: FaceModel, observed: np.ndarray, information: np.ndarr
     m = len(c)
     prior = ridge / np.maximum(model.scale, 1e-9) ** 2
     for _ in range(iterations):
-        rotated = (model.neutral + model.basis @ c) @ R.T                    # (N, 3) R X_i
+        rotated = (model.neutral + model.basis @ c) @ R.T  # (N, 3) R X_i
         x, y, z = (rotated + t).T
         residual = project(rotated + t, model.camera)[0] - observed
-        d_proj = np.zeros((len(z), 2, 3))                                    # d pi / d camera_xyz
-        d_proj[:, 0, 0], d_proj[:, 0, 2] = fx / z, -fx * x / z ** 2
-        d_proj[:, 1, 1], d_proj[:, 1, 2] = fy / z, -fy * y / z ** 2
-        jac = np.concatenate([d_proj @ -skew(rotated), d_proj,
-                              d_proj @ (R[None] @ model.basis)], axis=2)     # (N, 2, 6 + M)
+        d_proj = np.zeros((len(z), 2, 3))  # d pi / d camera_xyz
+        d_proj[:, 0, 0], d_proj[:, 0, 2] = fx / z, -fx * x / z**2
+        d_proj[:, 1, 1], d_proj[:, 1, 2] = fy / z, -fy * y / z**2
+        jac = np.concatenate([d_proj @ -skew(rotated), d_proj, d_proj @ (R[None] @ model.basis)], axis=2)  # (N, 2, 6 + M)
         length = np.sqrt(np.maximum(((information @ residual[:, :, None])[:, :, 0] * residual).sum(axis=1), 0.0))
         weight = np.minimum(1.0, huber_px / np.maximum(length, 1e-12))[:, None, None] * information
         flat = jac.reshape(-1, 6 + m)
-        weighted = (weight @ jac).reshape(-1, 6 + m)                         # (2N, P)
+        weighted = (weight @ jac).reshape(-1, 6 + m)  # (2N, P)
         normal = flat.T @ weighted
         gradient = weighted.T @ residual.ravel()
         normal[6:, 6:] += np.diag(prior)

@@ -53,14 +53,22 @@ def read_first_frame_points(path: Path) -> tuple[list[str], np.ndarray, tuple[in
     return [str(n) for n in names], xy, frame_size
 
 
-def order_by_layout(path: Path, names: list[str], xy: np.ndarray, expected: tuple[str, ...],
-                    size: tuple[int, int], frame_size: tuple[int, int] | None = None) -> np.ndarray:
+def order_by_layout(
+    path: Path,
+    names: list[str],
+    xy: np.ndarray,
+    expected: tuple[str, ...],
+    size: tuple[int, int],
+    frame_size: tuple[int, int] | None = None,
+) -> np.ndarray:
     """Check first-frame points against the layout's tracked subset and the clip's frame size
     ``size = (W, H)`` (and ``frame_size``, the size the file says they were marked on); return
     them ``(N, 2)`` in the layout's order."""
     if frame_size is not None and tuple(frame_size) != tuple(size):
-        raise StageError(f"{path}: the points were marked on a {frame_size[0]}x{frame_size[1]} frame, "
-                         f"the clip's frames are {size[0]}x{size[1]}")
+        raise StageError(
+            f"{path}: the points were marked on a {frame_size[0]}x{frame_size[1]} frame, "
+            f"the clip's frames are {size[0]}x{size[1]}"
+        )
     if len(set(names)) != len(names):
         raise StageError(f"{path}: duplicate point names")
     missing = [n for n in expected if n not in names]
@@ -76,4 +84,3 @@ def order_by_layout(path: Path, names: list[str], xy: np.ndarray, expected: tupl
         bad = [expected[i] for i in np.flatnonzero(outside)]
         raise StageError(f"{path}: points outside the {size[0]}x{size[1]} frame: {bad[:5]}")
     return ordered
-

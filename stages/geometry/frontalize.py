@@ -54,8 +54,9 @@ from stages.geometry.camera import project_pose
 from stages.pack.bundles import model3d_from_bundle
 
 
-def lift_to_head(xy: np.ndarray, model: np.ndarray, R: np.ndarray, t: np.ndarray,
-                 camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def lift_to_head(
+    xy: np.ndarray, model: np.ndarray, R: np.ndarray, t: np.ndarray, camera: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Observed points lifted to 3D at the model's depth and taken into the head frame (step 1).
 
     ``X'_i = R^T (z_i A^-1 (x_i, 1) - t)`` with ``z_i = (R X_i + t)_z``.
@@ -90,8 +91,9 @@ def lift_to_head(xy: np.ndarray, model: np.ndarray, R: np.ndarray, t: np.ndarray
     return head, depth > 0
 
 
-def frontalize(xy: np.ndarray, model: np.ndarray, R: np.ndarray, t: np.ndarray, camera: np.ndarray, *,
-               reference: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def frontalize(
+    xy: np.ndarray, model: np.ndarray, R: np.ndarray, t: np.ndarray, camera: np.ndarray, *, reference: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
     """Tracked points with the head motion removed by the 3D pose (module docstring, steps 1-2).
 
     Parameters
@@ -123,8 +125,7 @@ def frontalize(xy: np.ndarray, model: np.ndarray, R: np.ndarray, t: np.ndarray, 
     return np.where(ok[..., None], frontal, np.nan), ok
 
 
-def adapt_to_reference(model: np.ndarray, xy: np.ndarray, R: np.ndarray, t: np.ndarray,
-                       camera: np.ndarray) -> np.ndarray:
+def adapt_to_reference(model: np.ndarray, xy: np.ndarray, R: np.ndarray, t: np.ndarray, camera: np.ndarray) -> np.ndarray:
     """The generic model adapted to the neutral frame under that frame's pose.
 
     Each point keeps its depth under ``(R, t)`` and moves parallel to the image plane onto its
@@ -195,8 +196,10 @@ class PoseCompensate(SequenceStage):
             raise StageError(f"{self.name}: the pose has {len(pose['R'])} frames, the points {len(xy)}")
         pose_valid = np.asarray(pose["valid"], bool)
         if not pose_valid[0]:
-            raise StageError(f"{self.name}: the pose of frame 0 (the neutral reference) was not solved; "
-                             "track the rigid points in the first frame")
+            raise StageError(
+                f"{self.name}: the pose of frame 0 (the neutral reference) was not solved; "
+                "track the rigid points in the first frame"
+            )
         R, t = np.asarray(pose["R"], dtype=np.float64), np.asarray(pose["tvec"], dtype=np.float64)
         if "camera" not in pose:
             raise StageError(f"{self.name}: the pose bundle carries no 'camera' (connect pose.pnp's output)")

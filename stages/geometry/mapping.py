@@ -67,8 +67,10 @@ EYE_CORNERS = (("eye_l_0", "eye_l_6"), ("eye_r_0", "eye_r_6"))  # (inner, outer)
 # right on the upper lip and 6-9 right to left on the lower one; 2 and 7 are the middles of the
 # two lips that the tracked subset carries.
 INNER_LIP_PAIRS = (
-    ("mouth_inner_1", "mouth_inner_9"), ("mouth_inner_2", "mouth_inner_8"),
-    ("mouth_inner_3", "mouth_inner_7"), ("mouth_inner_4", "mouth_inner_6"),
+    ("mouth_inner_1", "mouth_inner_9"),
+    ("mouth_inner_2", "mouth_inner_8"),
+    ("mouth_inner_3", "mouth_inner_7"),
+    ("mouth_inner_4", "mouth_inner_6"),
     ("mouth_inner_2", "mouth_inner_7"),
 )
 
@@ -86,13 +88,21 @@ def reference_columns(names: np.ndarray, layout: Any, mode: str, *, stage: str) 
         return rigid_columns(names, layout, at_least=2, stage=stage)
     columns = named_columns(names, NORMALIZATION_POINTS)
     if len(columns) < 2:
-        raise StageError(f"{stage}: mode eyes_nose needs at least 2 of the points {list(NORMALIZATION_POINTS)}; "
-                         f"the displacements carry {len(columns)}")
+        raise StageError(
+            f"{stage}: mode eyes_nose needs at least 2 of the points {list(NORMALIZATION_POINTS)}; "
+            f"the displacements carry {len(columns)}"
+        )
     return columns
 
 
-def displacement_transforms(performer: np.ndarray, target: np.ndarray, reference: np.ndarray, *,
-                            mode: str = "eyes_nose", regions: Sequence[np.ndarray] = ()) -> np.ndarray:
+def displacement_transforms(
+    performer: np.ndarray,
+    target: np.ndarray,
+    reference: np.ndarray,
+    *,
+    mode: str = "eyes_nose",
+    regions: Sequence[np.ndarray] = (),
+) -> np.ndarray:
     """The linear maps ``S_i (N, 2, 2)`` applied to each point's displacement.
 
     Parameters
@@ -138,8 +148,9 @@ def eye_distance(xy: np.ndarray, names: Sequence[str]) -> float:
     inner and outer corner (:data:`EYE_CORNERS`), found by point name."""
     columns = named_columns(np.asarray(names), tuple(n for eye in EYE_CORNERS for n in eye))
     if len(columns) != 4:
-        raise ValueError(f"the eye distance needs the points {[n for eye in EYE_CORNERS for n in eye]}; "
-                         f"found {len(columns)} of them")
+        raise ValueError(
+            f"the eye distance needs the points {[n for eye in EYE_CORNERS for n in eye]}; found {len(columns)} of them"
+        )
     centres = np.asarray(xy, dtype=np.float64)[columns].reshape(2, 2, 2).mean(axis=1)
     return float(np.linalg.norm(centres[1] - centres[0]))
 
@@ -169,8 +180,9 @@ def soft_limit(u: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, margin: float) 
         return np.where(u > hi, above, np.where(u < lo, below, u))
 
 
-def limit_displacements(displacement: np.ndarray, valid: np.ndarray, lo: np.ndarray, hi: np.ndarray, *,
-                        margin: float) -> tuple[np.ndarray, np.ndarray]:
+def limit_displacements(
+    displacement: np.ndarray, valid: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, margin: float
+) -> tuple[np.ndarray, np.ndarray]:
     """:func:`soft_limit` of mapped displacements against each point's captured range.
 
     Parameters
@@ -196,8 +208,9 @@ def limit_displacements(displacement: np.ndarray, valid: np.ndarray, lo: np.ndar
     return soft_limit(displacement, lo, hi, margin=margin), outside
 
 
-def separate_lips(xy: np.ndarray, valid: np.ndarray, neutral: np.ndarray,
-                  pairs: Sequence[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
+def separate_lips(
+    xy: np.ndarray, valid: np.ndarray, neutral: np.ndarray, pairs: Sequence[tuple[int, int]]
+) -> tuple[np.ndarray, np.ndarray]:
     """Keep upper inner-lip points above the lower ones facing them.
 
     For each ``(upper, lower)`` column pair in order, the vertical gap ``y_lower - y_upper`` (px,
@@ -282,8 +295,15 @@ def lid_gaps(xy: np.ndarray, names: Sequence[str]) -> np.ndarray:
     return np.array(gaps)
 
 
-def lid_ratio(displacement: np.ndarray, names: Sequence[str], performer: np.ndarray, target: np.ndarray,
-              transforms: np.ndarray, *, performer_open: np.ndarray | None = None) -> np.ndarray:
+def lid_ratio(
+    displacement: np.ndarray,
+    names: Sequence[str],
+    performer: np.ndarray,
+    target: np.ndarray,
+    transforms: np.ndarray,
+    *,
+    performer_open: np.ndarray | None = None,
+) -> np.ndarray:
     """Mapped lid displacements rescaled so that each eye closes by the performer's fraction.
 
     A size-scaled displacement closes the target's eye only when both faces' eyes are open alike
@@ -336,8 +356,9 @@ def lid_ratio(displacement: np.ndarray, names: Sequence[str], performer: np.ndar
 
 
 #: Facing lid points (upper, lower) of each eye, kept apart like the lips.
-LID_PAIRS = tuple((f"eye_{side}_{u}", f"eye_{side}_{lw}") for side in "lr"
-                  for u, lw in ((1, 11), (2, 10), (3, 9), (4, 8), (5, 7)))
+LID_PAIRS = tuple(
+    (f"eye_{side}_{u}", f"eye_{side}_{lw}") for side in "lr" for u, lw in ((1, 11), (2, 10), (3, 9), (4, 8), (5, 7))
+)
 #: A typical open lid gap, eye distances (the open level of the dev clips' performers is 0.08-0.14):
 #: the reference for an eye that is never seen open.
 TYPICAL_EYE_OPEN = 0.11
@@ -360,23 +381,45 @@ class ExpressionMap(SequenceStage):
 
     name = "map.expression"
     version = "5"  # 5: lid ratio (an eye never seen open against a typical open eye), the target's lips closed in its neutral, range modes, states beyond the pack
-    doc = ("performer displacements onto the target's neutral (Sec. 11): size-normalized, eyes closing by the "
-           "performer's fraction, range mode, lips and lids never crossing; states beyond the pack listed")
+    doc = (
+        "performer displacements onto the target's neutral (Sec. 11): size-normalized, eyes closing by the "
+        "performer's fraction, range mode, lips and lids never crossing; states beyond the pack listed"
+    )
     inputs = {"displacements": "displacements", "layout": "layout", "geometry": "pack_geometry"}
     outputs = {"points": "points"}
     params = (
-        Param("mode", str, "eyes_nose", "displacement normalization (eyes_nose | similarity | region | none)",
-              choices=MODES),
-        Param("range", str, "none", "displacements beyond the pack's captured range: limit (saturate softly past the "
-              "range + margin), relative (the performer's own range scaled onto the pack's), none (as they are)",
-              choices=RANGES),
-        Param("range_margin", float, 0.05,
-              "range=limit: how far beyond the captured range a displacement may go, fraction of the target's eye "
-              "distance", min=0.0, max=1.0),
-        Param("lids", str, "ratio", "eyelids: ratio (each eye closes by the performer's fraction of its own open "
-              "gap) or displacement (size-scaled like every point)", choices=LIDS),
-        Param("close_lips", bool, True, "the target's neutral taken with its inner lips closed, as the performer's "
-              "(a pack whose neutral has the lips apart otherwise never seals them)"),
+        Param("mode", str, "eyes_nose", "displacement normalization (eyes_nose | similarity | region | none)", choices=MODES),
+        Param(
+            "range",
+            str,
+            "none",
+            "displacements beyond the pack's captured range: limit (saturate softly past the "
+            "range + margin), relative (the performer's own range scaled onto the pack's), none (as they are)",
+            choices=RANGES,
+        ),
+        Param(
+            "range_margin",
+            float,
+            0.05,
+            "range=limit: how far beyond the captured range a displacement may go, fraction of the target's eye distance",
+            min=0.0,
+            max=1.0,
+        ),
+        Param(
+            "lids",
+            str,
+            "ratio",
+            "eyelids: ratio (each eye closes by the performer's fraction of its own open "
+            "gap) or displacement (size-scaled like every point)",
+            choices=LIDS,
+        ),
+        Param(
+            "close_lips",
+            bool,
+            True,
+            "the target's neutral taken with its inner lips closed, as the performer's "
+            "(a pack whose neutral has the lips apart otherwise never seals them)",
+        ),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
@@ -397,7 +440,8 @@ class ExpressionMap(SequenceStage):
         reference = reference_columns(names, layout, params["mode"], stage=self.name)
         regions = [
             named_columns(names, tuple(layout.point_names[i] for i in fps.points))
-            for fps in layout.feature_point_sets if fps.level == 1
+            for fps in layout.feature_point_sets
+            if fps.level == 1
         ]
         neutral_all = geometry.neutral
         if params["close_lips"]:
@@ -418,7 +462,8 @@ class ExpressionMap(SequenceStage):
             lo, hi = captured_range(geometry.captured, geometry.neutral)
             if params["range"] == "limit":
                 displacement, outside = limit_displacements(
-                    displacement, valid_in, lo[rows], hi[rows], margin=margin * eye_distance(neutral_all, layout.point_names))
+                    displacement, valid_in, lo[rows], hi[rows], margin=margin * eye_distance(neutral_all, layout.point_names)
+                )
             else:
                 displacement, outside = relative_range(displacement, valid_in, lo[rows], hi[rows])
         limited = outside.any(axis=1)
@@ -426,23 +471,35 @@ class ExpressionMap(SequenceStage):
         xy[:, rows] = target[None] + displacement
         valid = np.zeros((n_frames, layout.n_points), bool)
         valid[:, rows] = valid_in
-        pairs = [(layout.index(u), layout.index(lw)) for u, lw in INNER_LIP_PAIRS + LID_PAIRS
-                 if u in layout.point_names and lw in layout.point_names]
+        pairs = [
+            (layout.index(u), layout.index(lw))
+            for u, lw in INNER_LIP_PAIRS + LID_PAIRS
+            if u in layout.point_names and lw in layout.point_names
+        ]
         xy, clamped = separate_lips(xy, valid, neutral_all, pairs)
         per_point = outside.sum(axis=0)
-        most = ", ".join(f"{names[i]} {per_point[i]}"
-                         for i in np.argsort(-per_point, kind="stable")[:3] if per_point[i])
-        ctx.log.info(f"{self.name}: displacements beyond the pack's captured range in {int(limited.sum())} of "
-                     f"{n_frames} frames (range={params['range']})" + (f", most often (frames): {most}" if most else "")
-                     + f"; lips or lids kept apart in {int(clamped.sum())} frames")
-        out = {"xy": xy, "valid": valid, "names": np.array(layout.point_names),
-               "range_limited": limited, "lips_clamped": clamped}
+        most = ", ".join(f"{names[i]} {per_point[i]}" for i in np.argsort(-per_point, kind="stable")[:3] if per_point[i])
+        ctx.log.info(
+            f"{self.name}: displacements beyond the pack's captured range in {int(limited.sum())} of "
+            f"{n_frames} frames (range={params['range']})"
+            + (f", most often (frames): {most}" if most else "")
+            + f"; lips or lids kept apart in {int(clamped.sum())} frames"
+        )
+        out = {"xy": xy, "valid": valid, "names": np.array(layout.point_names), "range_limited": limited, "lips_clamped": clamped}
         out.update(self._states_beyond_pack(xy, valid, neutral_all, geometry, layout, ctx))
         out.update({k: np.asarray(bundle[k]) for k in ("fps", "size") if k in bundle})
         return {"points": out}
 
-    def _lid_ratio(self, displacement: np.ndarray, names: np.ndarray, performer: np.ndarray, target: np.ndarray,
-                   transforms: np.ndarray, bundle: Mapping[str, np.ndarray], ctx: Context) -> np.ndarray:
+    def _lid_ratio(
+        self,
+        displacement: np.ndarray,
+        names: np.ndarray,
+        performer: np.ndarray,
+        target: np.ndarray,
+        transforms: np.ndarray,
+        bundle: Mapping[str, np.ndarray],
+        ctx: Context,
+    ) -> np.ndarray:
         """:func:`lid_ratio`, with a typical open gap for an eye the displacements say was never open."""
         try:
             lid_columns(names, "l"), lid_columns(names, "r")
@@ -455,8 +512,9 @@ class ExpressionMap(SequenceStage):
             open_gaps = np.where(known, open_gaps, typical)
         return lid_ratio(displacement, names, performer, target, transforms, performer_open=open_gaps)
 
-    def _states_beyond_pack(self, xy: np.ndarray, valid: np.ndarray, neutral: np.ndarray, geometry: Any,
-                            layout: Any, ctx: Context) -> dict[str, np.ndarray]:
+    def _states_beyond_pack(
+        self, xy: np.ndarray, valid: np.ndarray, neutral: np.ndarray, geometry: Any, layout: Any, ctx: Context
+    ) -> dict[str, np.ndarray]:
         """The states the mapped geometry demands beyond the pack's example expressions, and one
         warning line naming them with their frame counts."""
         try:
@@ -467,9 +525,15 @@ class ExpressionMap(SequenceStage):
         beyond = beyond_coverage(values, covered, valid.any(axis=1))
         counted = [(name, int(flags.sum())) for name, flags in beyond.items() if flags.any()]
         if counted:
-            ctx.log.warning("%s: the performance goes beyond what the target pack's examples show (the warp still "
-                            "makes the geometry; the texture is the nearest example's): %s", self.name,
-                            ", ".join(f"{name.replace('_', ' ')} {n} frames" for name, n in counted))
-        return {"state_names": np.array(STATE_NAMES), "beyond_pack": np.stack([beyond[n] for n in STATE_NAMES], axis=1),
-                "coverage": np.array([covered[n] for n in STATE_NAMES]),
-                "state_values": np.stack([values[n] for n in STATE_NAMES], axis=1)}
+            ctx.log.warning(
+                "%s: the performance goes beyond what the target pack's examples show (the warp still "
+                "makes the geometry; the texture is the nearest example's): %s",
+                self.name,
+                ", ".join(f"{name.replace('_', ' ')} {n} frames" for name, n in counted),
+            )
+        return {
+            "state_names": np.array(STATE_NAMES),
+            "beyond_pack": np.stack([beyond[n] for n in STATE_NAMES], axis=1),
+            "coverage": np.array([covered[n] for n in STATE_NAMES]),
+            "state_values": np.stack([values[n] for n in STATE_NAMES], axis=1),
+        }

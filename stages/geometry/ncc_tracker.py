@@ -7,8 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.geometry.correlation import (carry_along, correlation_peaks, inside, local_affines, sample_patches,
-                                         to_gray)
+from stages.geometry.correlation import carry_along, correlation_peaks, inside, local_affines, sample_patches, to_gray
 from stages.geometry.face_model import FaceModel, fit_face_model
 from stages.geometry.tracker_options import DEFAULTS, TrackerOptions
 
@@ -55,7 +54,7 @@ class NCCTracker:
         self.side = options.template_px
         self.window = (self.side + 2 * options.search_px,) * 2
         grid = np.arange(self.side) - (self.side - 1) / 2.0
-        self.lk_weight = np.exp(-(grid[:, None] ** 2 + grid[None, :] ** 2) / (2.0 * options.lk_sigma_px ** 2))
+        self.lk_weight = np.exp(-(grid[:, None] ** 2 + grid[None, :] ** 2) / (2.0 * options.lk_sigma_px**2))
 
     def start(self, frame: np.ndarray, xy: np.ndarray) -> None:
         self.first = to_gray(frame)
@@ -70,27 +69,27 @@ class NCCTracker:
         self.running = sample_patches(self.first, self.origin, self.side)
         if self.face_model is not None:
             self.fit = self.face_model.first_frame_fit()
-            self.noise = np.full(len(xy), self.options.model_noise_px ** 2)
+            self.noise = np.full(len(xy), self.options.model_noise_px**2)
 
     def templates(self, dst: np.ndarray, weight: np.ndarray) -> np.ndarray:
         """First-frame templates ``(N, S, S)`` warped by the local affines onto ``dst``."""
         linear, _ = local_affines(self.origin, dst, weight, sigma_px=self.warp_sigma_px)
         return sample_patches(self.first, self.origin, self.side, np.linalg.inv(linear))
 
-    def refine(self, image: np.ndarray, xy: np.ndarray, template: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def refine(self, image: np.ndarray, xy: np.ndarray, template: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Inverse-compositional Lucas-Kanade (translation) of ``template (N, S, S)`` from ``xy``;
         returns the refined positions ``(N, 2)``, the final patches and the templates' Hessians
         ``sum w grad T grad T^T / sum w T^2`` ``(N, 2, 2)`` (1/px^2, T zero-mean): how sharply each
         template pins its position in each direction."""
         n = len(xy)
         tz = template - template.mean(axis=(1, 2), keepdims=True)
-        gradient = np.stack(np.gradient(tz, axis=(2, 1)), axis=1).reshape(n, 2, -1)   # (N, 2, S*S): d/dx, d/dy
+        gradient = np.stack(np.gradient(tz, axis=(2, 1)), axis=1).reshape(n, 2, -1)  # (N, 2, S*S): d/dx, d/dy
         steepest = gradient * self.lk_weight.reshape(1, 1, -1)
-        hessian = steepest @ np.transpose(gradient, (0, 2, 1))                          # (N, 2, 2)
+        hessian = steepest @ np.transpose(gradient, (0, 2, 1))  # (N, 2, 2)
         det = hessian[:, 0, 0] * hessian[:, 1, 1] - hessian[:, 0, 1] * hessian[:, 1, 0]
-        adjugate = np.stack([np.stack([hessian[:, 1, 1], -hessian[:, 0, 1]], -1),
-                             np.stack([-hessian[:, 1, 0], hessian[:, 0, 0]], -1)], -2)
+        adjugate = np.stack(
+            [np.stack([hessian[:, 1, 1], -hessian[:, 0, 1]], -1), np.stack([-hessian[:, 1, 0], hessian[:, 0, 0]], -1)], -2
+        )
         inverse = adjugate / np.where(np.abs(det) > 1e-12, det, np.inf)[:, None, None]  # flat template: no step
         t_std = tz.std(axis=(1, 2))
         tz = tz.reshape(n, -1)
@@ -146,10 +145,11 @@ class NCCTracker:
         (the hairline along its edge, lips whose look changes as the mouth opens) leans on the
         model instead: an adaptive estimate of each match's noise, as in an adaptive Kalman
         filter's measurement covariance."""
-        return np.minimum(self.options.model_noise_px ** 2 / np.maximum(self.noise, 1e-12), 4.0)
+        return np.minimum(self.options.model_noise_px**2 / np.maximum(self.noise, 1e-12), 4.0)
 
     def step(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         import cv2
+
         image = to_gray(frame)
         predicted = self.last + self.velocity
         centre = np.rint(predicted)
@@ -185,4 +185,3 @@ class NCCTracker:
         self.last = carried
         self.trust = valid.astype(np.float64)
         return self.last.copy(), valid, np.clip(score, 0.0, 1.0).astype(np.float32)
-

@@ -33,21 +33,66 @@ from stages.geometry.states import SEALED_GAP, state_signals
 #: whose sum is the region's activity. MediaPipe names sides from the subject: its ``Left`` is
 #: the image-right eye, the layout's ``eye_r``.
 REGIONS = {
-    "eye_l": (("eye_l_", "crease_l_", "under_eye_l"),
-              ("eyeBlinkRight", "eyeSquintRight", "eyeWideRight", "cheekSquintRight")),
-    "eye_r": (("eye_r_", "crease_r_", "under_eye_r"),
-              ("eyeBlinkLeft", "eyeSquintLeft", "eyeWideLeft", "cheekSquintLeft")),
-    "brows": (("brow_", "forehead_", "glabella", "hairline_"),
-              ("browDownLeft", "browDownRight", "browInnerUp", "browOuterUpLeft", "browOuterUpRight")),
-    "mouth": (("mouth_", "teeth_", "chin", "nasolabial_", "cheek_", "lipfold_", "nose_ala", "nose_nostril",
-               "contour_3", "contour_4", "contour_5", "contour_6", "contour_7", "contour_8", "contour_9",
-               "contour_10", "contour_11", "contour_12", "contour_13"),
-              ("jawOpen", "jawForward", "jawLeft", "jawRight", "mouthFunnel", "mouthPucker", "mouthLeft", "mouthRight",
-               "mouthSmileLeft", "mouthSmileRight", "mouthFrownLeft", "mouthFrownRight", "mouthDimpleLeft",
-               "mouthDimpleRight", "mouthStretchLeft", "mouthStretchRight", "mouthRollLower", "mouthRollUpper",
-               "mouthShrugLower", "mouthShrugUpper", "mouthPressLeft", "mouthPressRight", "mouthLowerDownLeft",
-               "mouthLowerDownRight", "mouthUpperUpLeft", "mouthUpperUpRight", "cheekPuff", "noseSneerLeft",
-               "noseSneerRight")),
+    "eye_l": (("eye_l_", "crease_l_", "under_eye_l"), ("eyeBlinkRight", "eyeSquintRight", "eyeWideRight", "cheekSquintRight")),
+    "eye_r": (("eye_r_", "crease_r_", "under_eye_r"), ("eyeBlinkLeft", "eyeSquintLeft", "eyeWideLeft", "cheekSquintLeft")),
+    "brows": (
+        ("brow_", "forehead_", "glabella", "hairline_"),
+        ("browDownLeft", "browDownRight", "browInnerUp", "browOuterUpLeft", "browOuterUpRight"),
+    ),
+    "mouth": (
+        (
+            "mouth_",
+            "teeth_",
+            "chin",
+            "nasolabial_",
+            "cheek_",
+            "lipfold_",
+            "nose_ala",
+            "nose_nostril",
+            "contour_3",
+            "contour_4",
+            "contour_5",
+            "contour_6",
+            "contour_7",
+            "contour_8",
+            "contour_9",
+            "contour_10",
+            "contour_11",
+            "contour_12",
+            "contour_13",
+        ),
+        (
+            "jawOpen",
+            "jawForward",
+            "jawLeft",
+            "jawRight",
+            "mouthFunnel",
+            "mouthPucker",
+            "mouthLeft",
+            "mouthRight",
+            "mouthSmileLeft",
+            "mouthSmileRight",
+            "mouthFrownLeft",
+            "mouthFrownRight",
+            "mouthDimpleLeft",
+            "mouthDimpleRight",
+            "mouthStretchLeft",
+            "mouthStretchRight",
+            "mouthRollLower",
+            "mouthRollUpper",
+            "mouthShrugLower",
+            "mouthShrugUpper",
+            "mouthPressLeft",
+            "mouthPressRight",
+            "mouthLowerDownLeft",
+            "mouthLowerDownRight",
+            "mouthUpperUpLeft",
+            "mouthUpperUpRight",
+            "cheekPuff",
+            "noseSneerLeft",
+            "noseSneerRight",
+        ),
+    ),
 }
 REST = "rest"  # the points of no region (the skull's: nose bridge, temples, upper contour): all eligible frames
 MIN_FRAMES = 5
@@ -69,8 +114,7 @@ def region_activity(blendshapes: np.ndarray, blendshape_names: Sequence[str]) ->
     """``{region: (T,)}``: the sum of each region's blendshape scores per frame."""
     where = {str(n): i for i, n in enumerate(blendshape_names)}
     scores = np.asarray(blendshapes, np.float64)
-    return {region: scores[:, [where[b] for b in shapes if b in where]].sum(axis=1)
-            for region, (_, shapes) in REGIONS.items()}
+    return {region: scores[:, [where[b] for b in shapes if b in where]].sum(axis=1) for region, (_, shapes) in REGIONS.items()}
 
 
 @dataclass(frozen=True)
@@ -94,9 +138,15 @@ class NeutralEstimate:
         return int(np.unique(np.concatenate([np.asarray(f) for f in self.frames.values()])).size)
 
 
-def estimate_neutral(aligned: np.ndarray, names: Sequence[str], eligible: np.ndarray, blendshapes: np.ndarray,
-                     blendshape_names: Sequence[str], *,
-                     occluded: Mapping[str, np.ndarray] | None = None) -> NeutralEstimate:
+def estimate_neutral(
+    aligned: np.ndarray,
+    names: Sequence[str],
+    eligible: np.ndarray,
+    blendshapes: np.ndarray,
+    blendshape_names: Sequence[str],
+    *,
+    occluded: Mapping[str, np.ndarray] | None = None,
+) -> NeutralEstimate:
     """The neutral geometry of a clip (module docstring).
 
     Parameters

@@ -41,8 +41,7 @@ def default_intrinsics(size: tuple[int, int]) -> np.ndarray:
     return np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
 
 
-def reprojection_error(rvec: np.ndarray, tvec: np.ndarray, model: np.ndarray, image: np.ndarray,
-                       camera: np.ndarray) -> float:
+def reprojection_error(rvec: np.ndarray, tvec: np.ndarray, model: np.ndarray, image: np.ndarray, camera: np.ndarray) -> float:
     """RMS distance in px between ``image (n, 2)`` and ``model (n, 3)`` projected with the pose."""
     projected = project_pose(model, rotation_matrix(rvec), tvec, camera)[0]
     return float(np.sqrt(np.mean(np.sum((projected - image) ** 2, axis=1))))
@@ -78,6 +77,7 @@ def interpolate_poses(rvec: np.ndarray, tvec: np.ndarray, known: np.ndarray) -> 
     if np.all(known):
         return rvec.copy(), tvec.copy()
     from scipy.spatial.transform import Rotation, Slerp
+
     frames = np.arange(len(known))
     times = frames[known]
     rvec, tvec = rvec.copy(), tvec.copy()
@@ -95,6 +95,7 @@ def smooth_poses(rvec: np.ndarray, tvec: np.ndarray, known: np.ndarray, *, sigma
     """Gaussian smoothing over time (:func:`gaussian_smooth`) of the known poses: quaternions made
     sign-continuous, smoothed and renormalized; translations smoothed. Shapes ``(T, 3)``."""
     from scipy.spatial.transform import Rotation
+
     quat = Rotation.from_rotvec(rvec).as_quat()
     for t in range(1, len(quat)):
         if np.dot(quat[t], quat[t - 1]) < 0:
@@ -104,8 +105,16 @@ def smooth_poses(rvec: np.ndarray, tvec: np.ndarray, known: np.ndarray, *, sigma
     return Rotation.from_quat(quat / np.linalg.norm(quat, axis=1, keepdims=True)).as_rotvec(), tvec
 
 
-def estimate_poses(image: np.ndarray, valid: np.ndarray, model: np.ndarray, camera: np.ndarray, *,
-                   min_points: int = 4, smooth_sigma: float = 0.0, adapt: bool = False) -> dict[str, np.ndarray]:
+def estimate_poses(
+    image: np.ndarray,
+    valid: np.ndarray,
+    model: np.ndarray,
+    camera: np.ndarray,
+    *,
+    min_points: int = 4,
+    smooth_sigma: float = 0.0,
+    adapt: bool = False,
+) -> dict[str, np.ndarray]:
     """Head pose per frame by PnP (eq. 10) from the rigid points.
 
     Parameters
@@ -134,6 +143,7 @@ def estimate_poses(image: np.ndarray, valid: np.ndarray, model: np.ndarray, came
         points, NaN where none), ``valid (T,)`` (False where the pose was interpolated).
     """
     import cv2
+
     model = np.ascontiguousarray(model, dtype=np.float64)
     camera = np.asarray(camera, dtype=np.float64)
     n_frames = len(image)
@@ -153,8 +163,16 @@ def estimate_poses(image: np.ndarray, valid: np.ndarray, model: np.ndarray, came
             if guess is None:
                 ok, r, tr = cv2.solvePnP(obj, img, camera, None, flags=cv2.SOLVEPNP_SQPNP)
                 guess = (r, tr)
-            ok, r, tr = cv2.solvePnP(obj, img, camera, None, rvec=guess[0].copy(), tvec=guess[1].copy(),
-                                     useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
+            ok, r, tr = cv2.solvePnP(
+                obj,
+                img,
+                camera,
+                None,
+                rvec=guess[0].copy(),
+                tvec=guess[1].copy(),
+                useExtrinsicGuess=True,
+                flags=cv2.SOLVEPNP_ITERATIVE,
+            )
         except cv2.error:
             continue
         if not ok or not np.isfinite(r).all() or not np.isfinite(tr).all() or tr[2, 0] <= 0:
@@ -166,16 +184,18 @@ def estimate_poses(image: np.ndarray, valid: np.ndarray, model: np.ndarray, came
     if smooth_sigma > 0:
         rvec[solved], tvec[solved] = (x[solved] for x in smooth_poses(rvec, tvec, solved, sigma=smooth_sigma))
     rvec, tvec = interpolate_poses(rvec, tvec, solved)
-    error = np.array([
-        reprojection_error(rvec[t], tvec[t], model[valid[t]], image[t, valid[t]], camera) if valid[t].any() else np.nan
-        for t in range(n_frames)
-    ])
-    return {"rvec": rvec, "tvec": tvec, "R": rotation_matrix(rvec),
-            "reproj_err_px": error, "valid": solved}
+    error = np.array(
+        [
+            reprojection_error(rvec[t], tvec[t], model[valid[t]], image[t, valid[t]], camera) if valid[t].any() else np.nan
+            for t in range(n_frames)
+        ]
+    )
+    return {"rvec": rvec, "tvec": tvec, "R": rotation_matrix(rvec), "reproj_err_px": error, "valid": solved}
 
 
-def estimate_face_poses(image: np.ndarray, valid: np.ndarray, model: FaceModel, *, smooth_sigma: float = 0.0,
-                        iterations: int = 10) -> dict[str, np.ndarray]:
+def estimate_face_poses(
+    image: np.ndarray, valid: np.ndarray, model: FaceModel, *, smooth_sigma: float = 0.0, iterations: int = 10
+) -> dict[str, np.ndarray]:
     """Head pose per frame from all tracked points by fitting the face model: eq. 10 with the
     generic model extended by the performer's expression components
     (:func:`stages.geometry.face_model.fit_face_model` on each frame's valid points, unit
@@ -216,8 +236,7 @@ def estimate_face_poses(image: np.ndarray, valid: np.ndarray, model: FaceModel, 
     if smooth_sigma > 0:
         rvec[solved], tvec[solved] = (x[solved] for x in smooth_poses(rvec, tvec, solved, sigma=smooth_sigma))
     rvec, tvec = interpolate_poses(rvec, tvec, solved)
-    return {"rvec": rvec, "tvec": tvec, "R": rotation_matrix(rvec), "reproj_err_px": error,
-            "valid": solved}
+    return {"rvec": rvec, "tvec": tvec, "R": rotation_matrix(rvec), "reproj_err_px": error, "valid": solved}
 
 
 class PnPPose(SequenceStage):
@@ -226,24 +245,48 @@ class PnPPose(SequenceStage):
     name = "pose.pnp"
     version = "5"
     doc = "3D head pose per frame by PnP from the rigid points and the pack's generic 3D model (eq. 10)"
-    inputs = {"points": "points", "layout": "layout", "model3d": "pack_model3d", "camera": "camera",
-              "geometry": "pack_geometry"}
+    inputs = {"points": "points", "layout": "layout", "model3d": "pack_model3d", "camera": "camera", "geometry": "pack_geometry"}
     optional_inputs = frozenset({"camera", "geometry"})
     outputs = {"pose": "pose"}
     params = (
-        Param("intrinsics", str, "pack", "camera matrix: the pack's (input 'camera'), or the default from the image "
-              "size (f = max(W, H), principal point at the centre)", choices=("pack", "image")),
-        Param("focal_px", float, 0.0, "if > 0, focal length in px with the principal point at the image centre", min=0.0, max=1e6),
-        Param("model", str, "rigid", "rigid: PnP on the rigid points with the generic model (Sec. 12.1); face: fit "
-              "the face model (generic shape plus the pack's captured expressions, input 'geometry') to all "
-              "tracked points", choices=("rigid", "face")),
+        Param(
+            "intrinsics",
+            str,
+            "pack",
+            "camera matrix: the pack's (input 'camera'), or the default from the image "
+            "size (f = max(W, H), principal point at the centre)",
+            choices=("pack", "image"),
+        ),
+        Param(
+            "focal_px", float, 0.0, "if > 0, focal length in px with the principal point at the image centre", min=0.0, max=1e6
+        ),
+        Param(
+            "model",
+            str,
+            "rigid",
+            "rigid: PnP on the rigid points with the generic model (Sec. 12.1); face: fit "
+            "the face model (generic shape plus the pack's captured expressions, input 'geometry') to all "
+            "tracked points",
+            choices=("rigid", "face"),
+        ),
         Param("components", int, 8, "face model: expression components (PCA of the pack's captured geometries)", min=0, max=256),
-        Param("points", list, [], "rigid model: names of the points used for PnP; empty: the layout's rigid points "
-              "(hairline and inner eye corners, Sec. 12.1)"),
-        Param("min_points", int, 4, "fewest valid rigid points to solve a frame (else flagged and interpolated)", min=3, max=1000),
+        Param(
+            "points",
+            list,
+            [],
+            "rigid model: names of the points used for PnP; empty: the layout's rigid points "
+            "(hairline and inner eye corners, Sec. 12.1)",
+        ),
+        Param(
+            "min_points", int, 4, "fewest valid rigid points to solve a frame (else flagged and interpolated)", min=3, max=1000
+        ),
         Param("smooth_sigma", float, 0.0, "temporal Gaussian smoothing of the poses, frames (0 = off)", min=0.0, max=1000.0),
-        Param("adapt_model", bool, True, "fit the generic model to the first complete frame, taken as the frontal "
-              "neutral; poses are then relative to it"),
+        Param(
+            "adapt_model",
+            bool,
+            True,
+            "fit the generic model to the first complete frame, taken as the frontal neutral; poses are then relative to it",
+        ),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
@@ -265,21 +308,33 @@ class PnPPose(SequenceStage):
             if not np.asarray(points["valid"][0]).all():
                 raise StageError(f"{self.name}: model=face needs every tracked point valid in the first frame")
             try:
-                model = bundle_face_model(inputs["model3d"], inputs["geometry"], [str(n) for n in points["names"]],
-                                          points["xy"][0], columns, camera, components=int(params["components"]))
+                model = bundle_face_model(
+                    inputs["model3d"],
+                    inputs["geometry"],
+                    [str(n) for n in points["names"]],
+                    points["xy"][0],
+                    columns,
+                    camera,
+                    components=int(params["components"]),
+                )
             except ValueError as exc:
                 raise StageError(f"{self.name}: {exc}") from None
-            pose = estimate_face_poses(points["xy"], points["valid"], model,
-                                       smooth_sigma=float(params["smooth_sigma"]))
+            pose = estimate_face_poses(points["xy"], points["valid"], model, smooth_sigma=float(params["smooth_sigma"]))
             return {"pose": {**pose, "camera": camera}}
         names = [str(points["names"][c]) for c in columns]
         try:
             model = model3d_from_bundle(inputs["model3d"], names)
         except ValueError as exc:
             raise StageError(f"{self.name}: input 'model3d': {exc}") from None
-        pose = estimate_poses(points["xy"][:, columns], points["valid"][:, columns], model, camera,
-                              min_points=min_points, smooth_sigma=float(params["smooth_sigma"]),
-                              adapt=bool(params["adapt_model"]))
+        pose = estimate_poses(
+            points["xy"][:, columns],
+            points["valid"][:, columns],
+            model,
+            camera,
+            min_points=min_points,
+            smooth_sigma=float(params["smooth_sigma"]),
+            adapt=bool(params["adapt_model"]),
+        )
         return {"pose": {**pose, "camera": camera}}
 
     def named(self, names: np.ndarray, wanted: list[str], layout: Any) -> np.ndarray:
@@ -289,8 +344,7 @@ class PnPPose(SequenceStage):
             raise StageError(f"{self.name}: parameter points names {missing} that are not tracked points of the layout")
         return named_columns(names, tuple(wanted))
 
-    def camera(self, points: Mapping[str, np.ndarray], inputs: Mapping[str, Any], params: Mapping[str, Any]
-               ) -> np.ndarray:
+    def camera(self, points: Mapping[str, np.ndarray], inputs: Mapping[str, Any], params: Mapping[str, Any]) -> np.ndarray:
         """The intrinsic matrix chosen by the ``intrinsics`` and ``focal_px`` parameters."""
         focal = float(params["focal_px"])
         if params["intrinsics"] == "pack" and focal <= 0:

@@ -46,15 +46,26 @@ from stages.geometry.subset import named_columns
 #: Points of the zhang134 layout that move with the skull: eye corners, nose bridge, forehead,
 #: temples and the contour beside the eyes (the jaw's contour points move with the mouth).
 RIGID_POINTS = (
-    "eye_l_0", "eye_l_6", "eye_r_0", "eye_r_6", "nose_bridge_0", "nose_bridge_1", "nose_bridge_2",
-    "forehead_l", "forehead_c", "forehead_r", "temple_l", "temple_r", "contour_0", "contour_16",
+    "eye_l_0",
+    "eye_l_6",
+    "eye_r_0",
+    "eye_r_6",
+    "nose_bridge_0",
+    "nose_bridge_1",
+    "nose_bridge_2",
+    "forehead_l",
+    "forehead_c",
+    "forehead_r",
+    "temple_l",
+    "temple_r",
+    "contour_0",
+    "contour_16",
 )
 
 #: The facing inner-lip pairs of the zhang134 layout (upper, lower), left to right, with the teeth
 #: edges that lie between them (``teeth_upper_k`` / ``teeth_lower_k`` are mixes of pair k's lips:
 #: ``stages/layouts/zhang134_mediapipe.yaml``), for :func:`close_reference_lips`.
-LIP_PAIRS = tuple((f"mouth_inner_{k + 1}", f"mouth_inner_{9 - k}", f"teeth_upper_{k}", f"teeth_lower_{k}")
-                  for k in range(4))
+LIP_PAIRS = tuple((f"mouth_inner_{k + 1}", f"mouth_inner_{9 - k}", f"teeth_upper_{k}", f"teeth_lower_{k}") for k in range(4))
 
 #: Blendshapes that are not facial expression (gaze direction) and the rest score, MediaPipe names.
 _NOT_EXPRESSION = ("_neutral", "eyeLook")
@@ -90,8 +101,9 @@ def similarity_3d(src: np.ndarray, dst: np.ndarray, weights: np.ndarray) -> tupl
     return s, R, mu_d - s * R @ mu_s
 
 
-def compensate_rigid3d(xyz: np.ndarray, valid: np.ndarray, reference: int, rigid: np.ndarray, *,
-                       huber_px: float = 2.0, iterations: int = 5) -> dict[str, np.ndarray]:
+def compensate_rigid3d(
+    xyz: np.ndarray, valid: np.ndarray, reference: int, rigid: np.ndarray, *, huber_px: float = 2.0, iterations: int = 5
+) -> dict[str, np.ndarray]:
     """Per-frame 3D similarity of the rigid points to the reference frame, and the compensated
     displacements of every point.
 
@@ -232,9 +244,17 @@ def expressiveness(blendshapes: np.ndarray, names: np.ndarray) -> np.ndarray:
     return np.asarray(blendshapes, np.float64)[:, keep].sum(axis=1)
 
 
-def choose_reference(blendshapes: np.ndarray, names: np.ndarray, matrix: np.ndarray, mouth_open: np.ndarray,
-                     valid: np.ndarray, *, search_frames: int, degrees_weight: float = 0.05,
-                     mouth_weight: float = 10.0) -> int:
+def choose_reference(
+    blendshapes: np.ndarray,
+    names: np.ndarray,
+    matrix: np.ndarray,
+    mouth_open: np.ndarray,
+    valid: np.ndarray,
+    *,
+    search_frames: int,
+    degrees_weight: float = 0.05,
+    mouth_weight: float = 10.0,
+) -> int:
     """The reference (neutral) frame: among the first ``search_frames`` valid frames, the one
     minimizing
 
@@ -252,12 +272,15 @@ def choose_reference(blendshapes: np.ndarray, names: np.ndarray, matrix: np.ndar
     ValueError
         No valid frame.
     """
-    candidates = np.flatnonzero(valid)[:max(1, search_frames)]
+    candidates = np.flatnonzero(valid)[: max(1, search_frames)]
     if candidates.size == 0:
         raise ValueError("no frame with a face to take as the reference")
     angle = head_angle_deg(np.asarray(matrix, np.float64)[candidates, :3, :3])
-    cost = (expressiveness(np.asarray(blendshapes)[candidates], names) + degrees_weight * angle
-            + mouth_weight * np.clip(np.asarray(mouth_open, np.float64)[candidates], 0, None))
+    cost = (
+        expressiveness(np.asarray(blendshapes)[candidates], names)
+        + degrees_weight * angle
+        + mouth_weight * np.clip(np.asarray(mouth_open, np.float64)[candidates], 0, None)
+    )
     return int(candidates[np.nanargmin(cost)])
 
 
@@ -305,8 +328,9 @@ def hold_occluded(d: np.ndarray, occluded: np.ndarray, columns: np.ndarray) -> n
     return d
 
 
-def occluded_regions(occlusion: Mapping[str, np.ndarray] | None, names: np.ndarray,
-                     n_frames: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def occluded_regions(
+    occlusion: Mapping[str, np.ndarray] | None, names: np.ndarray, n_frames: int
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """``{region: (occluded (T,) bool, columns (K,) int)}`` from an ``occlusion`` bundle
     (``regions (R,)``, ``occluded (T, R)``, ``region_points (R, M)`` over its ``names (M,)``),
     the columns among this bundle's ``names``; empty without one."""
@@ -332,25 +356,57 @@ class CompensateRigid3D(SequenceStage):
 
     name = "compensate.rigid3d"
     version = "5"  # 5: the neutral estimated region by region over the clip (stages.geometry.neutral); occlusion held; the 2D head motion relative to the clip's median placement
-    doc = ("neutral estimated from the whole clip (or a named frame); 3D similarity of the rigid points; "
-           "displacements, pose, 2D similarity; occluded regions held")
+    doc = (
+        "neutral estimated from the whole clip (or a named frame); 3D similarity of the rigid points; "
+        "displacements, pose, 2D similarity; occluded regions held"
+    )
     inputs = {"points": "points", "landmarks": "landmarks", "occlusion": "occlusion"}
     optional_inputs = frozenset({"occlusion"})
     outputs = {"displacements": "displacements", "similarity": "similarity", "pose": "pose"}
     params = (
-        Param("neutral_frame", int, -1, "the reference (neutral) frame; -1: the neutral is estimated region by region "
-              "from the whole clip, and the head frame chosen as the most frontal, least expressive frame", min=-1, max=10_000_000),
-        Param("search_frames", int, 0, "frames searched for the head frame, from the first with a face (0: the whole "
-              "clip)", min=0, max=10_000_000),
-        Param("max_turn_deg", float, 20.0, "frames turned more than this from the head frame do not enter the "
-              "estimated neutral", min=1.0, max=90.0),
+        Param(
+            "neutral_frame",
+            int,
+            -1,
+            "the reference (neutral) frame; -1: the neutral is estimated region by region "
+            "from the whole clip, and the head frame chosen as the most frontal, least expressive frame",
+            min=-1,
+            max=10_000_000,
+        ),
+        Param(
+            "search_frames",
+            int,
+            0,
+            "frames searched for the head frame, from the first with a face (0: the whole clip)",
+            min=0,
+            max=10_000_000,
+        ),
+        Param(
+            "max_turn_deg",
+            float,
+            20.0,
+            "frames turned more than this from the head frame do not enter the estimated neutral",
+            min=1.0,
+            max=90.0,
+        ),
         Param("rigid_points", list, list(RIGID_POINTS), "layout points aligned in 3D (they move with the skull)"),
         Param("huber_px", float, 2.0, "Huber threshold of the robust 3D fit, px", min=0.01, max=100.0),
         Param("warn_angle_deg", float, 12.0, "warn when the head frame is turned more than this", min=0.0, max=90.0),
-        Param("warn_expression", float, 2.0, "warn when a named reference frame's expressiveness (sum of blendshapes) "
-              "exceeds this", min=0.0, max=100.0),
-        Param("close_lips", bool, True, "displacements from the neutral with its inner lips closed (a neutral with "
-              "the lips apart would cost the target that much mouth opening)"),
+        Param(
+            "warn_expression",
+            float,
+            2.0,
+            "warn when a named reference frame's expressiveness (sum of blendshapes) exceeds this",
+            min=0.0,
+            max=100.0,
+        ),
+        Param(
+            "close_lips",
+            bool,
+            True,
+            "displacements from the neutral with its inner lips closed (a neutral with "
+            "the lips apart would cost the target that much mouth opening)",
+        ),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
@@ -367,8 +423,9 @@ class CompensateRigid3D(SequenceStage):
         frame_ok = np.asarray(marks["valid"], bool) & valid.any(axis=1)
         named = int(params["neutral_frame"])
         if named >= n_frames or (named >= 0 and not frame_ok[named]):
-            raise StageError(f"{self.name}: neutral_frame={named}: the clip has {n_frames} frames and that "
-                             "frame must show the face")
+            raise StageError(
+                f"{self.name}: neutral_frame={named}: the clip has {n_frames} frames and that frame must show the face"
+            )
         try:
             occlusion = occluded_regions(inputs.get("occlusion"), names, n_frames)
             hidden = np.any([flags for flags, _ in occlusion.values()], axis=0) if occlusion else np.zeros(n_frames, bool)
@@ -376,9 +433,14 @@ class CompensateRigid3D(SequenceStage):
             if reference < 0:
                 mouth = expression_signals(xy, names)["mouth_open"]
                 search = int(params["search_frames"]) or n_frames
-                reference = choose_reference(marks["blendshapes"], marks["blendshape_names"], marks["matrix"], mouth,
-                                             frame_ok & ~hidden if (frame_ok & ~hidden).any() else frame_ok,
-                                             search_frames=search)
+                reference = choose_reference(
+                    marks["blendshapes"],
+                    marks["blendshape_names"],
+                    marks["matrix"],
+                    mouth,
+                    frame_ok & ~hidden if (frame_ok & ~hidden).any() else frame_ok,
+                    search_frames=search,
+                )
             rigid = named_columns(names, tuple(params["rigid_points"]))
             # Frames without a face hold the nearest frame with one: the target keeps that expression
             # (displacements valid, ``held`` True) while the points and pose stay flagged invalid.
@@ -394,14 +456,22 @@ class CompensateRigid3D(SequenceStage):
                 faces = frame_ok & fit["frame_valid"]
                 eligible = faces & (head_angle_deg(fit["R"]) <= float(params["max_turn_deg"]))
                 if not eligible.any():
-                    ctx.log.warning("%s: every frame is turned more than %g deg from the head frame %d; the neutral "
-                                    "is estimated from all frames with a face", self.name, params["max_turn_deg"],
-                                    reference)
+                    ctx.log.warning(
+                        "%s: every frame is turned more than %g deg from the head frame %d; the neutral "
+                        "is estimated from all frames with a face",
+                        self.name,
+                        params["max_turn_deg"],
+                        reference,
+                    )
                     eligible = faces
                 estimate = estimate_neutral(
-                    np.where(valid[..., None], aligned, np.nan), names, eligible,
-                    np.asarray(marks["blendshapes"])[held], marks["blendshape_names"],
-                    occluded={region: flags for region, (flags, _) in occlusion.items()})
+                    np.where(valid[..., None], aligned, np.nan),
+                    names,
+                    eligible,
+                    np.asarray(marks["blendshapes"])[held],
+                    marks["blendshape_names"],
+                    occluded={region: flags for region, (flags, _) in occlusion.items()},
+                )
                 neutral = estimate.neutral
         except (KeyError, ValueError) as exc:
             raise StageError(f"{self.name}: {exc}") from None
@@ -409,8 +479,12 @@ class CompensateRigid3D(SequenceStage):
         frame_valid = fit["frame_valid"] & frame_ok
         d_valid = valid & np.isfinite(neutral).all(axis=1)[None] & fit["frame_valid"][:, None]
         if (~frame_ok).any():
-            ctx.log.warning("%s: no face in %d of %d frames; each holds the expression of the nearest frame with "
-                            "one", self.name, int((~frame_ok).sum()), n_frames)
+            ctx.log.warning(
+                "%s: no face in %d of %d frames; each holds the expression of the nearest frame with one",
+                self.name,
+                int((~frame_ok).sum()),
+                n_frames,
+            )
         d = aligned - neutral[None]
         if params["close_lips"]:
             try:
@@ -418,8 +492,12 @@ class CompensateRigid3D(SequenceStage):
             except KeyError as exc:
                 raise StageError(f"{self.name}: close_lips needs the layout point {exc}; set close_lips=false") from None
             if gap > 0:
-                ctx.log.info("%s: the neutral's lips are apart (up to %.1f px): displacements are taken from the "
-                             "neutral with its lips closed", self.name, gap)
+                ctx.log.info(
+                    "%s: the neutral's lips are apart (up to %.1f px): displacements are taken from the "
+                    "neutral with its lips closed",
+                    self.name,
+                    gap,
+                )
         occluded_any = np.zeros(n_frames, bool)
         for region, (flags, columns) in occlusion.items():
             d = hold_occluded(d, flags, columns)
@@ -428,49 +506,99 @@ class CompensateRigid3D(SequenceStage):
             counts = ", ".join(f"{region} {int(flags.sum())}" for region, (flags, _) in occlusion.items() if flags.any())
             ctx.log.warning("%s: occluded regions held from the frames around them (frames: %s)", self.name, counts)
         extra = {k: np.asarray(points[k]) for k in ("fps", "size") if k in points}
-        known = (np.array([estimate.eye_open_known.get(f"eye_{s}", True) for s in "lr"]) if estimate is not None
-                 else np.ones(2, bool))
-        displacements = {"d": d, "valid": d_valid, "names": names, "neutral": neutral,
-                         "neutral_frame": np.array(reference), "neutral_estimated": np.array(estimate is not None),
-                         "neutral_nearest_frame": np.array(reference if estimate is None else estimate.nearest_frame),
-                         "eye_open_known": known, "held": ~frame_ok, "occluded": occluded_any, **extra}
+        known = (
+            np.array([estimate.eye_open_known.get(f"eye_{s}", True) for s in "lr"]) if estimate is not None else np.ones(2, bool)
+        )
+        displacements = {
+            "d": d,
+            "valid": d_valid,
+            "names": names,
+            "neutral": neutral,
+            "neutral_frame": np.array(reference),
+            "neutral_estimated": np.array(estimate is not None),
+            "neutral_nearest_frame": np.array(reference if estimate is None else estimate.nearest_frame),
+            "eye_open_known": known,
+            "held": ~frame_ok,
+            "occluded": occluded_any,
+            **extra,
+        }
         # The head motion carried onto the output: relative to the named frame, or to the clip's median
         # head placement (per point over the frames with a face), so that no one frame decides where
         # the target sits.
         rest = xy[reference] if estimate is None else median_placement(xy, valid & frame_ok[:, None])
         planar = similarity_2d(xy, valid, rest, rigid)
-        similarity = {"params": planar["params"], "residual_px": planar["residual_px"],
-                      "valid": planar["frame_valid"] & frame_ok}
+        similarity = {"params": planar["params"], "residual_px": planar["residual_px"], "valid": planar["frame_valid"] & frame_ok}
 
-        pose = {"R": fit["R"], "rvec": rotation_vector(fit["R"]), "tvec": fit["t"],
-                "scale": fit["s"], "reproj_err_px": fit["residual_px"], "valid": frame_valid,
-                "ypr_deg": euler_yaw_pitch_roll(fit["R"]), "neutral_frame": np.array(reference)}
+        pose = {
+            "R": fit["R"],
+            "rvec": rotation_vector(fit["R"]),
+            "tvec": fit["t"],
+            "scale": fit["s"],
+            "reproj_err_px": fit["residual_px"],
+            "valid": frame_valid,
+            "ypr_deg": euler_yaw_pitch_roll(fit["R"]),
+            "neutral_frame": np.array(reference),
+        }
         return {"displacements": displacements, "similarity": similarity, "pose": pose}
 
-    def _log_reference(self, ctx: Context, reference: int, estimate: NeutralEstimate | None,
-                       marks: Mapping[str, np.ndarray], params: Mapping[str, Any], names: np.ndarray) -> None:
+    def _log_reference(
+        self,
+        ctx: Context,
+        reference: int,
+        estimate: NeutralEstimate | None,
+        marks: Mapping[str, np.ndarray],
+        params: Mapping[str, Any],
+        names: np.ndarray,
+    ) -> None:
         """The console's line on the reference: a named frame, or the estimate and its head frame;
         a warning when the head frame is turned, when a named frame is expressive, or when an eye
         is never open (no open level to measure its closure from)."""
         angle = float(head_angle_deg(np.asarray(marks["matrix"], np.float64)[[reference], :3, :3])[0])
         score = float(expressiveness(np.asarray(marks["blendshapes"])[[reference]], marks["blendshape_names"])[0])
         if estimate is None:
-            ctx.log.log(SUMMARY, "%s: reference (neutral): frame %d as set (head turned %.1f deg, expressiveness %.2f)",
-                         self.name, reference, angle, score)
+            ctx.log.log(
+                SUMMARY,
+                "%s: reference (neutral): frame %d as set (head turned %.1f deg, expressiveness %.2f)",
+                self.name,
+                reference,
+                angle,
+                score,
+            )
             if angle > float(params["warn_angle_deg"]) or score > float(params["warn_expression"]):
-                ctx.log.warning("%s: the reference frame %d set by neutral_frame is not a frontal neutral face (head "
-                                "turned %.1f deg, expressiveness %.2f); neutral_frame=-1 estimates the neutral from "
-                                "the whole clip", self.name, reference, angle, score)
+                ctx.log.warning(
+                    "%s: the reference frame %d set by neutral_frame is not a frontal neutral face (head "
+                    "turned %.1f deg, expressiveness %.2f); neutral_frame=-1 estimates the neutral from "
+                    "the whole clip",
+                    self.name,
+                    reference,
+                    angle,
+                    score,
+                )
             return
         per_region = ", ".join(f"{region} {len(frames)}" for region, frames in estimate.frames.items() if region != REST)
-        ctx.log.log(SUMMARY, "%s: reference (neutral) estimated from the clip, each region from its least active "
-                    "frames (%s); head frame %d (turned %.1f deg); nearest single frame %d", self.name, per_region,
-                    reference, angle, estimate.nearest_frame)
+        ctx.log.log(
+            SUMMARY,
+            "%s: reference (neutral) estimated from the clip, each region from its least active "
+            "frames (%s); head frame %d (turned %.1f deg); nearest single frame %d",
+            self.name,
+            per_region,
+            reference,
+            angle,
+            estimate.nearest_frame,
+        )
         if angle > float(params["warn_angle_deg"]):
-            ctx.log.warning("%s: the most frontal frame of the clip, %d, is turned %.1f deg: displacements are "
-                            "measured in a turned head frame", self.name, reference, angle)
+            ctx.log.warning(
+                "%s: the most frontal frame of the clip, %d, is turned %.1f deg: displacements are "
+                "measured in a turned head frame",
+                self.name,
+                reference,
+                angle,
+            )
         for eye, known in estimate.eye_open_known.items():
             if not known:
-                ctx.log.warning("%s: the %s eye is shut or nearly shut in every frame: there is no open level to "
-                                "measure its closure from; it is mapped against a typical open eye", self.name,
-                                "image-left" if eye == "eye_l" else "image-right")
+                ctx.log.warning(
+                    "%s: the %s eye is shut or nearly shut in every frame: there is no open level to "
+                    "measure its closure from; it is mapped against a typical open eye",
+                    self.name,
+                    "image-left" if eye == "eye_l" else "image-right",
+                )

@@ -12,8 +12,9 @@ from __future__ import annotations
 import numpy as np
 
 
-def fit_similarity(src: np.ndarray, dst: np.ndarray, *, weights: np.ndarray | None = None,
-                   huber_px: float | None = None, iterations: int = 10) -> np.ndarray:
+def fit_similarity(
+    src: np.ndarray, dst: np.ndarray, *, weights: np.ndarray | None = None, huber_px: float | None = None, iterations: int = 10
+) -> np.ndarray:
     """Least-squares 2D similarity mapping ``src`` onto ``dst`` (eq. 9).
 
     Parameters

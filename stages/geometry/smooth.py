@@ -43,7 +43,11 @@ def gaussian_kernel(sigma: float, *, truncate: float = 3.0) -> np.ndarray:
 
 
 def gaussian_smooth(
-    values: np.ndarray, valid: np.ndarray | None = None, *, sigma: float, truncate: float = 3.0,
+    values: np.ndarray,
+    valid: np.ndarray | None = None,
+    *,
+    sigma: float,
+    truncate: float = 3.0,
     min_support: float = 0.5,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Smooth trajectories over time (axis 0) by normalized Gaussian convolution.
@@ -105,7 +109,7 @@ def convolve_time(values: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     padded = np.concatenate([np.zeros((r,) + values.shape[1:]), values, np.zeros((r,) + values.shape[1:])])
     out = np.zeros(values.shape)
     for k, weight in enumerate(kernel):
-        out += weight * padded[k:k + len(values)]
+        out += weight * padded[k : k + len(values)]
     return out
 
 
@@ -146,7 +150,10 @@ class GaussianSmooth(SequenceStage):
         bundle = dict(inputs["points"])
         try:
             xy, valid = gaussian_smooth(
-                bundle["xy"], bundle["valid"], sigma=float(params["sigma"]), truncate=float(params["truncate"]),
+                bundle["xy"],
+                bundle["valid"],
+                sigma=float(params["sigma"]),
+                truncate=float(params["truncate"]),
                 min_support=float(params["min_support"]),
             )
         except ValueError as exc:
@@ -162,8 +169,9 @@ def smoothing_factor(cutoff: np.ndarray | float, elapsed: np.ndarray | float) ->
     return 1.0 / (1.0 + 1.0 / (2.0 * np.pi * np.asarray(cutoff) * np.asarray(elapsed)))
 
 
-def one_euro_pass(values: np.ndarray, valid: np.ndarray, *, fps: float, min_cutoff: float, beta: float,
-                  d_cutoff: float) -> np.ndarray:
+def one_euro_pass(
+    values: np.ndarray, valid: np.ndarray, *, fps: float, min_cutoff: float, beta: float, d_cutoff: float
+) -> np.ndarray:
     """One causal pass of the One Euro filter over time (axis 0), each column on its own.
 
     For a valid sample ``x_i`` after the previous valid one (``Te`` seconds earlier), with the
@@ -211,8 +219,13 @@ def one_euro_pass(values: np.ndarray, valid: np.ndarray, *, fps: float, min_cuto
 
 
 def one_euro_smooth(
-    values: np.ndarray, valid: np.ndarray | None = None, *, fps: float, min_cutoff: float = 1.0,
-    beta: float = 1.5, d_cutoff: float = 3.0,
+    values: np.ndarray,
+    valid: np.ndarray | None = None,
+    *,
+    fps: float,
+    min_cutoff: float = 1.0,
+    beta: float = 1.5,
+    d_cutoff: float = 3.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Smooth trajectories over time (axis 0) by a forward-backward One Euro filter.
 
@@ -272,12 +285,13 @@ def one_euro_smooth(
         return values.copy(), mask.copy()
     pad = min(int(np.ceil(5.0 * fps / (2.0 * np.pi * min_cutoff))), len(values) - 1)
     columns = values.reshape(len(values), -1)
-    column_mask = np.broadcast_to(mask.reshape(mask.shape + (1,) * (values.ndim - mask.ndim)),
-                                  values.shape).reshape(columns.shape)
+    column_mask = np.broadcast_to(mask.reshape(mask.shape + (1,) * (values.ndim - mask.ndim)), values.shape).reshape(
+        columns.shape
+    )
     ext, ext_mask = odd_reflection(columns, pad), reflection_mask(column_mask, pad)
     options = dict(fps=fps, min_cutoff=min_cutoff, beta=beta, d_cutoff=d_cutoff)
     forward = one_euro_pass(ext, ext_mask, **options)
-    smoothed = one_euro_pass(forward[::-1], ext_mask[::-1], **options)[::-1][pad: pad + len(values)]
+    smoothed = one_euro_pass(forward[::-1], ext_mask[::-1], **options)[::-1][pad : pad + len(values)]
     frames = np.arange(len(values))
     for m in np.flatnonzero(~column_mask.all(axis=0)):
         keep = column_mask[:, m]
@@ -313,7 +327,12 @@ def face_translation(xy: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 
 def one_euro_smooth_face(
-    xy: np.ndarray, valid: np.ndarray, *, fps: float, min_cutoff: float = 1.0, beta: float = 1.5,
+    xy: np.ndarray,
+    valid: np.ndarray,
+    *,
+    fps: float,
+    min_cutoff: float = 1.0,
+    beta: float = 1.5,
     d_cutoff: float = 3.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`one_euro_smooth` of a face's points in the face's own frame.
@@ -384,8 +403,12 @@ class OneEuroSmooth(SequenceStage):
         fps = float(bundle["fps"]) if "fps" in bundle else float(params["fps"])
         try:
             xy, valid = one_euro_smooth_face(
-                bundle["xy"], bundle["valid"], fps=fps, min_cutoff=float(params["min_cutoff"]),
-                beta=float(params["beta"]), d_cutoff=float(params["d_cutoff"]),
+                bundle["xy"],
+                bundle["valid"],
+                fps=fps,
+                min_cutoff=float(params["min_cutoff"]),
+                beta=float(params["beta"]),
+                d_cutoff=float(params["d_cutoff"]),
             )
         except ValueError as exc:
             raise StageError(f"{self.name}: {exc}") from None

@@ -190,17 +190,21 @@ def state_values(xy: np.ndarray, names: Sequence[str], neutral: np.ndarray) -> d
 def coverage(xy: np.ndarray, names: Sequence[str], neutral: np.ndarray) -> dict[str, tuple[float, float]]:
     """The range ``(lo, hi)`` of each state's relative value over geometries ``(K, N, 2)`` (a
     pack's example expressions and its neutral), keyed by state name."""
-    values = state_values(np.concatenate([np.asarray(xy, np.float64), np.asarray(neutral, np.float64)[None]]),
-                          names, neutral)
-    return {name: (float(np.nanmin(v)), float(np.nanmax(v))) if np.isfinite(v).any() else (np.nan, np.nan)
-            for name, v in values.items()}
+    values = state_values(np.concatenate([np.asarray(xy, np.float64), np.asarray(neutral, np.float64)[None]]), names, neutral)
+    return {
+        name: (float(np.nanmin(v)), float(np.nanmax(v))) if np.isfinite(v).any() else (np.nan, np.nan)
+        for name, v in values.items()
+    }
 
 
 def shown(covered: Mapping[str, tuple[float, float]]) -> dict[str, bool]:
     """Per state of :data:`STATES`: does a covered range ``(lo, hi)`` (:func:`coverage`) reach
     into the state (an example shows it)?"""
-    return {s.name: bool(s.present(np.array([covered[s.name][0] if s.below is not None else covered[s.name][1]]))[0])
-            for s in STATES if s.name in covered}
+    return {
+        s.name: bool(s.present(np.array([covered[s.name][0] if s.below is not None else covered[s.name][1]]))[0])
+        for s in STATES
+        if s.name in covered
+    }
 
 
 def coverage_record(covered: Mapping[str, tuple[float, float]]) -> dict[str, object]:
@@ -212,12 +216,12 @@ def coverage_record(covered: Mapping[str, tuple[float, float]]) -> dict[str, obj
         lo, hi = covered.get(s.name, (np.nan, np.nan))
         if np.isfinite(lo) and s.signal not in ranges:
             ranges[s.signal] = [round(float(lo), 4), round(float(hi), 4)]
-    return {"shows": [n for n, f in flags.items() if f], "does_not_show": [n for n, f in flags.items() if not f],
-            "range": ranges}
+    return {"shows": [n for n, f in flags.items() if f], "does_not_show": [n for n, f in flags.items() if not f], "range": ranges}
 
 
-def beyond_coverage(values: Mapping[str, np.ndarray], covered: Mapping[str, tuple[float, float]],
-                    valid: np.ndarray | None = None) -> dict[str, np.ndarray]:
+def beyond_coverage(
+    values: Mapping[str, np.ndarray], covered: Mapping[str, tuple[float, float]], valid: np.ndarray | None = None
+) -> dict[str, np.ndarray]:
     """Per state, ``(T,)`` bool: frames whose demanded state lies beyond the covered range
     (:meth:`State.beyond`), only over ``valid`` frames; states missing from ``covered`` are skipped."""
     out = {}

@@ -54,9 +54,15 @@ def make_tracker(method: str, options: TrackerOptions = DEFAULTS, *, face_model:
     raise ValueError(f"unknown tracking method {method!r}; expected one of {METHODS}")
 
 
-def track_points(frames: Iterable[np.ndarray], init_xy: np.ndarray, *, method: str = "ncc",
-                 options: TrackerOptions = DEFAULTS, face_model: FaceModel | None = None,
-                 progress: Callable[[int], None] = lambda n: None) -> Tracks:
+def track_points(
+    frames: Iterable[np.ndarray],
+    init_xy: np.ndarray,
+    *,
+    method: str = "ncc",
+    options: TrackerOptions = DEFAULTS,
+    face_model: FaceModel | None = None,
+    progress: Callable[[int], None] = lambda n: None,
+) -> Tracks:
     """Track N points through a clip, frame by frame.
 
     Parameters
@@ -98,4 +104,3 @@ def track_points(frames: Iterable[np.ndarray], init_xy: np.ndarray, *, method: s
     if not xy:
         raise ValueError("expected a clip with frames, got none")
     return Tracks(np.stack(xy), np.stack(valid), np.stack(confidence).astype(np.float32))
-

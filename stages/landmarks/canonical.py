@@ -68,12 +68,12 @@ def _fields(data: bytes):
         if wire == 0:
             value, i = _varint(data, i)
         elif wire == 1:
-            value, i = data[i:i + 8], i + 8
+            value, i = data[i : i + 8], i + 8
         elif wire == 2:
             size, i = _varint(data, i)
-            value, i = data[i:i + size], i + size
+            value, i = data[i : i + size], i + size
         elif wire == 5:
-            value, i = data[i:i + 4], i + 4
+            value, i = data[i : i + 4], i + 4
         else:
             raise ValueError(f"unsupported protobuf wire type {wire} for field {number}")
         yield number, wire, value
@@ -108,8 +108,9 @@ def parse_mesh3d(data: bytes) -> CanonicalMesh:
     vertex = np.asarray(_floats(buffers[3]), dtype=np.float64)
     index = np.asarray(_uints(buffers[4]), dtype=np.int64)
     if vertex.size == 0 or vertex.size % 5 or index.size % 3:
-        raise ValueError(f"Mesh3d: expected 5 floats per vertex and 3 indices per triangle, "
-                         f"got {vertex.size} floats and {index.size} indices")
+        raise ValueError(
+            f"Mesh3d: expected 5 floats per vertex and 3 indices per triangle, got {vertex.size} floats and {index.size} indices"
+        )
     vertex = vertex.reshape(-1, 5)
     triangles = index.reshape(-1, 3)
     if triangles.max() >= len(vertex):

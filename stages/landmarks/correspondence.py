@@ -133,8 +133,10 @@ def parse_correspondence(data: Any, *, layout: Layout | None = None, source: str
             vertices, w = entry.get("vertices"), entry.get("weights")
         else:
             vertices, w = [entry], [1.0]
-        if not isinstance(vertices, list) or not vertices or not all(
-            isinstance(v, int) and not isinstance(v, bool) for v in vertices
+        if (
+            not isinstance(vertices, list)
+            or not vertices
+            or not all(isinstance(v, int) and not isinstance(v, bool) for v in vertices)
         ):
             raise fail(field, f"expected a vertex index or a non-empty list of them, got {vertices!r}")
         bad = [v for v in vertices if not 0 <= v < m]
@@ -142,8 +144,10 @@ def parse_correspondence(data: Any, *, layout: Layout | None = None, source: str
             raise fail(field, f"vertex index {bad[0]} out of range [0, {m})")
         if len(set(vertices)) != len(vertices):
             raise fail(field, "a vertex is listed twice")
-        if not isinstance(w, list) or len(w) != len(vertices) or not all(
-            isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x) for x in w
+        if (
+            not isinstance(w, list)
+            or len(w) != len(vertices)
+            or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x) for x in w)
         ):
             raise fail(field, f"expected {len(vertices)} finite weights, got {w!r}")
         if abs(sum(w) - 1.0) > WEIGHT_SUM_TOLERANCE:

@@ -69,16 +69,58 @@ OUTER_EYE_CORNERS = (33, 263)
 """Mesh vertices of the outer eye corners (viewer's left, viewer's right in a frontal image)."""
 
 BLENDSHAPE_NAMES = (
-    "_neutral", "browDownLeft", "browDownRight", "browInnerUp", "browOuterUpLeft", "browOuterUpRight",
-    "cheekPuff", "cheekSquintLeft", "cheekSquintRight", "eyeBlinkLeft", "eyeBlinkRight",
-    "eyeLookDownLeft", "eyeLookDownRight", "eyeLookInLeft", "eyeLookInRight", "eyeLookOutLeft",
-    "eyeLookOutRight", "eyeLookUpLeft", "eyeLookUpRight", "eyeSquintLeft", "eyeSquintRight",
-    "eyeWideLeft", "eyeWideRight", "jawForward", "jawLeft", "jawOpen", "jawRight", "mouthClose",
-    "mouthDimpleLeft", "mouthDimpleRight", "mouthFrownLeft", "mouthFrownRight", "mouthFunnel",
-    "mouthLeft", "mouthLowerDownLeft", "mouthLowerDownRight", "mouthPressLeft", "mouthPressRight",
-    "mouthPucker", "mouthRight", "mouthRollLower", "mouthRollUpper", "mouthShrugLower",
-    "mouthShrugUpper", "mouthSmileLeft", "mouthSmileRight", "mouthStretchLeft", "mouthStretchRight",
-    "mouthUpperUpLeft", "mouthUpperUpRight", "noseSneerLeft", "noseSneerRight",
+    "_neutral",
+    "browDownLeft",
+    "browDownRight",
+    "browInnerUp",
+    "browOuterUpLeft",
+    "browOuterUpRight",
+    "cheekPuff",
+    "cheekSquintLeft",
+    "cheekSquintRight",
+    "eyeBlinkLeft",
+    "eyeBlinkRight",
+    "eyeLookDownLeft",
+    "eyeLookDownRight",
+    "eyeLookInLeft",
+    "eyeLookInRight",
+    "eyeLookOutLeft",
+    "eyeLookOutRight",
+    "eyeLookUpLeft",
+    "eyeLookUpRight",
+    "eyeSquintLeft",
+    "eyeSquintRight",
+    "eyeWideLeft",
+    "eyeWideRight",
+    "jawForward",
+    "jawLeft",
+    "jawOpen",
+    "jawRight",
+    "mouthClose",
+    "mouthDimpleLeft",
+    "mouthDimpleRight",
+    "mouthFrownLeft",
+    "mouthFrownRight",
+    "mouthFunnel",
+    "mouthLeft",
+    "mouthLowerDownLeft",
+    "mouthLowerDownRight",
+    "mouthPressLeft",
+    "mouthPressRight",
+    "mouthPucker",
+    "mouthRight",
+    "mouthRollLower",
+    "mouthRollUpper",
+    "mouthShrugLower",
+    "mouthShrugUpper",
+    "mouthSmileLeft",
+    "mouthSmileRight",
+    "mouthStretchLeft",
+    "mouthStretchRight",
+    "mouthUpperUpLeft",
+    "mouthUpperUpRight",
+    "noseSneerLeft",
+    "noseSneerRight",
 )
 """The model's 52 blendshape categories in score order (ARKit names; subject's Left/Right)."""
 
@@ -336,13 +378,16 @@ class Landmarker:
             if faces:
                 best = self._choose(faces, (width, height), previous=self._previous)
                 self._previous = _box(best.xy)
-                return MeshFrame(
-                    best.xy, best.z, True, best.blendshapes, best.matrix, len(faces), best.region
-                )
+                return MeshFrame(best.xy, best.z, True, best.blendshapes, best.matrix, len(faces), best.region)
         self._previous = None
         return MeshFrame(
-            np.full((N_MESH, 2), np.nan), np.full(N_MESH, np.nan), False,
-            np.zeros(len(BLENDSHAPE_NAMES), np.float32), np.eye(4), 0, whole,
+            np.full((N_MESH, 2), np.nan),
+            np.full(N_MESH, np.nan),
+            False,
+            np.zeros(len(BLENDSHAPE_NAMES), np.float32),
+            np.eye(4),
+            0,
+            whole,
         )
 
     def _faces(self, rgb: np.ndarray, region: np.ndarray) -> list[MeshFrame]:
@@ -350,7 +395,7 @@ class Landmarker:
         import mediapipe as mp
 
         x0, y0, w, h = (int(v) for v in region)
-        crop = np.ascontiguousarray(rgb[y0:y0 + h, x0:x0 + w])
+        crop = np.ascontiguousarray(rgb[y0 : y0 + h, x0 : x0 + w])
         with native_logs_silenced() if not self._warm else contextlib.nullcontext():
             result = self._task.detect(mp.Image(image_format=mp.ImageFormat.SRGB, data=crop))
         self._warm = True

@@ -68,9 +68,11 @@ class FaceLandmarks(SequenceStage):
         region = np.zeros((n, 4), np.int64)
         try:
             landmarker = Landmarker(
-                max_faces=int(params["max_faces"]), select=str(params["select"]),
+                max_faces=int(params["max_faces"]),
+                select=str(params["select"]),
                 min_detection_confidence=float(params["min_detection_confidence"]),
-                crop_scale=float(params["crop_scale"]), search_tiles=bool(params["search_tiles"]),
+                crop_scale=float(params["crop_scale"]),
+                search_tiles=bool(params["search_tiles"]),
             )
         except ValueError as exc:
             raise StageError(f"{self.name}: {exc}") from None
@@ -78,8 +80,7 @@ class FaceLandmarks(SequenceStage):
             for start, chunk in stream.chunks():
                 if chunk.ndim != 4 or chunk.shape[3] != 3 or chunk.dtype != np.uint8:
                     raise StageError(
-                        f"{self.name}: input 'frames': expected (H, W, 3) uint8 RGB frames, "
-                        f"got {chunk.shape[1:]} {chunk.dtype}"
+                        f"{self.name}: input 'frames': expected (H, W, 3) uint8 RGB frames, got {chunk.shape[1:]} {chunk.dtype}"
                     )
                 for k, rgb in enumerate(chunk):
                     t = start + k
@@ -88,30 +89,44 @@ class FaceLandmarks(SequenceStage):
                     matrix[t], faces[t], region[t] = mesh.matrix, mesh.faces, mesh.region
                 ctx.progress(len(chunk))
         if not valid.any():
-            raise StageError(
-                f"{self.name}: no face found in any of {n} frames of the input clip "
-                f"({info.width}x{info.height})"
-            )
+            raise StageError(f"{self.name}: no face found in any of {n} frames of the input clip ({info.width}x{info.height})")
         width = np.full(n, np.nan)
         width[valid] = np.ptp(xy[valid, :, 0], axis=1)
         several = int((faces > 1).sum())
         ctx.log.info(
             "%s: face in %d of %d frames (%d without), several faces in %d frames; face width median %.0f px",
-            self.name, int(valid.sum()), n, int((~valid).sum()), several, float(np.nanmedian(width)),
+            self.name,
+            int(valid.sum()),
+            n,
+            int((~valid).sum()),
+            several,
+            float(np.nanmedian(width)),
         )
         small = valid & (width < float(params["min_face_px"]))
         if small.any():
             ctx.log.warning(
-                "%s: face narrower than %.0f px in %d frames (smallest %.1f px at frame %d): landmarks "
-                "are less precise", self.name, float(params["min_face_px"]), int(small.sum()),
-                float(np.nanmin(width)), int(np.nanargmin(width)),
+                "%s: face narrower than %.0f px in %d frames (smallest %.1f px at frame %d): landmarks are less precise",
+                self.name,
+                float(params["min_face_px"]),
+                int(small.sum()),
+                float(np.nanmin(width)),
+                int(np.nanargmin(width)),
             )
-        return {"landmarks": {
-            "xy": xy, "z": z, "valid": valid, "blendshapes": blendshapes,
-            "blendshape_names": np.array(BLENDSHAPE_NAMES), "matrix": matrix, "face_width_px": width,
-            "faces": faces, "region": region, "fps": np.float64(info.fps),
-            "size": np.array([info.width, info.height], np.int64),
-        }}
+        return {
+            "landmarks": {
+                "xy": xy,
+                "z": z,
+                "valid": valid,
+                "blendshapes": blendshapes,
+                "blendshape_names": np.array(BLENDSHAPE_NAMES),
+                "matrix": matrix,
+                "face_width_px": width,
+                "faces": faces,
+                "region": region,
+                "fps": np.float64(info.fps),
+                "size": np.array([info.width, info.height], np.int64),
+            }
+        }
 
 
 class LayoutPoints(SequenceStage):

@@ -29,8 +29,16 @@ from stages.layout import Layout
 from stages.pack.bundles import PackImages
 from stages.synthesis.warp import triangulate
 
-__all__ = ["TargetModel", "fit_generic_depth", "lift", "skin_points", "target_depth", "skin_triangles", "build_target_model",
-           "face_subregions"]
+__all__ = [
+    "TargetModel",
+    "fit_generic_depth",
+    "lift",
+    "skin_points",
+    "target_depth",
+    "skin_triangles",
+    "build_target_model",
+    "face_subregions",
+]
 
 
 @dataclass(frozen=True)
@@ -59,7 +67,9 @@ class TargetModel:
     head_t: np.ndarray
 
 
-def fit_generic_depth(model3d: np.ndarray, points: np.ndarray, A: np.ndarray, *, use: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def fit_generic_depth(
+    model3d: np.ndarray, points: np.ndarray, A: np.ndarray, *, use: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pose the generic model on 2D points (PnP, eq. 10-11) and read each point's camera depth.
 
     Parameters
@@ -124,7 +134,9 @@ def skin_points(names: np.ndarray) -> np.ndarray:
     return np.array([not str(n).startswith("teeth_") for n in names])
 
 
-def target_depth(model3d: np.ndarray, neutral: np.ndarray, A: np.ndarray, names: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def target_depth(
+    model3d: np.ndarray, neutral: np.ndarray, A: np.ndarray, names: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The target's depth of every layout point and its head centre, from the posed generic model.
 
     Parameters

@@ -47,8 +47,13 @@ from stages.pack.bundles import camera_from_bundle, images_from_bundle, layout_f
 
 
 #: The parameter of the stages that read a ``mesh3d`` bundle: which geometry they take.
-GEOMETRY = Param("geometry", str, "synthesized", "synthesized: the Sec. 9 mesh; lifted: the 2D geometry lifted at the model depth",
-                 choices=("synthesized", "lifted"))
+GEOMETRY = Param(
+    "geometry",
+    str,
+    "synthesized",
+    "synthesized: the Sec. 9 mesh; lifted: the 2D geometry lifted at the model depth",
+    choices=("synthesized", "lifted"),
+)
 
 
 def mesh_vertices(mesh: Mapping[str, np.ndarray], geometry: str, *, stage: str) -> np.ndarray:
@@ -65,8 +70,14 @@ class Mesh3DSynthesize(SequenceStage):
     name = "mesh3d.synthesize"
     version = "3"  # 3: the whole head with the synthesis model
     doc = "Sec. 9: target 2D geometry per frame -> 3D expression mesh (per-subregion QP on 3n-vectors, vertex blending)"
-    inputs = {"layout": "layout", "images": "pack_images", "model3d": "pack_model3d", "camera": "camera",
-              "points": "points", "model": "synthesis_model"}
+    inputs = {
+        "layout": "layout",
+        "images": "pack_images",
+        "model3d": "pack_model3d",
+        "camera": "camera",
+        "points": "points",
+        "model": "synthesis_model",
+    }
     optional_inputs = frozenset({"model"})
     outputs = {"mesh": "mesh3d"}
 
@@ -118,6 +129,7 @@ def whole_head(model: Mapping[str, np.ndarray], depth: np.ndarray, A: np.ndarray
     """The ``surround``, ``surround_uv``, ``head_triangles`` and ``weight`` fields (module docstring)
     from a synthesis model and the target's point depths ``(N,)`` mm."""
     from stages.synthesis.surround import anchor_depth, motion_weights
+
     for key in ("anchors", "anchor_kind", "anchor_hull", "face_outline", "triangles", "standard_points"):
         if key not in model:
             raise StageError(f"{stage}: input 'model' has no field '{key}'")
@@ -126,5 +138,9 @@ def whole_head(model: Mapping[str, np.ndarray], depth: np.ndarray, A: np.ndarray
         raise StageError(f"{stage}: input 'model' has {len(standard)} points, the pack's layout {len(depth)}")
     anchors, kind = np.asarray(model["anchors"], np.float64), np.asarray(model["anchor_kind"])
     z = anchor_depth(lift(standard, depth, A), kind, np.asarray(model["anchor_hull"]), np.asarray(model["face_outline"]))
-    return {"surround": lift(anchors, z, A), "surround_uv": anchors, "head_triangles": np.asarray(model["triangles"], np.int32),
-            "weight": np.concatenate([np.ones(len(depth)), motion_weights(kind)])}
+    return {
+        "surround": lift(anchors, z, A),
+        "surround_uv": anchors,
+        "head_triangles": np.asarray(model["triangles"], np.int32),
+        "weight": np.concatenate([np.ones(len(depth)), motion_weights(kind)]),
+    }

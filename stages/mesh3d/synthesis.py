@@ -28,7 +28,9 @@ def _check(examples: np.ndarray, members: np.ndarray) -> tuple[np.ndarray, np.nd
     return examples, members
 
 
-def subregion_coefficients_3d(examples: np.ndarray, targets: np.ndarray, members: np.ndarray, *, device: str = "cpu") -> np.ndarray:
+def subregion_coefficients_3d(
+    examples: np.ndarray, targets: np.ndarray, members: np.ndarray, *, device: str = "cpu"
+) -> np.ndarray:
     """Convex-combination coefficients of each subregion for each frame (eq. 2-5 on 3n-vectors).
 
     Parameters
@@ -67,7 +69,9 @@ def subregion_coefficients_3d(examples: np.ndarray, targets: np.ndarray, members
     G_i = torch.as_tensor(examples[:, index].reshape(M, S, -1).transpose(1, 0, 2).copy(), device=device) * w[:, None]
     G = torch.as_tensor(targets[:, index].reshape(T, S, -1), device=device) * w
     c, _ = project_onto_convex_hull(
-        G_i[None].expand(T, -1, -1, -1).reshape(T * S, M, -1), G.reshape(T * S, -1), weights=w[None].expand(T, -1, -1).reshape(T * S, -1)
+        G_i[None].expand(T, -1, -1, -1).reshape(T * S, M, -1),
+        G.reshape(T * S, -1),
+        weights=w[None].expand(T, -1, -1).reshape(T * S, -1),
     )
     out = c.view(T, S, M).cpu().numpy()
     return out
@@ -98,7 +102,9 @@ def composite_vertices(examples: np.ndarray, coeffs: np.ndarray, members: np.nda
     return np.where((count > 0)[None, :, None], blended, np.asarray(fallback, np.float64))
 
 
-def synthesize_3d(examples: np.ndarray, targets: np.ndarray, members: np.ndarray, *, device: str = "cpu") -> tuple[np.ndarray, np.ndarray]:
+def synthesize_3d(
+    examples: np.ndarray, targets: np.ndarray, members: np.ndarray, *, device: str = "cpu"
+) -> tuple[np.ndarray, np.ndarray]:
     """Sec. 9: the 3D expression per frame from 3D target geometries.
 
     Parameters

@@ -40,7 +40,7 @@ def windows(strips: np.ndarray, shift: int) -> np.ndarray:
     each made mean-free per channel and flattened: ``(F, 2 shift + 1, K M C)``."""
     x = np.asarray(strips, np.float64)
     m = x.shape[2] - 2 * shift
-    out = np.stack([x[:, :, j:j + m] for j in range(2 * shift + 1)], axis=1)
+    out = np.stack([x[:, :, j : j + m] for j in range(2 * shift + 1)], axis=1)
     out -= out.mean(axis=(2, 3), keepdims=True)
     return out.reshape(len(x), 2 * shift + 1, -1)
 
@@ -102,8 +102,7 @@ def relative(measure: np.ndarray, seen: np.ndarray) -> np.ndarray:
     return measure / level if level > 1e-9 else np.zeros(len(measure))
 
 
-def local_visibility(win: np.ndarray, shape: np.ndarray, seen: np.ndarray, frames: np.ndarray, *,
-                     neighbours: int) -> np.ndarray:
+def local_visibility(win: np.ndarray, shape: np.ndarray, seen: np.ndarray, frames: np.ndarray, *, neighbours: int) -> np.ndarray:
     """A second opinion for ``frames``: each frame's strip against a template of the ``seen``
     frames whose face has the nearest shape (head pose and expression, :func:`profiles.shape`),
     so that a pose or an expression far from the clip's typical one is judged against frames
@@ -132,7 +131,7 @@ def local_visibility(win: np.ndarray, shape: np.ndarray, seen: np.ndarray, frame
         _, best = weights(win[near], np.median(win[near, win.shape[1] // 2], axis=0))
         t = np.median(win[near, best], axis=0)
         level = float(np.median(weights(win[near], t)[0]))
-        out[i] = weights(win[f:f + 1], t)[0][0] / level if level > 1e-9 else 0.0
+        out[i] = weights(win[f : f + 1], t)[0][0] / level if level > 1e-9 else 0.0
     return out
 
 

@@ -67,9 +67,14 @@ class Profile:
 def _side(side: str) -> dict[str, Profile]:
     return {
         f"eye_{side}": Profile(tuple(f"eye_{side}_{k}" for k in range(12)), 0.0, 0.1, 6, closed=True),
-        f"brow_{side}": Profile(tuple(f"brow_{side}_{k}" for k in range(4)), -0.12, 0.12, 9,
-                                pair=tuple(f"brow_{side}_{k}" for k in (7, 6, 5, 4)),
-                                away=tuple(f"eye_{side}_{k}" for k in range(12))),
+        f"brow_{side}": Profile(
+            tuple(f"brow_{side}_{k}" for k in range(4)),
+            -0.12,
+            0.12,
+            9,
+            pair=tuple(f"brow_{side}_{k}" for k in (7, 6, 5, 4)),
+            away=tuple(f"eye_{side}_{k}" for k in range(12)),
+        ),
     }
 
 
@@ -77,8 +82,13 @@ PROFILES: dict[str, Profile] = {
     "mouth": Profile(tuple(f"mouth_outer_{k}" for k in range(16)), -0.05, 0.07, 7, closed=True, redder=(0.0, 0.02)),
     **_side("l"),
     **_side("r"),
-    "nose": Profile(("nose_ala_l", "nose_nostril_l", "nose_base", "nose_nostril_r", "nose_ala_r"), -0.1, 0.06, 9,
-                    away=("nose_tip", "nose_bridge_2")),
+    "nose": Profile(
+        ("nose_ala_l", "nose_nostril_l", "nose_base", "nose_nostril_r", "nose_ala_r"),
+        -0.1,
+        0.06,
+        9,
+        away=("nose_tip", "nose_bridge_2"),
+    ),
 }
 
 
@@ -135,8 +145,10 @@ def shape(sampler: Sampler, xy: np.ndarray, region: int) -> np.ndarray:
     scale = np.hypot(axis[:, 0], axis[:, 1])[:, None]
     along = axis / scale
     rel = p - ((left + right) / 2)[:, None]
-    local = np.stack([(rel * along[:, None]).sum(-1), rel[..., 1] * along[:, None, 0] - rel[..., 0] * along[:, None, 1]],
-                     axis=-1) / scale[..., None]
+    local = (
+        np.stack([(rel * along[:, None]).sum(-1), rel[..., 1] * along[:, None, 0] - rel[..., 0] * along[:, None, 1]], axis=-1)
+        / scale[..., None]
+    )
     return local.reshape(len(xy), -1)
 
 
@@ -150,10 +162,20 @@ def _resample(polyline: np.ndarray, closed: bool, count: int) -> tuple[np.ndarra
     u = (np.arange(count) + 0.5) / count * arc[-1] if closed else np.linspace(0.0, arc[-1], count)
     q = np.stack([np.interp(u, arc, p[:, 0]), np.interp(u, arc, p[:, 1])], axis=1)
     du = 0.5 * arc[-1] / count
-    ahead = np.stack([np.interp(u + du, arc, p[:, 0], period=arc[-1] if closed else None),
-                      np.interp(u + du, arc, p[:, 1], period=arc[-1] if closed else None)], axis=1)
-    behind = np.stack([np.interp(u - du, arc, p[:, 0], period=arc[-1] if closed else None),
-                       np.interp(u - du, arc, p[:, 1], period=arc[-1] if closed else None)], axis=1)
+    ahead = np.stack(
+        [
+            np.interp(u + du, arc, p[:, 0], period=arc[-1] if closed else None),
+            np.interp(u + du, arc, p[:, 1], period=arc[-1] if closed else None),
+        ],
+        axis=1,
+    )
+    behind = np.stack(
+        [
+            np.interp(u - du, arc, p[:, 0], period=arc[-1] if closed else None),
+            np.interp(u - du, arc, p[:, 1], period=arc[-1] if closed else None),
+        ],
+        axis=1,
+    )
     tangent = ahead - behind
     tangent /= np.maximum(np.hypot(tangent[:, 0], tangent[:, 1]), 1e-9)[:, None]
     return q, tangent
@@ -226,6 +248,6 @@ def redness_contrast(strips: np.ndarray, profile: Profile) -> np.ndarray:
     offsets = profile.offsets
     inside, outside = offsets < profile.redder[0], offsets > profile.redder[1]
     middle = np.zeros(len(offsets), bool)
-    middle[SHIFT:len(offsets) - SHIFT] = True
+    middle[SHIFT : len(offsets) - SHIFT] = True
     red = np.asarray(strips, np.float64)[..., 1]
     return red[:, :, inside & middle].mean(axis=(1, 2)) - red[:, :, outside & middle].mean(axis=(1, 2))

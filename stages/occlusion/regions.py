@@ -24,7 +24,12 @@ REGIONS: tuple[str, ...] = tuple(REGION_PREFIXES)
 
 #: region -> the layout subregion whose polygon outlines it.
 REGION_OUTLINES: dict[str, str] = {
-    "mouth": "lips", "eye_l": "eye_l", "eye_r": "eye_r", "brow_l": "brow_l", "brow_r": "brow_r", "nose": "nose",
+    "mouth": "lips",
+    "eye_l": "eye_l",
+    "eye_r": "eye_r",
+    "brow_l": "brow_l",
+    "brow_r": "brow_r",
+    "nose": "nose",
 }
 
 

@@ -23,8 +23,9 @@ def _params(stage: SequenceStage, params: Mapping[str, Any]) -> dict[str, Any]:
     return {p.name: p.default for p in stage.params} | dict(params)
 
 
-def region_visibility(strips: np.ndarray, face_shape: np.ndarray, profile: profiles.Profile, *, keep: float,
-                      median_frames: int) -> np.ndarray:
+def region_visibility(
+    strips: np.ndarray, face_shape: np.ndarray, profile: profiles.Profile, *, keep: float, median_frames: int
+) -> np.ndarray:
     """The visibility of one region in each frame with a face (:mod:`stages.occlusion.model`).
 
     Parameters
@@ -45,8 +46,7 @@ def region_visibility(strips: np.ndarray, face_shape: np.ndarray, profile: profi
     visible = model.visibility(win, template, seen)
     suspect = np.flatnonzero(visible < keep)
     neighbours = max(model.MIN_FRAMES, min(25, int(seen.sum()) // 10))
-    visible[suspect] = np.maximum(visible[suspect],
-                                  model.local_visibility(win, face_shape, seen, suspect, neighbours=neighbours))
+    visible[suspect] = np.maximum(visible[suspect], model.local_visibility(win, face_shape, seen, suspect, neighbours=neighbours))
     if profile.redder is not None:
         visible = np.maximum(visible, model.relative(profiles.redness_contrast(strips, profile), seen))
     return model.median_filter(visible, median_frames)
@@ -73,8 +73,7 @@ class DetectOcclusion(SequenceStage):
     inputs = {"frames": "frames", "points": "points"}
     outputs = {"occlusion": "occlusion"}
     params = (
-        Param("threshold", float, 0.3, "occluded where the region's visibility is below this (1 = as typical)",
-              min=0.0, max=1.0),
+        Param("threshold", float, 0.3, "occluded where the region's visibility is below this (1 = as typical)", min=0.0, max=1.0),
         Param("keep", float, 0.5, "visibility above which a frame re-estimates the region's model", min=0.0, max=1.0),
         Param("median_frames", int, 5, "running median of the visibility over this many frames (odd)", min=1, max=31),
     )
@@ -90,14 +89,23 @@ class DetectOcclusion(SequenceStage):
                 raise StageError(f"{self.name}: input 'points': missing key '{key}'")
         xy, names = np.asarray(points["xy"], np.float64), [str(n) for n in points["names"]]
         if xy.ndim != 3 or xy.shape[1:] != (len(names), 2) or np.shape(points["valid"]) != xy.shape[:2]:
-            raise StageError(f"{self.name}: input 'points': expected xy (T, N, 2), valid (T, N), names (N,); got "
-                             f"xy {xy.shape}, valid {np.shape(points['valid'])}, names {len(names)}")
+            raise StageError(
+                f"{self.name}: input 'points': expected xy (T, N, 2), valid (T, N), names (N,); got "
+                f"xy {xy.shape}, valid {np.shape(points['valid'])}, names {len(names)}"
+            )
         frames = len(xy)
         if stream.info.frames != frames:
             raise StageError(f"{self.name}: input 'frames' has {stream.info.frames} frames, 'points' has {frames}")
         covers = region_points(names)
-        judged = [r for r in REGIONS if set(profiles.PROFILES[r].contour) | set(profiles.PROFILES[r].pair)
-                  | set(profiles.PROFILES[r].away) | set(profiles.POSE_POINTS) <= set(names)]
+        judged = [
+            r
+            for r in REGIONS
+            if set(profiles.PROFILES[r].contour)
+            | set(profiles.PROFILES[r].pair)
+            | set(profiles.PROFILES[r].away)
+            | set(profiles.POSE_POINTS)
+            <= set(names)
+        ]
         valid = np.asarray(points["valid"], bool).all(axis=1) & np.isfinite(xy).all(axis=(1, 2))
         sampler = profiles.make_sampler(names, xy, valid, judged)
         sizes = [int(np.prod(s)) for s in sampler.shapes.values()]
@@ -115,15 +123,26 @@ class DetectOcclusion(SequenceStage):
         for j, region in enumerate(judged):
             if valid.sum() < model.MIN_FRAMES:
                 break
-            strips = profiles.channels(rgb[valid, ends[j]:ends[j + 1]].reshape(-1, *sampler.shapes[region], 3))
-            seen_score = region_visibility(strips, profiles.shape(sampler, xy[valid], j), profiles.PROFILES[region],
-                                           keep=float(params["keep"]), median_frames=int(params["median_frames"]))
+            strips = profiles.channels(rgb[valid, ends[j] : ends[j + 1]].reshape(-1, *sampler.shapes[region], 3))
+            seen_score = region_visibility(
+                strips,
+                profiles.shape(sampler, xy[valid], j),
+                profiles.PROFILES[region],
+                keep=float(params["keep"]),
+                median_frames=int(params["median_frames"]),
+            )
             r = REGIONS.index(region)
             score[valid, r] = seen_score
             occluded[valid, r] = seen_score < float(params["threshold"])
         counts = ", ".join(f"{region} {int(occluded[:, r].sum())}" for r, region in enumerate(REGIONS))
         ctx.log.info("%s: occluded frames of %d judged (of %d): %s", self.name, int(valid.sum()), frames, counts)
-        return {"occlusion": {
-            "regions": np.array(REGIONS), "occluded": occluded, "score": score, "region_points": covers,
-            "names": np.array(names), "valid": valid,
-        }}
+        return {
+            "occlusion": {
+                "regions": np.array(REGIONS),
+                "occluded": occluded,
+                "score": score,
+                "region_points": covers,
+                "names": np.array(names),
+                "valid": valid,
+            }
+        }

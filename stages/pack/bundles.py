@@ -42,15 +42,13 @@ from stages.layout import Layout, parse_layout
 Bundle = Mapping[str, np.ndarray]
 
 
-def _field(bundle: Bundle, key: str, what: str, shape: tuple[int | None, ...] | None = None,
-           dtype: Any = None) -> np.ndarray:
+def _field(bundle: Bundle, key: str, what: str, shape: tuple[int | None, ...] | None = None, dtype: Any = None) -> np.ndarray:
     """``bundle[key]`` as an array of ``dtype``; ValueError when it is missing or of another shape
     (``None`` in ``shape``: any length on that axis)."""
     if key not in bundle:
         raise ValueError(f"{what} bundle: expected key {key!r}, got keys {sorted(bundle)}")
     value = np.asarray(bundle[key]) if dtype is None else np.asarray(bundle[key], dtype=dtype)
-    if shape is not None and (value.ndim != len(shape)
-                              or any(s is not None and s != v for s, v in zip(shape, value.shape))):
+    if shape is not None and (value.ndim != len(shape) or any(s is not None and s != v for s, v in zip(shape, value.shape))):
         expected = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
         raise ValueError(f"{what} bundle: key {key!r}: expected shape {expected}, got {value.shape}")
     return value
@@ -67,6 +65,7 @@ def _size(bundle: Bundle, what: str) -> tuple[int, int]:
 
 # -- layout ---------------------------------------------------------------------------------------
 
+
 def layout_document(layout: Layout) -> dict[str, Any]:
     """The mapping of a layout file (schema of ``stages/layouts/zhang134.yaml``) that
     :func:`stages.layout.parse_layout` turns back into ``layout``."""
@@ -78,11 +77,11 @@ def layout_document(layout: Layout) -> dict[str, Any]:
     return {
         "name": layout.name,
         "points": list(names),
-        "subregions": [{"name": s.name, "polygon": named(s.polygon), "points": named(s.points), "teeth": s.teeth}
-                       for s in layout.subregions],
+        "subregions": [
+            {"name": s.name, "polygon": named(s.polygon), "points": named(s.points), "teeth": s.teeth} for s in layout.subregions
+        ],
         "no_blend": [list(pair) for pair in layout.no_blend],
-        "feature_point_sets": [{"name": f.name, "level": f.level, "points": named(f.points)}
-                               for f in layout.feature_point_sets],
+        "feature_point_sets": [{"name": f.name, "level": f.level, "points": named(f.points)} for f in layout.feature_point_sets],
         "rigid": named(layout.rigid),
         "tracked": named(layout.tracked),
     }
@@ -109,6 +108,7 @@ def layout_from_bundle(bundle: Bundle) -> Layout:
 
 
 # -- geometry, 3D model, camera ------------------------------------------------------------------
+
 
 def geometry_to_bundle(pack: ActorPack) -> dict[str, np.ndarray]:
     """The ``pack_geometry`` bundle: the neutral, captured and example feature points (Sec. 10, 14)."""
@@ -141,10 +141,13 @@ def geometry_from_bundle(bundle: Bundle) -> PackGeometry:
     """:class:`PackGeometry` of a ``pack_geometry`` bundle (keys and shapes checked)."""
     names = _names(bundle, "pack_geometry")
     n = len(names)
-    return PackGeometry(names, _field(bundle, "neutral", "pack_geometry", (n, 2), np.float64),
-                        _field(bundle, "captured", "pack_geometry", (None, n, 2), np.float64),
-                        _field(bundle, "examples", "pack_geometry", (None, n, 2), np.float64),
-                        _size(bundle, "pack_geometry"))
+    return PackGeometry(
+        names,
+        _field(bundle, "neutral", "pack_geometry", (n, 2), np.float64),
+        _field(bundle, "captured", "pack_geometry", (None, n, 2), np.float64),
+        _field(bundle, "examples", "pack_geometry", (None, n, 2), np.float64),
+        _size(bundle, "pack_geometry"),
+    )
 
 
 def layout_and_geometry(layout: Bundle, geometry: Bundle) -> tuple[Layout, PackGeometry]:
@@ -152,8 +155,10 @@ def layout_and_geometry(layout: Bundle, geometry: Bundle) -> tuple[Layout, PackG
     points are not the layout's, in its order."""
     read_layout, read_geometry = layout_from_bundle(layout), geometry_from_bundle(geometry)
     if read_geometry.names != read_layout.point_names:
-        raise ValueError(f"pack_geometry bundle: key 'names': expected the {read_layout.n_points} points of "
-                         f"layout {read_layout.name!r} in its order (connect one pack's layout and geometry)")
+        raise ValueError(
+            f"pack_geometry bundle: key 'names': expected the {read_layout.n_points} points of "
+            f"layout {read_layout.name!r} in its order (connect one pack's layout and geometry)"
+        )
     return read_layout, read_geometry
 
 
@@ -181,8 +186,10 @@ def camera_from_bundle(bundle: Bundle, *, size: tuple[int, int] | None = None) -
     intrinsics = _field(bundle, "intrinsics", "camera", (3, 3), np.float64)
     own = _size(bundle, "camera")
     if size is not None and tuple(int(v) for v in size) != own:
-        raise ValueError(f"camera bundle: intrinsics are for {own[0]}x{own[1]} images, the clip's frames are "
-                         f"{size[0]}x{size[1]}; use a pack from this camera")
+        raise ValueError(
+            f"camera bundle: intrinsics are for {own[0]}x{own[1]} images, the clip's frames are "
+            f"{size[0]}x{size[1]}; use a pack from this camera"
+        )
     return intrinsics
 
 
@@ -195,6 +202,7 @@ def _rows(have: tuple[str, ...], names: Any, what: str) -> list[int]:
 
 
 # -- images ---------------------------------------------------------------------------------------
+
 
 @dataclass(frozen=True)
 class PackImages:
@@ -220,18 +228,24 @@ def _matte(e: Expression, size: tuple[int, int]) -> np.ndarray:
 def images_to_bundle(pack: ActorPack) -> dict[str, np.ndarray]:
     """The ``pack_images`` bundle: neutral, standard, examples and teeth examples (Sec. 5, 8)."""
     size = pack.image_size
-    out = {"pack": np.array(pack.name), "names": np.array(pack.layout.point_names),
-           "size": np.array(size, np.int64),
-           "source_scale": np.float64(np.nan if pack.source_scale is None else pack.source_scale)}
+    out = {
+        "pack": np.array(pack.name),
+        "names": np.array(pack.layout.point_names),
+        "size": np.array(size, np.int64),
+        "source_scale": np.float64(np.nan if pack.source_scale is None else pack.source_scale),
+    }
     for key, e in (("neutral", pack.neutral), ("standard", pack.standard)):
-        out |= {f"{key}_image": e.image, f"{key}_points": np.asarray(e.points, np.float64), f"{key}_name": np.array(e.name),
-                f"{key}_matte": _matte(e, size)}
+        out |= {
+            f"{key}_image": e.image,
+            f"{key}_points": np.asarray(e.points, np.float64),
+            f"{key}_name": np.array(e.name),
+            f"{key}_matte": _matte(e, size),
+        }
     w, h = size
     n = pack.layout.n_points
     for key, group in (("examples", pack.examples), ("teeth", pack.teeth_examples)):
         out[f"{key}_images"] = np.stack([e.image for e in group]) if group else np.zeros((0, h, w, 3), np.uint8)
-        out[f"{key}_points"] = (np.stack([np.asarray(e.points, np.float64) for e in group]) if group
-                                else np.zeros((0, n, 2)))
+        out[f"{key}_points"] = np.stack([np.asarray(e.points, np.float64) for e in group]) if group else np.zeros((0, n, 2))
         out[f"{key}_names"] = np.array([e.name for e in group], dtype=str)
         out[f"{key}_mattes"] = np.stack([_matte(e, size) for e in group]) if group else np.zeros((0, h, w), np.uint8)
     return out
@@ -242,16 +256,19 @@ def images_from_bundle(bundle: Bundle, layout: Layout) -> PackImages:
     point names checked against the layout)."""
     what = "pack_images"
     if _names(bundle, what) != layout.point_names:
-        raise ValueError(f"{what} bundle: key 'names': expected the {layout.n_points} points of layout "
-                         f"{layout.name!r} in its order")
+        raise ValueError(
+            f"{what} bundle: key 'names': expected the {layout.n_points} points of layout {layout.name!r} in its order"
+        )
     w, h = _size(bundle, what)
     n = layout.n_points
 
     def one(key: str) -> Expression:
-        return Expression(str(_field(bundle, f"{key}_name", what, ())),
-                          _field(bundle, f"{key}_image", what, (h, w, 3), np.uint8),
-                          _field(bundle, f"{key}_points", what, (n, 2), np.float64),
-                          _field(bundle, f"{key}_matte", what, (h, w), np.uint8))
+        return Expression(
+            str(_field(bundle, f"{key}_name", what, ())),
+            _field(bundle, f"{key}_image", what, (h, w, 3), np.uint8),
+            _field(bundle, f"{key}_points", what, (n, 2), np.float64),
+            _field(bundle, f"{key}_matte", what, (h, w), np.uint8),
+        )
 
     def group(key: str) -> list[Expression]:
         names = [str(v) for v in _field(bundle, f"{key}_names", what, (None,))]
@@ -262,11 +279,24 @@ def images_from_bundle(bundle: Bundle, layout: Layout) -> PackImages:
         return [Expression(name, image, pts, matte) for name, image, pts, matte in zip(names, images, points, mattes)]
 
     scale = float(_field(bundle, "source_scale", what, ()))
-    return PackImages(str(_field(bundle, "pack", what, ())), layout, (w, h), one("neutral"), one("standard"),
-                      group("examples"), group("teeth"), None if np.isnan(scale) else scale)
+    return PackImages(
+        str(_field(bundle, "pack", what, ())),
+        layout,
+        (w, h),
+        one("neutral"),
+        one("standard"),
+        group("examples"),
+        group("teeth"),
+        None if np.isnan(scale) else scale,
+    )
 
 
 def pack_to_bundles(pack: ActorPack) -> dict[str, dict[str, np.ndarray]]:
     """All five bundles of ``pack``, by ``pack.load``'s port name."""
-    return {"layout": layout_to_bundle(pack.layout), "geometry": geometry_to_bundle(pack),
-            "images": images_to_bundle(pack), "model3d": model3d_to_bundle(pack), "camera": camera_to_bundle(pack)}
+    return {
+        "layout": layout_to_bundle(pack.layout),
+        "geometry": geometry_to_bundle(pack),
+        "images": images_to_bundle(pack),
+        "model3d": model3d_to_bundle(pack),
+        "camera": camera_to_bundle(pack),
+    }

@@ -23,12 +23,23 @@ class LoadPack(SequenceStage):
     version = "3"  # 3: the example expressions' points in the geometry bundle; validity mattes and the footage scale in the images bundle
     doc = "read an actor pack folder: layout, neutral/captured geometry, images, generic 3D model, camera"
     inputs = {"pack": "dir"}
-    outputs = {"layout": "layout", "geometry": "pack_geometry", "images": "pack_images",
-               "model3d": "pack_model3d", "camera": "camera"}
+    outputs = {
+        "layout": "layout",
+        "geometry": "pack_geometry",
+        "images": "pack_images",
+        "model3d": "pack_model3d",
+        "camera": "camera",
+    }
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         pack = load_pack(inputs["pack"])
-        ctx.log.info("%s: pack %r, layout %s, %d examples, %d teeth examples, %d captured geometries",
-                     self.name, pack.name, pack.layout.name, len(pack.examples), len(pack.teeth_examples),
-                     len(pack.captured_points))
+        ctx.log.info(
+            "%s: pack %r, layout %s, %d examples, %d teeth examples, %d captured geometries",
+            self.name,
+            pack.name,
+            pack.layout.name,
+            len(pack.examples),
+            len(pack.teeth_examples),
+            len(pack.captured_points),
+        )
         return pack_to_bundles(pack)

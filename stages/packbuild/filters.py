@@ -83,6 +83,7 @@ def laplacian_sharpness(gray: np.ndarray, mask: np.ndarray | None = None) -> flo
     image ``(h, w)`` (values in [0, 255]) over the pixels of ``mask (h, w) bool`` (all if None),
     the image's border rows and columns left out; 0 when no pixel is left."""
     import cv2
+
     gray = np.asarray(gray, np.float64)
     if gray.ndim != 2:
         raise ValueError(f"expected a grey image (h, w), got shape {gray.shape}")
@@ -97,6 +98,7 @@ def laplacian_sharpness(gray: np.ndarray, mask: np.ndarray | None = None) -> flo
 
 def _polygon_mask(layout: Layout, points: np.ndarray, name: str, shape: tuple[int, int]) -> np.ndarray:
     import cv2
+
     mask = np.zeros(shape, np.uint8)
     poly = np.round(points[list(layout.subregion(name).polygon)] * 16).astype(np.int32)
     cv2.fillPoly(mask, [poly], 1, lineType=cv2.LINE_8, shift=4)
@@ -145,6 +147,7 @@ def measure_frame(image: np.ndarray, points: np.ndarray, layout: Layout) -> tupl
         the cheeks (0 when the mouth covers no pixel).
     """
     import cv2
+
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
         raise ValueError(f"expected an (H, W, 3) uint8 RGB image, got {image.shape} {image.dtype}")
@@ -166,8 +169,9 @@ def measure_frame(image: np.ndarray, points: np.ndarray, layout: Layout) -> tupl
     return sharp, colours, teeth
 
 
-def measure_frames(chunks: Iterable[tuple[int, np.ndarray]], xy: np.ndarray, valid: np.ndarray,
-                   layout: Layout) -> dict[str, np.ndarray]:
+def measure_frames(
+    chunks: Iterable[tuple[int, np.ndarray]], xy: np.ndarray, valid: np.ndarray, layout: Layout
+) -> dict[str, np.ndarray]:
     """:func:`measure_frame` over a clip read chunk by chunk.
 
     Parameters
@@ -203,9 +207,19 @@ def measure_frames(chunks: Iterable[tuple[int, np.ndarray]], xy: np.ndarray, val
     return {"sharpness": sharp, "colours": colours, "teeth_fraction": teeth, "inside": inside}
 
 
-def classify_frames(*, valid: np.ndarray, inside: np.ndarray, angles: np.ndarray, sharpness: np.ndarray,
-                    colours: np.ndarray, max_yaw: float, max_pitch: float, max_roll: float,
-                    min_sharpness: float, max_colour_change: float) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+def classify_frames(
+    *,
+    valid: np.ndarray,
+    inside: np.ndarray,
+    angles: np.ndarray,
+    sharpness: np.ndarray,
+    colours: np.ndarray,
+    max_yaw: float,
+    max_pitch: float,
+    max_roll: float,
+    min_sharpness: float,
+    max_colour_change: float,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The first failing check of each frame (module docstring), or :data:`KEEP`.
 
     Parameters
@@ -237,8 +251,10 @@ def classify_frames(*, valid: np.ndarray, inside: np.ndarray, angles: np.ndarray
     T = len(valid)
     angles = np.asarray(angles, np.float64)
     if angles.shape != (T, 3) or np.shape(inside) != (T,) or np.shape(sharpness) != (T,) or np.shape(colours)[:1] != (T,):
-        raise ValueError(f"expected per-frame arrays for {T} frames: angles (T, 3), inside, sharpness (T,), colours (T, R, 3); "
-                         f"got {angles.shape}, {np.shape(inside)}, {np.shape(sharpness)}, {np.shape(colours)}")
+        raise ValueError(
+            f"expected per-frame arrays for {T} frames: angles (T, 3), inside, sharpness (T,), colours (T, R, 3); "
+            f"got {angles.shape}, {np.shape(inside)}, {np.shape(sharpness)}, {np.shape(colours)}"
+        )
     cause = np.full(T, KEEP, np.int8)
 
     def reject(mask: np.ndarray, name: str) -> None:

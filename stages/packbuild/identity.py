@@ -48,8 +48,7 @@ def face_signature(xy: np.ndarray, z: np.ndarray) -> np.ndarray:
     if xy.ndim != 3 or xy.shape[2] != 2 or z.shape != xy.shape[:2]:
         raise ValueError(f"expected xy (T, V, 2) and z (T, V), got {xy.shape} and {z.shape}")
     if xy.shape[1] <= max(RIGID_VERTICES):
-        raise ValueError(f"expected MediaPipe's face mesh (more than {max(RIGID_VERTICES)} vertices), "
-                         f"got {xy.shape[1]}")
+        raise ValueError(f"expected MediaPipe's face mesh (more than {max(RIGID_VERTICES)} vertices), got {xy.shape[1]}")
     index = list(RIGID_VERTICES)
     points = np.concatenate([xy[:, index], z[:, index, None]], axis=2)  # (T, K, 3)
     i, j = np.triu_indices(len(index), k=1)
@@ -68,8 +67,7 @@ def signature_distance(signatures: np.ndarray, reference: np.ndarray) -> np.ndar
     return np.sqrt(np.mean((signatures - reference) ** 2, axis=1))
 
 
-def majority_outliers(signatures: np.ndarray, *, threshold: float = DIFFERENT_FACE_DISTANCE
-                      ) -> tuple[np.ndarray, np.ndarray]:
+def majority_outliers(signatures: np.ndarray, *, threshold: float = DIFFERENT_FACE_DISTANCE) -> tuple[np.ndarray, np.ndarray]:
     """Faces whose signature differs from the majority's.
 
     The majority's signature is the per-component median over the rows with a face (robust

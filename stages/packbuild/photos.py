@@ -63,12 +63,12 @@ class PhotoSet:
         skipped, or None."""
         parts = []
         if self.unreadable:
-            parts.append(f"{len(self.unreadable)} unreadable image files skipped: "
-                         f"{_named([p.name for p in self.unreadable])}")
+            parts.append(f"{len(self.unreadable)} unreadable image files skipped: {_named([p.name for p in self.unreadable])}")
         if self.too_large:
             sizes = [f"{path.name} ({why.split(', ')[0]})" for path, why in self.too_large]
-            parts.append(f"{len(self.too_large)} image files of more than {MAX_PHOTO_PIXELS} px skipped undecoded: "
-                         f"{_named(sizes)}")
+            parts.append(
+                f"{len(self.too_large)} image files of more than {MAX_PHOTO_PIXELS} px skipped undecoded: {_named(sizes)}"
+            )
         return "; ".join(parts) or None
 
 
@@ -84,9 +84,10 @@ def list_photos(folder: Path) -> list[Path]:
     folder = Path(folder)
     if not folder.is_dir():
         raise ValueError(f"expected a folder of photos, got {folder} (not a folder)")
-    return sorted((p for p in folder.iterdir()
-                   if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in PHOTO_SUFFIXES),
-                  key=lambda p: p.name)
+    return sorted(
+        (p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in PHOTO_SUFFIXES),
+        key=lambda p: p.name,
+    )
 
 
 def read_photo(path: Path) -> np.ndarray | None:
@@ -100,6 +101,7 @@ def read_photo(path: Path) -> np.ndarray | None:
         Its header declares more than :data:`MAX_PHOTO_PIXELS` pixels (nothing is decoded).
     """
     import cv2
+
     if image_size(path, max_pixels=MAX_PHOTO_PIXELS, verify=True) is None:
         return None
     try:
@@ -156,7 +158,7 @@ def placed(size: tuple[int, int], frame: tuple[int, int]) -> np.ndarray:
     covers once :func:`letterbox` placed it, 0 on the border it filled (not the photo's pixels)."""
     fw, fh, ox, oy = _fitted(size, frame)
     valid = np.zeros((frame[1], frame[0], 1), np.uint8)
-    valid[oy:oy + fh, ox:ox + fw] = 255
+    valid[oy : oy + fh, ox : ox + fw] = 255
     return valid
 
 
@@ -165,6 +167,7 @@ def letterbox(rgb: np.ndarray, frame: tuple[int, int]) -> np.ndarray:
     filled by replicating the edge pixels (for the landmarker; :func:`placed` marks it): ``(H, W,
     3)`` uint8 (the same array when it already has the frame's size)."""
     import cv2
+
     h, w = rgb.shape[:2]
     fw, fh, ox, oy = _fitted((w, h), frame)
     if (fw, fh) != (w, h):
@@ -199,8 +202,9 @@ def _stamp(path: Path) -> tuple[int, int]:
 
 
 @functools.lru_cache(maxsize=4)
-def _decode_all(state: tuple[tuple[Path, int, int], ...]) -> tuple[tuple[Path, ...], tuple[tuple[int, int], ...],
-                                                                    tuple[Path, ...], tuple[tuple[Path, str], ...]]:
+def _decode_all(
+    state: tuple[tuple[Path, int, int], ...],
+) -> tuple[tuple[Path, ...], tuple[tuple[int, int], ...], tuple[Path, ...], tuple[tuple[Path, str], ...]]:
     """Decode the files of ``state`` (path, size, mtime_ns): the readable ones, their upright
     ``(width, height)``, the unreadable ones and those too large to decode (with why)."""
     readable, sizes, unreadable, too_large = [], [], [], []
@@ -239,7 +243,9 @@ class PhotosDecode(FrameStage):
     inputs = {"photos": "dir"}
     outputs = {"frames": "frames", "valid": "frames"}
     cached = False
-    params = (Param("max_side", int, DEFAULT_MAX_SIDE, "longest side of the frames, px (larger photos are shrunk)", min=64, max=16384),)
+    params = (
+        Param("max_side", int, DEFAULT_MAX_SIDE, "longest side of the frames, px (larger photos are shrunk)", min=64, max=16384),
+    )
 
     def __init__(self) -> None:
         self._scanned: tuple[Path, int, PhotoSet] | None = None
@@ -250,8 +256,7 @@ class PhotosDecode(FrameStage):
         if self._scanned is None or self._scanned[:2] != (folder, max_side):
             photos = _scan(self.name, folder, max_side)
             if photos.skipped():
-                logging.getLogger(f"runner.stage.{self.name}").warning("warning: %s: %s: %s", self.name, folder,
-                                                                       photos.skipped())
+                logging.getLogger(f"runner.stage.{self.name}").warning("warning: %s: %s: %s", self.name, folder, photos.skipped())
             self._scanned = (folder, max_side, photos)
         return self._scanned[2]
 
@@ -260,8 +265,9 @@ class PhotosDecode(FrameStage):
         width, height = photos.frame_size
         return StreamInfo(frames=len(photos.paths), fps=PHOTO_FPS, width=width, height=height)
 
-    def process(self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any],
-                ctx: Context) -> dict[str, Any]:
+    def process(
+        self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context
+    ) -> dict[str, Any]:
         """Photos ``[start, stop)`` as frames ``(stop - start, H, W, 3)`` uint8 RGB, and ``valid``
         ``(stop - start, H, W, 1)`` uint8: 255 where the frame's pixel is the photo's (:func:`placed`)."""
         photos = self.photos(Path(inputs["photos"]), int(params.get("max_side", DEFAULT_MAX_SIDE)))
@@ -290,8 +296,16 @@ class PhotoIdentity(SequenceStage):
     doc = "warn about photos of a folder whose face shape (rigid landmark proportions) differs from the majority's"
     inputs = {"photos": "dir", "landmarks": "landmarks"}
     outputs = {"identity": "photo_identity"}
-    params = (Param("max_distance", float, DIFFERENT_FACE_DISTANCE,
-                    "signature distance above which a face is named as another person's", min=1e-6, max=10.0),)
+    params = (
+        Param(
+            "max_distance",
+            float,
+            DIFFERENT_FACE_DISTANCE,
+            "signature distance above which a face is named as another person's",
+            min=1e-6,
+            max=10.0,
+        ),
+    )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         # which photos are frames does not depend on photos.decode's max_side (the frame size does)
@@ -302,8 +316,9 @@ class PhotoIdentity(SequenceStage):
             if key not in landmarks:
                 raise StageError(f"{self.name}: input 'landmarks': missing key '{key}'")
         if len(landmarks["xy"]) != len(names):
-            raise StageError(f"{self.name}: input 'landmarks' has {len(landmarks['xy'])} frames, "
-                             f"the folder {len(names)} readable photos")
+            raise StageError(
+                f"{self.name}: input 'landmarks' has {len(landmarks['xy'])} frames, the folder {len(names)} readable photos"
+            )
         threshold = float(params.get("max_distance", DIFFERENT_FACE_DISTANCE))
         try:
             distance, differs = majority_outliers(face_signature(landmarks["xy"], landmarks["z"]), threshold=threshold)
@@ -312,12 +327,29 @@ class PhotoIdentity(SequenceStage):
         faces = int(np.isfinite(distance).sum())
         if differs.any():
             named = _named([f"{names[t]} (frame {t}, {distance[t]:.3f})" for t in np.flatnonzero(differs)])
-            ctx.log.warning("warning: %s: %d of %d faces may be another person's (face-shape distance to the "
-                            "majority above %.3f; a coarse check): %s", self.name, int(differs.sum()), faces,
-                            threshold, named)
+            ctx.log.warning(
+                "warning: %s: %d of %d faces may be another person's (face-shape distance to the "
+                "majority above %.3f; a coarse check): %s",
+                self.name,
+                int(differs.sum()),
+                faces,
+                threshold,
+                named,
+            )
         else:
-            ctx.log.info("%s: the %d faces look like one person (largest face-shape distance %.3f <= %.3f)",
-                         self.name, faces, float(np.nanmax(distance, initial=0.0)), threshold)
+            ctx.log.info(
+                "%s: the %d faces look like one person (largest face-shape distance %.3f <= %.3f)",
+                self.name,
+                faces,
+                float(np.nanmax(distance, initial=0.0)),
+                threshold,
+            )
         ctx.progress(len(names))
-        return {"identity": {"names": np.array(names, dtype=str), "distance": distance, "differs": differs,
-                             "max_distance": np.float64(threshold)}}
+        return {
+            "identity": {
+                "names": np.array(names, dtype=str),
+                "distance": distance,
+                "differs": differs,
+                "max_distance": np.float64(threshold),
+            }
+        }

@@ -46,8 +46,20 @@ from stages.layout import Layout
 
 #: The states whose most extreme frame seeds the examples, most wanted first (a blink before each
 #: eye alone: a frame with both eyes shut covers both).
-STATE_PRIORITY = ("eye_l_shut", "eye_r_shut", "jaw_open", "smile", "brow_furrow", "brow_raise", "pucker",
-                  "lips_pressed", "eye_l_wide", "eye_r_wide", "eye_l_squint", "eye_r_squint")
+STATE_PRIORITY = (
+    "eye_l_shut",
+    "eye_r_shut",
+    "jaw_open",
+    "smile",
+    "brow_furrow",
+    "brow_raise",
+    "pucker",
+    "lips_pressed",
+    "eye_l_wide",
+    "eye_r_wide",
+    "eye_l_squint",
+    "eye_r_squint",
+)
 EYES_OPEN_FRACTION = 0.7  # of each eye's open level (90th percentile): the neutral's and standard's eyes
 
 
@@ -90,8 +102,9 @@ def align_to_reference(xy: np.ndarray, valid: np.ndarray, reference: np.ndarray,
     return out
 
 
-def canvas_similarity(neutral: np.ndarray, geometries: np.ndarray, layout: Layout, size: tuple[int, int], *,
-                      fill: float = 0.9) -> np.ndarray:
+def canvas_similarity(
+    neutral: np.ndarray, geometries: np.ndarray, layout: Layout, size: tuple[int, int], *, fill: float = 0.9
+) -> np.ndarray:
     """The similarity that puts the neutral face upright and the clip's faces centred in an image of ``size``.
 
     The neutral's eye line (outer eye corners, :data:`stages.geometry.signals.EYE_OUTER`) is made
@@ -126,7 +139,9 @@ def canvas_similarity(neutral: np.ndarray, geometries: np.ndarray, layout: Layou
     return np.array([c.real, c.imag, t.real, t.imag])
 
 
-def k_center(features: np.ndarray, k: int, *, seeds: list[int] | tuple[int, ...], min_distance: float = 0.0) -> tuple[list[int], list[float]]:
+def k_center(
+    features: np.ndarray, k: int, *, seeds: list[int] | tuple[int, ...], min_distance: float = 0.0
+) -> tuple[list[int], list[float]]:
     """Greedy k-center (Gonzalez 1985): add the point farthest from the chosen ones.
 
     Parameters
@@ -197,12 +212,26 @@ class Selection:
     states: dict[str, int] = field(default_factory=dict)  # state -> the frame that seeded it
 
 
-def select_frames(xy: np.ndarray, keep: np.ndarray, *, layout: Layout, blendshapes: np.ndarray,
-                  blendshape_names: np.ndarray, matrix: np.ndarray, angles: np.ndarray,
-                  teeth_fraction: np.ndarray, size: tuple[int, int], n_examples: int = 12,
-                  n_captured: int = 35, n_teeth: int = 4, min_distinct_px: float = 1.0,
-                  pose_deg: float = 10.0, min_teeth_open: float = 0.08,
-                  min_teeth_fraction: float = 0.1, depth: np.ndarray | None = None) -> Selection:
+def select_frames(
+    xy: np.ndarray,
+    keep: np.ndarray,
+    *,
+    layout: Layout,
+    blendshapes: np.ndarray,
+    blendshape_names: np.ndarray,
+    matrix: np.ndarray,
+    angles: np.ndarray,
+    teeth_fraction: np.ndarray,
+    size: tuple[int, int],
+    n_examples: int = 12,
+    n_captured: int = 35,
+    n_teeth: int = 4,
+    min_distinct_px: float = 1.0,
+    pose_deg: float = 10.0,
+    min_teeth_open: float = 0.08,
+    min_teeth_fraction: float = 0.1,
+    depth: np.ndarray | None = None,
+) -> Selection:
     """Choose the pack's frames among the usable ones.
 
     - **neutral**: the least expressive usable frame with both eyes open (and the lips sealed when
@@ -258,8 +287,10 @@ def select_frames(xy: np.ndarray, keep: np.ndarray, *, layout: Layout, blendshap
     neutral = choose_reference(blendshapes, blendshape_names, matrix, mouth_open, rest, search_frames=len(xy))
     near = keep & (np.abs(angles[:, :2] - angles[neutral, :2]) <= pose_deg).all(axis=1)
     if near.sum() < 2:
-        warnings.append(f"fewer than 2 usable frames within {pose_deg:g} degrees of the neutral's yaw and pitch; "
-                        f"all {int(keep.sum())} usable frames are candidates")
+        warnings.append(
+            f"fewer than 2 usable frames within {pose_deg:g} degrees of the neutral's yaw and pitch; "
+            f"all {int(keep.sum())} usable frames are candidates"
+        )
         near = keep
     usable = np.flatnonzero(near)
     columns = stable_columns(layout)
@@ -268,9 +299,12 @@ def select_frames(xy: np.ndarray, keep: np.ndarray, *, layout: Layout, blendshap
     canvas = canvas_similarity(xy[neutral], in_neutral, layout, size)
     to_pack = compose_similarity(canvas, to_neutral)
     if depth is not None:
-        xyz = np.concatenate([np.where(keep[:, None, None], xy, 0.0), np.nan_to_num(np.asarray(depth, np.float64))[..., None]], -1)
-        d = compensate_rigid3d(xyz, np.broadcast_to(keep[:, None], xy.shape[:2]), neutral,
-                               np.array(layout.indices(RIGID_POINTS)))["d"]
+        xyz = np.concatenate(
+            [np.where(keep[:, None, None], xy, 0.0), np.nan_to_num(np.asarray(depth, np.float64))[..., None]], -1
+        )
+        d = compensate_rigid3d(
+            xyz, np.broadcast_to(keep[:, None], xy.shape[:2]), neutral, np.array(layout.indices(RIGID_POINTS))
+        )["d"]
         in_neutral = xy[neutral] + d[usable]
     features = apply_similarity(canvas, in_neutral).reshape(len(usable), -1)
     features /= np.sqrt(layout.n_points)  # Euclidean distance = RMS point distance, px
@@ -280,8 +314,10 @@ def select_frames(xy: np.ndarray, keep: np.ndarray, *, layout: Layout, blendshap
     order, radii = k_center(features, n_captured, seeds=seeds, min_distance=min_distinct_px)
     examples = order[:n_examples]
     if len(examples) < n_examples:
-        warnings.append(f"only {len(examples)} distinct expressions (>= {min_distinct_px:g} px apart) among "
-                        f"{usable.size} candidate frames; {n_examples} examples were asked")
+        warnings.append(
+            f"only {len(examples)} distinct expressions (>= {min_distinct_px:g} px apart) among "
+            f"{usable.size} candidate frames; {n_examples} examples were asked"
+        )
     if len(examples) < 2:
         examples = [seed, int(np.argmax(np.linalg.norm(features - features[seed], axis=1)))]
         order = examples
@@ -298,14 +334,22 @@ def select_frames(xy: np.ndarray, keep: np.ndarray, *, layout: Layout, blendshap
         teeth = [int(candidates[j]) for j in picked]
     else:
         teeth = [standard]
-        warnings.append(f"no candidate frame shows teeth (lips >= {min_teeth_open:g} eye distances apart and >= "
-                        f"{min_teeth_fraction:.0%} teeth pixels); the widest opening is the only teeth example")
+        warnings.append(
+            f"no candidate frame shows teeth (lips >= {min_teeth_open:g} eye distances apart and >= "
+            f"{min_teeth_fraction:.0%} teeth pixels); the widest opening is the only teeth example"
+        )
     return Selection(
-        neutral=int(neutral), standard=standard,
-        examples=[int(usable[j]) for j in examples], teeth=teeth,
-        captured=[int(usable[j]) for j in order], to_pack=to_pack,
-        example_radius_px=float(radii[len(examples) - 1]), captured_radius_px=float(radii[len(order) - 1]),
-        mouth_open=mouth_open, warnings=warnings, states=states,
+        neutral=int(neutral),
+        standard=standard,
+        examples=[int(usable[j]) for j in examples],
+        teeth=teeth,
+        captured=[int(usable[j]) for j in order],
+        to_pack=to_pack,
+        example_radius_px=float(radii[len(examples) - 1]),
+        captured_radius_px=float(radii[len(order) - 1]),
+        mouth_open=mouth_open,
+        warnings=warnings,
+        states=states,
     )
 
 
@@ -320,8 +364,7 @@ def both_eyes_open(xy: np.ndarray, keep: np.ndarray, names: tuple[str, ...]) -> 
     return out
 
 
-def state_seeds(xy: np.ndarray, candidates: np.ndarray, neutral: int, names: tuple[str, ...], *,
-                limit: int) -> dict[str, int]:
+def state_seeds(xy: np.ndarray, candidates: np.ndarray, neutral: int, names: tuple[str, ...], *, limit: int) -> dict[str, int]:
     """The most extreme candidate frame of each expression state the candidates show (relative to
     the neutral frame), in :data:`STATE_PRIORITY` order; a state that a frame already chosen shows
     takes that frame; at most ``limit`` distinct frames; both eyes shut at once (a blink) is

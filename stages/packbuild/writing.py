@@ -42,8 +42,9 @@ SKIN_SUBREGIONS = ("forehead", "glabella", "eyezone_l", "eyezone_r", "nose", "ch
 INNER_EYE_CORNERS = ("eye_l_0", "eye_r_0")
 
 
-def align_image(image: np.ndarray, params: np.ndarray, size: tuple[int, int], *,
-                valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def align_image(
+    image: np.ndarray, params: np.ndarray, size: tuple[int, int], *, valid: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Map ``image (H, W, 3) uint8`` by the similarity ``params = (a, b, tx, ty)`` (eq. 8) into an
     image of ``size = (W', H')`` (bilinear), with its validity matte (of the frame's pixels that are
     real: ``valid (H, W) uint8``, 255 = real; every pixel of the frame when omitted).
@@ -59,18 +60,26 @@ def align_image(image: np.ndarray, params: np.ndarray, size: tuple[int, int], *,
     """
     import cv2
     from stages.fill import fill_invalid
+
     a, b, tx, ty = (float(v) for v in params)
     M = np.array([[a, -b, tx], [b, a, ty]])
     size = tuple(int(v) for v in size)
-    inside = np.full(image.shape[:2], 255, np.uint8) if valid is None else np.ascontiguousarray(valid, np.uint8).reshape(image.shape[:2])
-    source = np.ascontiguousarray(image) if valid is None else cv2.bitwise_and(image, image, mask=(inside == 255).astype(np.uint8))
+    inside = (
+        np.full(image.shape[:2], 255, np.uint8)
+        if valid is None
+        else np.ascontiguousarray(valid, np.uint8).reshape(image.shape[:2])
+    )
+    source = (
+        np.ascontiguousarray(image) if valid is None else cv2.bitwise_and(image, image, mask=(inside == 255).astype(np.uint8))
+    )
     matte = cv2.warpAffine(inside, M, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     mapped = cv2.warpAffine(source, M, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     if matte.min() == 255:
         return mapped, matte
     valid = matte.astype(np.float32) / 255.0
-    colour = np.divide(mapped.astype(np.float32), valid[..., None], out=np.zeros(mapped.shape, np.float32),
-                       where=valid[..., None] > 0)  # the edge pixels' colour, the black border's share taken out
+    colour = np.divide(
+        mapped.astype(np.float32), valid[..., None], out=np.zeros(mapped.shape, np.float32), where=valid[..., None] > 0
+    )  # the edge pixels' colour, the black border's share taken out
     filled = fill_invalid(colour, valid)
     return np.clip(np.round(filled), 0, 255).astype(np.uint8), matte
 
@@ -119,8 +128,9 @@ def generic_model3d(layout: Layout, correspondence: Correspondence) -> np.ndarra
     padded[0, : min(m, len(vertices))] = vertices[:m]
     used = np.flatnonzero(correspondence.weights.any(axis=0))
     if used.max() >= len(vertices):
-        raise ValueError(f"correspondence {correspondence.name!r} uses mesh vertex {used.max()}, "
-                         f"the canonical mesh has {len(vertices)}")
+        raise ValueError(
+            f"correspondence {correspondence.name!r} uses mesh vertex {used.max()}, the canonical mesh has {len(vertices)}"
+        )
     points = layout_from_mesh(padded, correspondence)[0] * np.array([10.0, -10.0, -10.0])
     origin = points[list(layout.indices(INNER_EYE_CORNERS))].mean(0)
     return points - origin
@@ -128,6 +138,7 @@ def generic_model3d(layout: Layout, correspondence: Correspondence) -> np.ndarra
 
 def _label(image: np.ndarray, text: str) -> np.ndarray:
     import cv2
+
     out = image.copy()
     for colour, width in (((0, 0, 0), 3), ((255, 255, 255), 1)):
         cv2.putText(out, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, colour, width, cv2.LINE_AA)
@@ -140,6 +151,7 @@ def contact_sheet(images: Sequence[tuple[str, np.ndarray]], *, columns: int, thu
     ``images``: ``(label, (h, w, 3) uint8)`` pairs, all of one aspect ratio, row by row.
     """
     import cv2
+
     if not images or columns < 1:
         raise ValueError("contact_sheet needs at least one image and one column")
     thumbs = []
@@ -148,14 +160,17 @@ def contact_sheet(images: Sequence[tuple[str, np.ndarray]], *, columns: int, thu
         thumb = cv2.resize(image, (int(round(w * thumb_height / h)), thumb_height), interpolation=cv2.INTER_AREA)
         thumbs.append(np.pad(_label(thumb, label), ((2, 2), (2, 2), (0, 0)), constant_values=255))
     blank = np.full_like(thumbs[0], 255)
-    rows = [np.hstack(thumbs[r:r + columns] + [blank] * (columns - len(thumbs[r:r + columns])))
-            for r in range(0, len(thumbs), columns)]
+    rows = [
+        np.hstack(thumbs[r : r + columns] + [blank] * (columns - len(thumbs[r : r + columns])))
+        for r in range(0, len(thumbs), columns)
+    ]
     return np.vstack(rows)
 
 
 def write_png(path: Path, image: np.ndarray) -> None:
     """Write an RGB ``(H, W, 3)`` or grey ``(H, W)`` uint8 image as PNG (``OSError`` if it cannot be encoded)."""
     import cv2
+
     pixels = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
     ok, data = cv2.imencode(".png", pixels, [cv2.IMWRITE_PNG_COMPRESSION, 6])
     if not ok:
@@ -170,10 +185,20 @@ def write_rows(path: Path, names: Sequence[str], rows: np.ndarray, columns: tupl
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
 
 
-def write_pack(folder: Path, *, name: str, layout: Layout, correspondence: Correspondence, selection: Selection,
-               xy: np.ndarray, read_frame: Callable[[int], np.ndarray], size: tuple[int, int],
-               intrinsics: np.ndarray, max_gain: float = 2.0,
-               read_valid: Callable[[int], np.ndarray] | None = None) -> dict[str, object]:
+def write_pack(
+    folder: Path,
+    *,
+    name: str,
+    layout: Layout,
+    correspondence: Correspondence,
+    selection: Selection,
+    xy: np.ndarray,
+    read_frame: Callable[[int], np.ndarray],
+    size: tuple[int, int],
+    intrinsics: np.ndarray,
+    max_gain: float = 2.0,
+    read_valid: Callable[[int], np.ndarray] | None = None,
+) -> dict[str, object]:
     """Write the pack folder: images, points, ``captured.npz``, ``model3d.csv``, ``pack.yaml``, ``sheet.png``.
 
     Parameters
@@ -208,13 +233,16 @@ def write_pack(folder: Path, *, name: str, layout: Layout, correspondence: Corre
     """
     W, H = size
     names = layout.point_names
-    points_in_pack = {t: apply_similarity(selection.to_pack[t], xy[t]) for t in
-                      {selection.neutral, selection.standard, *selection.examples, *selection.teeth, *selection.captured}}
+    points_in_pack = {
+        t: apply_similarity(selection.to_pack[t], xy[t])
+        for t in {selection.neutral, selection.standard, *selection.examples, *selection.teeth, *selection.captured}
+    }
     lo, hi = np.array([-0.5, -0.5]), np.array([W - 0.5, H - 0.5])
     clipped = sum(int(np.sum((p < lo) | (p > hi))) for p in points_in_pack.values())
     points_in_pack = {t: np.clip(p, lo, hi) for t, p in points_in_pack.items()}
     for sub in ("images", "points", "mattes"):
         (folder / sub).mkdir()
+
     def cut(t: int) -> tuple[np.ndarray, np.ndarray]:
         return align_image(read_frame(t), selection.to_pack[t], size, valid=None if read_valid is None else read_valid(t))
 
@@ -238,9 +266,14 @@ def write_pack(folder: Path, *, name: str, layout: Layout, correspondence: Corre
         write_png(folder / "mattes" / f"{label}.png", matte)
         write_rows(folder / "points" / f"{label}.csv", names, points_in_pack[t], ("x", "y"))
         sheet.append((label, image))
-        return {"name": label, "image": f"images/{label}.png", "points": f"points/{label}.csv",
-                "matte": f"mattes/{label}.png", "frame": int(t),
-                "similarity": [round(float(v), 9) for v in selection.to_pack[t]]}
+        return {
+            "name": label,
+            "image": f"images/{label}.png",
+            "points": f"points/{label}.csv",
+            "matte": f"mattes/{label}.png",
+            "frame": int(t),
+            "similarity": [round(float(v), 9) for v in selection.to_pack[t]],
+        }
 
     manifest = {
         "format": "actor-pack/1",
@@ -249,8 +282,10 @@ def write_pack(folder: Path, *, name: str, layout: Layout, correspondence: Corre
         "image_size": [int(W), int(H)],
         "intrinsics": np.asarray(intrinsics, np.float64).tolist(),
         "model3d": "model3d.csv",
-        "source": {"size": [int(footage.shape[1]), int(footage.shape[0])],
-                   "scale": round(float(np.hypot(*selection.to_pack[selection.neutral][:2])), 6)},
+        "source": {
+            "size": [int(footage.shape[1]), int(footage.shape[0])],
+            "scale": round(float(np.hypot(*selection.to_pack[selection.neutral][:2])), 6),
+        },
         "neutral": entry("neutral", selection.neutral),
         "standard": entry("standard", selection.standard),
         "examples": [entry(f"ex_f{t:05d}", t) for t in selection.examples],
@@ -264,6 +299,8 @@ def write_pack(folder: Path, *, name: str, layout: Layout, correspondence: Corre
     np.savez(folder / "captured.npz", points=captured, frames=np.array(selection.captured, np.int64))
     (folder / "pack.yaml").write_text(
         "# Actor pack built from footage by stages.packbuild (docs/packbuild.md)\n"
-        + yaml.safe_dump(manifest, sort_keys=False, default_flow_style=None, width=120), encoding="utf-8")
+        + yaml.safe_dump(manifest, sort_keys=False, default_flow_style=None, width=120),
+        encoding="utf-8",
+    )
     write_png(folder / "sheet.png", contact_sheet(sheet, columns=6, thumb_height=160))
     return {"gains": gains, "clipped_points": clipped, "coverage": covered, "missing": missing}

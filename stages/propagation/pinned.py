@@ -113,6 +113,14 @@ class PinnedPropagation:
                 self.recorded = (key, _Recorder(self.sweep))
             recorder = self.recorded[1]
             recorder.calls = 0
-            propagate_shared_mask(recorder, start, (target - model.neutral)[None], known, np.zeros(1, np.int64), result,
-                                   stop_progress_px=stop_progress_px, max_iterations=max_iterations)
+            propagate_shared_mask(
+                recorder,
+                start,
+                (target - model.neutral)[None],
+                known,
+                np.zeros(1, np.int64),
+                result,
+                stop_progress_px=stop_progress_px,
+                max_iterations=max_iterations,
+            )
         return model.neutral + result.displacements[0]

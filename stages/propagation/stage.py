@@ -23,8 +23,14 @@ class TrainHierarchicalPCA(SequenceStage):
     outputs = {"pca_model": "pca_model"}
     params = (
         Param("n_components", int, 8, "most principal components kept per feature point set (paper: 5-10)", min=1, max=256),
-        Param("variance_kept", float, 1.0, "also stop at this fraction of explained variance, in (0, 1] (1.0: off)",
-              min=0.0, max=1.0),
+        Param(
+            "variance_kept",
+            float,
+            1.0,
+            "also stop at this fraction of explained variance, in (0, 1] (1.0: off)",
+            min=0.0,
+            max=1.0,
+        ),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
@@ -70,8 +76,14 @@ class HierarchicalPropagation(SequenceStage):
     optional_inputs = frozenset({"displacements", "points"})
     outputs = {"displacements": "displacements", "points": "points"}
     params = (
-        Param("stop_progress_px", float, 1e-3, "stop when the input points move less than this between iterations, px",
-              min=0.0, max=1000.0),
+        Param(
+            "stop_progress_px",
+            float,
+            1e-3,
+            "stop when the input points move less than this between iterations, px",
+            min=0.0,
+            max=1000.0,
+        ),
         Param("max_iterations", int, 200, "iteration cap per frame", min=1, max=100_000),
     )
 
@@ -130,9 +142,7 @@ def _check_names(model: HierarchicalPCA, bundle: Mapping[str, np.ndarray], port:
         return
     names = tuple(str(n) for n in np.asarray(bundle["names"]))
     if names != model.point_names:
-        bad = next(
-            (i for i, (a, b) in enumerate(zip(names, model.point_names)) if a != b), min(len(names), model.n_points)
-        )
+        bad = next((i for i, (a, b) in enumerate(zip(names, model.point_names)) if a != b), min(len(names), model.n_points))
         raise StageError(
             f"propagate.hierarchical: input '{port}' field 'names' differs from the pca_model's layout at point {bad}"
         )

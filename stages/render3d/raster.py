@@ -80,7 +80,9 @@ def gl_context():
     try:
         return moderngl.create_standalone_context(backend="egl", require=330)
     except Exception as exc:  # moderngl raises plain Exception for a missing EGL driver
-        raise RuntimeError(f"no headless OpenGL context (EGL): {exc}; install libegl1 libegl-mesa0 libgl1-mesa-dri (.ci/install-egl)") from exc
+        raise RuntimeError(
+            f"no headless OpenGL context (EGL): {exc}; install libegl1 libegl-mesa0 libgl1-mesa-dri (.ci/install-egl)"
+        ) from exc
 
 
 class MeshRenderer:
@@ -225,7 +227,9 @@ class MeshRenderer:
                     self._fbo_ms.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
                     vao.render(moderngl.TRIANGLES)
                     ctx.copy_framebuffer(self._fbo_rgba, self._fbo_ms)
-                    colours.append(np.frombuffer(self._fbo_rgba.read(components=4, dtype="f4"), np.float32).reshape(H, W, 4).copy())
+                    colours.append(
+                        np.frombuffer(self._fbo_rgba.read(components=4, dtype="f4"), np.float32).reshape(H, W, 4).copy()
+                    )
                     gl_tex.release()
                 vao.release()
                 vao = ctx.vertex_array(self._depth, [(vbo, "3f 12x", "position")], index_buffer=ibo)

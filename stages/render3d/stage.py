@@ -79,6 +79,7 @@ def behind_the_lips(vertices: np.ndarray, names: np.ndarray) -> np.ndarray:
     order, :mod:`stages.synthesis.turn`); at rest they project where they did."""
     from stages.mesh3d.model import skin_points
     from stages.synthesis.turn import MOUTH_BEHIND_MM
+
     out = np.array(vertices, np.float64)
     teeth = ~skin_points(names)
     out[teeth] *= (1.0 + MOUTH_BEHIND_MM / out[teeth, 2])[:, None]
@@ -91,14 +92,32 @@ class HeadPose3D(SequenceStage):
     name = "render3d.head"
     version = "3"  # 3: from the pack's geometry, model and camera (no mesh); the depth of every point
     doc = "Sec. 14.1: performer head pose (compensate.rigid3d) -> rigid motion of the target's 3D model, mm; point depths"
-    inputs = {"geometry": "pack_geometry", "model3d": "pack_model3d", "camera": "camera", "pose": "pose",
-              "performer": "displacements", "landmarks": "landmarks"}
+    inputs = {
+        "geometry": "pack_geometry",
+        "model3d": "pack_model3d",
+        "camera": "camera",
+        "pose": "pose",
+        "performer": "displacements",
+        "landmarks": "landmarks",
+    }
     optional_inputs = frozenset({"performer", "landmarks"})
     outputs = {"head": "head3d"}
     params = (
-        Param("translation_scale", float, 1.0, "multiplies the carried head translation (after the face-size ratio)", min=0.0, max=100.0),
-        Param("absolute", bool, True, "with 'landmarks': compose the reference frame's own head rotation (the landmarker's "
-              "matrix), so the frontal target turns as the performer does, not relative to a turned reference"),
+        Param(
+            "translation_scale",
+            float,
+            1.0,
+            "multiplies the carried head translation (after the face-size ratio)",
+            min=0.0,
+            max=100.0,
+        ),
+        Param(
+            "absolute",
+            bool,
+            True,
+            "with 'landmarks': compose the reference frame's own head rotation (the landmarker's "
+            "matrix), so the frontal target turns as the performer does, not relative to a turned reference",
+        ),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
@@ -114,7 +133,9 @@ class HeadPose3D(SequenceStage):
         R = _field(pose, "R", self.name, "pose").astype(np.float64)
         tvec = _field(pose, "tvec", self.name, "pose").astype(np.float64)
         if "scale" not in pose:
-            raise StageError(f"{self.name}: input 'pose' has no field 'scale': connect compensate.rigid3d's pose (relative to the neutral frame)")
+            raise StageError(
+                f"{self.name}: input 'pose' has no field 'scale': connect compensate.rigid3d's pose (relative to the neutral frame)"
+            )
         scale = np.asarray(pose["scale"], np.float64)
         T = len(R)
         valid = np.asarray(pose["valid"], bool) if "valid" in pose else np.ones(T, bool)
@@ -127,7 +148,9 @@ class HeadPose3D(SequenceStage):
             frame = int(_field(pose, "neutral_frame", self.name, "pose"))
             matrix = _field(marks, "matrix", self.name, "landmarks")
             if not 0 <= frame < len(matrix):
-                raise StageError(f"{self.name}: the pose's neutral_frame {frame} is outside the {len(matrix)} frames of 'landmarks'")
+                raise StageError(
+                    f"{self.name}: the pose's neutral_frame {frame} is outside the {len(matrix)} frames of 'landmarks'"
+                )
             reference = reference_rotation(matrix[frame])
         target_2d = geometry.neutral  # the lifted neutral reprojects onto it exactly
         performer = inputs.get("performer")
@@ -139,13 +162,27 @@ class HeadPose3D(SequenceStage):
             center, ratio = target_2d.mean(0), 1.0
         try:
             rotation, translation = head_motion_3d(
-                R, tvec, scale, source_center=center, pivot=pivot, A=A, size_ratio=ratio * float(params["translation_scale"]),
+                R,
+                tvec,
+                scale,
+                source_center=center,
+                pivot=pivot,
+                A=A,
+                size_ratio=ratio * float(params["translation_scale"]),
                 reference=reference,
             )
         except ValueError as exc:
             raise StageError(f"{self.name}: input 'pose': {exc}") from None
-        out = {"R": rotation, "t": translation, "valid": valid, "pivot": pivot, "depth": depth, "names": names,
-               "camera": A, "size": np.array(geometry.size, np.int64)}
+        out = {
+            "R": rotation,
+            "t": translation,
+            "valid": valid,
+            "pivot": pivot,
+            "depth": depth,
+            "names": names,
+            "camera": A,
+            "size": np.array(geometry.size, np.int64),
+        }
         out["ypr_deg"] = euler_yaw_pitch_roll(rotation)
         ctx.progress(T)
         return {"head": out}
@@ -157,11 +194,23 @@ class Render3D(FrameStage):
     name = "render3d"
     version = "2"  # 2: the whole head, projective texturing, mattes, the shot channels
     doc = "Sec. 14.1: Sec. 9 mesh (the whole head) + synthesized texture under the head pose; z-buffer, MSAA, mattes, depth; EXR"
-    inputs = {"texture": "frames", "mask": "frames", "head_matte": "frames", "filled": "frames", "mesh": "mesh3d",
-              "head": "head3d"}
+    inputs = {
+        "texture": "frames",
+        "mask": "frames",
+        "head_matte": "frames",
+        "filled": "frames",
+        "mesh": "mesh3d",
+        "head": "head3d",
+    }
     optional_inputs = frozenset({"mask", "head_matte", "filled", "head"})
-    outputs = {"frames": "frames", "mask": "frames", "head_matte": "frames", "filled": "frames", "depth": "frames",
-               "exr": "files"}
+    outputs = {
+        "frames": "frames",
+        "mask": "frames",
+        "head_matte": "frames",
+        "filled": "frames",
+        "depth": "frames",
+        "exr": "files",
+    }
     params = (
         Param("samples", int, 4, "MSAA samples per pixel (anti-aliased edges; 0 = none); at most the driver's", min=0, max=16),
         Param("resolution_scale", float, 1.0, "output size = the pack image size times this", min=0.25, max=8.0),
@@ -200,13 +249,17 @@ class Render3D(FrameStage):
                 raise StageError(f"{self.name}: {exc}") from None
         return self._renderer[1]
 
-    def process(self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
+    def process(
+        self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context
+    ) -> dict[str, Any]:
         mesh, head, stream = inputs["mesh"], inputs.get("head"), inputs["texture"]
         vertices = mesh_vertices(mesh, params["geometry"], stage=self.name)
         if len(vertices) != stream.info.frames or (head is not None and len(head["R"]) != stream.info.frames):
             raise StageError(f"{self.name}: inputs 'mesh'/'head' do not have the {stream.info.frames} frames of 'texture'")
         textures = stream.read(start, stop)
-        planes = {port: inputs[port].read(start, stop) for port in ("mask", "head_matte", "filled") if inputs.get(port) is not None}
+        planes = {
+            port: inputs[port].read(start, stop) for port in ("mask", "head_matte", "filled") if inputs.get(port) is not None
+        }
         whole = "head_triangles" in mesh
         size = self._size(mesh, params)
         A = scaled_intrinsics(mesh["camera"], float(params["resolution_scale"]))
@@ -235,26 +288,45 @@ class Render3D(FrameStage):
                     else:
                         rendered = self._render_face(renderer, v, triangles, uv, textures[i], mattes.get("mask"), A)
             (rgba, layers), planes_out = rendered
-            write_exr(folder / exr_name(frame), rgba, attributes=attrs, compression=params["compression"],
-                      depth=planes_out["depth"], layers=layers)
+            write_exr(
+                folder / exr_name(frame),
+                rgba,
+                attributes=attrs,
+                compression=params["compression"],
+                depth=planes_out["depth"],
+                layers=layers,
+            )
             for key in out:
                 out[key].append(planes_out[key] if key != "depth" else planes_out[key][..., None])
         ctx.progress(stop - start)
         return {**{k: np.stack(v).astype(np.float32 if k == "depth" else np.float16) for k, v in out.items()}, "exr": None}
 
     @staticmethod
-    def _render_face(renderer: MeshRenderer, v: np.ndarray, triangles: np.ndarray, uv: np.ndarray, texture: np.ndarray,
-                     mask: np.ndarray | None, A: np.ndarray) -> tuple[tuple[np.ndarray, None], dict[str, np.ndarray]]:
+    def _render_face(
+        renderer: MeshRenderer,
+        v: np.ndarray,
+        triangles: np.ndarray,
+        uv: np.ndarray,
+        texture: np.ndarray,
+        mask: np.ndarray | None,
+        A: np.ndarray,
+    ) -> tuple[tuple[np.ndarray, None], dict[str, np.ndarray]]:
         """The face-only mesh: premultiplied RGBA over black (alpha = coverage x face mask)."""
         rgba, depth = render_textured(renderer, v, triangles, uv, texture, A, mask=mask)
         rgb, alpha = to_display(rgba)
-        return (rgba, None), {"frames": rgb, "mask": alpha, "head_matte": alpha, "filled": np.zeros_like(alpha),
-                              "depth": depth}
+        return (rgba, None), {"frames": rgb, "mask": alpha, "head_matte": alpha, "filled": np.zeros_like(alpha), "depth": depth}
 
     @staticmethod
-    def _render_whole(renderer: MeshRenderer, v: np.ndarray, triangles: np.ndarray, uv: np.ndarray, rest_depth: np.ndarray,
-                      texture: np.ndarray, mattes: Mapping[str, np.ndarray], A: np.ndarray
-                      ) -> tuple[tuple[np.ndarray, dict[str, np.ndarray]], dict[str, np.ndarray]]:
+    def _render_whole(
+        renderer: MeshRenderer,
+        v: np.ndarray,
+        triangles: np.ndarray,
+        uv: np.ndarray,
+        rest_depth: np.ndarray,
+        texture: np.ndarray,
+        mattes: Mapping[str, np.ndarray],
+        A: np.ndarray,
+    ) -> tuple[tuple[np.ndarray, dict[str, np.ndarray]], dict[str, np.ndarray]]:
         """The whole head: the plate and the mattes rendered over one mesh; the shot channels."""
         h, w = texture.shape[:2]
         colour = srgb_to_linear(to_unit_float(np.asarray(texture)).astype(np.float32))
@@ -270,5 +342,10 @@ class Render3D(FrameStage):
         filled = np.clip(1.0 - rendered[..., 2], 0, 1)
         channels = linear_shot_channels(linear, head_matte, face, filled)
         rgb, _ = to_display(plate)
-        return channels, {"frames": rgb, "mask": face[..., None], "head_matte": head_matte[..., None],
-                          "filled": filled[..., None], "depth": depth}
+        return channels, {
+            "frames": rgb,
+            "mask": face[..., None],
+            "head_matte": head_matte[..., None],
+            "filled": filled[..., None],
+            "depth": depth,
+        }

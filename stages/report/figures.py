@@ -42,14 +42,20 @@ class Panel:
     styles: Mapping[str, str] = field(default_factory=dict)  # label -> matplotlib format string
 
 
-def fixed_figure(rows: float, *, gaps: int, left_in: float = LEFT_IN, right_in: float = RIGHT_IN,
-                 top_in: float = TOP_IN) -> Figure:
+def fixed_figure(
+    rows: float, *, gaps: int, left_in: float = LEFT_IN, right_in: float = RIGHT_IN, top_in: float = TOP_IN
+) -> Figure:
     """A figure ``WIDTH_IN`` wide with ``rows`` panel heights and ``gaps`` gaps between panels,
     margins fixed in inches (cheaper than a layout engine, and stable)."""
     height = top_in + BOTTOM_IN + rows * PANEL_IN + gaps * GAP_IN
     figure = Figure(figsize=(WIDTH_IN, height), dpi=DPI)
-    figure.subplots_adjust(left=left_in / WIDTH_IN, right=1 - right_in / WIDTH_IN, top=1 - top_in / height,
-                           bottom=BOTTOM_IN / height, hspace=GAP_IN / PANEL_IN)
+    figure.subplots_adjust(
+        left=left_in / WIDTH_IN,
+        right=1 - right_in / WIDTH_IN,
+        top=1 - top_in / height,
+        bottom=BOTTOM_IN / height,
+        hspace=GAP_IN / PANEL_IN,
+    )
     return figure
 
 
@@ -107,8 +113,9 @@ def example_colors(count: int) -> np.ndarray:
     return matplotlib.colormaps["tab20"](order)[:, :3]
 
 
-def dominant_heatmap(example: np.ndarray, weight: np.ndarray, *, subregions: Sequence[str],
-                     examples: Sequence[str], limited: np.ndarray | None) -> bytes:
+def dominant_heatmap(
+    example: np.ndarray, weight: np.ndarray, *, subregions: Sequence[str], examples: Sequence[str], limited: np.ndarray | None
+) -> bytes:
     """Subregions (rows) over frames (columns), coloured by the example with the largest synthesis
     coefficient, in full colour from ``FULL_COLOUR`` up and paler below (white = 0, grey = no
     coefficient); with ``limited``, a last
@@ -135,18 +142,26 @@ def dominant_heatmap(example: np.ndarray, weight: np.ndarray, *, subregions: Seq
         rgb = np.concatenate([rgb, np.ones((1, T, 3)), flag[None]], axis=0)  # a blank row, then the flags
         names += ["", "range limited"]
     with matplotlib.style.context("default"):
-        figure = fixed_figure(ROW_IN * len(names) / PANEL_IN, gaps=0, left_in=NAMES_IN, right_in=LEGEND_IN,
-                              top_in=0.35)
+        figure = fixed_figure(ROW_IN * len(names) / PANEL_IN, gaps=0, left_in=NAMES_IN, right_in=LEGEND_IN, top_in=0.35)
         ax = figure.subplots()
         ax.imshow(rgb, aspect="auto", interpolation="nearest", extent=(-0.5, T - 0.5, len(names) - 0.5, -0.5))
         ax.set_yticks(range(len(names)), names, fontsize=8)
         ax.set_xlabel("frame")
-        ax.set_title(f"example with the largest coefficient per subregion (paler: coefficient below {FULL_COLOUR:g})",
-                     loc="left", fontsize=10)
+        ax.set_title(
+            f"example with the largest coefficient per subregion (paler: coefficient below {FULL_COLOUR:g})",
+            loc="left",
+            fontsize=10,
+        )
         used = sorted(set(example[example >= 0].tolist()))
         if used:
-            ax.legend(handles=[Patch(color=colors[i], label=str(examples[i])) for i in used], loc="upper left",
-                      bbox_to_anchor=(1.01, 1.0), fontsize=8, title="example", title_fontsize=8)
+            ax.legend(
+                handles=[Patch(color=colors[i], label=str(examples[i])) for i in used],
+                loc="upper left",
+                bbox_to_anchor=(1.01, 1.0),
+                fontsize=8,
+                title="example",
+                title_fontsize=8,
+            )
         return png_bytes(figure)
 
 

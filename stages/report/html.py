@@ -17,8 +17,10 @@ from stages.report.page import Section, image, listing, not_available, page
 from stages.report.sheet import sheet_images
 
 SPANS_SHOWN = 12
-TIMINGS_NOTE = ("the runner does not hand stage timings to stages (and timings would make the page differ "
-                "between runs); `runner run --log-json FILE` records them")
+TIMINGS_NOTE = (
+    "the runner does not hand stage timings to stages (and timings would make the page differ "
+    "between runs); `runner run --log-json FILE` records them"
+)
 
 
 def frame_list(flags: np.ndarray) -> str:
@@ -28,8 +30,14 @@ def frame_list(flags: np.ndarray) -> str:
     return text + (f", ... ({len(runs) - SPANS_SHOWN} more ranges)" if len(runs) > SPANS_SHOWN else "")
 
 
-def frame_warnings(*, no_face: np.ndarray, pose_valid: np.ndarray, limited: np.ndarray | None,
-                   mapped: Mapping[str, np.ndarray] | None, warp_only: bool) -> list[str]:
+def frame_warnings(
+    *,
+    no_face: np.ndarray,
+    pose_valid: np.ndarray,
+    limited: np.ndarray | None,
+    mapped: Mapping[str, np.ndarray] | None,
+    warp_only: bool,
+) -> list[str]:
     """One line per problem of the run's frames (plain text).
 
     Parameters
@@ -40,8 +48,10 @@ def frame_warnings(*, no_face: np.ndarray, pose_valid: np.ndarray, limited: np.n
     warp_only : every synthesis coefficient is zero.
     """
     T = len(no_face)
-    flagged = [("No face in {n} of {T} frames: {f}", no_face),
-               ("No valid head pose in {n} frames with a face: {f}", ~np.asarray(pose_valid, bool) & ~no_face)]
+    flagged = [
+        ("No face in {n} of {T} frames: {f}", no_face),
+        ("No valid head pose in {n} frames with a face: {f}", ~np.asarray(pose_valid, bool) & ~no_face),
+    ]
     if limited is not None:
         flagged.append(("Geometry soft-limited to the target pack's range in {n} of {T} frames: {f}", limited))
     if mapped is not None and "lips_clamped" in mapped:
@@ -58,7 +68,8 @@ def contact_sheet(images: Sequence[tuple[int, str, bytes]], *, fps: float) -> st
     figures = "".join(
         f"<figure>{image(jpeg, 'image/jpeg', f'frame {f}', css='')}"
         f"<figcaption>frame {f} ({f / fps:.2f} s){': ' + label if label else ''}</figcaption></figure>"
-        for f, label, jpeg in images)
+        for f, label, jpeg in images
+    )
     return f'<div class="sheet">{figures}</div>' if figures else not_available("no frame chosen")
 
 
@@ -90,13 +101,16 @@ def report_html(inputs: Mapping[str, Any], *, title: str) -> str:
     shaded = {"no face": series.spans(no_face), "limited": [] if limited is None else series.spans(limited)}
     displacements = inputs.get("displacements") or {}
     if bool(np.asarray(displacements.get("neutral_estimated", False))):
-        warnings = [f"Reference (neutral): estimated from the clip, region by region; the nearest single frame, "
-                    f"{reference}, is in the contact sheet and the curves are read from it"]
+        warnings = [
+            f"Reference (neutral): estimated from the clip, region by region; the nearest single frame, "
+            f"{reference}, is in the contact sheet and the curves are read from it"
+        ]
     else:
-        warnings = [f"Reference (neutral) frame: {reference}" + (
-            " (recorded by the run)" if chosen is not None else " (the run records none; the pipeline takes the first frame)")]
-    data: dict[str, Any] = {"frames": T, "fps": fps, "reference_frame": reference, "no_face": no_face,
-                            "limited": limited}
+        warnings = [
+            f"Reference (neutral) frame: {reference}"
+            + (" (recorded by the run)" if chosen is not None else " (the run records none; the pipeline takes the first frame)")
+        ]
+    data: dict[str, Any] = {"frames": T, "fps": fps, "reference_frame": reference, "no_face": no_face, "limited": limited}
 
     try:
         expression = series.expression_series(tracked, target, reference=reference)
@@ -115,7 +129,8 @@ def report_html(inputs: Mapping[str, Any], *, title: str) -> str:
 
     if expression is not None:
         expression_body, data["follow"], poorly = sections.expression_section(
-            expression, reference=reference, shaded=shaded, fps=fps)
+            expression, reference=reference, shaded=shaded, fps=fps
+        )
         data["expression"] = expression
         warnings += poorly
     try:
@@ -137,13 +152,19 @@ def report_html(inputs: Mapping[str, Any], *, title: str) -> str:
         occlusion_body = sections.occlusion_section(occlusion, ranges)
         data["occlusion"] = {r: hidden[:, k] for k, r in enumerate(regions)}
         if hidden.any():
-            warnings.append("Occluded face regions: " + "; ".join(
-                f"{r} in {int(hidden[:, k].sum())} of {T} frames ({ranges[r]})" for k, r in enumerate(regions)
-                if hidden[:, k].any()))
+            warnings.append(
+                "Occluded face regions: "
+                + "; ".join(
+                    f"{r} in {int(hidden[:, k].sum())} of {T} frames ({ranges[r]})"
+                    for k, r in enumerate(regions)
+                    if hidden[:, k].any()
+                )
+            )
     sheet_body = contact_sheet(images, fps=fps)
 
-    warnings += frame_warnings(no_face=no_face, pose_valid=pose["valid"], limited=limited, mapped=mapped,
-                               warp_only=bool((dominant["example"] < 0).all()))
+    warnings += frame_warnings(
+        no_face=no_face, pose_valid=pose["valid"], limited=limited, mapped=mapped, warp_only=bool((dominant["example"] < 0).all())
+    )
     data["warnings"] = warnings
     parts = [
         Section("Warnings", listing(warnings, css="warn")),

@@ -92,7 +92,7 @@ def page(*, title: str, meta: str, sections: Sequence[Section], data: Mapping[st
         '<html lang="en"><head><meta charset="utf-8">',
         '<meta name="viewport" content="width=device-width, initial-scale=1">',
         f"<title>{html.escape(title)}</title><style>{STYLE}</style></head><body>",
-        f"<h1>{html.escape(title)}</h1><p class=\"meta\">{html.escape(meta)}</p>",
+        f'<h1>{html.escape(title)}</h1><p class="meta">{html.escape(meta)}</p>',
     ]
     parts += [f"<section><h2>{html.escape(s.title)}</h2>{s.body}</section>" for s in sections]
     parts.append(f'<script type="application/json" id="report-data">{payload}</script>')

@@ -19,8 +19,9 @@ from stages.report.page import image, not_available, table
 FOLLOW_WARN_R = 0.5  # warn when a target signal correlates less than this with the performer's
 
 
-def expression_section(expression: Mapping[str, Mapping[str, np.ndarray]], *, reference: int,
-                       shaded: Mapping[str, list[tuple[int, int]]], fps: float) -> tuple[str, dict, list[str]]:
+def expression_section(
+    expression: Mapping[str, Mapping[str, np.ndarray]], *, reference: int, shaded: Mapping[str, list[tuple[int, int]]], fps: float
+) -> tuple[str, dict, list[str]]:
     """The expression section's HTML, its ``follow`` numbers and its warnings (a poorly followed
     signal).
 
@@ -39,18 +40,31 @@ def expression_section(expression: Mapping[str, Mapping[str, np.ndarray]], *, re
         rows.append([signal.replace("_", " "), f"{r:.2f}", f"{ratio:.2f}"])
         if np.isfinite(r) and r < FOLLOW_WARN_R:
             warnings.append(f"The target's {signal.replace('_', ' ')} follows the performer's poorly (r = {r:.2f})")
-    panels = [Panel(f"{s.replace('_', ' ')} (change from frame {reference})", "eye distances",
-                    {"performer": expression[s]["performer"], "target": expression[s]["target"]}, {"target": "--"})
-              for s in SIGNALS]
-    body = (image(timeline(panels, shaded=shaded, fps=fps), "image/png", "expression signals")
-            + "<p>How well the target follows (over frames with a face): Pearson r and the amplitude ratio "
-            "(target / performer standard deviation).</p>" + table(["signal", "r", "amplitude ratio"], rows))
+    panels = [
+        Panel(
+            f"{s.replace('_', ' ')} (change from frame {reference})",
+            "eye distances",
+            {"performer": expression[s]["performer"], "target": expression[s]["target"]},
+            {"target": "--"},
+        )
+        for s in SIGNALS
+    ]
+    body = (
+        image(timeline(panels, shaded=shaded, fps=fps), "image/png", "expression signals")
+        + "<p>How well the target follows (over frames with a face): Pearson r and the amplitude ratio "
+        "(target / performer standard deviation).</p>" + table(["signal", "r", "amplitude ratio"], rows)
+    )
     return body, follows, warnings
 
 
-def states_section(states: Mapping[str, Mapping[str, np.ndarray]], mapped: Mapping[str, np.ndarray] | None, *,
-                   shaded: Mapping[str, list[tuple[int, int]]], fps: float,
-                   frame_list: Any) -> tuple[str, list[str]]:
+def states_section(
+    states: Mapping[str, Mapping[str, np.ndarray]],
+    mapped: Mapping[str, np.ndarray] | None,
+    *,
+    shaded: Mapping[str, list[tuple[int, int]]],
+    fps: float,
+    frame_list: Any,
+) -> tuple[str, list[str]]:
     """The expression-states section: eye and lip-seal curves, and the states the performance
     demands beyond what the target pack's examples show, with their frames.
 
@@ -64,33 +78,57 @@ def states_section(states: Mapping[str, Mapping[str, np.ndarray]], mapped: Mappi
     """
     from stages.geometry.states import SEALED_GAP
 
-    panels = [Panel(f"{'image-left' if side == 'l' else 'image-right'} eye: lid gap", "eye distances",
-                    {"performer": states[f"eye_open_{side}"]["performer"], "target": states[f"eye_open_{side}"]["target"]},
-                    {"target": "--"}) for side in "lr"]
-    panels.append(Panel(f"inner-lip gap (lips sealed below {SEALED_GAP:g})", "eye distances",
-                        {"performer": states["mouth_open"]["performer"], "target": states["mouth_open"]["target"],
-                         "sealed": np.full(len(states["mouth_open"]["target"]), SEALED_GAP)},
-                        {"target": "--", "sealed": ":"}))
+    panels = [
+        Panel(
+            f"{'image-left' if side == 'l' else 'image-right'} eye: lid gap",
+            "eye distances",
+            {"performer": states[f"eye_open_{side}"]["performer"], "target": states[f"eye_open_{side}"]["target"]},
+            {"target": "--"},
+        )
+        for side in "lr"
+    ]
+    panels.append(
+        Panel(
+            f"inner-lip gap (lips sealed below {SEALED_GAP:g})",
+            "eye distances",
+            {
+                "performer": states["mouth_open"]["performer"],
+                "target": states["mouth_open"]["target"],
+                "sealed": np.full(len(states["mouth_open"]["target"]), SEALED_GAP),
+            },
+            {"target": "--", "sealed": ":"},
+        )
+    )
     body = image(timeline(panels, shaded=shaded, fps=fps), "image/png", "eye and lip states")
     warnings: list[str] = []
     if mapped is None or "beyond_pack" not in mapped:
-        return body + not_available("the run records no states beyond the pack (connect the mapping's points to "
-                                    "'mapped')"), warnings
+        return body + not_available(
+            "the run records no states beyond the pack (connect the mapping's points to 'mapped')"
+        ), warnings
     names = [str(n) for n in mapped["state_names"]]
     beyond = np.asarray(mapped["beyond_pack"], bool)
     covered = np.asarray(mapped["coverage"], np.float64)
     rows = []
     for k, name in enumerate(names):
-        rows.append([name.replace("_", " "), f"{covered[k, 0]:.2f} .. {covered[k, 1]:.2f}", str(int(beyond[:, k].sum())),
-                     frame_list(beyond[:, k]) if beyond[:, k].any() else ""])
+        rows.append(
+            [
+                name.replace("_", " "),
+                f"{covered[k, 0]:.2f} .. {covered[k, 1]:.2f}",
+                str(int(beyond[:, k].sum())),
+                frame_list(beyond[:, k]) if beyond[:, k].any() else "",
+            ]
+        )
         if beyond[:, k].any():
-            warnings.append(f"Beyond what the target pack's examples show: {name.replace('_', ' ')} in "
-                            f"{int(beyond[:, k].sum())} frames (the warp makes the geometry, the texture is the "
-                            f"nearest example's)")
-    body += ("<p>What the target pack's example expressions cover of each state (the range of its relative value: "
-             "lid gap over the neutral's, mouth opening in eye distances, change from the neutral) and the frames "
-             "where the performance goes beyond it.</p>"
-             + table(["state", "pack covers", "frames beyond", "frames"], rows))
+            warnings.append(
+                f"Beyond what the target pack's examples show: {name.replace('_', ' ')} in "
+                f"{int(beyond[:, k].sum())} frames (the warp makes the geometry, the texture is the "
+                f"nearest example's)"
+            )
+    body += (
+        "<p>What the target pack's example expressions cover of each state (the range of its relative value: "
+        "lid gap over the neutral's, mouth opening in eye distances, change from the neutral) and the frames "
+        "where the performance goes beyond it.</p>" + table(["state", "pack covers", "frames beyond", "frames"], rows)
+    )
     return body, warnings
 
 
@@ -103,17 +141,23 @@ def geometry_section(data: Mapping[str, Any], *, shaded: Mapping[str, list[tuple
         name -> ``(T,)``, see :mod:`stages.report.series`).
     shaded, fps : as for :func:`expression_section`.
     """
-    panels = [Panel("head pose", "degrees", data["head_pose"]),
-              Panel("tracking: valid points and mean confidence", "fraction", data["tracking"]),
-              Panel("fit residuals", "px", data["residuals"])]
-    panels += [Panel(f"motion propagation: {key}", "px" if key.endswith("_px") else "count", {key: values})
-               for key, values in data["propagation"].items()]
+    panels = [
+        Panel("head pose", "degrees", data["head_pose"]),
+        Panel("tracking: valid points and mean confidence", "fraction", data["tracking"]),
+        Panel("fit residuals", "px", data["residuals"]),
+    ]
+    panels += [
+        Panel(f"motion propagation: {key}", "px" if key.endswith("_px") else "count", {key: values})
+        for key, values in data["propagation"].items()
+    ]
     return image(timeline(panels, shaded=shaded, fps=fps), "image/png", "head pose and tracking") + (
-        "" if data["propagation"] else not_available("the target points carry no propagation iterations or residual"))
+        "" if data["propagation"] else not_available("the target points carry no propagation iterations or residual")
+    )
 
 
-def coefficient_section(dominant: Mapping[str, np.ndarray], coefficients: Mapping[str, np.ndarray], *,
-                        limited: np.ndarray | None) -> str:
+def coefficient_section(
+    dominant: Mapping[str, np.ndarray], coefficients: Mapping[str, np.ndarray], *, limited: np.ndarray | None
+) -> str:
     """The "which example drives which subregion" section's HTML.
 
     Parameters
@@ -122,10 +166,18 @@ def coefficient_section(dominant: Mapping[str, np.ndarray], coefficients: Mappin
     coefficients : the coefficients bundle (its ``subregions (S,)`` and ``examples (M,)`` names).
     limited : (T,) bool, the soft-limited frames, or None when the run records none.
     """
-    heatmap = dominant_heatmap(dominant["example"], dominant["weight"], subregions=coefficients["subregions"],
-                               examples=coefficients["examples"], limited=limited)
-    return image(heatmap, "image/png", "coefficients") + ("" if limited is not None else not_available(
-        "the run records no per-frame range limit (connect the mapping's points to 'mapped')"))
+    heatmap = dominant_heatmap(
+        dominant["example"],
+        dominant["weight"],
+        subregions=coefficients["subregions"],
+        examples=coefficients["examples"],
+        limited=limited,
+    )
+    return image(heatmap, "image/png", "coefficients") + (
+        ""
+        if limited is not None
+        else not_available("the run records no per-frame range limit (connect the mapping's points to 'mapped')")
+    )
 
 
 def occlusion_section(occlusion: Mapping[str, np.ndarray], ranges: Mapping[str, str]) -> str:
@@ -139,9 +191,15 @@ def occlusion_section(occlusion: Mapping[str, np.ndarray], ranges: Mapping[str, 
     """
     regions = [str(r) for r in occlusion["regions"]]
     occluded, judged = np.asarray(occlusion["occluded"], bool), np.asarray(occlusion["valid"], bool)
-    strip = flag_strip({r: occluded[:, k] for k, r in enumerate(regions)}, judged=judged,
-                       title="occluded face regions (grey: frame not judged)", colour="#c0392b")
+    strip = flag_strip(
+        {r: occluded[:, k] for k, r in enumerate(regions)},
+        judged=judged,
+        title="occluded face regions (grey: frame not judged)",
+        colour="#c0392b",
+    )
     rows = [[r, str(int(occluded[:, k].sum())), ranges[r] or "none"] for k, r in enumerate(regions)]
-    return (image(strip, "image/png", "occluded face regions")
-            + f"<p>Frames judged: {int(judged.sum())} of {len(judged)}.</p>"
-            + table(["region", "occluded frames", "frames"], rows))
+    return (
+        image(strip, "image/png", "occluded face regions")
+        + f"<p>Frames judged: {int(judged.sum())} of {len(judged)}.</p>"
+        + table(["region", "occluded frames", "frames"], rows)
+    )

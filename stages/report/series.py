@@ -117,8 +117,9 @@ def frame_valid(points: Mapping[str, np.ndarray]) -> np.ndarray:
     return np.asarray(points["valid"], bool).any(axis=1)
 
 
-def expression_series(performer: Mapping[str, np.ndarray], target: Mapping[str, np.ndarray], *,
-                      reference: int) -> dict[str, dict[str, np.ndarray]]:
+def expression_series(
+    performer: Mapping[str, np.ndarray], target: Mapping[str, np.ndarray], *, reference: int
+) -> dict[str, dict[str, np.ndarray]]:
     """Performer and target expression signals, as change from the reference (neutral) frame.
 
     Parameters
@@ -173,10 +174,10 @@ def residual_series(pose: Mapping[str, np.ndarray], similarity: Mapping[str, np.
     """Fit residuals per frame, px: the pose's reprojection error and the 2D similarity's residual
     (eq. 8-9), NaN where that fit is invalid."""
     return {
-        "pose_reproj_err_px": np.where(np.asarray(pose["valid"], bool),
-                                       np.asarray(pose["reproj_err_px"], np.float64), np.nan),
-        "similarity_residual_px": np.where(np.asarray(similarity["valid"], bool),
-                                           np.asarray(similarity["residual_px"], np.float64), np.nan),
+        "pose_reproj_err_px": np.where(np.asarray(pose["valid"], bool), np.asarray(pose["reproj_err_px"], np.float64), np.nan),
+        "similarity_residual_px": np.where(
+            np.asarray(similarity["valid"], bool), np.asarray(similarity["residual_px"], np.float64), np.nan
+        ),
     }
 
 

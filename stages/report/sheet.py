@@ -46,8 +46,9 @@ def sheet_frames(frames: int, *, evenly: int, peaks: Sequence[tuple[int, str]]) 
     return sorted(labels.items())
 
 
-def chosen_frames(tracked: Mapping[str, np.ndarray], target: Mapping[str, np.ndarray], *, reference: int,
-                  frames: int, evenly: int) -> list[tuple[int, str]]:
+def chosen_frames(
+    tracked: Mapping[str, np.ndarray], target: Mapping[str, np.ndarray], *, reference: int, frames: int, evenly: int
+) -> list[tuple[int, str]]:
     """:func:`sheet_frames` with the reference frame (labelled ``reference``) and the peaks of the
     performer's (else the target's) expression signals relative to it; evenly spaced frames and
     the reference only when the geometries have no expression signal
@@ -76,8 +77,15 @@ def sheet_jpeg(performer: np.ndarray, result: np.ndarray, *, height: int) -> byt
     return jpeg.tobytes()
 
 
-def sheet_bundle(chosen: Sequence[tuple[int, str]], jpegs: Sequence[bytes], *, frames: int, fps: float,
-                 performer_size: tuple[int, int], result_size: tuple[int, int]) -> dict[str, np.ndarray]:
+def sheet_bundle(
+    chosen: Sequence[tuple[int, str]],
+    jpegs: Sequence[bytes],
+    *,
+    frames: int,
+    fps: float,
+    performer_size: tuple[int, int],
+    result_size: tuple[int, int],
+) -> dict[str, np.ndarray]:
     """The ``sheet`` bundle (module docstring) of the ``chosen`` frames and their ``jpegs``
     (same order); sizes are ``(W, H)``."""
     if len(chosen) != len(jpegs):
@@ -100,7 +108,8 @@ def sheet_images(sheet: Mapping[str, np.ndarray]) -> list[tuple[int, str, bytes]
     frame, label, end = (np.asarray(sheet[k]) for k in ("frame", "label", "jpeg_end"))
     data = np.asarray(sheet["jpeg"], np.uint8).tobytes()
     if not (len(frame) == len(label) == len(end)) or (len(end) and (np.any(np.diff(end) < 0) or end[-1] != len(data))):
-        raise ValueError(f"sheet: {len(frame)} frames, {len(label)} labels and {len(end)} JPEG ends "
-                         f"over {len(data)} bytes do not agree")
+        raise ValueError(
+            f"sheet: {len(frame)} frames, {len(label)} labels and {len(end)} JPEG ends over {len(data)} bytes do not agree"
+        )
     starts = np.concatenate([[0], end[:-1]]).astype(int)
-    return [(int(f), str(lab), data[a:int(b)]) for f, lab, a, b in zip(frame, label, starts, end)]
+    return [(int(f), str(lab), data[a : int(b)]) for f, lab, a, b in zip(frame, label, starts, end)]

@@ -38,13 +38,18 @@ class ContactSheet(SequenceStage):
     name = "report.sheet"
     version = "2"  # 2: the reference frame in the sheet
     doc = "the report's contact sheet: performer | result JPEGs at evenly spaced frames and the expression peaks"
-    inputs = {"performer": "frames", "result": "frames", "target": "points", "tracked": "points", "pose": "pose",
-              "displacements": "displacements"}
+    inputs = {
+        "performer": "frames",
+        "result": "frames",
+        "target": "points",
+        "tracked": "points",
+        "pose": "pose",
+        "displacements": "displacements",
+    }
     optional_inputs = frozenset({"displacements"})
     outputs = {"sheet": "sheet"}
     params = (
-        Param("sheet_frames", int, 8, "evenly spaced contact-sheet frames (the expression peaks are added)",
-              min=0, max=200),
+        Param("sheet_frames", int, 8, "evenly spaced contact-sheet frames (the expression peaks are added)", min=0, max=200),
         Param("thumb_height", int, 180, "contact-sheet image height, px", min=16, max=2160),
     )
 
@@ -58,18 +63,23 @@ class ContactSheet(SequenceStage):
 
         reference = series.reference_frame(inputs.get("displacements"), inputs["pose"])
         try:
-            chosen = sheet.chosen_frames(inputs["tracked"], inputs["target"], reference=reference or 0, frames=frames,
-                                         evenly=int(params["sheet_frames"]))
+            chosen = sheet.chosen_frames(
+                inputs["tracked"], inputs["target"], reference=reference or 0, frames=frames, evenly=int(params["sheet_frames"])
+            )
             jpegs = []
             for f, _ in chosen:  # ascending: a stream being computed hands each frame over as it passes
-                jpegs.append(sheet.sheet_jpeg(performer.read(f, f + 1)[0], result.read(f, f + 1)[0],
-                                              height=int(params["thumb_height"])))
+                jpegs.append(
+                    sheet.sheet_jpeg(performer.read(f, f + 1)[0], result.read(f, f + 1)[0], height=int(params["thumb_height"]))
+                )
                 ctx.progress(1)
         except (KeyError, ValueError) as exc:
             raise StageError(f"{self.name}: {exc}") from None
         sizes = [(s.info.width, s.info.height) for s in (performer, result)]
-        return {"sheet": sheet.sheet_bundle(chosen, jpegs, frames=frames, fps=float(performer.info.fps),
-                                            performer_size=sizes[0], result_size=sizes[1])}
+        return {
+            "sheet": sheet.sheet_bundle(
+                chosen, jpegs, frames=frames, fps=float(performer.info.fps), performer_size=sizes[0], result_size=sizes[1]
+            )
+        }
 
 
 class WriteReport(SequenceStage):
@@ -79,26 +89,48 @@ class WriteReport(SequenceStage):
     version = "5"  # 5: the states section (eyes, lip seal, beyond the pack) and the occluded face regions
     doc = "an HTML page to judge the run: contact sheet, expression/pose/tracking curves, coefficients, warnings"
     inputs = {
-        "sheet": "sheet", "target": "points", "tracked": "points", "pose": "pose",
-        "similarity": "similarity", "coefficients": "coefficients", "displacements": "displacements",
-        "mapped": "points", "occlusion": "occlusion",
+        "sheet": "sheet",
+        "target": "points",
+        "tracked": "points",
+        "pose": "pose",
+        "similarity": "similarity",
+        "coefficients": "coefficients",
+        "displacements": "displacements",
+        "mapped": "points",
+        "occlusion": "occlusion",
     }
     optional_inputs = frozenset({"displacements", "mapped", "occlusion"})
     outputs = {"report": "files"}
     imports = ("stages.report.sections",)  # matplotlib (~1 s of one core): imported while the frames stream
     params = (
         Param("title", str, "Expression mapping: run report", "the page's heading"),
-        Param("enabled", bool, True, "write the page; false turns the report off (out/<stage>/ then holds only "
-              "its manifest, and nothing is read or drawn)"),
+        Param(
+            "enabled",
+            bool,
+            True,
+            "write the page; false turns the report off (out/<stage>/ then holds only "
+            "its manifest, and nothing is read or drawn)",
+        ),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         if not params.get("enabled", True):
             return {"report": None}
         frames = int(inputs["sheet"]["frames"])
-        check_bundles(self.name, inputs, {"target": "points", "tracked": "points", "pose": "pose",
-                                          "similarity": "similarity", "coefficients": "coefficients",
-                                          "mapped": "points", "occlusion": "occlusion"}, frames)
+        check_bundles(
+            self.name,
+            inputs,
+            {
+                "target": "points",
+                "tracked": "points",
+                "pose": "pose",
+                "similarity": "similarity",
+                "coefficients": "coefficients",
+                "mapped": "points",
+                "occlusion": "occlusion",
+            },
+            frames,
+        )
         try:
             from stages.report.html import report_html  # matplotlib: only when run
 

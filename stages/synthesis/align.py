@@ -25,7 +25,9 @@ import numpy as np
 __all__ = ["dis_flow", "apply_flow", "refine_alignment", "refine_model"]
 
 
-def dis_flow(reference: np.ndarray, image: np.ndarray, *, patch_px: int = 8, stride_px: int = 4, smoothness: float = 20.0) -> np.ndarray:
+def dis_flow(
+    reference: np.ndarray, image: np.ndarray, *, patch_px: int = 8, stride_px: int = 4, smoothness: float = 20.0
+) -> np.ndarray:
     """Dense flow from ``reference`` to ``image`` by DIS (``cv2.DISOpticalFlow``, preset MEDIUM).
 
     Parameters
@@ -41,8 +43,11 @@ def dis_flow(reference: np.ndarray, image: np.ndarray, *, patch_px: int = 8, str
     (H, W, 2) float32, px: ``reference(x, y) ~ image(x + f_x, y + f_y)``.
     """
     import cv2
+
     if reference.shape != image.shape or reference.ndim != 3 or reference.dtype != np.uint8 or image.dtype != np.uint8:
-        raise ValueError(f"reference and image must be (H, W, 3) uint8 of one shape, got {reference.shape} {reference.dtype} and {image.shape} {image.dtype}")
+        raise ValueError(
+            f"reference and image must be (H, W, 3) uint8 of one shape, got {reference.shape} {reference.dtype} and {image.shape} {image.dtype}"
+        )
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
     dis.setPatchSize(int(patch_px))
     dis.setPatchStride(int(stride_px))
@@ -64,12 +69,18 @@ def apply_flow(image: np.ndarray, flow: np.ndarray) -> np.ndarray:
     (H, W, C) of ``image``'s dtype (uint8 rounded).
     """
     import cv2
+
     H, W = image.shape[:2]
     if flow.shape != (H, W, 2):
         raise ValueError(f"flow must be (H, W, 2) = ({H}, {W}, 2), got {flow.shape}")
     gx, gy = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
-    return cv2.remap(image, gx + flow[..., 0].astype(np.float32), gy + flow[..., 1].astype(np.float32),
-                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return cv2.remap(
+        image,
+        gx + flow[..., 0].astype(np.float32),
+        gy + flow[..., 1].astype(np.float32),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
 
 
 def refine_alignment(images: np.ndarray, reference: np.ndarray, *, max_px: float = 3.0, **dis: float) -> np.ndarray:
@@ -88,7 +99,11 @@ def refine_alignment(images: np.ndarray, reference: np.ndarray, *, max_px: float
     -------
     (M, H, W, 3) uint8.
     """
-    return np.stack([apply_flow(im, np.clip(dis_flow(reference, im, **dis), -max_px, max_px)) for im in images]) if len(images) else images.copy()
+    return (
+        np.stack([apply_flow(im, np.clip(dis_flow(reference, im, **dis), -max_px, max_px)) for im in images])
+        if len(images)
+        else images.copy()
+    )
 
 
 def refine_model(model: Mapping[str, np.ndarray], *, max_px: float, **dis: float) -> dict[str, np.ndarray]:
@@ -99,11 +114,15 @@ def refine_model(model: Mapping[str, np.ndarray], *, max_px: float, **dis: float
     ``max_px`` <= 0 returns the model unchanged (as a dict).
     """
     from stages.synthesis.build import align_to_standard
+
     if max_px <= 0:
         return dict(model)
     neutral = align_to_standard(
-        np.asarray(model["neutral"])[None], np.asarray(model["neutral_points"])[None], model["standard_points"],
-        model["anchors"], model["triangles"],
+        np.asarray(model["neutral"])[None],
+        np.asarray(model["neutral_points"])[None],
+        model["standard_points"],
+        model["anchors"],
+        model["triangles"],
     )[0]
     return {
         **model,

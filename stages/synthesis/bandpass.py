@@ -41,6 +41,7 @@ def gaussian_lowpass(images: torch.Tensor, *, sigma_px: float) -> torch.Tensor:
     """
     import torch
     import torch.nn.functional as F
+
     if images.ndim != 4:
         raise ValueError(f"images must be (E, C, H, W), got shape {tuple(images.shape)}")
     if not sigma_px > 0:

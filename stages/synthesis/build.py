@@ -69,8 +69,15 @@ from stages.pack.bundles import images_from_bundle, layout_from_bundle
 from stages.synthesis.surround import head_matte, head_ring, surround_anchors, surround_triangles
 from stages.synthesis.warp import warp_images
 
-__all__ = ["blend_weight_map", "subregion_weights", "align_to_standard", "polygon_area", "teeth_host",
-           "build_synthesis_model", "BuildSynthesis"]
+__all__ = [
+    "blend_weight_map",
+    "subregion_weights",
+    "align_to_standard",
+    "polygon_area",
+    "teeth_host",
+    "build_synthesis_model",
+    "BuildSynthesis",
+]
 
 
 def blend_weight_map(
@@ -104,6 +111,7 @@ def blend_weight_map(
         The G and B channels: the pixel's own label and its blending partner.
     """
     import cv2
+
     H, W = region.shape
     i1 = region.astype(np.int16)
     r = np.ones((H, W), np.float32)
@@ -170,6 +178,7 @@ def align_to_standard(
     (M, H, W, C) uint8, each image warped so that its points land on ``standard_points``.
     """
     import torch
+
     M = len(images)
     if M == 0:
         return images.copy()
@@ -215,16 +224,21 @@ def build_synthesis_model(
     S = len(layout.subregions)
     std = np.asarray(pack.standard.points, np.float64)
     face_points = np.array([not any(i in s.points for s in layout.subregions if s.teeth) for i in range(layout.n_points)])
-    anchors, anchor_kind, anchor_hull = surround_anchors(std, size, face=face_points, per_side=anchors_per_side,
-                                                         margin=anchor_margin)
+    anchors, anchor_kind, anchor_hull = surround_anchors(
+        std, size, face=face_points, per_side=anchors_per_side, margin=anchor_margin
+    )
     region = subregion_mask(layout, std, size).astype(np.int16)
     region[region < 0] = S
     if not (region < S).any():
         raise StageError(f"actor pack {pack.path}: field 'standard.points': the subregion polygons cover no pixel")
     teeth = layout.teeth_subregion
     vertices = np.concatenate([std, anchors])
-    triangles, mouth_triangles = surround_triangles(vertices, size, mouth=None if teeth is None else list(teeth.polygon),
-                                                    mouth_inside=None if teeth is None else list(teeth.points))
+    triangles, mouth_triangles = surround_triangles(
+        vertices,
+        size,
+        mouth=None if teeth is None else list(teeth.polygon),
+        mouth_inside=None if teeth is None else list(teeth.points),
+    )
     names = [s.name for s in layout.subregions]
     no_blend = {(names.index(a), names.index(b)) for a, b in layout.no_blend}
     r, i1, i2 = blend_weight_map(region, n_labels=S + 1, band_px=band_px, no_blend=no_blend)
@@ -242,15 +256,24 @@ def build_synthesis_model(
             return np.zeros((0, H, W, 3), np.uint8), np.zeros((0, layout.n_points, 2)), np.zeros((0, H, W), np.uint8)
         pts = np.stack([np.asarray(e.points, np.float64) for e in expressions])
         imgs = np.stack([e.image for e in expressions])
-        mattes = align_to_standard(np.stack([matte(e) for e in expressions])[..., None], pts, std, anchors, triangles,
-                                   device=device, padding_mode="zeros")[..., 0]
+        mattes = align_to_standard(
+            np.stack([matte(e) for e in expressions])[..., None],
+            pts,
+            std,
+            anchors,
+            triangles,
+            device=device,
+            padding_mode="zeros",
+        )[..., 0]
         return align_to_standard(imgs, pts, std, anchors, triangles, device=device), pts, mattes
 
     examples, example_points, example_mattes = stack(pack.examples)
     teeth_images, teeth_points, teeth_mattes = stack(pack.teeth_examples)
     outside, _, outside_matte = stack([pack.neutral])
     if teeth is not None and len(teeth_images) == 0:
-        raise StageError(f"actor pack {pack.path}: field 'teeth_examples': the layout has a teeth subregion but the pack no teeth examples")
+        raise StageError(
+            f"actor pack {pack.path}: field 'teeth_examples': the layout has a teeth subregion but the pack no teeth examples"
+        )
     # real where the images that make the pixel are: the outside image outside the face, every example and
     # teeth example inside it (the face alpha 1 - w_S of eq. 7 weighs the two)
     alpha = 1.0 - subregion_weights(r, i1, i2, n_labels=S + 1)[S]
@@ -258,8 +281,10 @@ def build_synthesis_model(
     valid = (alpha * inside + (1.0 - alpha) * outside_matte[0].astype(np.float32) / 255.0).astype(np.float32)
     if teeth is not None:
         outline = list(teeth.polygon)
-        open_area = [float(polygon_area(np.asarray(pack.neutral.points, np.float64)[outline])),
-                     float(polygon_area(teeth_points[:, outline]).min())]
+        open_area = [
+            float(polygon_area(np.asarray(pack.neutral.points, np.float64)[outline])),
+            float(polygon_area(teeth_points[:, outline]).min()),
+        ]
     else:
         open_area = [0.0, 0.0]
     return {
@@ -311,8 +336,14 @@ class BuildSynthesis(SequenceStage):
     inputs = {"layout": "layout", "images": "pack_images"}
     outputs = {"model": "synthesis_model"}
     params = (
-        Param("band_px", float, 10.0, "full width of the fade-in/fade-out band along subregion boundaries, px (Sec. 7)",
-              min=0.0, max=1000.0),
+        Param(
+            "band_px",
+            float,
+            10.0,
+            "full width of the fade-in/fade-out band along subregion boundaries, px (Sec. 7)",
+            min=0.0,
+            max=1000.0,
+        ),
         Param("anchors_per_side", int, 4, "border anchor points per image side for the triangulation warp", min=1, max=64),
         Param("anchor_margin", float, 0.25, "anchor rectangle outside the image, fraction of the larger side", min=0.0, max=10.0),
     )

@@ -69,6 +69,7 @@ class SubregionQP:
     def _family(self, rows: list[int], members: list[np.ndarray], example_points: np.ndarray) -> _Family:
         """Gather G^R of each subregion (``members``: (N,) bool each), zero-padded to a common size."""
         import torch
+
         n = max((int(m.sum()) for m in members), default=1)
         index = np.zeros((len(members), n), np.int64)
         weight = np.zeros((len(members), n, 2))
@@ -118,6 +119,7 @@ class SubregionQP:
             points (eq. 5; the distance to the hull when ``ridge_px`` is 0), px^2.
         """
         import torch
+
         if mode not in QP_MODES:
             raise ValueError(f"mode must be one of {QP_MODES}, got {mode!r}")
         pts = torch.as_tensor(np.asarray(points, np.float64), device=self.device)
@@ -196,5 +198,7 @@ class NameCoefficients(SequenceStage):
         coeffs = np.asarray(inputs["coeffs"]["coeffs"], np.float64)
         expected = (len(model["subregion_names"]), max(len(model["example_points"]), len(model["teeth_points"]), 1))
         if coeffs.ndim != 3 or coeffs.shape[1:] != expected:
-            raise StageError(f"{self.name}: input 'coeffs' has shape {coeffs.shape}, the model needs (T, {expected[0]}, {expected[1]})")
+            raise StageError(
+                f"{self.name}: input 'coeffs' has shape {coeffs.shape}, the model needs (T, {expected[0]}, {expected[1]})"
+            )
         return {"coefficients": candidate_table(coeffs, model)}

@@ -38,8 +38,16 @@ def window_frames(sigma_frames: float) -> int:
     return int(math.ceil(3.0 * sigma_frames)) if sigma_frames > 0 else 0
 
 
-def coherent_coefficients(solve: Callable[[np.ndarray], np.ndarray], points: np.ndarray, start: int, stop: int,
-                          members: np.ndarray, *, sigma_frames: float, sigma_px: float) -> np.ndarray:
+def coherent_coefficients(
+    solve: Callable[[np.ndarray], np.ndarray],
+    points: np.ndarray,
+    start: int,
+    stop: int,
+    members: np.ndarray,
+    *,
+    sigma_frames: float,
+    sigma_px: float,
+) -> np.ndarray:
     """The filtered coefficients of frames ``start .. stop - 1`` (module docstring).
 
     Parameters
@@ -67,7 +75,7 @@ def coherent_coefficients(solve: Callable[[np.ndarray], np.ndarray], points: np.
     lo, hi = max(0, start - W), min(n_frames, stop + W)
     raw = np.asarray(solve(points[lo:hi]), np.float64)
     if W == 0:
-        return raw[start - lo:stop - lo]
+        return raw[start - lo : stop - lo]
     members = np.asarray(members, np.float64)
     count = np.maximum(members.sum(axis=1), 1.0)  # (S,)
     frames = np.arange(start, stop)

@@ -128,7 +128,11 @@ class Workspace:
 
 
 def prepare_compositor(
-    model: dict[str, np.ndarray], *, device: str = "cpu", detail_power: float = 1.0, detail_sigma_px: float = 2.0,
+    model: dict[str, np.ndarray],
+    *,
+    device: str = "cpu",
+    detail_power: float = 1.0,
+    detail_sigma_px: float = 2.0,
     teeth_power: float = 1.0,
 ) -> Compositor:
     """Move a ``synthesis_model`` bundle's images and weight map to ``device`` in compositing form.
@@ -141,6 +145,7 @@ def prepare_compositor(
     """
     import torch
     from stages.synthesis.bandpass import detail_band
+
     if not detail_power >= 1:
         raise ValueError(f"detail_power must be >= 1, got {detail_power}")
     W, H = (int(v) for v in model["size"])
@@ -176,33 +181,68 @@ def prepare_compositor(
         candidates.append(cand)
         pix = torch.nonzero(i1 == label).flatten()
         primary_index[pix] = torch.arange(p_off, p_off + len(pix), device=device)
-        primary.append(_Segment(p_off, p_off + len(pix), _gather(images, cand, pix) * r[pix],
-                                None if details is None else _gather(details, cand, pix) * r[pix]))
+        primary.append(
+            _Segment(
+                p_off,
+                p_off + len(pix),
+                _gather(images, cand, pix) * r[pix],
+                None if details is None else _gather(details, cand, pix) * r[pix],
+            )
+        )
         p_off += len(pix)
         pix = torch.nonzero(banded & (i2 == label)).flatten()
         secondary_index[pix] = torch.arange(s_off, s_off + len(pix), device=device)
-        secondary.append(_Segment(s_off, s_off + len(pix), _gather(images, cand, pix) * (1 - r[pix]),
-                                  None if details is None else _gather(details, cand, pix) * (1 - r[pix])))
+        secondary.append(
+            _Segment(
+                s_off,
+                s_off + len(pix),
+                _gather(images, cand, pix) * (1 - r[pix]),
+                None if details is None else _gather(details, cand, pix) * (1 - r[pix]),
+            )
+        )
         s_off += len(pix)
     primary_template = torch.zeros(3, p_off, device=device)
     secondary_template = torch.zeros(3, s_off + 1, device=device)
     primary_template[:, primary[S].start : primary[S].stop] = primary[S].stack[0]
     secondary_template[:, secondary[S].start : secondary[S].stop] = secondary[S].stack[0]
-    alpha = (1 - torch.where(i1 == S, r, torch.zeros_like(r)) - torch.where(banded & (i2 == S), 1 - r, torch.zeros_like(r))).clamp(0, 1)
+    alpha = (
+        1 - torch.where(i1 == S, r, torch.zeros_like(r)) - torch.where(banded & (i2 == S), 1 - r, torch.zeros_like(r))
+    ).clamp(0, 1)
     face = ((i1 != S) | (banded & (i2 != S))).view(H, W)
     rows, cols = torch.nonzero(face.any(1)).flatten(), torch.nonzero(face.any(0)).flatten()
     box = (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1) if len(rows) else (0, 0, 0, 0)
     y0, y1, x0, x1 = box
     background = torch.empty(H * W, 4, device=device)
-    background[:, :3] = (primary_template.index_select(1, primary_index) + secondary_template.index_select(1, secondary_index)).t()
+    background[:, :3] = (
+        primary_template.index_select(1, primary_index) + secondary_template.index_select(1, secondary_index)
+    ).t()
     background[:, 3] = alpha
     box_secondary = secondary_index.view(H, W)[y0:y1, x0:x1].flatten()
     box_band = torch.nonzero(box_secondary != s_off).flatten()
     return Compositor(
-        (W, H), candidates, primary, secondary, primary_index, secondary_index,
-        primary_template, secondary_template, alpha, images, r, i1, i2, details, float(detail_power), box,
-        primary_index.view(H, W)[y0:y1, x0:x1].flatten(), box_band, box_secondary[box_band], background,
-        teeth_label, host, float(teeth_power),
+        (W, H),
+        candidates,
+        primary,
+        secondary,
+        primary_index,
+        secondary_index,
+        primary_template,
+        secondary_template,
+        alpha,
+        images,
+        r,
+        i1,
+        i2,
+        details,
+        float(detail_power),
+        box,
+        primary_index.view(H, W)[y0:y1, x0:x1].flatten(),
+        box_band,
+        box_secondary[box_band],
+        background,
+        teeth_label,
+        host,
+        float(teeth_power),
     )
 
 
@@ -211,6 +251,7 @@ def workspace(comp: Compositor) -> Workspace:
     frame holding the background and the gathers' outputs, once instead of for every frame
     (5.8 + 7.7 + 2.6 MB at 600x800)."""
     import torch
+
     W, H = comp.size
     standard = comp.background.view(1, H, W, 4).clone().permute(0, 3, 1, 2)
     device = comp.background.device
@@ -235,6 +276,7 @@ def _kept(c: list[float], min_coeff: float) -> list[tuple[int, float]]:
 def _detail_terms(terms: list[tuple[int, float]], power: float) -> list[tuple[int, float]]:
     """(index, c^_k - c_k) of the kept terms: the detail-band correction of band-pass blending."""
     from stages.synthesis.bandpass import sharpened
+
     c = np.array([v for _, v in terms])
     return [(k, float(w - v)) for (k, v), w in zip(terms, sharpened(c, power=power)) if w != v]
 
@@ -242,6 +284,7 @@ def _detail_terms(terms: list[tuple[int, float]], power: float) -> list[tuple[in
 def _fill(buffer: torch.Tensor, segment: _Segment, terms: list[tuple[int, float]], detail_terms: list[tuple[int, float]]) -> None:
     """``buffer[:, segment] = sum_k c_k stack_k + sum_k d_k detail_k`` without gathering the stacks."""
     import torch
+
     if segment.stop == segment.start:
         return
     view = buffer[:, segment.start : segment.stop]
@@ -270,6 +313,7 @@ def mixed_coefficients(comp: Compositor, coeffs: torch.Tensor, teeth_mix: np.nda
     """
     import torch
     from stages.synthesis.bandpass import sharpened
+
     t, host = comp.teeth_label, comp.teeth_host
     if t < 0 or (host < 0 and comp.teeth_power == 1):
         return coeffs
@@ -280,19 +324,30 @@ def mixed_coefficients(comp: Compositor, coeffs: torch.Tensor, teeth_mix: np.nda
     out[..., :K] = coeffs
     teeth = coeffs[:, t, :Mt]
     if comp.teeth_power != 1:
-        teeth = torch.as_tensor(sharpened(teeth.detach().cpu().numpy().clip(0, None), power=comp.teeth_power),
-                                dtype=coeffs.dtype, device=coeffs.device)
-    m = torch.ones(B, dtype=coeffs.dtype, device=coeffs.device) if teeth_mix is None or host < 0 else \
-        torch.as_tensor(np.asarray(teeth_mix, np.float64), dtype=coeffs.dtype, device=coeffs.device)
+        teeth = torch.as_tensor(
+            sharpened(teeth.detach().cpu().numpy().clip(0, None), power=comp.teeth_power),
+            dtype=coeffs.dtype,
+            device=coeffs.device,
+        )
+    m = (
+        torch.ones(B, dtype=coeffs.dtype, device=coeffs.device)
+        if teeth_mix is None or host < 0
+        else torch.as_tensor(np.asarray(teeth_mix, np.float64), dtype=coeffs.dtype, device=coeffs.device)
+    )
     out[:, t, :Mt] = m[:, None] * teeth
     if host >= 0:
-        out[:, t, Mt:Mt + M] = (1 - m)[:, None] * coeffs[:, host, :M]
-    out[:, t, Mt + M:] = 0
+        out[:, t, Mt : Mt + M] = (1 - m)[:, None] * coeffs[:, host, :M]
+    out[:, t, Mt + M :] = 0
     return out
 
 
 def composite(
-    comp: Compositor, coeffs: torch.Tensor, *, min_coeff: float = MIN_COEFF, direct: bool = False, workspace: Workspace | None = None,
+    comp: Compositor,
+    coeffs: torch.Tensor,
+    *,
+    min_coeff: float = MIN_COEFF,
+    direct: bool = False,
+    workspace: Workspace | None = None,
     teeth_mix: np.ndarray | None = None,
 ) -> torch.Tensor:
     """Blend the aligned example images by per-subregion coefficients (eq. 6, 7).
@@ -325,6 +380,7 @@ def composite(
     (:func:`stages.synthesis.warp.warp_images`, ``cv2.remap``) reads without a copy.
     """
     import torch
+
     W, H = comp.size
     B, S = coeffs.shape[:2]
     coeffs = mixed_coefficients(comp, coeffs, teeth_mix)
@@ -344,6 +400,7 @@ def composite(
         full[:, S, -1] = 1.0
         if comp.details is not None:
             from stages.synthesis.bandpass import sharpened
+
             sharp = torch.zeros_like(full)
             for label in range(S + 1):
                 cand = comp.candidates[label]
@@ -372,7 +429,9 @@ def composite(
             if workspace is None:
                 frame.copy_(comp.background)
             inside = frame.view(H, W, 4)[y0:y1, x0:x1, :3].permute(2, 0, 1)  # (3, h, w) view
-            face = torch.index_select(primary, 1, comp.box_primary_index, out=None if workspace is None else workspace.face)  # (3, h*w)
+            face = torch.index_select(
+                primary, 1, comp.box_primary_index, out=None if workspace is None else workspace.face
+            )  # (3, h*w)
             band = torch.index_select(secondary, 1, comp.box_band_secondary, out=None if workspace is None else workspace.band)
             face.index_add_(1, comp.box_band, band)
             inside.copy_(face.view(inside.shape))

@@ -71,6 +71,7 @@ def nearest_mean(distance: np.ndarray, values: torch.Tensor, k: int) -> torch.Te
     (B, M) tensor.
     """
     import torch
+
     if not 1 <= k <= distance.shape[1]:
         raise ValueError(f"k must be in 1..{distance.shape[1]}, got {k}")
     nearest = np.argsort(distance, axis=1, kind="stable")[:, :k]
@@ -98,6 +99,7 @@ def cv_errors(distance: np.ndarray, coeffs: torch.Tensor, gram: torch.Tensor, *,
     training frames' number).
     """
     import torch
+
     T = len(distance)
     if not 2 <= folds <= T:
         raise ValueError(f"folds must be in 2..{T} (the footage frames), got {folds}")
@@ -139,15 +141,26 @@ class FootageCoefficients:
         Per mode the cross-validation errors, (len(ks),), aligned with ``ks``.
     """
 
-    def __init__(self, model: Mapping[str, np.ndarray], footage_points: np.ndarray, footage_standard: torch.Tensor, *,
-                 ks: Sequence[int] = K_CANDIDATES, folds: int = 5, batch: int = 16) -> None:
+    def __init__(
+        self,
+        model: Mapping[str, np.ndarray],
+        footage_points: np.ndarray,
+        footage_standard: torch.Tensor,
+        *,
+        ks: Sequence[int] = K_CANDIDATES,
+        folds: int = 5,
+        batch: int = 16,
+    ) -> None:
         import torch
+
         self.footage_points = np.asarray(footage_points, np.float64)
         N = len(model["standard_points"])
         T = len(self.footage_points)
         if self.footage_points.shape != (T, N, 2) or footage_standard.shape[0] != T:
-            raise ValueError(f"footage_points must be (T, {N}, 2) and footage_standard (T, 3, H, W) with the same T; "
-                             f"got {self.footage_points.shape} and {tuple(footage_standard.shape)}")
+            raise ValueError(
+                f"footage_points must be (T, {N}, 2) and footage_standard (T, 3, H, W) with the same T; "
+                f"got {self.footage_points.shape} and {tuple(footage_standard.shape)}"
+            )
         if not ks or min(ks) < 1:
             raise ValueError(f"ks must be positive neighbourhood sizes, got {list(ks)}")
         self.qp = SubregionQP(model)
@@ -156,7 +169,7 @@ class FootageCoefficients:
         teeth = np.asarray(model["subregion_teeth"], bool)
         self.k, self.cv, self.problems = {}, {}, {}
         for mode in ("full", "global"):
-            parts = [texture_grams(model, footage_standard[s:s + batch], mode=mode) for s in range(0, T, batch)]
+            parts = [texture_grams(model, footage_standard[s : s + batch], mode=mode) for s in range(0, T, batch)]
             problems = []
             errors = np.zeros(len(self.ks))
             for p, (rows, _) in enumerate(parts[0]):
@@ -165,8 +178,9 @@ class FootageCoefficients:
                 gram = torch.cat([part[p][1] for part in parts])
                 coeffs = solve_simplex_qp(2.0 * gram)
                 points = member[rows].any(0)
-                errors += cv_errors(subregion_distance(self.footage_points, self.footage_points, points), coeffs, gram,
-                                    ks=self.ks, folds=folds)
+                errors += cv_errors(
+                    subregion_distance(self.footage_points, self.footage_points, points), coeffs, gram, ks=self.ks, folds=folds
+                )
                 problems.append((rows, points, coeffs))
             self.problems[mode], self.cv[mode] = problems, errors
             self.k[mode] = min(self.ks[int(np.argmin(errors))], T)

@@ -24,6 +24,7 @@ def masked_psnr(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor, *, data_ra
     mask : (H, W) bool tensor
     """
     import torch
+
     diff = (a.double() - b.double())[:, mask]
     mse = float((diff * diff).mean())
     return float("inf") if mse == 0 else 10.0 * float(torch.log10(torch.tensor(data_range**2 / mse)))
@@ -42,6 +43,7 @@ def ssim_map(a: torch.Tensor, b: torch.Tensor, *, data_range: float = 1.0, sigma
     """
     import torch
     import torch.nn.functional as F
+
     x = torch.arange(-radius, radius + 1, dtype=torch.float64)
     g = torch.exp(-(x * x) / (2 * sigma * sigma))
     g = g / g.sum()
@@ -68,7 +70,6 @@ def masked_ssim(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor, *, data_ra
     return float(ssim_map(a, b, data_range=data_range)[mask].mean())
 
 
-
 def subregion_errors(a: torch.Tensor, b: torch.Tensor, region: np.ndarray, names: Sequence[str]) -> dict[str, tuple[float, int]]:
     """Squared error over each subregion's pixels, for PSNR pooled over images (:func:`pooled_psnr`).
 
@@ -87,6 +88,7 @@ def subregion_errors(a: torch.Tensor, b: torch.Tensor, region: np.ndarray, names
     cover at least one pixel.
     """
     import torch
+
     region = np.asarray(region)
     if region.shape != tuple(a.shape[-2:]):
         raise ValueError(f"region must have the images' shape {tuple(a.shape[-2:])}, got {region.shape}")

@@ -38,7 +38,9 @@ def texture_problems(model: Mapping[str, np.ndarray], *, mode: str = "full") -> 
     return problems + [[s] for s in range(len(teeth)) if teeth[s]]
 
 
-def texture_grams(model: Mapping[str, np.ndarray], truth: torch.Tensor, *, mode: str = "full") -> list[tuple[list[int], torch.Tensor]]:
+def texture_grams(
+    model: Mapping[str, np.ndarray], truth: torch.Tensor, *, mode: str = "full"
+) -> list[tuple[list[int], torch.Tensor]]:
     """Per problem of :func:`texture_problems`, the Hessians of the oracle's texture error.
 
     For a problem over the pixels ``R`` with candidate images ``E_i`` (the examples, or the teeth
@@ -61,6 +63,7 @@ def texture_grams(model: Mapping[str, np.ndarray], truth: torch.Tensor, *, mode:
         the problem's number of candidates (``m = 0`` when it has none or no pixels: skip it).
     """
     import torch
+
     problems = texture_problems(model, mode=mode)
     W, H = (int(v) for v in model["size"])
     if truth.ndim != 4 or tuple(truth.shape[1:]) != (3, H, W):
@@ -76,7 +79,13 @@ def texture_grams(model: Mapping[str, np.ndarray], truth: torch.Tensor, *, mode:
         if len(stack) == 0 or len(pix) == 0:
             out.append((rows, torch.zeros(B, 0, 0, dtype=torch.float64)))
             continue
-        E = torch.from_numpy(stack.reshape(len(stack), H * W, 3)).index_select(1, pix).to(torch.float64).div(255.0).reshape(len(stack), -1)
+        E = (
+            torch.from_numpy(stack.reshape(len(stack), H * W, 3))
+            .index_select(1, pix)
+            .to(torch.float64)
+            .div(255.0)
+            .reshape(len(stack), -1)
+        )
         T = target.index_select(2, pix).permute(0, 2, 1).reshape(B, -1)  # (B, 3 P), pixel-major as E
         # ||T - sum c_i E_i||^2 = c^T Q c with Q_ij = (E_i - T).(E_j - T) (sum c_i = 1), expanded
         G, b, t = E @ E.T, T @ E.T, (T * T).sum(-1)
@@ -103,6 +112,7 @@ def texture_oracle(model: Mapping[str, np.ndarray], truth: torch.Tensor, *, mode
     ``K = max(M, Mt)``.
     """
     import torch
+
     grams = texture_grams(model, truth, mode=mode)
     K = max(len(model["examples"]), len(model["teeth"]), 1)
     coeffs = torch.zeros(truth.shape[0], len(model["subregion_teeth"]), K, dtype=torch.float64)

@@ -66,6 +66,7 @@ def solve_simplex_qp(
         dtype and device of ``Q``.
     """
     import torch
+
     if Q.ndim != 3 or Q.shape[-1] != Q.shape[-2]:
         raise ValueError(f"Q must be (B, M, M), got {tuple(Q.shape)}")
     B, M, _ = Q.shape
@@ -163,6 +164,7 @@ def project_onto_convex_hull(
         target, px^2 (the hull distance when ``ridge`` is absent or zero).
     """
     import torch
+
     if examples.ndim != 3 or target.shape != (examples.shape[0], examples.shape[2]):
         raise ValueError(f"examples must be (B, M, D) and target (B, D); got {tuple(examples.shape)}, {tuple(target.shape)}")
     X = examples - target[:, None, :]

@@ -38,8 +38,18 @@ import numpy as np
 
 from stages.synthesis.warp import border_anchors
 
-__all__ = ["RING_SCALES", "BORDER", "RING_HEAD", "RING_OUTER", "head_ring", "surround_anchors", "surround_triangles", "head_matte",
-           "anchor_depth", "motion_weights"]
+__all__ = [
+    "RING_SCALES",
+    "BORDER",
+    "RING_HEAD",
+    "RING_OUTER",
+    "head_ring",
+    "surround_anchors",
+    "surround_triangles",
+    "head_matte",
+    "anchor_depth",
+    "motion_weights",
+]
 
 RING_SCALES = (1.3, 1.7)
 BORDER, RING_HEAD, RING_OUTER = 0, 1, 2
@@ -50,6 +60,7 @@ EDGE_SPACING = 0.125  # points on the image's edge: this fraction of the longer 
 def _hull(points: np.ndarray) -> np.ndarray:
     """Indices of the convex hull of ``points (N, 2)``, counter-clockwise (y up) order."""
     from scipy.spatial import ConvexHull
+
     return ConvexHull(points).vertices.astype(np.int64)
 
 
@@ -60,8 +71,9 @@ def head_ring(points: np.ndarray, face: np.ndarray) -> tuple[np.ndarray, np.ndar
     return ring_idx, np.asarray(points, np.float64)[ring_idx].mean(0)
 
 
-def surround_anchors(points: np.ndarray, size: tuple[int, int], *, face: np.ndarray, per_side: int = 4,
-                     margin: float = 0.25) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def surround_anchors(
+    points: np.ndarray, size: tuple[int, int], *, face: np.ndarray, per_side: int = 4, margin: float = 0.25
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The anchors of the synthesis model: the two rings and the border (module docstring).
 
     Parameters
@@ -102,6 +114,7 @@ def surround_anchors(points: np.ndarray, size: tuple[int, int], *, face: np.ndar
 def _inside_polygon(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
     """``(n,) bool``: which of ``points (n, 2)`` lie inside the closed ``polygon (m, 2)``."""
     from matplotlib.path import Path as PolygonPath
+
     return PolygonPath(polygon).contains_points(points)
 
 
@@ -158,8 +171,9 @@ def constrain(triangles: np.ndarray, vertices: np.ndarray, edges: list[tuple[int
     return np.array(tri, np.int32)
 
 
-def surround_triangles(vertices: np.ndarray, size: tuple[int, int], *, mouth: np.ndarray | None = None,
-                       mouth_inside: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def surround_triangles(
+    vertices: np.ndarray, size: tuple[int, int], *, mouth: np.ndarray | None = None, mouth_inside: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """The triangulation over feature points and anchors, in parts that meet along the image's edge,
     the mouth opening's outline an edge of it.
 
@@ -186,6 +200,7 @@ def surround_triangles(vertices: np.ndarray, size: tuple[int, int], *, mouth: np
         The triangles inside the outline.
     """
     from stages.synthesis.warp import triangulate
+
     vertices = np.asarray(vertices, np.float64)
     W, H = size
     lo, hi = np.array([-0.5, -0.5]), np.array([W - 0.5, H - 0.5])
@@ -211,6 +226,7 @@ def head_matte(points: np.ndarray, face: np.ndarray, size: tuple[int, int]) -> n
     ``points[face]`` scaled by ``RING_SCALES[0]``) in the standard geometry, its edge blurred by a
     Gaussian of ``HEAD_MATTE_SOFTNESS`` times the face's radius."""
     import cv2
+
     W, H = size
     points = np.asarray(points, np.float64)
     ring_idx, centre = head_ring(points, face)

@@ -31,8 +31,18 @@ from stages.synthesis.composite import MIN_COEFF, Compositor, Workspace, composi
 from stages.synthesis.coefficients import SubregionQP, target_geometry
 from stages.synthesis.warp import Buffers, scratch, warp_images
 
-__all__ = ["MODES", "HEAD_MOTION", "HeadTurn", "Synthesizer", "half_float_planes", "head_motion_points", "head_motion_frame",
-           "teeth_mix", "output_size", "Synthesize"]
+__all__ = [
+    "MODES",
+    "HEAD_MOTION",
+    "HeadTurn",
+    "Synthesizer",
+    "half_float_planes",
+    "head_motion_points",
+    "head_motion_frame",
+    "teeth_mix",
+    "output_size",
+    "Synthesize",
+]
 
 MODES = ("full", "warp-only", "global")
 HEAD_MOTION = ("auto", "depth", "similarity", "none")
@@ -138,6 +148,7 @@ def half_float_planes(
     """
     import cv2
     import torch
+
     hwc = rgba.detach().permute(0, 2, 3, 1)
     if rgba.device.type != "cpu":
         frames, mask = hwc[..., :3].to(torch.float16).cpu().numpy(), hwc[..., 3:].to(torch.float16).cpu().numpy()
@@ -180,6 +191,7 @@ def teeth_mix(points: np.ndarray, polygon: np.ndarray, open_area: np.ndarray) ->
     (B,) float64 in [0, 1]; ones when ``a1 <= a0`` (no closed state to mix in) or no polygon.
     """
     from stages.synthesis.build import polygon_area
+
     B = len(points)
     a0, a1 = (float(v) for v in open_area)
     if len(polygon) < 3 or a1 <= a0:
@@ -242,6 +254,7 @@ class Synthesizer:
     ) -> None:
         import torch
         from stages.synthesis.align import refine_model
+
         model = refine_model(model, max_px=flow_max_px)
         self.device = device
         self.qp = SubregionQP(model, device=device, ridge_px=ridge_px)
@@ -288,6 +301,7 @@ class Synthesizer:
         in [0, 1]; channels-last memory (``permute(0, 2, 3, 1)`` of it is contiguous).
         """
         import torch
+
         W, H = self.size
         alpha = self.compositor.alpha.view(1, 1, H, W)
         alpha = warp_images(alpha, self.standard_points[None], self.neutral_points[None], self.triangles).clamp_(0, 1)
@@ -301,6 +315,7 @@ class Synthesizer:
         float32 channels-last, in the standard geometry (the composite's) and in the neutral's
         (``warp-only``: the neutral's own matte, the head matte carried as the face alpha is)."""
         import torch
+
         W, H = self.size
         head = torch.from_numpy(np.asarray(model["head_matte"], np.float32)).to(self.device)
         standard = torch.empty(1, H, W, 2, dtype=torch.float32, device=self.device)
@@ -308,8 +323,9 @@ class Synthesizer:
         standard[..., 1] = head
         neutral = torch.empty(1, H, W, 2, dtype=torch.float32, device=self.device)
         neutral[..., 0] = torch.from_numpy(np.asarray(model["neutral_valid"], np.float32)).to(self.device)
-        neutral[..., 1] = warp_images(head.view(1, 1, H, W), self.standard_points[None], self.neutral_points[None],
-                                      self.triangles)[:, 0].clamp_(0, 1)
+        neutral[..., 1] = warp_images(
+            head.view(1, 1, H, W), self.standard_points[None], self.neutral_points[None], self.triangles
+        )[:, 0].clamp_(0, 1)
         return standard.permute(0, 3, 1, 2), neutral.permute(0, 3, 1, 2)
 
     def _workspace(self) -> Workspace:
@@ -343,6 +359,7 @@ class Synthesizer:
         (B, S, K) float64 tensor on the synthesizer's device; zeros in ``warp-only`` mode (no QP).
         """
         import torch
+
         points = np.ascontiguousarray(points, np.float64)
         if mode == "warp-only":
             return torch.zeros(len(points), self.qp.n_subregions, self.qp.K, dtype=torch.float64, device=self.device)
@@ -428,17 +445,30 @@ class Synthesizer:
         buffers = self._buffers()
         for i in range(B):
             one = slice(i, i + 1)
-            rgba, mattes, _ = self.render_rgba(points[one], mode=mode, similarity=None if similarity is None else similarity[one],
-                                               turn=None if turn is None else turn.frames(one), direct=direct,
-                                               coeffs=coeffs[one], buffers=buffers, **options)
+            rgba, mattes, _ = self.render_rgba(
+                points[one],
+                mode=mode,
+                similarity=None if similarity is None else similarity[one],
+                turn=None if turn is None else turn.frames(one),
+                direct=direct,
+                coeffs=coeffs[one],
+                buffers=buffers,
+                **options,
+            )
             half_float_planes(rgba, out=(frames[one], mask[one]), buffers=buffers)
             matte_planes(mattes[0], head=head[i, ..., 0], filled=filled[i, ..., 0])
             progress(1)
         return frames, mask, head, filled, coeffs
 
     def _destinations(
-        self, points: np.ndarray, similarity: np.ndarray | None, turn: HeadTurn | None, *, source_center: np.ndarray | None,
-        target_center: np.ndarray | None, motion_scale: float,
+        self,
+        points: np.ndarray,
+        similarity: np.ndarray | None,
+        turn: HeadTurn | None,
+        *,
+        source_center: np.ndarray | None,
+        target_center: np.ndarray | None,
+        motion_scale: float,
     ) -> tuple[np.ndarray, list[np.ndarray]]:
         """Per frame the warp's destination points (feature points and anchors, output px) and the
         triangles in painting order: the head turned in depth (:mod:`stages.synthesis.turn`), the
@@ -450,6 +480,7 @@ class Synthesizer:
             from stages.render3d.frame import scaled_intrinsics
             from stages.synthesis.surround import anchor_depth, motion_weights
             from stages.synthesis.turn import depth_order, turned_points
+
             lifted = lift(self.standard_np, turn.depth, turn.camera)
             depth = np.concatenate([turn.depth, anchor_depth(lifted, self.anchor_kind, self.anchor_hull, self.face_outline)])
             weight = np.concatenate([np.ones(len(turn.depth)), motion_weights(self.anchor_kind)])
@@ -459,8 +490,9 @@ class Synthesizer:
         if similarity is not None:
             c_t = self.center if target_center is None else np.asarray(target_center, np.float64)
             c_s = c_t if source_center is None else np.asarray(source_center, np.float64)
-            vertices = head_motion_points(vertices, np.asarray(similarity, np.float64), source_center=c_s, target_center=c_t,
-                                          scale=motion_scale)
+            vertices = head_motion_points(
+                vertices, np.asarray(similarity, np.float64), source_center=c_s, target_center=c_t, scale=motion_scale
+            )
         return output_points(vertices, self.size, self.out_size), [self.triangles] * B
 
     def render_rgba(
@@ -527,12 +559,14 @@ class Synthesizer:
         the fill's weight ``validity`` of a pixel on the edge of the matte keeps.
         """
         import torch
+
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
         points = np.asarray(points, np.float64)
         B = len(points)
-        dst, triangles = self._destinations(points, similarity, turn, source_center=source_center,
-                                            target_center=target_center, motion_scale=motion_scale)
+        dst, triangles = self._destinations(
+            points, similarity, turn, source_center=source_center, target_center=target_center, motion_scale=motion_scale
+        )
         dst_t = torch.from_numpy(dst).to(self.device)
         if coeffs is None:
             coeffs = self.coefficients(points, mode=mode)
@@ -542,16 +576,39 @@ class Synthesizer:
             source, source_points, mattes = self.neutral_rgba, self.neutral_points, self.neutral_mattes
         else:
             one = B == 1 and not direct  # one frame: in this thread's workspace (no per-frame buffers)
-            source = composite(self.compositor, coeffs, min_coeff=min_coeff, direct=direct,
-                               workspace=self._workspace() if one else None, teeth_mix=self.teeth_mix(points))
+            source = composite(
+                self.compositor,
+                coeffs,
+                min_coeff=min_coeff,
+                direct=direct,
+                workspace=self._workspace() if one else None,
+                teeth_mix=self.teeth_mix(points),
+            )
             source_points, mattes = self.standard_points, self.mattes
         if B == 1:
-            out, warped = warp_images(source, source_points[None], dst_t, triangles[0], size=self.out_size,
-                                      padding_mode=self.padding_mode, buffers=buffers, extra=mattes)
+            out, warped = warp_images(
+                source,
+                source_points[None],
+                dst_t,
+                triangles[0],
+                size=self.out_size,
+                padding_mode=self.padding_mode,
+                buffers=buffers,
+                extra=mattes,
+            )
         else:  # frame by frame: each has its own triangle order
-            pairs = [warp_images(source[b:b + 1] if len(source) > 1 else source, source_points[None], dst_t[b:b + 1],
-                                 triangles[b], size=self.out_size, padding_mode=self.padding_mode, extra=mattes)
-                     for b in range(B)]
+            pairs = [
+                warp_images(
+                    source[b : b + 1] if len(source) > 1 else source,
+                    source_points[None],
+                    dst_t[b : b + 1],
+                    triangles[b],
+                    size=self.out_size,
+                    padding_mode=self.padding_mode,
+                    extra=mattes,
+                )
+                for b in range(B)
+            ]
             out, warped = torch.cat([p[0] for p in pairs]), torch.cat([p[1] for p in pairs])
         out = out.clamp_(0, 1)
         if fill:
@@ -564,6 +621,7 @@ def matte_planes(mattes: torch.Tensor, *, head: np.ndarray, filled: np.ndarray) 
     and ``filled`` (``1 - validity``, clipped to [0, 1]), converted by OpenCV (numpy's float16
     conversion is a slow scalar loop)."""
     import cv2
+
     planes = mattes.permute(1, 2, 0).cpu().numpy()  # (H, W, 2); on the CPU a view of channels-last memory
     head[...] = cv2.multiply(np.ascontiguousarray(planes[..., 1]), 1.0, dtype=cv2.CV_16F)
     missing = cv2.max(cv2.subtract(1.0, np.ascontiguousarray(planes[..., 0])), 0.0)
@@ -575,6 +633,7 @@ def fill_frames(rgba: torch.Tensor, valid: torch.Tensor) -> None:
     (:func:`stages.fill.fill_regions`, region by region); frames with no pixel less than half real
     are left as they are."""
     from stages.fill import fill_regions
+
     for b in range(len(rgba)):
         if float(valid[b].min()) >= 0.5:
             continue
@@ -588,6 +647,7 @@ def fill_frames(rgba: torch.Tensor, valid: torch.Tensor) -> None:
 def torch_from(array: np.ndarray, like: torch.Tensor) -> torch.Tensor:
     """``array`` as a tensor of ``like``'s dtype on its device."""
     import torch
+
     return torch.from_numpy(np.ascontiguousarray(array)).to(device=like.device, dtype=like.dtype)
 
 
@@ -624,8 +684,10 @@ class Synthesize(FrameStage):
 
     name = "synthesis.synthesize"
     version = "8"  # 8: min_coeff 0.01; example weights coherent in time (stages.synthesis.coherence); depth-aware head turn, output size, head and filled mattes, fill, teeth mix, the outside from the neutral
-    doc = ("per-subregion QP + compositing + blending + warp (head turned in depth): target points per frame -> "
-           "half-float sRGB frames, face mask, head matte, filled matte, coefficients")
+    doc = (
+        "per-subregion QP + compositing + blending + warp (head turned in depth): target points per frame -> "
+        "half-float sRGB frames, face mask, head matte, filled matte, coefficients"
+    )
     inputs = {
         "model": "synthesis_model",
         "points": "points",
@@ -637,26 +699,107 @@ class Synthesize(FrameStage):
     optional_inputs = frozenset({"points", "displacements", "similarity", "performer", "head"})
     outputs = {"frames": "frames", "mask": "frames", "head_matte": "frames", "filled": "frames", "coeffs": "synthesis_coeffs"}
     params = (
-        Param("mode", str, "full", "full: per-subregion synthesis; global: one combination (Pighin); warp-only: neutral warped", MODES),
-        Param("min_coeff", float, MIN_COEFF, "coefficients at or below this are skipped in compositing (then renormalised; the weights made coherent in time spread over more examples: 0.01 drops 0.3 % of their mass and a sixth of the compositing)", min=0.0, max=1.0),
-        Param("head_motion", str, "auto", "depth: the whole image turned in 3D by input 'head'; similarity: the 2D similarity "
-              "(eq. 8-9) of input 'similarity'; none; auto: depth with 'head', else similarity with 'similarity'",
-              HEAD_MOTION),
-        Param("head_motion_scale", float, 1.0, "similarity mode: multiplies the carried head translation (on top of the face-size ratio from 'performer')", min=-100.0, max=100.0),
-        Param("width", int, 0, "output width, px (the height keeps the pack's aspect ratio); 0: the pack's size", min=0, max=8192),
-        Param("upscale", bool, False, "allow an output that enlarges the footage the pack was cut from (warned); without it such a size is refused"),
+        Param(
+            "mode",
+            str,
+            "full",
+            "full: per-subregion synthesis; global: one combination (Pighin); warp-only: neutral warped",
+            MODES,
+        ),
+        Param(
+            "min_coeff",
+            float,
+            MIN_COEFF,
+            "coefficients at or below this are skipped in compositing (then renormalised; the weights made coherent in time spread over more examples: 0.01 drops 0.3 % of their mass and a sixth of the compositing)",
+            min=0.0,
+            max=1.0,
+        ),
+        Param(
+            "head_motion",
+            str,
+            "auto",
+            "depth: the whole image turned in 3D by input 'head'; similarity: the 2D similarity "
+            "(eq. 8-9) of input 'similarity'; none; auto: depth with 'head', else similarity with 'similarity'",
+            HEAD_MOTION,
+        ),
+        Param(
+            "head_motion_scale",
+            float,
+            1.0,
+            "similarity mode: multiplies the carried head translation (on top of the face-size ratio from 'performer')",
+            min=-100.0,
+            max=100.0,
+        ),
+        Param(
+            "width", int, 0, "output width, px (the height keeps the pack's aspect ratio); 0: the pack's size", min=0, max=8192
+        ),
+        Param(
+            "upscale",
+            bool,
+            False,
+            "allow an output that enlarges the footage the pack was cut from (warned); without it such a size is refused",
+        ),
         Param("fps", float, 30.0, "frame rate when the points bundle carries none", min=1e-3, max=1000.0),
-        Param("detail_power", float, DETAIL_POWER, "band-pass blending: detail band weights are the coefficients to this power, renormalised (1 = plain eq. 6)", min=1.0, max=100.0),
-        Param("detail_sigma_px", float, DETAIL_SIGMA_PX, "band-pass blending: Gaussian sigma separating the detail band, px", min=0.1, max=1000.0),
-        Param("flow_max_px", float, FLOW_MAX_PX, "refine the examples' alignment by optical flow (DIS) to the neutral, flow bounded to this many px (0 = off)", min=0.0, max=1000.0),
-        Param("ridge_px", float, RIDGE_PX, "coefficient regularisation of the QPs: n_R tau^2 ||c||^2 with tau this many px (0 = plain eq. 2)", min=0.0, max=1000.0),
-        Param("teeth_power", float, TEETH_POWER, "the teeth examples' coefficients to this power, renormalised: an even "
-              "blend of two shows their teeth doubled (1 = as solved)", min=1.0, max=100.0),
-        Param("coherence_frames", float, COHERENCE_FRAMES, "example weights coherent in time: sigma of the bilateral filter over frames "
-              "(stages.synthesis.coherence; 0 = each frame's own QP solution)", min=0.0, max=10.0),
-        Param("coherence_size", float, COHERENCE_SIZE, "example weights coherent in time: sigma of the filter's geometry term, "
-              "fraction of the face size (RMS distance of the target neutral's points from their centroid; a subregion "
-              "that moves more than this between frames keeps its own weights)", min=1e-4, max=1.0),
+        Param(
+            "detail_power",
+            float,
+            DETAIL_POWER,
+            "band-pass blending: detail band weights are the coefficients to this power, renormalised (1 = plain eq. 6)",
+            min=1.0,
+            max=100.0,
+        ),
+        Param(
+            "detail_sigma_px",
+            float,
+            DETAIL_SIGMA_PX,
+            "band-pass blending: Gaussian sigma separating the detail band, px",
+            min=0.1,
+            max=1000.0,
+        ),
+        Param(
+            "flow_max_px",
+            float,
+            FLOW_MAX_PX,
+            "refine the examples' alignment by optical flow (DIS) to the neutral, flow bounded to this many px (0 = off)",
+            min=0.0,
+            max=1000.0,
+        ),
+        Param(
+            "ridge_px",
+            float,
+            RIDGE_PX,
+            "coefficient regularisation of the QPs: n_R tau^2 ||c||^2 with tau this many px (0 = plain eq. 2)",
+            min=0.0,
+            max=1000.0,
+        ),
+        Param(
+            "teeth_power",
+            float,
+            TEETH_POWER,
+            "the teeth examples' coefficients to this power, renormalised: an even "
+            "blend of two shows their teeth doubled (1 = as solved)",
+            min=1.0,
+            max=100.0,
+        ),
+        Param(
+            "coherence_frames",
+            float,
+            COHERENCE_FRAMES,
+            "example weights coherent in time: sigma of the bilateral filter over frames "
+            "(stages.synthesis.coherence; 0 = each frame's own QP solution)",
+            min=0.0,
+            max=10.0,
+        ),
+        Param(
+            "coherence_size",
+            float,
+            COHERENCE_SIZE,
+            "example weights coherent in time: sigma of the filter's geometry term, "
+            "fraction of the face size (RMS distance of the target neutral's points from their centroid; a subregion "
+            "that moves more than this between frames keeps its own weights)",
+            min=1e-4,
+            max=1.0,
+        ),
     )
 
     def __init__(self) -> None:
@@ -680,17 +823,32 @@ class Synthesize(FrameStage):
     def _synthesizer(self, model: Mapping[str, np.ndarray], device: str, params: Mapping[str, Any]) -> Synthesizer:
         """The model prepared on ``device``, kept between chunks of the same run."""
         size, _ = self._output_size(model, params)
-        remedies = (float(params["detail_power"]), float(params["detail_sigma_px"]), float(params["flow_max_px"]),
-                    float(params["ridge_px"]), float(params["teeth_power"]), *size)
+        remedies = (
+            float(params["detail_power"]),
+            float(params["detail_sigma_px"]),
+            float(params["flow_max_px"]),
+            float(params["ridge_px"]),
+            float(params["teeth_power"]),
+            *size,
+        )
         with self._preparing:
             if self._prepared is None or self._prepared[0] is not model or self._prepared[1:3] != (device, remedies):
-                synth = Synthesizer(model, device=device, detail_power=remedies[0], detail_sigma_px=remedies[1],
-                                    flow_max_px=remedies[2], ridge_px=remedies[3], teeth_power=remedies[4], output_size=size)
+                synth = Synthesizer(
+                    model,
+                    device=device,
+                    detail_power=remedies[0],
+                    detail_sigma_px=remedies[1],
+                    flow_max_px=remedies[2],
+                    ridge_px=remedies[3],
+                    teeth_power=remedies[4],
+                    output_size=size,
+                )
                 self._prepared = (model, device, remedies, synth)
             return self._prepared[3]
 
-    def _motion(self, inputs: Mapping[str, Any], params: Mapping[str, Any], start: int, stop: int
-                ) -> tuple[np.ndarray | None, HeadTurn | None, dict[str, Any]]:
+    def _motion(
+        self, inputs: Mapping[str, Any], params: Mapping[str, Any], start: int, stop: int
+    ) -> tuple[np.ndarray | None, HeadTurn | None, dict[str, Any]]:
         """The chunk's head motion: a 2D similarity (with its centres and scale) or a turn in depth."""
         mode = params["head_motion"]
         head, sim = inputs.get("head"), inputs.get("similarity")
@@ -710,14 +868,18 @@ class Synthesize(FrameStage):
         performer = inputs.get("performer")
         if performer is not None:
             if "neutral" not in performer or "names" not in performer:
-                raise StageError(f"{self.name}: input 'performer' needs the fields 'neutral' and 'names' (compensate.similarity's displacements)")
+                raise StageError(
+                    f"{self.name}: input 'performer' needs the fields 'neutral' and 'names' (compensate.similarity's displacements)"
+                )
             source_center, target_center, ratio = head_motion_frame(
                 performer["neutral"], performer["names"], model["neutral_points"], model["point_names"]
             )
             options.update(source_center=source_center, target_center=target_center, motion_scale=options["motion_scale"] * ratio)
         return similarity, None, options
 
-    def process(self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
+    def process(
+        self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context
+    ) -> dict[str, Any]:
         xy, _ = target_geometry(inputs, stage=self.name)
         points = xy[start:stop]
         if not np.isfinite(points).all():
@@ -731,18 +893,32 @@ class Synthesize(FrameStage):
         coeffs = None
         if params["mode"] != "warp-only":
             import torch
+
             sigma_px = float(params["coherence_size"]) * rms_radius(np.asarray(model["neutral_points"], np.float64))
             members = np.array(model["subregion_points"], bool)
             if params["mode"] == "global":  # one combination for the face: one geometry term over all its points
                 face = ~np.asarray(model["subregion_teeth"], bool)
                 members[face] = members[face].any(axis=0)
-            coeffs = torch.from_numpy(coherent_coefficients(
-                lambda p: synth.coefficients(p, mode=params["mode"]).cpu().numpy(), xy, start, stop, members,
-                sigma_frames=float(params["coherence_frames"]), sigma_px=sigma_px,
-            )).to(synth.device)
+            coeffs = torch.from_numpy(
+                coherent_coefficients(
+                    lambda p: synth.coefficients(p, mode=params["mode"]).cpu().numpy(),
+                    xy,
+                    start,
+                    stop,
+                    members,
+                    sigma_frames=float(params["coherence_frames"]),
+                    sigma_px=sigma_px,
+                )
+            ).to(synth.device)
         frames, mask, head, filled, coeffs = synth.render_half(
-            points, mode=params["mode"], similarity=similarity, turn=turn, min_coeff=params["min_coeff"],
-            coeffs=coeffs, progress=ctx.progress, **options,
+            points,
+            mode=params["mode"],
+            similarity=similarity,
+            turn=turn,
+            min_coeff=params["min_coeff"],
+            coeffs=coeffs,
+            progress=ctx.progress,
+            **options,
         )
         return {"frames": frames, "mask": mask, "head_matte": head, "filled": filled, "coeffs": {"coeffs": coeffs.cpu().numpy()}}
 
@@ -778,8 +954,11 @@ def output_size(model: Mapping[str, np.ndarray], width: int, *, upscale: bool) -
     held = W / scale if np.isfinite(scale) else float(W)
     if width <= held * (1 + 1e-9):
         return size, ""
-    what = (f"the pack's {W}x{H} images hold {held:.0f} px of footage across" if np.isfinite(scale)
-            else f"the pack's images are {W}x{H} and were not cut from footage")
+    what = (
+        f"the pack's {W}x{H} images hold {held:.0f} px of footage across"
+        if np.isfinite(scale)
+        else f"the pack's images are {W}x{H} and were not cut from footage"
+    )
     line = f"a {size[0]}x{size[1]} output enlarges {width / held:.2f}x what the footage holds ({what})"
     if not upscale:
         raise ValueError(f"{line}; ask for width <= {int(held)} or set upscale: true")

@@ -19,7 +19,11 @@ import numpy as np
 __all__ = ["Buffers", "scratch", "border_anchors", "triangulate", "triangle_index_map", "backward_map", "warp_images"]
 
 _SHIFT = 8  # sub-pixel bits for cv2.fillConvexPoly
-_BORDERS = {"border": "BORDER_REPLICATE", "zeros": "BORDER_CONSTANT", "reflection": "BORDER_REFLECT_101"}  # grid_sample padding -> cv2
+_BORDERS = {
+    "border": "BORDER_REPLICATE",
+    "zeros": "BORDER_CONSTANT",
+    "reflection": "BORDER_REFLECT_101",
+}  # grid_sample padding -> cv2
 
 
 class Buffers:
@@ -37,6 +41,7 @@ class Buffers:
     def get(self, name: str, shape: tuple[int, ...], dtype: torch.dtype, device: str | torch.device = "cpu") -> torch.Tensor:
         """An uninitialised tensor of ``shape``, ``dtype`` on ``device``: the last one of ``name`` when it fits."""
         import torch
+
         array = self._arrays.get(name)
         if array is None or tuple(array.shape) != tuple(shape) or array.dtype != dtype or array.device != torch.device(device):
             array = self._arrays[name] = torch.empty(shape, dtype=dtype, device=device)
@@ -48,6 +53,7 @@ def scratch(
 ) -> torch.Tensor:
     """A temporary: ``buffers.get(name, shape, dtype, device)``, or a new tensor when ``buffers`` is None."""
     import torch
+
     return torch.empty(shape, dtype=dtype, device=device) if buffers is None else buffers.get(name, shape, dtype, device)
 
 
@@ -93,6 +99,7 @@ def triangulate(points: np.ndarray) -> np.ndarray:
     zero-area triangles are dropped.
     """
     from scipy.spatial import Delaunay
+
     tri = Delaunay(np.asarray(points, dtype=np.float64)).simplices.astype(np.int32)
     p = points[tri]
     area = (p[:, 1, 0] - p[:, 0, 0]) * (p[:, 2, 1] - p[:, 0, 1]) - (p[:, 2, 0] - p[:, 0, 0]) * (p[:, 1, 1] - p[:, 0, 1])
@@ -122,6 +129,7 @@ def triangle_index_map(
     triangles cover nothing.
     """
     import cv2
+
     W, H = size
     if out is None:
         out = np.empty((H, W), dtype=np.int32)
@@ -141,6 +149,7 @@ def triangle_index_map(
 def _dst_to_src_affines(src: torch.Tensor, dst: torch.Tensor, triangles: torch.Tensor) -> torch.Tensor:
     """(B, K, 2, 3) affine maps taking each destination triangle onto its source triangle."""
     import torch
+
     s = src[:, triangles]  # (B, K, 3, 2)
     d = dst[:, triangles]
     ones = torch.ones(d.shape[:-1] + (1,), dtype=d.dtype, device=d.device)
@@ -185,6 +194,7 @@ def backward_map(
         False where no destination triangle covers the pixel (the map is the identity there).
     """
     import torch
+
     dtype = torch.float32 if dtype is None else dtype
     W, H = size
     covered = torch.empty(src_points.shape[0], H, W, dtype=torch.bool, device=src_points.device)
@@ -215,6 +225,7 @@ def _source_map(
     :func:`backward_map` for the other parameters.
     """
     import torch
+
     W, H = size
     device = src_points.device
     B = src_points.shape[0]
@@ -233,7 +244,9 @@ def _source_map(
         pairs = pairs.view(torch.int64)[..., 0]  # a float32 pair as one element: (B, 3, K + 1)
     gathered = scratch(buffers, "gathered", (3, H * W) + pairs.shape[3:], pairs.dtype, device)
     index_out = scratch(buffers, "index", (H, W), torch.int32).numpy()
-    xs = torch.arange(W, dtype=dtype, device=device).view(1, W, 1).expand(1, W, 2).contiguous()  # (1, W, 2): no stride-0 inner axis
+    xs = (
+        torch.arange(W, dtype=dtype, device=device).view(1, W, 1).expand(1, W, 2).contiguous()
+    )  # (1, W, 2): no stride-0 inner axis
     ys = torch.arange(H, dtype=dtype, device=device).view(H, 1, 1)
     maps = scratch(buffers, "map", (B, H, W, 2), dtype, device)
     for b, d in enumerate(dst_points.detach().to(torch.float64).cpu().numpy()):  # frame by frame: the index stays in cache
@@ -289,6 +302,7 @@ def warp_images(
     ``extra``, the pair (that, the warped ``extra`` (B, C2, H_out, W_out) float32).
     """
     import torch
+
     _, C, H, W = images.shape
     size = size or (W, H)
     if padding_mode not in _BORDERS:
@@ -296,6 +310,7 @@ def warp_images(
     dtype = torch.float64 if images.dtype == torch.float64 else torch.float32
     if images.device.type != "cpu" or images.requires_grad:
         import torch.nn.functional as F
+
         grid, _ = backward_map(src_points, dst_points, triangles, size, dtype=dtype, source_size=(W, H))
         if images.shape[0] == 1 and grid.shape[0] > 1:
             images = images.expand(grid.shape[0], -1, -1, -1)
@@ -305,6 +320,7 @@ def warp_images(
         planes = extra.expand(grid.shape[0], -1, -1, -1) if extra.shape[0] == 1 else extra
         return out, F.grid_sample(planes.to(grid.dtype), grid, mode="bilinear", padding_mode="zeros", align_corners=True).float()
     import cv2
+
     maps = _source_map(src_points, dst_points, triangles, size, dtype=torch.float32, source_size=None, buffers=buffers)
     B, (Wo, Ho) = maps.shape[0], size
     source = images.detach().to(dtype).permute(0, 2, 3, 1)  # (B or 1, H, W, C); no copy when channels-last
@@ -312,8 +328,14 @@ def warp_images(
     planes = out.numpy()
     for b in range(B):
         image = source[b if len(source) > 1 else 0].contiguous().numpy()
-        cv2.remap(image, maps[b].numpy(), None, cv2.INTER_LINEAR, dst=planes[b] if C > 1 else planes[b, ..., 0],
-                  borderMode=getattr(cv2, _BORDERS[padding_mode]))
+        cv2.remap(
+            image,
+            maps[b].numpy(),
+            None,
+            cv2.INTER_LINEAR,
+            dst=planes[b] if C > 1 else planes[b, ..., 0],
+            borderMode=getattr(cv2, _BORDERS[padding_mode]),
+        )
     if extra is None:
         return out.permute(0, 3, 1, 2)
     C2 = extra.shape[1]
@@ -321,6 +343,13 @@ def warp_images(
     warped = scratch(buffers, "warped_extra", (B, Ho, Wo, C2), torch.float32)
     for b in range(B):
         plane = more[b if len(more) > 1 else 0].contiguous().numpy()
-        cv2.remap(plane, maps[b].numpy(), None, cv2.INTER_LINEAR, dst=warped[b].numpy() if C2 > 1 else warped[b, ..., 0].numpy(),
-                  borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        cv2.remap(
+            plane,
+            maps[b].numpy(),
+            None,
+            cv2.INTER_LINEAR,
+            dst=warped[b].numpy() if C2 > 1 else warped[b, ..., 0].numpy(),
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0,
+        )
     return out.permute(0, 3, 1, 2), warped.permute(0, 3, 1, 2)

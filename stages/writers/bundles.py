@@ -47,6 +47,5 @@ def check_bundle(bundle: Mapping[str, np.ndarray], *, stage: str, port: str, kin
     for key in PER_FRAME[kind]:
         if np.ndim(bundle[key]) == 0 or len(bundle[key]) != frames:
             raise StageError(
-                f"{stage}: input '{port}' field '{key}' has shape {np.shape(bundle[key])}, "
-                f"expected {frames} frames first"
+                f"{stage}: input '{port}' field '{key}' has shape {np.shape(bundle[key])}, expected {frames} frames first"
             )

@@ -77,13 +77,14 @@ def coverage_box(srgb: np.ndarray, alpha: np.ndarray) -> tuple[slice, slice]:
     when every alpha is +0 and the frame is finite and non-negative.
     """
     import cv2
+
     height, width = alpha.shape
     x, y, w, h = cv2.boundingRect((_bits(alpha) != 0).view(np.uint8))
     if srgb.dtype == np.uint8:
         return slice(y, y + h), slice(x, x + w)
     # finite, sign bit clear: the bit pattern below that of +inf
     inf = _bits(np.array(np.inf, srgb.dtype))
-    outside = [srgb[:y], srgb[y + h:], srgb[y:y + h, :x], srgb[y:y + h, x + w:]] if w else [srgb]
+    outside = [srgb[:y], srgb[y + h :], srgb[y : y + h, :x], srgb[y : y + h, x + w :]] if w else [srgb]
     if any(part.size and _bits(part).max() >= inf for part in outside):
         return slice(0, height), slice(0, width)
     return slice(y, y + h), slice(x, x + w)
@@ -112,6 +113,7 @@ def to_linear_rgba(srgb: np.ndarray, alpha: np.ndarray | None = None) -> np.ndar
     memory (each channel contiguous, what the EXR scanlines are made of).
     """
     import cv2
+
     height, width = srgb.shape[:2]
     planes = np.zeros((4, height, width), np.float16)
     alpha = np.ones((height, width), np.float16) if alpha is None else np.asarray(alpha).reshape(height, width)
@@ -132,11 +134,13 @@ def to_linear_rgba(srgb: np.ndarray, alpha: np.ndarray | None = None) -> np.ndar
 def _half(plane: np.ndarray) -> np.ndarray:
     """``(H, W)`` float -> float16, rounded once to the nearest (OpenCV's conversion, GIL released)."""
     import cv2
+
     return plane if plane.dtype == np.float16 else cv2.multiply(np.ascontiguousarray(plane, np.float32), 1.0, dtype=cv2.CV_16F)
 
 
-def shot_channels(srgb: np.ndarray, head: np.ndarray, face: np.ndarray | None = None,
-                  filled: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+def shot_channels(
+    srgb: np.ndarray, head: np.ndarray, face: np.ndarray | None = None, filled: np.ndarray | None = None
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The channels of a shot EXR (module docstring): the head premultiplied, the plate, the mattes.
 
     Parameters
@@ -153,10 +157,12 @@ def shot_channels(srgb: np.ndarray, head: np.ndarray, face: np.ndarray | None = 
     return linear_shot_channels(apply_elementwise(srgb_decode, np.moveaxis(srgb, 2, 0)), head, face, filled)
 
 
-def linear_shot_channels(linear: np.ndarray, head: np.ndarray, face: np.ndarray | None = None,
-                         filled: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+def linear_shot_channels(
+    linear: np.ndarray, head: np.ndarray, face: np.ndarray | None = None, filled: np.ndarray | None = None
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """:func:`shot_channels` of a frame already in scene-linear light, ``linear (3, H, W)`` float32 (planar)."""
     import cv2
+
     height, width = linear.shape[1:]
     head32 = np.ascontiguousarray(np.asarray(head).reshape(height, width), np.float32)
     linear = np.ascontiguousarray(linear, np.float32)
@@ -206,8 +212,10 @@ def frame_attributes(
 def head_attributes(head3d: Mapping[str, np.ndarray], frame: int) -> dict[str, Attribute]:
     """``exmap:head_R`` (9 floats, row-major) and ``exmap:head_t_mm`` (3) of one frame of a ``head3d``
     bundle: the rigid motion ``X' = R X + t`` of the target's 3D model in its camera's frame."""
-    return {PREFIX + "head_R": tuple(float(x) for x in np.asarray(head3d["R"][frame]).ravel()),
-            PREFIX + "head_t_mm": tuple(float(x) for x in np.asarray(head3d["t"][frame]))}
+    return {
+        PREFIX + "head_R": tuple(float(x) for x in np.asarray(head3d["R"][frame]).ravel()),
+        PREFIX + "head_t_mm": tuple(float(x) for x in np.asarray(head3d["t"][frame])),
+    }
 
 
 def exr_spec(width: int, height: int, *, attributes: Mapping[str, Attribute], compression: str) -> oiio.ImageSpec:
@@ -217,6 +225,7 @@ def exr_spec(width: int, height: int, *, attributes: Mapping[str, Attribute], co
     that the same frame always gives the same bytes (resumed runs match uninterrupted ones).
     """
     import OpenImageIO as oiio
+
     spec = oiio.ImageSpec(width, height, 4, "half")
     spec.channelnames = ("R", "G", "B", "A")
     spec.alpha_channel = 3
@@ -231,8 +240,15 @@ def exr_spec(width: int, height: int, *, attributes: Mapping[str, Attribute], co
     return spec
 
 
-def oiio_write_exr(path: Path, pixels: np.ndarray, *, attributes: Mapping[str, Attribute], compression: str,
-                   names: tuple[str, ...] | None = None, floats: tuple[str, ...] = ("Z",)) -> None:
+def oiio_write_exr(
+    path: Path,
+    pixels: np.ndarray,
+    *,
+    attributes: Mapping[str, Attribute],
+    compression: str,
+    names: tuple[str, ...] | None = None,
+    floats: tuple[str, ...] = ("Z",),
+) -> None:
     """Write ``pixels`` ``(H, W, 4)`` (RGBA, half) or ``(H, W, 5)`` (RGBA half + float Z), any strides, with
     OpenImageIO, in place (not atomic): the codecs ``piz`` and ``rle``, and the reference the
     tests and the benchmark compare :func:`write_exr` with. With ``names``, ``pixels`` ``(H, W, C)``
@@ -245,6 +261,7 @@ def oiio_write_exr(path: Path, pixels: np.ndarray, *, attributes: Mapping[str, A
         OpenImageIO cannot open or write the file (its message).
     """
     import OpenImageIO as oiio
+
     height, width, channels = pixels.shape
     spec = exr_spec(width, height, attributes=attributes, compression=compression)
     if names is None and channels == 5:
@@ -267,8 +284,14 @@ DEPTH_UNIT = "mm"
 
 
 def write_exr(
-    path: Path, rgba: np.ndarray, *, attributes: Mapping[str, Attribute], compression: str = "zip",
-    zip_level: int = ZIP_LEVEL, depth: np.ndarray | None = None, layers: Mapping[str, np.ndarray] | None = None,
+    path: Path,
+    rgba: np.ndarray,
+    *,
+    attributes: Mapping[str, Attribute],
+    compression: str = "zip",
+    zip_level: int = ZIP_LEVEL,
+    depth: np.ndarray | None = None,
+    layers: Mapping[str, np.ndarray] | None = None,
 ) -> None:
     """Write one half-float RGBA EXR atomically (temp name in the same folder, then rename).
 
@@ -321,8 +344,13 @@ def write_exr(
         with atomic_write(path) as tmp:
             if compression in COMPRESSION_CODES:
                 with open(tmp, "wb") as file:
-                    write_scanline_exr(file, channels, attributes={"colorInteropID": COLOR_SPACE, **attributes},
-                                       compression=compression, level=zip_level)
+                    write_scanline_exr(
+                        file,
+                        channels,
+                        attributes={"colorInteropID": COLOR_SPACE, **attributes},
+                        compression=compression,
+                        level=zip_level,
+                    )
             elif len(channels) == 4:
                 oiio_write_exr(tmp, pixels, attributes=attributes, compression=compression)
             else:
@@ -341,17 +369,36 @@ class WriteExr(FrameStage):
     # 5: the shot channels with 'head_matte' (plate, face and filled mattes), the head motion in the header
     version = "5"
     doc = "EXR per frame: half float, scene-linear (sRGB decoded); the head (associated alpha), the plate, face and filled mattes"
-    inputs = {"frames": "frames", "mask": "frames", "head_matte": "frames", "filled": "frames", "pose": "pose",
-              "similarity": "similarity", "head": "head3d"}
+    inputs = {
+        "frames": "frames",
+        "mask": "frames",
+        "head_matte": "frames",
+        "filled": "frames",
+        "pose": "pose",
+        "similarity": "similarity",
+        "head": "head3d",
+    }
     optional_inputs = frozenset({"mask", "head_matte", "filled", "pose", "similarity", "head"})
     outputs = {"exr": "files"}
     params = (
         Param("compression", str, "zip", "lossless EXR compression", choices=COMPRESSIONS),
-        Param("zip_level", int, ZIP_LEVEL, "deflate level of zip/zips (zlib: 1 fastest, 9 smallest)",
-              min=ZIP_LEVELS.start, max=ZIP_LEVELS.stop - 1),
+        Param(
+            "zip_level",
+            int,
+            ZIP_LEVEL,
+            "deflate level of zip/zips (zlib: 1 fastest, 9 smallest)",
+            min=ZIP_LEVELS.start,
+            max=ZIP_LEVELS.stop - 1,
+        ),
         Param("threads", int, 0, "frames written in parallel; 0 = one per CPU core", in_key=False, min=0, max=256),
-        Param("layers", str, "shot", "shot: with 'head_matte', the head, the plate and the mattes; face: RGBA with alpha = "
-              "the face mask only (RGB 0 outside the face: about 40 % of the shot's CPU per frame)", choices=("shot", "face")),
+        Param(
+            "layers",
+            str,
+            "shot",
+            "shot: with 'head_matte', the head, the plate and the mattes; face: RGBA with alpha = "
+            "the face mask only (RGB 0 outside the face: about 40 % of the shot's CPU per frame)",
+            choices=("shot", "face"),
+        ),
     )
 
     def process(
@@ -398,12 +445,22 @@ class WriteExr(FrameStage):
                 attributes.update(head_attributes(head3d, frame))
             layers = None
             if "head_matte" in mattes and params.get("layers", "shot") == "shot":
-                rgba, layers = shot_channels(frames[i], mattes["head_matte"][i], None if masks is None else masks[i],
-                                             mattes["filled"][i] if "filled" in mattes else None)
+                rgba, layers = shot_channels(
+                    frames[i],
+                    mattes["head_matte"][i],
+                    None if masks is None else masks[i],
+                    mattes["filled"][i] if "filled" in mattes else None,
+                )
             else:
                 rgba = to_linear_rgba(frames[i], None if masks is None else masks[i])
-            write_exr(folder / exr_name(frame), rgba, attributes=attributes, compression=params["compression"],
-                      zip_level=params["zip_level"], layers=layers)
+            write_exr(
+                folder / exr_name(frame),
+                rgba,
+                attributes=attributes,
+                compression=params["compression"],
+                zip_level=params["zip_level"],
+                layers=layers,
+            )
 
         workers = min(params["threads"] or os.cpu_count() or 1, len(frames))
         with ThreadPoolExecutor(max_workers=max(workers, 1), thread_name_prefix="write.exr") as pool:

@@ -76,7 +76,11 @@ def typed_attribute(name: str, value: Attribute) -> bytes:
 
 
 def header_bytes(
-    width: int, height: int, *, channels: Mapping[str, np.dtype], compression: str,
+    width: int,
+    height: int,
+    *,
+    channels: Mapping[str, np.dtype],
+    compression: str,
     attributes: Mapping[str, Attribute],
 ) -> bytes:
     """Magic number, version and header of a scanline file, up to and including its null byte.
@@ -90,10 +94,13 @@ def header_bytes(
         required ones written here.
     """
     box = struct.pack("<4i", 0, 0, width - 1, height - 1)
-    chlist = b"".join(
-        name.encode() + b"\0" + struct.pack("<iB3xii", PIXEL_TYPES[np.dtype(dtype)], 0, 1, 1)
-        for name, dtype in sorted(channels.items())
-    ) + b"\0"
+    chlist = (
+        b"".join(
+            name.encode() + b"\0" + struct.pack("<iB3xii", PIXEL_TYPES[np.dtype(dtype)], 0, 1, 1)
+            for name, dtype in sorted(channels.items())
+        )
+        + b"\0"
+    )
     required = {
         "channels": ("chlist", chlist),
         "compression": ("compression", bytes([COMPRESSION_CODES[compression]])),
@@ -134,7 +141,7 @@ def scanlines(channels: Mapping[str, np.ndarray]) -> np.ndarray:
         channel = channels[name]
         if channel.dtype not in PIXEL_TYPES:
             raise TypeError(f"EXR channel {name!r}: expected float16 or float32, got {channel.dtype}")
-        lines[:, offset:offset + size].view(channel.dtype)[:] = channel
+        lines[:, offset : offset + size].view(channel.dtype)[:] = channel
         offset += size
     return lines
 
@@ -197,8 +204,12 @@ def chunk_data(lines: np.ndarray, *, compression: str, level: int) -> list[bytes
 
 
 def write_scanline_exr(
-    file: BinaryIO, channels: Mapping[str, np.ndarray], *, attributes: Mapping[str, Attribute],
-    compression: str = "zip", level: int = ZIP_LEVEL,
+    file: BinaryIO,
+    channels: Mapping[str, np.ndarray],
+    *,
+    attributes: Mapping[str, Attribute],
+    compression: str = "zip",
+    level: int = ZIP_LEVEL,
 ) -> None:
     """Write a single-part scanline OpenEXR file to the open binary ``file``.
 

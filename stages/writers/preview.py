@@ -29,9 +29,7 @@ def _even_down(x: int) -> int:
     return max(2, x - x % 2)
 
 
-def side_by_side_size(
-    performer_hw: tuple[int, int], result_hw: tuple[int, int], *, height: int = 0
-) -> tuple[int, int, int]:
+def side_by_side_size(performer_hw: tuple[int, int], result_hw: tuple[int, int], *, height: int = 0) -> tuple[int, int, int]:
     """Layout of the preview: ``(height, performer_width, result_width)`` in px, all even.
 
     Parameters
@@ -51,6 +49,7 @@ def _fit(image: np.ndarray, height: int, width: int) -> np.ndarray:
     bilinear skips no source pixel; OpenCV's area averaging costs 5 times more at a
     non-integer factor: 640x480 -> 534x400, the demo's performer)."""
     import cv2
+
     if image.shape[:2] == (height, width):
         return image
     area = 2 * height <= image.shape[0]
@@ -87,8 +86,7 @@ class SideBySide(FrameStage):
     cached = False  # cheaper to recompute than to store and read back (see the module's docstring)
     params = (
         Param("height", int, 0, "common height in px (rounded down to even); 0 = scale x the result's height", min=0, max=8192),
-        Param("scale", float, 0.5, "common height as a fraction of the result's height, when height is 0",
-              min=0.05, max=1.0),
+        Param("scale", float, 0.5, "common height as a fraction of the result's height, when height is 0", min=0.05, max=1.0),
     )
 
     @staticmethod
@@ -99,11 +97,10 @@ class SideBySide(FrameStage):
     def stream_info(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> StreamInfo:
         performer, result = inputs["performer"].info, inputs["result"].info
         if performer.frames != result.frames:
-            raise StageError(
-                f"preview.side_by_side: 'performer' has {performer.frames} frames, 'result' {result.frames}"
-            )
+            raise StageError(f"preview.side_by_side: 'performer' has {performer.frames} frames, 'result' {result.frames}")
         h, w_left, w_right = side_by_side_size(
-            (performer.height, performer.width), (result.height, result.width),
+            (performer.height, performer.width),
+            (result.height, result.width),
             height=self._height(result.height, params),
         )
         return StreamInfo(frames=result.frames, fps=result.fps, width=w_left + w_right, height=h)

@@ -189,8 +189,9 @@ def write_pose_csv(path: Path, head: Mapping[str, np.ndarray], *, fps: float) ->
             out.writerow(row)
 
 
-def whole_head_parts(mesh: Mapping[str, np.ndarray], vertices: np.ndarray, head: Mapping[str, np.ndarray] | None
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+def whole_head_parts(
+    mesh: Mapping[str, np.ndarray], vertices: np.ndarray, head: Mapping[str, np.ndarray] | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """The whole head of a ``mesh3d`` bundle split as the scene holds it (module docstring).
 
     Returns
@@ -200,10 +201,12 @@ def whole_head_parts(mesh: Mapping[str, np.ndarray], vertices: np.ndarray, head:
     :func:`write_usd_scene` (the other triangles, every vertex after the weighted motion).
     """
     from stages.render3d.head import apply_head
+
     T = len(vertices)
     full = np.concatenate([vertices, np.broadcast_to(mesh["surround"], (T,) + np.shape(mesh["surround"]))], 1)
-    uv = np.concatenate([np.asarray(mesh["uv"], np.float64),
-                         np.broadcast_to(mesh["surround_uv"], (T,) + np.shape(mesh["surround_uv"]))], 1)
+    uv = np.concatenate(
+        [np.asarray(mesh["uv"], np.float64), np.broadcast_to(mesh["surround_uv"], (T,) + np.shape(mesh["surround_uv"]))], 1
+    )
     triangles, weight = np.asarray(mesh["head_triangles"]), np.asarray(mesh["weight"], np.float64)
     rigid = (weight[triangles] == 1.0).all(1)
     moved = full if head is None else apply_head(full, np.asarray(head["R"], np.float64), np.asarray(head["t"], np.float64))

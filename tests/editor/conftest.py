@@ -20,8 +20,8 @@ PACK = REPO / "fixtures" / "packs" / "target"
 
 @dataclass(frozen=True)
 class Editor:
-    url: str      # the page, with its token
-    base: str     # http://host:port
+    url: str  # the page, with its token
+    base: str  # http://host:port
     token: str
     process: subprocess.Popen
 

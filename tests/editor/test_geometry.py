@@ -16,8 +16,13 @@ from tests.editor.conftest import PACK
 @pytest.fixture(scope="module")
 def model():
     pack = load_pack(PACK)
-    return fit_hierarchical_pca(pack.neutral.points, pack.captured_points, pack.layout.feature_point_sets,
-                                n_components=8, point_names=pack.layout.point_names)
+    return fit_hierarchical_pca(
+        pack.neutral.points,
+        pack.captured_points,
+        pack.layout.feature_point_sets,
+        n_components=8,
+        point_names=pack.layout.point_names,
+    )
 
 
 def test_edit_from_the_neutral_is_motion_propagation_of_the_pinned_points(model):
@@ -47,7 +52,9 @@ def test_touch_up_keeps_the_base_where_nothing_moved(model):
     np.testing.assert_allclose(moved - base, from_neutral, atol=1e-6)
 
 
-@pytest.mark.parametrize("pinned, base", [({200: (1.0, 2.0)}, None), ({3: (np.nan, 2.0)}, None), ({3: (1.0, 2.0)}, np.zeros((3, 2)))])
+@pytest.mark.parametrize(
+    "pinned, base", [({200: (1.0, 2.0)}, None), ({3: (np.nan, 2.0)}, None), ({3: (1.0, 2.0)}, np.zeros((3, 2)))]
+)
 def test_edit_rejects_bad_input(model, pinned, base):
     with pytest.raises(ValueError):
         edited_geometry(model, pinned, base=base)

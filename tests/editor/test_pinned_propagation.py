@@ -37,7 +37,9 @@ def test_drags_are_propagate_edit(pca):
     # one set dragged, another set, then the first again (the recording is replaced each time)
     for names in ([LIP], [LIP, BROW], [LIP]):
         for fixed in drag(pca, names):
-            np.testing.assert_allclose(propagation(pca, pca.neutral, fixed), propagate_edit(pca, pca.neutral, fixed), rtol=0, atol=1e-9)
+            np.testing.assert_allclose(
+                propagation(pca, pca.neutral, fixed), propagate_edit(pca, pca.neutral, fixed), rtol=0, atol=1e-9
+            )
 
 
 def test_touching_up_a_frame_is_edited_geometry_with_propagate_edit(pca):

@@ -68,7 +68,10 @@ def test_process_answer_is_the_thread_answer_and_the_pipeline_image(engine, rend
 def test_inbetweens_and_previews_from_two_threads_at_once(engine, renderers):
     neutral = engine.pca.neutral
     moved = neutral + np.array([0.0, 3.0])
-    jobs = [{"op": "inbetweens", "seq": 1, "from": neutral.tolist(), "to": moved.tolist()}, edit_job(engine, 2, 4.0, preview=True)]
+    jobs = [
+        {"op": "inbetweens", "seq": 1, "from": neutral.tolist(), "to": moved.tolist()},
+        edit_job(engine, 2, 4.0, preview=True),
+    ]
     with ThreadPoolExecutor(2) as pool:
         answers = list(pool.map(renderers.run, jobs))
     (meta_in, images_in), (meta_pre, images_pre) = map(unpack, answers)

@@ -141,7 +141,9 @@ def test_a_request_older_than_the_newest_is_dropped(editor_server):
 def test_inbetweens_are_five_frames_and_the_current_one_lossless(editor_server):
     neutral = load_pack(PACK).neutral.points
     current = neutral + [0.0, 1.5]
-    status, _, body = call(editor_server, "/api/inbetweens", {"client": "tests", "seq": next(SEQ), "from": neutral.tolist(), "to": current.tolist()})
+    status, _, body = call(
+        editor_server, "/api/inbetweens", {"client": "tests", "seq": next(SEQ), "from": neutral.tolist(), "to": current.tolist()}
+    )
     assert status == 200
     meta, images = unpack(body)
     assert len(images) == 6 and all(image[:3] == b"\xff\xd8\xff" for image in images[:5])
@@ -169,15 +171,25 @@ def test_frames_of_the_performance(editor_server, performance):
 
 
 def test_binding_a_remote_address_needs_an_explicit_option():
-    result = subprocess.run([sys.executable, "-m", "editor.cli", "--pack", str(PACK), "--host", "0.0.0.0"],
-                            cwd=REPO, capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        [sys.executable, "-m", "editor.cli", "--pack", str(PACK), "--host", "0.0.0.0"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert result.returncode == 2 and "--allow-remote" in result.stderr
 
 
 def test_an_allowed_remote_address_is_warned_about(tmp_path):
     # A folder without pack.yaml: the command warns, then stops before building anything.
-    result = subprocess.run([sys.executable, "-m", "editor.cli", "--pack", str(tmp_path), "--host", "0.0.0.0", "--allow-remote"],
-                            cwd=REPO, capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        [sys.executable, "-m", "editor.cli", "--pack", str(tmp_path), "--host", "0.0.0.0", "--allow-remote"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert "WARNING: binding 0.0.0.0" in result.stderr
     assert result.returncode == 2 and "no pack.yaml" in result.stderr
 
@@ -186,15 +198,22 @@ def test_an_allowed_remote_address_is_warned_about(tmp_path):
 def test_an_empty_or_truncated_performance_is_one_line_exit_2(tmp_path, content):
     performance = tmp_path / "data.npz"
     performance.write_bytes(content)
-    result = subprocess.run([sys.executable, "-m", "editor.cli", "--pack", str(PACK), "--performance", str(performance)],
-                            cwd=REPO, capture_output=True, text=True, timeout=300)
+    result = subprocess.run(
+        [sys.executable, "-m", "editor.cli", "--pack", str(PACK), "--performance", str(performance)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert result.returncode == 2, result.stderr
     assert "Traceback" not in result.stderr
-    assert result.stderr.strip().splitlines()[-1] == (f"expression-editor: {performance}: not a readable .npz "
-                                                      "(File is not a zip file)")
+    assert result.stderr.strip().splitlines()[-1] == (
+        f"expression-editor: {performance}: not a readable .npz (File is not a zip file)"
+    )
 
 
 # -- bad requests answered as JSON 4xx; exports bounded and built off the event loop -----------
+
 
 def raw_request(editor, lines: list[bytes], body: bytes = b"") -> tuple[int, bytes]:
     """(status, body) of a request written byte for byte (urllib refuses non-ASCII headers)."""
@@ -218,7 +237,7 @@ def test_a_token_header_that_is_not_utf8_is_refused_as_json(editor_server):
 
 
 def test_a_huge_integer_coordinate_is_a_400(editor_server):
-    status, _, answer = call(editor_server, "/api/render", render_body([[40, 10 ** 400, 3.0]]))
+    status, _, answer = call(editor_server, "/api/render", render_body([[40, 10**400, 3.0]]))
     assert status == 400 and "expected a finite number" in json.loads(answer)["error"]
 
 
@@ -246,8 +265,9 @@ def test_exports_are_built_off_the_event_loop_one_at_a_time(monkeypatch):
 
     from editor import server
 
-    engine = types.SimpleNamespace(pca=types.SimpleNamespace(n_points=3), size=(40, 30),
-                                   layout=types.SimpleNamespace(point_names=("a", "b", "c")))
+    engine = types.SimpleNamespace(
+        pca=types.SimpleNamespace(n_points=3), size=(40, 30), layout=types.SimpleNamespace(point_names=("a", "b", "c"))
+    )
     built, busy = [], []
     real = server.points_file_bytes
 
@@ -259,15 +279,18 @@ def test_exports_are_built_off_the_event_loop_one_at_a_time(monkeypatch):
         return real(*args, **kwargs)
 
     monkeypatch.setattr(server, "points_file_bytes", spy)
-    body = {"fps": 10, "keyframes": [{"time_s": 0.0, "points": [[1, 2], [3, 4], [5, 6]]},
-                                     {"time_s": 2.0, "points": [[2, 2], [3, 5], [5, 7]]}]}
+    body = {
+        "fps": 10,
+        "keyframes": [{"time_s": 0.0, "points": [[1, 2], [3, 4], [5, 6]]}, {"time_s": 2.0, "points": [[2, 2], [3, 5], [5, 7]]}],
+    }
 
     async def exercise():
         client = TestClient(TestServer(server.make_app(engine, token="t" * 16, processes=0)))
         await client.start_server()
         try:
-            answers = await asyncio.gather(*[client.post("/api/export", json=body, headers={TOKEN_HEADER: "t" * 16})
-                                             for _ in range(2)])
+            answers = await asyncio.gather(
+                *[client.post("/api/export", json=body, headers={TOKEN_HEADER: "t" * 16}) for _ in range(2)]
+            )
             assert [a.status for a in answers] == [200, 200]
             return threading.current_thread()
         finally:
@@ -277,7 +300,7 @@ def test_exports_are_built_off_the_event_loop_one_at_a_time(monkeypatch):
     runner = threading.Thread(target=lambda: threads.append(asyncio.run(exercise())))
     runner.start()
     runner.join()
-    loop_thread, = threads
+    (loop_thread,) = threads
     assert len(built) == 2 and all(thread is not loop_thread for thread, _ in built)
     assert [at_once for _, at_once in built] == [1, 1]
 

@@ -53,12 +53,16 @@ class AddFrames(FrameStage):
     inputs = {"frames": "frames"}
     outputs = {"frames": "frames"}
     window = 1
-    params = (Param("value", int, 0, "added to every pixel"), Param("note", str, "", "ignored"),
-              Param("start_at", int, 0, "first frame the value is added to"))
+    params = (
+        Param("value", int, 0, "added to every pixel"),
+        Param("note", str, "", "ignored"),
+        Param("start_at", int, 0, "first frame the value is added to"),
+    )
 
-    def process(self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any],
-                ctx: Context) -> dict[str, Any]:
-        frames = inputs["frames"].read(start - self.window, stop + self.window)[self.window:-self.window]
+    def process(
+        self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context
+    ) -> dict[str, Any]:
+        frames = inputs["frames"].read(start - self.window, stop + self.window)[self.window : -self.window]
         time.sleep(float(os.environ.get("RUNNER_TEST_SLEEP", "0")))
         added = np.arange(start, stop)[:, None, None, None] >= params["start_at"]
         frames = frames.astype(np.int16) + params["value"] * added
@@ -78,8 +82,9 @@ class HalfSize(FrameStage):
         info = inputs["frames"].info
         return StreamInfo(frames=info.frames, fps=info.fps, width=(info.width + 1) // 2, height=(info.height + 1) // 2)
 
-    def process(self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any],
-                ctx: Context) -> dict[str, Any]:
+    def process(
+        self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context
+    ) -> dict[str, Any]:
         return {"frames": np.ascontiguousarray(inputs["frames"].read(start, stop)[:, ::2, ::2])}
 
 
@@ -102,8 +107,9 @@ class EveryOtherFrame(FrameStage):
         info = inputs["frames"].info
         return StreamInfo(frames=info.frames // 2, fps=info.fps / 2, width=info.width, height=info.height)
 
-    def process(self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any],
-                ctx: Context) -> dict[str, Any]:
+    def process(
+        self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context
+    ) -> dict[str, Any]:
         return {"frames": inputs["frames"].read(2 * start, 2 * stop)[::2]}
 
 
@@ -154,8 +160,7 @@ class SlowWriteVideo(WriteVideo):
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         pause = float(os.environ.get("RUNNER_TEST_WRITE_SLEEP", "0"))
-        return super().run(inputs, params, Context(ctx.device, ctx.files_dir,
-                                                   progress=lambda n: time.sleep(pause)))
+        return super().run(inputs, params, Context(ctx.device, ctx.files_dir, progress=lambda n: time.sleep(pause)))
 
 
 def make_plugin_site(folder: Path) -> Path:

@@ -85,7 +85,8 @@ def site(plugin_site: Path, tmp_path_factory: pytest.TempPathFactory) -> str:
     info.mkdir()
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: runner-batch-test-plugins\nVersion: 0\n")
     (info / "entry_points.txt").write_text(
-        "[expression_mapping.stages]\nbatchtest.crash_once = tests.runner.test_batch:CrashOnce\n")
+        "[expression_mapping.stages]\nbatchtest.crash_once = tests.runner.test_batch:CrashOnce\n"
+    )
     return os.pathsep.join([str(plugin_site), str(folder), str(REPO)])
 
 
@@ -116,8 +117,7 @@ def cluster(site: str) -> str:
 def _env(site: str, tmp_path: Path) -> dict[str, str]:
     """A driver's environment: the test stages, a fresh cache, and the token authentication of
     the module's Ray (``ray.init`` enables it for a local Ray; a driver joining one opts in)."""
-    return {**cli_env(Path(site.split(os.pathsep)[0]), tmp_path / "cache"), "PYTHONPATH": site,
-            "RAY_AUTH_MODE": "token"}
+    return {**cli_env(Path(site.split(os.pathsep)[0]), tmp_path / "cache"), "PYTHONPATH": site, "RAY_AUTH_MODE": "token"}
 
 
 def _manifest(folder: Path, jobs: dict[str, dict[str, Any]], *, pipeline: Path = GRAPH) -> Path:
@@ -136,8 +136,9 @@ def alone(site: str, tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict
     outputs = {}
     for name, job in TWO_JOBS.items():
         sets = [a for text in job.get("set", []) for a in ("--set", text)]
-        done = run_cli("run", GRAPH, "--in", job["clip"], *sets, "--out", work / name / "out",
-                       env=_env(site, work / name), cwd=work)
+        done = run_cli(
+            "run", GRAPH, "--in", job["clip"], *sets, "--out", work / name / "out", env=_env(site, work / name), cwd=work
+        )
         assert done.returncode == 0, done.stderr
         outputs[name] = tree_bytes(work / name / "out")
     assert outputs["plus10"] != outputs["plus20"]
@@ -183,32 +184,44 @@ jobs:
     assert not (tmp_path / "out").exists() and not (tmp_path / "cache").exists()
 
 
-@pytest.mark.parametrize("text, expected", [
-    ("jobs: &a {x: 1}\nother: *a\n", ["{manifest}:2:8: yaml: alias *a is not allowed (aliases are refused)"]),
-    ("jobs: [\n", ["{manifest}:2:1: yaml: expected the node content, but found '<stream end>'"]),
-    ("defaults: {}\n", ["{manifest}:1:1: jobs: missing: a manifest needs a `jobs` mapping with at least one job"]),
-    # A pipeline with an error: said once, at its place in the pipeline, for the two jobs using it.
-    ("jobs:\n  a: {pipeline: broken.yaml}\n  b: {pipeline: broken.yaml}\n",
-     ["{broken}:3:13: stages.d.uses: unknown stage 'no.such' (see `runner stages`)"]),
-    # An input with no default and no value.
-    ("jobs:\n  a: {pipeline: noclip.yaml}\n", ["{manifest}:2:3: jobs.a: inputs.clip: missing input: no value given "
-                                               "(give it in the job or in `defaults`)"]),
-    # A pipeline without a video input: `clip` binds its folder input (a folder of photos).
-    ("jobs:\n  a: {pipeline: photos.yaml, clip: nofolder}\n",
-     ["{manifest}:2:36: jobs.a.clip: {tmp}/nofolder: no such folder"]),
-])
+@pytest.mark.parametrize(
+    "text, expected",
+    [
+        ("jobs: &a {x: 1}\nother: *a\n", ["{manifest}:2:8: yaml: alias *a is not allowed (aliases are refused)"]),
+        ("jobs: [\n", ["{manifest}:2:1: yaml: expected the node content, but found '<stream end>'"]),
+        ("defaults: {}\n", ["{manifest}:1:1: jobs: missing: a manifest needs a `jobs` mapping with at least one job"]),
+        # A pipeline with an error: said once, at its place in the pipeline, for the two jobs using it.
+        (
+            "jobs:\n  a: {pipeline: broken.yaml}\n  b: {pipeline: broken.yaml}\n",
+            ["{broken}:3:13: stages.d.uses: unknown stage 'no.such' (see `runner stages`)"],
+        ),
+        # An input with no default and no value.
+        (
+            "jobs:\n  a: {pipeline: noclip.yaml}\n",
+            ["{manifest}:2:3: jobs.a: inputs.clip: missing input: no value given (give it in the job or in `defaults`)"],
+        ),
+        # A pipeline without a video input: `clip` binds its folder input (a folder of photos).
+        (
+            "jobs:\n  a: {pipeline: photos.yaml, clip: nofolder}\n",
+            ["{manifest}:2:36: jobs.a.clip: {tmp}/nofolder: no such folder"],
+        ),
+    ],
+)
 def test_manifest_file_problems(site, tmp_path, text, expected):
     (tmp_path / "broken.yaml").write_text("inputs: {clip: {type: video}}\nstages:\n  d: {uses: no.such}\n")
-    (tmp_path / "noclip.yaml").write_text("inputs: {clip: {type: video}}\n"
-                                          "stages:\n  d: {uses: video.decode, inputs: {video: clip}}\n")
-    (tmp_path / "photos.yaml").write_text("inputs: {photos: {type: dir}}\n"
-                                          "stages:\n  d: {uses: pack.load, inputs: {pack: photos}}\n")
+    (tmp_path / "noclip.yaml").write_text(
+        "inputs: {clip: {type: video}}\nstages:\n  d: {uses: video.decode, inputs: {video: clip}}\n"
+    )
+    (tmp_path / "photos.yaml").write_text(
+        "inputs: {photos: {type: dir}}\nstages:\n  d: {uses: pack.load, inputs: {pack: photos}}\n"
+    )
     path = tmp_path / "shots.yaml"
     path.write_text(text)
     done = run_cli("batch", path, env=_env(site, tmp_path), cwd=tmp_path)
     assert done.returncode == 2
     assert done.stderr.splitlines() == [
-        "error: " + line.format(manifest=path, broken=tmp_path / "broken.yaml", tmp=tmp_path) for line in expected]
+        "error: " + line.format(manifest=path, broken=tmp_path / "broken.yaml", tmp=tmp_path) for line in expected
+    ]
 
 
 def test_batch_outputs_are_byte_identical_to_runner_run(site, cluster, alone, tmp_path):
@@ -226,8 +239,9 @@ def test_batch_outputs_are_byte_identical_to_runner_run(site, cluster, alone, tm
     lines = done.stdout.splitlines()
     for name in TWO_JOBS:
         # the first chunk resolved, which two producer threads may finish out of order
-        assert f"[{name}] queued" in lines and any(re.fullmatch(rf"\[{name}\] running add chunk [12] of 6", line)
-                                                   for line in lines)
+        assert f"[{name}] queued" in lines and any(
+            re.fullmatch(rf"\[{name}\] running add chunk [12] of 6", line) for line in lines
+        )
         assert any(line.startswith(f"[{name}] done in ") for line in lines)
     assert lines[-1].startswith("2 jobs: 2 done, 0 cached, 0 failed in ")
     # Run again: every job is cached.
@@ -250,8 +264,18 @@ def test_a_lone_job_computes_as_runner_run_on_every_cpu(site, cluster, tmp_path)
     `mean` in a child process beside the run: the outputs are still `runner run`'s bytes."""
     pipeline = tmp_path / "offloaded.yaml"
     pipeline.write_text(OFFLOADED)
-    alone = run_cli("run", pipeline, "--in", TINY, "--out", tmp_path / "alone", "--log-json", tmp_path / "alone.jsonl",
-                    env=_env(site, tmp_path / "run"), cwd=tmp_path)
+    alone = run_cli(
+        "run",
+        pipeline,
+        "--in",
+        TINY,
+        "--out",
+        tmp_path / "alone",
+        "--log-json",
+        tmp_path / "alone.jsonl",
+        env=_env(site, tmp_path / "run"),
+        cwd=tmp_path,
+    )
     assert alone.returncode == 0, alone.stderr
     path = _manifest(tmp_path, {"lone": {"clip": str(TINY)}}, pipeline=pipeline)
     log = tmp_path / "log.jsonl"
@@ -267,23 +291,30 @@ def test_a_lone_job_computes_as_runner_run_on_every_cpu(site, cluster, tmp_path)
 def test_batch_killed_at_an_observed_event_resumes(site, cluster, alone, tmp_path):
     path = _manifest(tmp_path, TWO_JOBS)
     killed_log, resumed_log = tmp_path / "killed.jsonl", tmp_path / "resumed.jsonl"
-    proc = subprocess.Popen(runner_cmd("batch", path, "--address", cluster, "--log-json", killed_log),
-                            env=_env(site, tmp_path), cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        runner_cmd("batch", path, "--address", cluster, "--log-json", killed_log),
+        env=_env(site, tmp_path),
+        cwd=tmp_path,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         deadline = time.monotonic() + 90
-        while not (killed_log.exists() and any(e.get("event") == "chunk" and e["stage"] == "add" and e["chunk"] == 2
-                                               for e in read_log(killed_log))):
+        while not (
+            killed_log.exists()
+            and any(e.get("event") == "chunk" and e["stage"] == "add" and e["chunk"] == 2 for e in read_log(killed_log))
+        ):
             assert proc.poll() is None and time.monotonic() < deadline, "the kill point was not reached"
             time.sleep(0.05)
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait()
     assert not any(e.get("event") == "batch_end" for e in read_log(killed_log))
-    done = run_cli("batch", path, "--address", cluster, "--log-json", resumed_log, env=_env(site, tmp_path),
-                   cwd=tmp_path)
+    done = run_cli("batch", path, "--address", cluster, "--log-json", resumed_log, env=_env(site, tmp_path), cwd=tmp_path)
     assert done.returncode == 0, done.stderr
     for name in TWO_JOBS:
         assert tree_bytes(tmp_path / "out" / name) == alone[name]
+
     # What the killed batch stored was not computed again.
     def ran(events: list[dict[str, Any]]) -> set[tuple[str, str, int]]:
         return {(e["job"], e["stage"], e["start"]) for e in events if e.get("event") == "chunk" and e["status"] == "ran"}
@@ -297,9 +328,14 @@ def test_batch_terminated_exits_130_with_its_batch_end_and_resumes(site, cluster
     one line, a `batch_end` event; the next batch resumes to the same bytes."""
     path = _manifest(tmp_path, TWO_JOBS)
     log = tmp_path / "terminated.jsonl"
-    proc = subprocess.Popen(runner_cmd("batch", path, "--address", cluster, "--log-json", log),
-                            env=_env(site, tmp_path), cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            text=True)
+    proc = subprocess.Popen(
+        runner_cmd("batch", path, "--address", cluster, "--log-json", log),
+        env=_env(site, tmp_path),
+        cwd=tmp_path,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         deadline = time.monotonic() + 90
         while not (log.exists() and any(e.get("event") == "chunk" and e["stage"] == "add" for e in read_log(log))):
@@ -324,22 +360,23 @@ def test_dead_worker_is_retried_and_a_failing_job_is_reported(site, tmp_path):
     pipeline.write_text(f"""inputs: {{clip: {{type: video}}}}
 stages:
   decode: {{uses: video.decode, inputs: {{video: clip}}}}
-  mean: {{uses: batchtest.crash_once, params: {{marker: {tmp_path / 'marker'}}}, inputs: {{frames: decode.frames}}}}
+  mean: {{uses: batchtest.crash_once, params: {{marker: {tmp_path / "marker"}}}, inputs: {{frames: decode.frames}}}}
   table: {{uses: test.table, inputs: {{series: mean.series}}}}
 """)
     (tmp_path / "bad.mp4").write_bytes(b"not a video" * 100)
-    path = _manifest(tmp_path, {"crashes_once": {"clip": str(TINY)}, "bad": {"clip": str(tmp_path / "bad.mp4")}},
-                     pipeline=pipeline)
+    path = _manifest(
+        tmp_path, {"crashes_once": {"clip": str(TINY)}, "bad": {"clip": str(tmp_path / "bad.mp4")}}, pipeline=pipeline
+    )
     log = tmp_path / "log.jsonl"
     tag = f"local-{tmp_path.name}-{os.getpid()}"
-    done = run_cli("batch", path, "--workers", "1", "--log-json", log, env={**_env(site, tmp_path), TAG: tag},
-                   cwd=tmp_path)
+    done = run_cli("batch", path, "--workers", "1", "--log-json", log, env={**_env(site, tmp_path), TAG: tag}, cwd=tmp_path)
     assert done.returncode == 1, done.stderr
     _assert_gone(tag)
     # One job at a time (--workers 1), holding every CPU: in the workers' events, in time order,
     # another job's events begin only with its job_start.
-    worker_events = sorted((e for e in read_log(log) if e.get("job") and e["event"] not in ("job_queued", "job_end")),
-                           key=lambda e: e["time"])
+    worker_events = sorted(
+        (e for e in read_log(log) if e.get("job") and e["event"] not in ("job_queued", "job_end")), key=lambda e: e["time"]
+    )
     for before, event in zip(worker_events, worker_events[1:]):
         assert event["job"] == before["job"] or event["event"] == "job_start", f"{before} then {event}"
     starts = [e for e in read_log(log) if e.get("event") == "job_start" and e["job"] == "crashes_once"]

@@ -61,8 +61,10 @@ def _node_of(pid: int) -> str | None:
 
 
 def _alive_nodes(address: str, env: dict[str, str]) -> int:
-    probe = ("import ray, logging; ray.init(address=%r, log_to_driver=False, logging_level=logging.ERROR); "
-             "print(sum(n['Alive'] for n in ray.nodes()))" % address)
+    probe = (
+        "import ray, logging; ray.init(address=%r, log_to_driver=False, logging_level=logging.ERROR); "
+        "print(sum(n['Alive'] for n in ray.nodes()))" % address
+    )
     done = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, timeout=120)
     return int(done.stdout.strip() or 0)
 
@@ -73,15 +75,53 @@ def cluster(site: str) -> dict[str, Any]:  # noqa: F811 - the fixture imported a
     temp = Path(tempfile.mkdtemp(prefix="rc-", dir="/tmp"))  # short: Ray's socket paths have a limit
     port = _free_port()
     address = f"127.0.0.1:{port}"
-    env = {**os.environ, "PYTHONPATH": site, "RUNNER_TEST_SLEEP": "0.3", "RUNNER_LOCK_LEASE_S": LEASE_S,
-           "RAY_AUTH_MODE": "token", "RAY_USAGE_STATS_ENABLED": "0", TAG: tag}
+    env = {
+        **os.environ,
+        "PYTHONPATH": site,
+        "RUNNER_TEST_SLEEP": "0.3",
+        "RUNNER_LOCK_LEASE_S": LEASE_S,
+        "RAY_AUTH_MODE": "token",
+        "RAY_USAGE_STATS_ENABLED": "0",
+        TAG: tag,
+    }
     common = ["--object-store-memory", str(100 * 2**20), "--disable-usage-stats"]
     starts = [
-        ("head", [str(RAY), "start", "--head", "--port", str(port), "--num-cpus", "0", "--include-dashboard", "false",
-                  "--temp-dir", str(temp), *common]),
+        (
+            "head",
+            [
+                str(RAY),
+                "start",
+                "--head",
+                "--port",
+                str(port),
+                "--num-cpus",
+                "0",
+                "--include-dashboard",
+                "false",
+                "--temp-dir",
+                str(temp),
+                *common,
+            ],
+        ),
         ("a", [str(RAY), "start", "--address", address, "--num-cpus", "1", *common]),
-        ("b", ["unshare", "--uts", "sh", "-c", f'hostname {OTHER_HOST} && exec "$@"', "sh",
-               str(RAY), "start", "--address", address, "--num-cpus", "1", *common]),
+        (
+            "b",
+            [
+                "unshare",
+                "--uts",
+                "sh",
+                "-c",
+                f'hostname {OTHER_HOST} && exec "$@"',
+                "sh",
+                str(RAY),
+                "start",
+                "--address",
+                address,
+                "--num-cpus",
+                "1",
+                *common,
+            ],
+        ),
     ]
     try:
         for name, command in starts:
@@ -107,8 +147,11 @@ def _driver_env(site: str, tmp_path: Path) -> dict[str, str]:  # noqa: F811
 
 
 def _ran_chunks(events: list[dict[str, Any]], job: str) -> list[int]:
-    return sorted(e["start"] for e in events if e.get("event") == "chunk" and e.get("job") == job
-                  and e["stage"] == "add" and e["status"] == "ran")
+    return sorted(
+        e["start"]
+        for e in events
+        if e.get("event") == "chunk" and e.get("job") == job and e["stage"] == "add" and e["status"] == "ran"
+    )
 
 
 def _job_starts(events: list[dict[str, Any]], job: str) -> list[dict[str, Any]]:
@@ -125,9 +168,14 @@ def test_jobs_on_nodes_of_two_host_names_share_the_locks(site, cluster, alone, t
     shot = TWO_JOBS["plus10"]
     path = _manifest(tmp_path, {"here": dict(shot), "there": dict(shot)})
     log = tmp_path / "log.jsonl"
-    done = subprocess.run(runner_cmd("batch", path, "--address", cluster["address"], "--log-json", log),
-                          env=_driver_env(site, tmp_path), cwd=tmp_path, capture_output=True, text=True,
-                          timeout=300)
+    done = subprocess.run(
+        runner_cmd("batch", path, "--address", cluster["address"], "--log-json", log),
+        env=_driver_env(site, tmp_path),
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert done.returncode == 0, done.stderr
     events = read_log(log)
     hosts = {e["host"] for job in ("here", "there") for e in _job_starts(events, job)}
@@ -147,10 +195,17 @@ def test_two_batches_at_once_share_the_cache(site, cluster, alone, tmp_path):  #
         folder.mkdir()
         jobs = {job: {**spec, "out": str(folder / "out" / job)} for job, spec in TWO_JOBS.items()}
         log = folder / "log.jsonl"
-        runs[name] = (log, subprocess.Popen(
-            runner_cmd("batch", _manifest(folder, jobs), "--address", cluster["address"], "--log-json", log),
-            env=_driver_env(site, tmp_path), cwd=folder, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-            text=True))
+        runs[name] = (
+            log,
+            subprocess.Popen(
+                runner_cmd("batch", _manifest(folder, jobs), "--address", cluster["address"], "--log-json", log),
+                env=_driver_env(site, tmp_path),
+                cwd=folder,
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.PIPE,
+                text=True,
+            ),
+        )
     for log, process in runs.values():
         _, stderr = process.communicate(timeout=300)
         assert process.returncode == 0, stderr
@@ -168,9 +223,14 @@ def test_a_node_killed_mid_batch_has_its_job_retried_on_another(site, cluster, a
     run`'s. Last in the module: the node stays dead."""
     path = _manifest(tmp_path, TWO_JOBS)
     log = tmp_path / "log.jsonl"
-    process = subprocess.Popen(runner_cmd("batch", path, "--address", cluster["address"], "--log-json", log),
-                               env=_driver_env(site, tmp_path), cwd=tmp_path, stdout=subprocess.DEVNULL,
-                               stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen(
+        runner_cmd("batch", path, "--address", cluster["address"], "--log-json", log),
+        env=_driver_env(site, tmp_path),
+        cwd=tmp_path,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         deadline = time.monotonic() + 180
         victim = None

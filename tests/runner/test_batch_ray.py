@@ -19,8 +19,11 @@ from runner.batch_ray import start_local_ray
 from tests.runner.test_batch import TAG, _assert_gone, _tagged_pids
 
 # Scripts of the Python processes a batch on one machine does not use.
-UNUSED = {"dashboard head": "ray/dashboard/dashboard.py", "autoscaler monitor": "/monitor.py",
-          "log monitor": "ray/_private/log_monitor.py"}
+UNUSED = {
+    "dashboard head": "ray/dashboard/dashboard.py",
+    "autoscaler monitor": "/monitor.py",
+    "log monitor": "ray/_private/log_monitor.py",
+}
 
 
 def _started(tag: str, start) -> tuple[set[str], float, object]:
@@ -48,8 +51,9 @@ def _pid_and_nice() -> tuple[int, int]:
 
 def test_local_ray_runs_tasks_without_the_unused_processes_and_stops_them_all():
     tag = f"batch-ray-{os.getpid()}"
-    running, _, _ = _started(f"{tag}-init", lambda: ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False,
-                                                             logging_level=logging.ERROR))
+    running, _, _ = _started(
+        f"{tag}-init", lambda: ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
+    )
     try:
         _, nice = ray.get(_pid_and_nice.remote())
     finally:
@@ -78,8 +82,9 @@ def test_missing_node_api_falls_back_to_ray_init_with_a_note(monkeypatch):
     notes = []
     stop = start_local_ray(2, note=notes.append)
     assert stop is ray.shutdown and len(notes) == 1 and "ray.init()" in notes[0]
-    assert calls == [{"address": "local", "num_cpus": 2, "include_dashboard": False, "log_to_driver": False,
-                      "logging_level": logging.ERROR}]
+    assert calls == [
+        {"address": "local", "num_cpus": 2, "include_dashboard": False, "log_to_driver": False, "logging_level": logging.ERROR}
+    ]
 
 
 @pytest.mark.parametrize("cpus", [0, -1, 1.5, True, "2"])

@@ -19,8 +19,7 @@ import pytest
 from runner.cache import CacheStore
 from runner.cli import main
 from stages.video import VideoDecode, to_gray
-from tests.runner.helpers import (DATA, REPO, TINY, chunk_status, read_log, run_cli, runner_cmd, stage_status,
-                                  tree_bytes)
+from tests.runner.helpers import DATA, REPO, TINY, chunk_status, read_log, run_cli, runner_cmd, stage_status, tree_bytes
 
 GRAPH = DATA / "graph.yaml"
 CHAIN = DATA / "chain.yaml"
@@ -72,19 +71,44 @@ def test_param_change_reruns_only_stages_whose_inputs_changed(env, tmp_path):
 
     assert set(run("a")) == {"decode", "add", "gray", "write", "mean", "table"}
     # `note` changes add's key but not its bytes: add re-runs, everything downstream is a hit.
-    assert run("b", "add.note=x") == {"decode": "on demand", "add": "ran", "gray": "cached", "write": "cached",
-                                      "mean": "cached", "table": "cached"}
+    assert run("b", "add.note=x") == {
+        "decode": "on demand",
+        "add": "ran",
+        "gray": "cached",
+        "write": "cached",
+        "mean": "cached",
+        "table": "cached",
+    }
     # `value` changes add's output: add, gray and write re-run; the other branch does not.
-    assert run("c", "add.value=11") == {"decode": "on demand", "add": "ran", "gray": "ran", "write": "ran",
-                                        "mean": "cached", "table": "cached"}
-    assert run("d", "add.value=11", "table.digits=2") == {"decode": "on demand", "add": "cached", "gray": "cached",
-                                                          "write": "cached", "mean": "cached", "table": "ran"}
+    assert run("c", "add.value=11") == {
+        "decode": "on demand",
+        "add": "ran",
+        "gray": "ran",
+        "write": "ran",
+        "mean": "cached",
+        "table": "cached",
+    }
+    assert run("d", "add.value=11", "table.digits=2") == {
+        "decode": "on demand",
+        "add": "cached",
+        "gray": "cached",
+        "write": "cached",
+        "mean": "cached",
+        "table": "ran",
+    }
     # A change confined to the first chunk of add's output re-runs only that chunk downstream.
     assert run("e", "add.value=11", "table.digits=2", "add.start_at=2")["gray"] == "partial"
     assert chunk_status(read_log(tmp_path / "e"), "gray") == {
-        (0, 8): "ran", (8, 16): "cached", (16, 24): "cached", (24, 32): "cached", (32, 40): "cached", (40, 48): "cached"}
+        (0, 8): "ran",
+        (8, 16): "cached",
+        (16, 24): "cached",
+        (24, 32): "cached",
+        (32, 40): "cached",
+        (40, 48): "cached",
+    }
     assert json.loads((tmp_path / "out" / "table" / "series.json").read_text())[0] == pytest.approx(
-        VideoDecode().process(0, 1, {"video": TINY}, {}, None)["frames"].mean(), abs=0.01)
+        VideoDecode().process(0, 1, {"video": TINY}, {}, None)["frames"].mean(), abs=0.01
+    )
 
 
 def test_dry_run_reports_reasons_and_runs_nothing(env, tmp_path):
@@ -99,8 +123,7 @@ def test_dry_run_reports_reasons_and_runs_nothing(env, tmp_path):
 
     assert run_cli("run", GRAPH, "--out", out, env=env, cwd=tmp_path).returncode == 0
     before = sorted(e.key for e in CacheStore(cache).iter_entries())
-    changed = run_cli("run", GRAPH, "--out", out, "--dry-run", "--set", "add.value=3", "--force", "table",
-                      env=env, cwd=tmp_path)
+    changed = run_cli("run", GRAPH, "--out", out, "--dry-run", "--set", "add.value=3", "--force", "table", env=env, cwd=tmp_path)
     lines = {line.split()[0]: line for line in changed.stdout.splitlines()[1:]}
     assert "will run" in lines["add"] and "param value: 10 -> 3" in lines["add"]
     assert "may run" in lines["write"]
@@ -123,10 +146,13 @@ def test_until_and_force(env, tmp_path):
     assert tree_bytes(tmp_path / "out" / "write") == published
 
 
-@pytest.mark.parametrize("content, words", [
-    (None, "no such file"),
-    (b"this is not a video\n" * 20, "not a readable video"),
-])
+@pytest.mark.parametrize(
+    "content, words",
+    [
+        (None, "no such file"),
+        (b"this is not a video\n" * 20, "not a readable video"),
+    ],
+)
 def test_bad_clip_is_one_line_error(env, tmp_path, content, words):
     clip = tmp_path / "clip.mp4"
     if content is not None:
@@ -154,8 +180,10 @@ def test_config_errors_exit_2_with_positions(tmp_path, monkeypatch):
     bad.write_text("stages:\n  a:\n    uses: no.such\n  b:\n    uses: image.gray\n    inputs: {frames: a.frames}\n")
     code, _, err = cli_main("run", bad)
     assert code == 2
-    assert err.splitlines() == [f"error: {bad}:3:11: stages.a.uses: unknown stage 'no.such' (see `runner stages`)",
-                                f"error: {bad}:6:22: stages.b.inputs.frames: missing input: no stage named 'a'"]
+    assert err.splitlines() == [
+        f"error: {bad}:3:11: stages.a.uses: unknown stage 'no.such' (see `runner stages`)",
+        f"error: {bad}:6:22: stages.b.inputs.frames: missing input: no stage named 'a'",
+    ]
     assert cli_main("run", CHAIN, "--set", "write.crf=high")[0] == 2
     code, _, err = cli_main("run", CHAIN, "--set", "write.crf=100")
     assert code == 2 and err == "error: --set: write.crf: out of range: expected 0 <= crf <= 51, got 100\n"
@@ -215,11 +243,18 @@ def test_exit_now_waits_for_threads_and_flushes(tmp_path):
     """The command's fast exit (no interpreter teardown) keeps the exit status, what was printed
     without a newline, and the work of a thread still running."""
     marker = tmp_path / "written"
-    script = ("import sys, threading, time; from pathlib import Path; from runner.cli import exit_now\n"
-              "def late(): time.sleep(0.3); Path(sys.argv[1]).write_text('done')\n"
-              "threading.Thread(target=late).start(); print('partial', end=''); exit_now(3)")
-    done = subprocess.run([sys.executable, "-c", script, str(marker)], capture_output=True, text=True, timeout=120,
-                          cwd=Path(__file__).resolve().parents[2])
+    script = (
+        "import sys, threading, time; from pathlib import Path; from runner.cli import exit_now\n"
+        "def late(): time.sleep(0.3); Path(sys.argv[1]).write_text('done')\n"
+        "threading.Thread(target=late).start(); print('partial', end=''); exit_now(3)"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script, str(marker)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=Path(__file__).resolve().parents[2],
+    )
     assert (done.returncode, done.stdout) == (3, "partial")
     assert marker.read_text() == "done"
 
@@ -233,9 +268,14 @@ def test_empty_npz_in_a_pack_is_a_stage_failure_not_an_interrupt(tmp_path):
     pipeline = tmp_path / "p.yaml"
     pipeline.write_text("inputs: {pack: {type: dir}}\nstages:\n  load: {uses: pack.load, inputs: {pack: pack}}\n")
     env = {**{k: v for k, v in os.environ.items() if not k.startswith("RUNNER_")}, "PYTHONPATH": str(REPO)}
-    done = subprocess.run(runner_cmd("run", pipeline, "--input", f"pack={pack}", "--cache-dir", tmp_path / "cache",
-                                     "--out", tmp_path / "out"), env=env, cwd=tmp_path, capture_output=True,
-                          text=True, timeout=120)
+    done = subprocess.run(
+        runner_cmd("run", pipeline, "--input", f"pack={pack}", "--cache-dir", tmp_path / "cache", "--out", tmp_path / "out"),
+        env=env,
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 1, done.stderr
     assert done.stderr.count("\n") == 1 and done.stderr.startswith("error: stage 'load' (pack.load): actor pack ")
     assert f"{pack / 'captured.npz'}: field 'captured'" in done.stderr and "not a readable .npz" in done.stderr
@@ -271,11 +311,23 @@ def test_warnings_are_one_line_each_once_and_given_again_by_a_cached_run(env, tm
     and a fully cached rerun says them again (recorded with the entry)."""
     pipeline = tmp_path / "warned.yaml"
     pipeline.write_text(WARNED)
-    expected = ["warning: test.warn_mean: the series is made of test frames",
-                "warning: overflow encountered in scalar multiply (RuntimeWarning, runner/helpers.py:"]
+    expected = [
+        "warning: test.warn_mean: the series is made of test frames",
+        "warning: overflow encountered in scalar multiply (RuntimeWarning, runner/helpers.py:",
+    ]
     for run in ("first", "cached"):
-        done = run_cli("run", pipeline, "--in", TINY, "--out", tmp_path / "out", "--log-json", tmp_path / f"{run}.jsonl",
-                       env=env, cwd=tmp_path)
+        done = run_cli(
+            "run",
+            pipeline,
+            "--in",
+            TINY,
+            "--out",
+            tmp_path / "out",
+            "--log-json",
+            tmp_path / f"{run}.jsonl",
+            env=env,
+            cwd=tmp_path,
+        )
         assert done.returncode == 0, done.stderr
         lines = done.stderr.splitlines()
         assert len(lines) == 2 and lines[0] == expected[0] and lines[1].startswith(expected[1]), done.stderr

@@ -97,11 +97,14 @@ def test_valid_pipeline_resolves_order_defaults_and_paths(tmp_path):
 
 def test_unknown_stage(tmp_path):
     assert issues(tmp_path, "stages:\n  a: {uses: t.nope}\n") == [
-        "2:13: stages.a.uses: unknown stage 't.nope' (see `runner stages`)"]
+        "2:13: stages.a.uses: unknown stage 't.nope' (see `runner stages`)"
+    ]
 
 
 def test_unknown_parameter_and_wrong_types_all_reported(tmp_path):
-    found = issues(tmp_path, """
+    found = issues(
+        tmp_path,
+        """
         inputs: {clip: {type: video}}
         stages:
           src: {uses: t.source, inputs: {video: clip}}
@@ -109,7 +112,8 @@ def test_unknown_parameter_and_wrong_types_all_reported(tmp_path):
             uses: t.track
             params: {radius: "5", sigma: true, mode: slow, flip: 1, speed: 3}
             inputs: {frames: src.frames}
-        """)
+        """,
+    )
     assert found == [
         "6:22: stages.track.params.radius: wrong type: expected int, got str '5'",
         "6:34: stages.track.params.sigma: wrong type: expected float, got bool True",
@@ -120,13 +124,16 @@ def test_unknown_parameter_and_wrong_types_all_reported(tmp_path):
 
 
 def test_missing_inputs(tmp_path):
-    found = issues(tmp_path, """
+    found = issues(
+        tmp_path,
+        """
         stages:
           src: {uses: t.source, inputs: {video: clip}}
           track: {uses: t.track, inputs: {frames: source.frames}}
           smooth: {uses: t.smooth}
           more: {uses: t.smooth, inputs: {points: src.points}}
-        """)
+        """,
+    )
     assert found == [
         "2:41: stages.src.inputs.video: missing input: no pipeline input or stage output named 'clip'",
         "3:43: stages.track.inputs.frames: missing input: no stage named 'source'",
@@ -136,12 +143,15 @@ def test_missing_inputs(tmp_path):
 
 
 def test_port_type_mismatch(tmp_path):
-    found = issues(tmp_path, """
+    found = issues(
+        tmp_path,
+        """
         inputs: {clip: {type: video}, pack: {type: dir}}
         stages:
           src: {uses: t.source, inputs: {video: pack}}
           smooth: {uses: t.smooth, inputs: {points: src.frames}}
-        """)
+        """,
+    )
     assert found == [
         "3:41: stages.src.inputs.video: port type mismatch: 'video' takes video, pack gives dir",
         "4:45: stages.smooth.inputs.points: port type mismatch: 'points' takes points, src.frames gives frames",
@@ -149,45 +159,58 @@ def test_port_type_mismatch(tmp_path):
 
 
 def test_cycle(tmp_path):
-    found = issues(tmp_path, """
+    found = issues(
+        tmp_path,
+        """
         stages:
           a: {uses: t.smooth, inputs: {points: c.points}}
           b: {uses: t.smooth, inputs: {points: a.points}}
           c: {uses: t.smooth, inputs: {points: b.points}}
-        """)
+        """,
+    )
     assert len(found) == 1 and found[0].startswith("2:40: stages.a.inputs: cycle: a -> b -> c -> a")
 
 
 def test_duplicate_names(tmp_path):
     """A key given twice is refused by the YAML reader (runner.safe_yaml) at the second one; a
     stage named like a pipeline input by the loader."""
-    found = issues(tmp_path, """
+    found = issues(
+        tmp_path,
+        """
         inputs: {clip: {type: video}}
         stages:
           src: {uses: t.source, inputs: {video: clip}}
           src: {uses: t.source, inputs: {video: clip}}
-        """)
+        """,
+    )
     assert found == ["4:3: yaml: duplicate key 'src' (first at line 3, column 3)"]
-    found = issues(tmp_path, """
+    found = issues(
+        tmp_path,
+        """
         inputs: {clip: {type: video}}
         stages:
           clip: {uses: t.source, inputs: {video: clip}}
-        """)
+        """,
+    )
     assert found == ["3:3: stages.clip: duplicate name: 'clip' is also a pipeline input"]
 
 
 def test_unknown_keys_and_yaml_syntax(tmp_path):
     assert issues(tmp_path, "stage: {}\n") == [
         "1:1: stage: unknown key (expected one of: chunk_frames, inputs, stages)",
-        "1:1: stages: missing: a pipeline needs a `stages` mapping"]
+        "1:1: stages: missing: a pipeline needs a `stages` mapping",
+    ]
     assert issues(tmp_path, "stages: [\n")[0].startswith("2:1: yaml:")
-    assert issues(tmp_path, "chunk_frames: 0\nstages: {a: {uses: t.smooth, inputs: {points: a.points}}}\n")[0] == \
-        "1:15: chunk_frames: wrong type: expected a positive int, got 0"
+    assert (
+        issues(tmp_path, "chunk_frames: 0\nstages: {a: {uses: t.smooth, inputs: {points: a.points}}}\n")[0]
+        == "1:15: chunk_frames: wrong type: expected a positive int, got 0"
+    )
 
 
 def test_set_overrides_are_typed_by_the_schema(tmp_path):
-    p = load(tmp_path, GOOD, overrides=["track.radius=9", "track.sigma=0.5", "track.flip=yes", "track.ids=[3]",
-                                        "track.mode=exact"])
+    p = load(
+        tmp_path, GOOD, overrides=["track.radius=9", "track.sigma=0.5", "track.flip=yes", "track.ids=[3]", "track.mode=exact"]
+    )
     assert p.stages["track"].params == {"radius": 9, "sigma": 0.5, "mode": "exact", "flip": True, "ids": [3]}
     found = issues(tmp_path, GOOD, overrides=["track.radius=big", "track.mode=slow", "nope.x=1", "track.zzz=1", "radius"])
     assert found == [
@@ -207,7 +230,8 @@ def test_bind_inputs(tmp_path):
         bind_inputs(p, clip=None, named=[])
     assert [str(i).split(": ", 1)[1] for i in info.value.issues] == [
         "inputs.clip: missing input: no value given (use --in)",
-        f"inputs.pack: missing input: {tmp_path / 'packs' / 'a'}: no such folder"]
+        f"inputs.pack: missing input: {tmp_path / 'packs' / 'a'}: no such folder",
+    ]
     (tmp_path / "packs" / "a").mkdir(parents=True)
     assert bind_inputs(p, clip=clip, named=[]) == {"clip": clip, "pack": tmp_path / "packs" / "a"}
     assert bind_inputs(p, clip=None, named=[f"clip={clip}", f"pack={tmp_path}"]) == {"clip": clip, "pack": tmp_path}
@@ -217,17 +241,21 @@ def test_bind_inputs(tmp_path):
 
 def test_parameter_ranges_are_checked_when_the_graph_is_loaded(tmp_path):
     text = GOOD + "  enc: {uses: t.encode, params: {crf: 52, scale: -0.5}, inputs: {points: track.points}}\n"
-    assert issues(tmp_path, text) == ["13:39: stages.enc.params.crf: out of range: expected 0 <= crf <= 51, got 52",
-                                      "13:50: stages.enc.params.scale: out of range: expected 0.0 <= scale, got -0.5"]
+    assert issues(tmp_path, text) == [
+        "13:39: stages.enc.params.crf: out of range: expected 0 <= crf <= 51, got 52",
+        "13:50: stages.enc.params.scale: out of range: expected 0.0 <= scale, got -0.5",
+    ]
     good = GOOD + "  enc: {uses: t.encode, inputs: {points: track.points}}\n"
-    assert issues(tmp_path, good, overrides=["enc.crf=100"]) == [
-        "--set: enc.crf: out of range: expected 0 <= crf <= 51, got 100"]
+    assert issues(tmp_path, good, overrides=["enc.crf=100"]) == ["--set: enc.crf: out of range: expected 0 <= crf <= 51, got 100"]
     assert load(tmp_path, good, overrides=["enc.crf=0", "enc.scale=0"]).stages["enc"].params == {"crf": 0, "scale": 0.0}
 
 
 def test_yaml_aliases_are_refused_with_their_position(tmp_path):
-    bomb = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
-        f"{b}: &{b} [{', '.join([f'*{a}'] * 9)}]\n" for a, b in zip("abcdefghi", "bcdefghij")) + "stages: {}\n"
+    bomb = (
+        "a: &a [x, x, x, x, x, x, x, x, x]\n"
+        + "".join(f"{b}: &{b} [{', '.join([f'*{a}'] * 9)}]\n" for a, b in zip("abcdefghi", "bcdefghij"))
+        + "stages: {}\n"
+    )
     assert issues(tmp_path, bomb) == ["2:8: yaml: alias *a is not allowed (aliases are refused)"]
     found = issues(tmp_path, "stages:\n  a: {uses: t.smooth, params: &p {}}\n  b: {uses: t.smooth, params: *p}\n")
     assert found == ["3:31: yaml: alias *p is not allowed (aliases are refused)"]

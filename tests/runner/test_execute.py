@@ -38,7 +38,10 @@ class Ramp(FrameStage):
     def process(self, start, stop, inputs, params, ctx):
         if start <= params["fail_at"] < stop:
             raise StageError(f"frame {params['fail_at']}: cannot compute")
-        return {"frames": clip()[start:stop], "rows": {"index": np.arange(start, stop), "names": np.array(["f"] * (stop - start))}}
+        return {
+            "frames": clip()[start:stop],
+            "rows": {"index": np.arange(start, stop), "names": np.array(["f"] * (stop - start))},
+        }
 
 
 class Blur(FrameStage):
@@ -50,7 +53,7 @@ class Blur(FrameStage):
 
     def process(self, start, stop, inputs, params, ctx):
         got = inputs["frames"].read(start - 2, stop + 2).astype(np.float64)
-        out = np.stack([got[i:i + 5].mean(axis=0) for i in range(stop - start)])
+        out = np.stack([got[i : i + 5].mean(axis=0) for i in range(stop - start)])
         return {"frames": np.round(out * 10).astype(np.uint16)}
 
 
@@ -90,7 +93,7 @@ def test_windows_and_bundles_across_chunks(tmp_path, jobs):
     runner = run(tmp_path, jobs=jobs)
     result = runner.values[("collect", "all")].get()
     padded = np.concatenate([clip()[:1]] * 2 + [clip()] + [clip()[-1:]] * 2).astype(np.float64)
-    truth = np.stack([padded[t:t + 5].mean(axis=0) for t in range(N)])
+    truth = np.stack([padded[t : t + 5].mean(axis=0) for t in range(N)])
     np.testing.assert_array_equal(result["frames"], np.round(truth * 10).astype(np.uint16))
     np.testing.assert_array_equal(result["index"], np.arange(N))
     assert result["names"].dtype.kind == "U" and len(runner.entries["blur"]) == 6  # ceil(23 / 4)
@@ -113,7 +116,7 @@ def test_bad_stage_output_is_reported(tmp_path):
         name = "t.wrong"
 
         def process(self, start, stop, inputs, params, ctx):
-            return {"frames": clip()[start:stop + 1], "rows": {"index": np.arange(start, stop)}}
+            return {"frames": clip()[start : stop + 1], "rows": {"index": np.arange(start, stop)}}
 
     path = tmp_path / "p.yaml"
     path.write_text("stages:\n  w: {uses: t.wrong}\n")
@@ -128,8 +131,10 @@ class Lookup(SequenceStage):
     name, version = "t.lookup", "1"
     inputs = {"rows": "rows"}
     outputs = {"mapped": "mapped"}
-    params = (Param("table", str, "", "YAML list of values", file=True),
-              Param("threads", int, 1, "does not change the output", in_key=False))
+    params = (
+        Param("table", str, "", "YAML list of values", file=True),
+        Param("threads", int, 1, "does not change the output", in_key=False),
+    )
 
     def run(self, inputs, params, ctx):
         table = np.asarray(yaml.safe_load(Path(params["table"]).read_text()))
@@ -140,8 +145,10 @@ def test_file_params_key_on_content_and_out_of_key_params_reuse_the_entry(tmp_pa
     monkeypatch.chdir(tmp_path)  # a relative path is read from the working directory
     Path("table.yaml").write_text("[1, 2, 3]\n")
     path = tmp_path / "p.yaml"
-    path.write_text("chunk_frames: 4\nstages:\n  ramp: {uses: t.ramp}\n"
-                    "  lookup: {uses: t.lookup, params: {table: table.yaml}, inputs: {rows: ramp.rows}}\n")
+    path.write_text(
+        "chunk_frames: 4\nstages:\n  ramp: {uses: t.ramp}\n"
+        "  lookup: {uses: t.lookup, params: {table: table.yaml}, inputs: {rows: ramp.rows}}\n"
+    )
     registry = Registry(classes=[Ramp, Lookup])
 
     def statuses(*overrides: str, dry_run: bool = False) -> dict[str, tuple[str, str]]:
@@ -195,7 +202,9 @@ def test_stage_seconds_count_computing_not_waiting(tmp_path):
     `sums` reports its own work, not the time it waited for the producers: no stage's seconds
     exceed the run's."""
     path = tmp_path / "p.yaml"
-    path.write_text("chunk_frames: 4\nstages:\n  ramp: {uses: t.slow_ramp}\n  sums: {uses: t.sums, inputs: {frames: ramp.frames}}\n")
+    path.write_text(
+        "chunk_frames: 4\nstages:\n  ramp: {uses: t.slow_ramp}\n  sums: {uses: t.sums, inputs: {frames: ramp.frames}}\n"
+    )
     pipeline = load_pipeline(path, Registry(classes=[SlowRamp, Sums]))
     started = time.perf_counter()
     reports = {r.stage: r for r in Runner(pipeline, {}, Options(cache=CacheStore(tmp_path / "cache"), producers=2)).run()}

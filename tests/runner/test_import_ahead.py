@@ -46,14 +46,16 @@ class After(SequenceStage):
 def test_declared_modules_are_imported_while_the_stream_runs(tmp_path: Path, monkeypatch):
     monkeypatch.delitem(sys.modules, MODULE, raising=False)
     pipeline = tmp_path / "p.yaml"
-    pipeline.write_text(textwrap.dedent("""
+    pipeline.write_text(
+        textwrap.dedent("""
         chunk_frames: 4
         stages:
           source: {uses: s.source}
           double: {uses: s.double, inputs: {frames: source.frames}}
           first: {uses: s.reader, inputs: {frames: double.frames}}
           after: {uses: s.after, inputs: {all: first.all}}
-    """))
+    """)
+    )
     registry = Registry(classes=[HeldSource, Double, Reader, After])
     IMPORTED.clear()
     importer = []

@@ -37,8 +37,11 @@ stages:
   gray: {uses: image.gray, inputs: {frames: decode.frames}}
   video: {uses: write.video, params: {codec: ffv1}, inputs: {frames: gray.frames}}
 """
-PHOTOS = (VIDEO.replace("chunk_frames: 8", "chunk_frames: 2").replace("clip: {type: video}", "photos: {type: dir}")
-          .replace("video.decode, inputs: {video: clip}", "photos.decode, inputs: {photos: photos}"))
+PHOTOS = (
+    VIDEO.replace("chunk_frames: 8", "chunk_frames: 2")
+    .replace("clip: {type: video}", "photos: {type: dir}")
+    .replace("video.decode, inputs: {video: clip}", "photos.decode, inputs: {photos: photos}")
+)
 PACK_LOAD = """
 inputs: {pack: {type: dir}}
 stages:
@@ -83,8 +86,14 @@ def test_clip_replaced_while_read_fails_the_run_and_poisons_nothing(tmp_path):
     shutil.copy(CLIPS / "live.mp4", other)
     cache = tmp_path / "cache"
     with pytest.raises(StageFailed) as info:
-        run(tmp_path, VIDEO, {"clip": clip}, cache=cache, out=tmp_path / "out",
-            on_event=once(first_chunk_of("gray"), lambda: os.replace(other, clip)))
+        run(
+            tmp_path,
+            VIDEO,
+            {"clip": clip},
+            cache=cache,
+            out=tmp_path / "out",
+            on_event=once(first_chunk_of("gray"), lambda: os.replace(other, clip)),
+        )
     message = str(info.value)
     assert "input 'clip' changed while the run read it" in message and str(clip) in message and "\n" not in message
     shutil.copy(CLIPS / "calm.mp4", clip)  # the original back (a new inode)
@@ -101,9 +110,17 @@ def test_pack_edited_after_its_digest_fails_the_stage_and_stores_nothing(tmp_pat
     original = manifest.read_text()
     cache = tmp_path / "cache"
     with pytest.raises(StageFailed) as info:
-        run(tmp_path, PACK_LOAD, {"pack": pack}, cache=cache, out=tmp_path / "out",
-            on_event=once(lambda e: e.get("event") == "stage_start" and e.get("stage") == "load",
-                          lambda: manifest.write_text(original.replace("name: target", "name: edited"))))
+        run(
+            tmp_path,
+            PACK_LOAD,
+            {"pack": pack},
+            cache=cache,
+            out=tmp_path / "out",
+            on_event=once(
+                lambda e: e.get("event") == "stage_start" and e.get("stage") == "load",
+                lambda: manifest.write_text(original.replace("name: target", "name: edited")),
+            ),
+        )
     assert "input 'pack' changed while the run read it" in str(info.value) and "pack.yaml" in str(info.value)
     assert entry_count(cache) == 0
 
@@ -125,8 +142,14 @@ def test_photo_replaced_while_read_fails_the_run(tmp_path):
     cv2.imwrite(str(replacement), np.zeros((40, 30, 3), np.uint8))
     cache = tmp_path / "cache"
     with pytest.raises(StageFailed) as info:
-        run(tmp_path, PHOTOS, {"photos": photos}, cache=cache, out=tmp_path / "out",
-            on_event=once(first_chunk_of("gray"), lambda: os.replace(replacement, photos / "p2.png")))
+        run(
+            tmp_path,
+            PHOTOS,
+            {"photos": photos},
+            cache=cache,
+            out=tmp_path / "out",
+            on_event=once(first_chunk_of("gray"), lambda: os.replace(replacement, photos / "p2.png")),
+        )
     assert "input 'photos' changed while the run read it" in str(info.value) and "p2.png" in str(info.value)
     (photos / "p2.png").write_bytes(originals[2])
     run(tmp_path, PHOTOS, {"photos": photos}, cache=cache, out=tmp_path / "out")
@@ -168,8 +191,9 @@ def test_file_name_that_is_not_utf8_is_hashed_by_its_bytes(tmp_path):
     latin1.rename(folder / os.fsdecode(b"caf\xe8.png"))
     assert tree_digest(folder) != first
     (folder / os.fsdecode(b"caf\xe8.png")).rename(folder / "café.png")
-    document = json.dumps([["café.png", hashlib.sha256(b"x").hexdigest()]], sort_keys=True, separators=(",", ":"),
-                          ensure_ascii=False)
+    document = json.dumps(
+        [["café.png", hashlib.sha256(b"x").hexdigest()]], sort_keys=True, separators=(",", ":"), ensure_ascii=False
+    )
     assert tree_digest(folder) == hashlib.sha256(document.encode()).hexdigest()
 
 

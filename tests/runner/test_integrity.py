@@ -127,14 +127,19 @@ class Recorder:
         self.events: list[dict] = []
 
 
-def run(tmp_path: Path, text: str = CHAIN, *, overrides=(), named=(), out: Path | None = None,
-        recorder: Recorder | None = None) -> Runner:
+def run(
+    tmp_path: Path, text: str = CHAIN, *, overrides=(), named=(), out: Path | None = None, recorder: Recorder | None = None
+) -> Runner:
     path = tmp_path / "p.yaml"
     path.write_text(textwrap.dedent(text))
     pipeline = load_pipeline(path, REGISTRY, overrides=list(overrides))
     recorder = recorder or Recorder()
-    options = Options(cache=CacheStore(tmp_path / "cache"), out=out if out is not None else tmp_path / "out",
-                      warn=recorder.warnings.append, log=recorder.events.append)
+    options = Options(
+        cache=CacheStore(tmp_path / "cache"),
+        out=out if out is not None else tmp_path / "out",
+        warn=recorder.warnings.append,
+        log=recorder.events.append,
+    )
     runner = Runner(pipeline, bind_inputs(pipeline, clip=None, named=list(named)), options)
     runner.run()
     return runner
@@ -145,8 +150,9 @@ def statuses(recorder: Recorder) -> dict[str, str]:
 
 
 def entry_files(tmp_path: Path, stage: str, name: str) -> list[Path]:
-    return sorted(p for e in CacheStore(tmp_path / "cache").iter_entries() if e.record.get("stage") == stage
-                  for p in e.path.rglob(name))
+    return sorted(
+        p for e in CacheStore(tmp_path / "cache").iter_entries() if e.record.get("stage") == stage for p in e.path.rglob(name)
+    )
 
 
 def published_sums(tmp_path: Path) -> list[int]:
@@ -158,17 +164,18 @@ EXPECTED = truth().reshape(N, -1).sum(axis=1).tolist()
 
 # -- damaged entries ------------------------------------------------------------------------
 
+
 def test_frame_chunks_store_their_digest_and_are_computed_again_when_read_later(tmp_path):
     """Frames are not stored: ramp's entries record the digest of each chunk's frames only, and
     a reader whose key changed gets the frames computed again, equal to the first ones."""
     run(tmp_path)
-    entries = [e for e in CacheStore(tmp_path / "cache").iter_entries() if e.record.get("stage") == "ramp"
-               and "range" in e.record]
+    entries = [
+        e for e in CacheStore(tmp_path / "cache").iter_entries() if e.record.get("stage") == "ramp" and "range" in e.record
+    ]
     assert len(entries) == 3 and entry_files(tmp_path, "ramp", "*.npy") == []
     for entry in entries:
         start, stop = entry.record["range"]
-        assert entry.record["outputs"]["frames"] == {"type": "frames",
-                                                     "digest": digest.array_digest(truth()[start:stop])}
+        assert entry.record["outputs"]["frames"] == {"type": "frames", "digest": digest.array_digest(truth()[start:stop])}
     recorder = Recorder()
     run(tmp_path, overrides=["sums.note=again"], recorder=recorder)  # sums reads every chunk
     assert published_sums(tmp_path) == EXPECTED and recorder.warnings == []
@@ -184,8 +191,9 @@ def test_frames_computed_again_that_differ_from_their_digest_are_reported(tmp_pa
     run(tmp_path, chain)
     recorder = Recorder()
     run(tmp_path, chain, overrides=["sums.note=again"], recorder=recorder)
-    assert [(e["stage"], e["start"], e["stop"], e["ports"]) for e in recorder.events
-            if e.get("event") == "nondeterministic"] == [("ramp", s, s + 4, ["frames"]) for s in (0, 4, 8)]
+    assert [(e["stage"], e["start"], e["stop"], e["ports"]) for e in recorder.events if e.get("event") == "nondeterministic"] == [
+        ("ramp", s, s + 4, ["frames"]) for s in (0, 4, 8)
+    ]
     assert len(recorder.warnings) == 1 and "'ramp'" in recorder.warnings[0] and "not deterministic" in recorder.warnings[0]
 
 
@@ -280,6 +288,7 @@ def test_publishing_hashes_a_file_only_when_its_stat_changed(tmp_path, monkeypat
 
 # -- what is in a key -----------------------------------------------------------------------
 
+
 def test_input_file_suffix_is_in_the_key(tmp_path):
     (tmp_path / "init.csv").write_text("1,2,3")
     (tmp_path / "init.txt").write_text("1,2,3")
@@ -306,6 +315,7 @@ def test_recorded_dependency_change_invalidates_the_entry(tmp_path):
 
 # -- what publishing may replace --------------------------------------------------------------
 
+
 @pytest.mark.parametrize("layout", ["user folder", "user file", "file in published folder"])
 def test_out_never_replaces_user_files(tmp_path, layout):
     out = tmp_path / "out"
@@ -323,8 +333,11 @@ def test_out_never_replaces_user_files(tmp_path, layout):
         run(tmp_path, overrides=["table.note=changed"])
     assert "table" in str(info.value) and "--out" in str(info.value)
     assert len(list(CacheStore(tmp_path / "cache").iter_entries())) == entries_before  # nothing ran
-    mine = {"user folder": out / "table" / "data.csv", "user file": out / "table",
-            "file in published folder": out / "table" / "notes.txt"}[layout]
+    mine = {
+        "user folder": out / "table" / "data.csv",
+        "user file": out / "table",
+        "file in published folder": out / "table" / "notes.txt",
+    }[layout]
     assert mine.read_text() == "mine"
 
 
@@ -372,6 +385,7 @@ def test_user_folders_named_like_leftovers_are_kept(tmp_path):
 
 
 # -- failures -----------------------------------------------------------------------------
+
 
 def test_disk_full_names_the_stage_and_the_file(tmp_path, monkeypatch):
     def full(*args, **kwargs):

@@ -32,6 +32,7 @@ PIPELINE = """\
       video: {uses: write.video, params: {crf: 20}, inputs: {frames: decode.frames}}
 """
 
+
 @pytest.fixture
 def pipeline(tmp_path: Path) -> Path:
     path = tmp_path / "two.yaml"
@@ -49,14 +50,12 @@ def test_stage_in_a_child_gives_the_same_outputs(tmp_path, pipeline, plugin_site
     events: list[dict] = []
     out = tmp_path / "out"
     expected = way if offload.can_fork() else "interpreter"  # Ray, torch... loaded by another test: no fork
-    Runner(loaded, {"clip": TINY}, Options(cache=CacheStore(tmp_path / "cache"), out=out, offload=True,
-                                           log=events.append)).run()
+    Runner(loaded, {"clip": TINY}, Options(cache=CacheStore(tmp_path / "cache"), out=out, offload=True, log=events.append)).run()
     assert [e["started"] for e in events if e["event"] == "offload"] == [expected]
     moved = [stage for e in events if e["event"] == "offload" for stage in e["stages"]]
     assert moved == ["mean", "table"]  # the tracker-like stage and the table that reads only it
     reports = {e["stage"]: e for e in events if e["event"] == "stage"}
-    in_child = {e["child"]["stage"]: e["child"] for e in events
-                if e["event"] == "child" and e["child"]["event"] == "stage"}
+    in_child = {e["child"]["stage"]: e["child"] for e in events if e["event"] == "child" and e["child"]["event"] == "stage"}
     for stage in moved:
         assert (reports[stage]["status"], reports[stage]["reason"]) == ("ran", "in a child process beside the run")
         assert in_child[stage]["status"] == "ran"
@@ -76,8 +75,11 @@ def test_the_command_runs_a_child_then_finds_everything_cached(env, tmp_path, pi
     assert [(e["stages"], e["started"]) for e in offloads] == [(["mean", "table"], "fork")]  # a fresh process
     assert first.stderr == ""
     monkeypatch.syspath_prepend(str(plugin_site))
-    Runner(load_pipeline(pipeline, Registry.from_entry_points()), {"clip": TINY},
-           Options(cache=CacheStore(tmp_path / "alone"), out=tmp_path / "alone_out")).run()
+    Runner(
+        load_pipeline(pipeline, Registry.from_entry_points()),
+        {"clip": TINY},
+        Options(cache=CacheStore(tmp_path / "alone"), out=tmp_path / "alone_out"),
+    ).run()
     for published in ("table/series.json", "video/video.mp4"):
         assert (out / published).read_bytes() == (tmp_path / "alone_out" / published).read_bytes()
     second = run_cli("run", pipeline, "--in", TINY, "--out", out, "--log-json", tmp_path / "2.jsonl", env=env, cwd=tmp_path)
@@ -98,8 +100,7 @@ def test_a_failed_child_leaves_the_stage_to_the_run(tmp_path, pipeline, plugin_s
     monkeypatch.setattr(execute, "offload_fork", lambda make_runner: None)  # the new-interpreter way
     events = []
     options = Options(cache=CacheStore(tmp_path / "cache"), out=tmp_path / "out", offload=True, log=events.append)
-    reports = {r.stage: r for r in Runner(load_pipeline(pipeline, Registry.from_entry_points()), {"clip": TINY},
-                                          options).run()}
+    reports = {r.stage: r for r in Runner(load_pipeline(pipeline, Registry.from_entry_points()), {"clip": TINY}, options).run()}
     assert started and len(started) == len(set(started))  # each offered to a child once
     for stage in started:
         assert (reports[stage].status, reports[stage].reason) == ("ran", "")  # computed here after all

@@ -28,13 +28,16 @@ def test_every_numeric_parameter_has_a_minimum_and_a_maximum():
     assert all(p.min <= p.default <= p.max for _, p in params)
 
 
-@pytest.mark.parametrize("pipeline, override, message", [
-    ("pack_build.yaml", "select.width=20000", "out of range: expected 32 <= width <= 4096, got 20000"),
-    ("pack_build.yaml", "select.captured=1000000", "out of range: expected 2 <= captured <= 256, got 1000000"),
-    ("pipeline.yaml", "smooth.beta=1e308", "out of range: expected 0.0 <= beta <= 1000.0, got 1e+308"),
-    ("pipeline_paper.yaml", "smooth.truncate=1e308", "out of range: expected 0.0 <= truncate <= 20.0, got 1e+308"),
-    ("pipeline.yaml", "compensate.neutral_frame=-5", "out of range: expected -1 <= neutral_frame <= 10000000, got -5"),
-])
+@pytest.mark.parametrize(
+    "pipeline, override, message",
+    [
+        ("pack_build.yaml", "select.width=20000", "out of range: expected 32 <= width <= 4096, got 20000"),
+        ("pack_build.yaml", "select.captured=1000000", "out of range: expected 2 <= captured <= 256, got 1000000"),
+        ("pipeline.yaml", "smooth.beta=1e308", "out of range: expected 0.0 <= beta <= 1000.0, got 1e+308"),
+        ("pipeline_paper.yaml", "smooth.truncate=1e308", "out of range: expected 0.0 <= truncate <= 20.0, got 1e+308"),
+        ("pipeline.yaml", "compensate.neutral_frame=-5", "out of range: expected -1 <= neutral_frame <= 10000000, got -5"),
+    ],
+)
 def test_a_size_beyond_its_maximum_is_refused_before_anything_runs(pipeline, override, message):
     with pytest.raises(ConfigError) as info:
         load_pipeline(REPO / pipeline, REGISTRY, overrides=[override])
@@ -42,6 +45,15 @@ def test_a_size_beyond_its_maximum_is_refused_before_anything_runs(pipeline, ove
 
 
 def test_the_command_exits_2_on_select_width_20000(tmp_path, env):
-    done = run_cli("run", REPO / "pack_build.yaml", "--set", "select.width=20000", "--set", "select.height=20000",
-                   "--dry-run", env=env, cwd=tmp_path)
+    done = run_cli(
+        "run",
+        REPO / "pack_build.yaml",
+        "--set",
+        "select.width=20000",
+        "--set",
+        "select.height=20000",
+        "--dry-run",
+        env=env,
+        cwd=tmp_path,
+    )
     assert done.returncode == 2 and "select.width: out of range" in done.stderr and "select.height" in done.stderr

@@ -58,10 +58,14 @@ def test_reading_a_stage_that_defines_its_own_shape_streams_within_keep(tmp_path
     """first reads pair (uncached, each chunk keyed on all of double): before, its probe of
     pair's first chunk resolved every chunk of double before first read any (all held)."""
     monkeypatch.setattr(streaming, "REGISTRY", Registry(classes=[Source, Double, Reader, Pair]))
-    monkeypatch.setattr(streaming, "PIPELINE", streaming.PIPELINE.replace(
-        "  first: {uses: s.reader, inputs: {frames: double.frames}}",
-        "  pair: {uses: s.pair, inputs: {frames: double.frames}}\n"
-        "  first: {uses: s.reader, inputs: {frames: pair.frames}}"))
+    monkeypatch.setattr(
+        streaming,
+        "PIPELINE",
+        streaming.PIPELINE.replace(
+            "  first: {uses: s.reader, inputs: {frames: double.frames}}",
+            "  pair: {uses: s.pair, inputs: {frames: double.frames}}\n  first: {uses: s.reader, inputs: {frames: pair.frames}}",
+        ),
+    )
     runner, reports = run(tmp_path)
     np.testing.assert_array_equal(runner.values[("first", "all")].get()["frames"], 2 * clip() + 1)
     assert reports["first"].reason == "read pair while it was computed"

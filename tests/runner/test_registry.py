@@ -28,8 +28,15 @@ def test_entry_points_register_stages(tmp_path, monkeypatch):
 
 
 def test_registry_rejects_conflicts_and_bad_targets(tmp_path, monkeypatch):
-    _site(tmp_path / "a", {"video.decode": "stages.video:VideoDecode", "x.y": "stages.video:WriteVideo",
-                           "x.missing": "stages.video:Nope", "x.notstage": "stages.video:probe"})
+    _site(
+        tmp_path / "a",
+        {
+            "video.decode": "stages.video:VideoDecode",
+            "x.y": "stages.video:WriteVideo",
+            "x.missing": "stages.video:Nope",
+            "x.notstage": "stages.video:probe",
+        },
+    )
     monkeypatch.syspath_prepend(str(tmp_path / "a"))
     registry = Registry.from_entry_points()
     with pytest.raises(RegistryError, match="whose name is 'write.video'"):
@@ -64,8 +71,13 @@ def test_stage_contract_checks():
         name, version = "a.b", "1"
         outputs = {"f": "frames"}
 
-    for cls, words in [(NoVersion, "'version'"), (BadDefault, "default of 'n'"), (NoShape, "define stream_info"),
-                       (FramesFromSequence, "only frame stages"), (UncachedBundle, "cached = False")]:
+    for cls, words in [
+        (NoVersion, "'version'"),
+        (BadDefault, "default of 'n'"),
+        (NoShape, "define stream_info"),
+        (FramesFromSequence, "only frame stages"),
+        (UncachedBundle, "cached = False"),
+    ]:
         with pytest.raises(RegistryError, match=words):
             check_stage_class(cls)
     registry = Registry(classes=[VideoDecode])

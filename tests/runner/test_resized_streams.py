@@ -46,10 +46,15 @@ def test_cached_stage_after_an_uncached_resized_one_streams_through(env, tmp_pat
     `more`'s first key needs `half`'s first chunk only; it hung when `half` keyed its chunks by
     whole input streams."""
     graph = tmp_path / "graph.yaml"
-    graph.write_text(textwrap.dedent(GRAPH).replace("uses: test.half_size,", "uses: test.half_size_on_demand,").replace(
-        "  write: {uses: test.slow_write, params: {crf: 20}, inputs: {frames: half.frames}}",
-        "  more: {uses: test.add, params: {value: 1}, inputs: {frames: half.frames}}\n"
-        "  write: {uses: test.slow_write, params: {crf: 20}, inputs: {frames: more.frames}}"))
+    graph.write_text(
+        textwrap.dedent(GRAPH)
+        .replace("uses: test.half_size,", "uses: test.half_size_on_demand,")
+        .replace(
+            "  write: {uses: test.slow_write, params: {crf: 20}, inputs: {frames: half.frames}}",
+            "  more: {uses: test.add, params: {value: 1}, inputs: {frames: half.frames}}\n"
+            "  write: {uses: test.slow_write, params: {crf: 20}, inputs: {frames: more.frames}}",
+        )
+    )
     done = run_cli("run", graph, "--out", tmp_path / "out", env=env, cwd=tmp_path)
     assert done.returncode == 0, done.stderr
     assert (tmp_path / "out" / "write").is_dir()

@@ -40,8 +40,7 @@ def _wait_for(log: Path, proc: subprocess.Popen, condition, timeout: float = 60.
 
 
 def _ran_chunks(events, stage: str) -> set[tuple[int, int]]:
-    return {(e["start"], e["stop"]) for e in events
-            if e.get("event") == "chunk" and e["stage"] == stage and e["status"] == "ran"}
+    return {(e["start"], e["stop"]) for e in events if e.get("event") == "chunk" and e["stage"] == stage and e["status"] == "ran"}
 
 
 def _stored_chunks(cache: Path) -> dict[str, set[tuple[int, int]]]:
@@ -55,8 +54,13 @@ def _stored_chunks(cache: Path) -> dict[str, set[tuple[int, int]]]:
 
 def _kill_then_resume(env, tmp_path, reference, *, wait, **slow: str) -> tuple[list, list, dict]:
     out, killed_log, resumed_log = tmp_path / "out", tmp_path / "killed.jsonl", tmp_path / "resumed.jsonl"
-    proc = subprocess.Popen(runner_cmd("run", GRAPH, "--out", out, "--log-json", killed_log),
-                            env={**env, **slow}, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        runner_cmd("run", GRAPH, "--out", out, "--log-json", killed_log),
+        env={**env, **slow},
+        cwd=tmp_path,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         wait(proc, killed_log)
     finally:
@@ -99,9 +103,13 @@ def test_kill_mid_chunk(env, tmp_path, reference):
 
 def test_dry_run_after_kill_names_missing_chunks(env, tmp_path):
     log = tmp_path / "killed.jsonl"
-    proc = subprocess.Popen(runner_cmd("run", GRAPH, "--out", tmp_path / "out", "--log-json", log),
-                            env={**env, "RUNNER_TEST_SLEEP": "0.4"}, cwd=tmp_path,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        runner_cmd("run", GRAPH, "--out", tmp_path / "out", "--log-json", log),
+        env={**env, "RUNNER_TEST_SLEEP": "0.4"},
+        cwd=tmp_path,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         _wait_for(log, proc, lambda events: len(_ran_chunks(events, "add")) >= 1)
     finally:
@@ -118,21 +126,33 @@ def test_kill_mid_write(env, tmp_path, reference):
     the chunks of add and gray computed so far are stored (their frames are not) and the rest
     were never computed; the resumed run encodes the video again, computing the missing chunks
     and the frames of the stored ones again (``recompute`` events), and no entry twice."""
+
     def wait(proc, log):  # inside the encoder, some chunks written, the file not finished
-        _wait_for(log, proc, lambda events: len(_ran_chunks(events, "gray")) >= 2 and any(
-            e.get("event") == "stage_start" and e["stage"] == "write" for e in events))
+        _wait_for(
+            log,
+            proc,
+            lambda events: (
+                len(_ran_chunks(events, "gray")) >= 2
+                and any(e.get("event") == "stage_start" and e["stage"] == "write" for e in events)
+            ),
+        )
         time.sleep(0.2)
 
     # add is slowed down so that its producer threads (one per core, up to keep = 5 chunks ahead
     # of gray) have not computed its 6 chunks when the kill lands.
-    killed, resumed, _ = _kill_then_resume(env, tmp_path, reference, wait=wait, RUNNER_TEST_SLEEP="0.5",
-                                           RUNNER_TEST_WRITE_SLEEP="0.2")
+    killed, resumed, _ = _kill_then_resume(
+        env, tmp_path, reference, wait=wait, RUNNER_TEST_SLEEP="0.5", RUNNER_TEST_WRITE_SLEEP="0.2"
+    )
     assert "write" not in stage_status(killed)
     # Streaming: the writer was reading before its upstream stages had computed every chunk.
     assert 2 <= len(_ran_chunks(killed, "gray")) < 6 and len(_ran_chunks(killed, "add")) < 6
     status = stage_status(resumed)
     assert {stage: status[stage] for stage in ("decode", "add", "gray", "write")} == {
-        "decode": "on demand", "add": "partial", "gray": "partial", "write": "ran"}
+        "decode": "on demand",
+        "add": "partial",
+        "gray": "partial",
+        "write": "ran",
+    }
     again = {(e["start"], e["stop"]) for e in resumed if e.get("event") == "recompute" and e["stage"] == "gray"}
     assert again == _stored_chunks(Path(env["RUNNER_CACHE_DIR"]))["gray"] - _ran_chunks(resumed, "gray")
 
@@ -141,24 +161,31 @@ def test_kill_mid_write(env, tmp_path, reference):
 def test_kill_after_observed_chunks(env, tmp_path, reference, computed):
     """Killed once ``computed`` of the 12 chunks of add and gray were logged as computed (early,
     midway, near the end), so that the kill always lands inside the work."""
+
     def wait(proc, log):
         _wait_for(log, proc, lambda events: len(_ran_chunks(events, "add")) + len(_ran_chunks(events, "gray")) >= computed)
 
-    killed, _, stored = _kill_then_resume(env, tmp_path, reference, wait=wait, RUNNER_TEST_SLEEP="0.1",
-                                          RUNNER_TEST_WRITE_SLEEP="0.05")
+    killed, _, stored = _kill_then_resume(
+        env, tmp_path, reference, wait=wait, RUNNER_TEST_SLEEP="0.1", RUNNER_TEST_WRITE_SLEEP="0.05"
+    )
     assert len(stored["add"]) + len(stored["gray"]) >= computed
 
 
 def test_stale_lock_of_killed_run_is_broken(env, tmp_path, reference):
     """A run killed while holding a chunk lock leaves it behind; the next run takes it over."""
+
     def wait(proc, log):
         _wait_for(log, proc, lambda events: len(_ran_chunks(events, "add")) >= 1)
 
     cache = Path(env["RUNNER_CACHE_DIR"])
     out, log = tmp_path / "out", tmp_path / "killed.jsonl"
-    proc = subprocess.Popen(runner_cmd("run", GRAPH, "--out", out, "--log-json", log),
-                            env={**env, "RUNNER_TEST_SLEEP": "0.5"}, cwd=tmp_path,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        runner_cmd("run", GRAPH, "--out", out, "--log-json", log),
+        env={**env, "RUNNER_TEST_SLEEP": "0.5"},
+        cwd=tmp_path,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         wait(proc, log)
         deadline = time.monotonic() + 10  # the next chunk's lock is taken just after the event
@@ -187,8 +214,10 @@ def test_run_breaks_stale_locks_of_complete_entries(env, tmp_path, reference):
     complete = [entry.key for entry in store.iter_entries()][:2]
     gone = subprocess.Popen(["true"])
     gone.wait()
-    holders = {complete[0]: {"pid": gone.pid, "host": socket.gethostname(), "started": None},
-               complete[1]: {"pid": os.getpid(), "host": socket.gethostname(), "started": None}}
+    holders = {
+        complete[0]: {"pid": gone.pid, "host": socket.gethostname(), "started": None},
+        complete[1]: {"pid": os.getpid(), "host": socket.gethostname(), "started": None},
+    }
     for key, holder in holders.items():
         (store.locks_dir / f"{key}.lock").write_text(json.dumps(holder))
     done = run_cli("run", GRAPH, "--out", out, env=env, cwd=tmp_path)
@@ -200,10 +229,17 @@ def test_run_breaks_stale_locks_of_complete_entries(env, tmp_path, reference):
 def test_two_concurrent_runs_share_the_cache(env, tmp_path, reference):
     out = tmp_path / "out"
     logs = [tmp_path / f"{i}.jsonl" for i in range(2)]
-    procs = [subprocess.Popen(runner_cmd("run", GRAPH, "--out", out, "--log-json", log, "--jobs", str(i + 1)),
-                              env={**env, "RUNNER_TEST_SLEEP": "0.1"}, cwd=tmp_path,
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-             for i, log in enumerate(logs)]
+    procs = [
+        subprocess.Popen(
+            runner_cmd("run", GRAPH, "--out", out, "--log-json", log, "--jobs", str(i + 1)),
+            env={**env, "RUNNER_TEST_SLEEP": "0.1"},
+            cwd=tmp_path,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for i, log in enumerate(logs)
+    ]
     for proc in procs:
         _, err = proc.communicate(timeout=120)
         assert proc.returncode == 0, err
@@ -213,16 +249,22 @@ def test_two_concurrent_runs_share_the_cache(env, tmp_path, reference):
     ran = [_ran_chunks(read_log(log), "add") for log in logs]
     assert not ran[0] & ran[1] and len(ran[0] | ran[1]) == 6
     assert not os.listdir(Path(env["RUNNER_CACHE_DIR"]) / "locks") or all(
-        p.name == ".break" for p in (Path(env["RUNNER_CACHE_DIR"]) / "locks").iterdir())
+        p.name == ".break" for p in (Path(env["RUNNER_CACHE_DIR"]) / "locks").iterdir()
+    )
 
 
 def test_second_interrupt_exits_at_once(env, tmp_path, reference):
     """The first signal stops the run cleanly, which waits for the chunks being computed (here
     30 s each); a second one ends the process at once, exit 130, and the next run completes."""
     log = tmp_path / "interrupted.jsonl"
-    proc = subprocess.Popen(runner_cmd("run", GRAPH, "--out", tmp_path / "out", "--log-json", log),
-                            env={**env, "RUNNER_TEST_SLEEP": "30"}, cwd=tmp_path,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        runner_cmd("run", GRAPH, "--out", tmp_path / "out", "--log-json", log),
+        env={**env, "RUNNER_TEST_SLEEP": "30"},
+        cwd=tmp_path,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         _wait_for(log, proc, lambda events: any(e.get("event") == "stage_start" and e["stage"] == "add" for e in events))
         time.sleep(0.5)  # add's chunks are sleeping
@@ -244,9 +286,14 @@ def test_second_interrupt_exits_at_once(env, tmp_path, reference):
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
 def test_interrupt_exits_130_and_resumes(env, tmp_path, reference, signum):
     log = tmp_path / "interrupted.jsonl"
-    proc = subprocess.Popen(runner_cmd("run", GRAPH, "--out", tmp_path / "out", "--log-json", log),
-                            env={**env, "RUNNER_TEST_SLEEP": "0.3"}, cwd=tmp_path,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        runner_cmd("run", GRAPH, "--out", tmp_path / "out", "--log-json", log),
+        env={**env, "RUNNER_TEST_SLEEP": "0.3"},
+        cwd=tmp_path,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     _wait_for(log, proc, lambda events: len(_ran_chunks(events, "add")) >= 1)
     proc.send_signal(signum)
     _, err = proc.communicate(timeout=60)

@@ -114,8 +114,11 @@ def run(tmp_path: Path, *overrides: str, jobs: int = 1, extra: str = "") -> tupl
 
 
 def _stored(tmp_path: Path, stage: str) -> list[int]:
-    return sorted(e.record["range"][0] for e in CacheStore(tmp_path / "cache").iter_entries()
-                  if e.record.get("stage") == stage and "range" in e.record)
+    return sorted(
+        e.record["range"][0]
+        for e in CacheStore(tmp_path / "cache").iter_entries()
+        if e.record.get("stage") == stage and "range" in e.record
+    )
 
 
 def _reads_before(events: list[tuple[str, int]], reader: str, upto: int) -> int:
@@ -176,7 +179,11 @@ def test_reader_stays_cached_when_upstream_bytes_do_not_change(tmp_path):
     # `note` changes source's keys, not its bytes: source re-runs, double and the readers are hits.
     _, reports = run(tmp_path, "source.note=x")
     assert {stage: r.status for stage, r in reports.items()} == {
-        "source": "ran", "double": "cached", "first": "cached", "second": "cached"}
+        "source": "ran",
+        "double": "cached",
+        "first": "cached",
+        "second": "cached",
+    }
     assert {what for what, _ in EVENTS} == {"source"}
     # Only the last chunk changes: the first chunk matches the readers' last run, so the stream
     # is resolved before they run (no streaming); they re-run on the new bytes.

@@ -32,7 +32,7 @@ def test_cached_stream_reads_across_chunks_with_edge_replication(tmp_path):
     stream = CachedStream(StreamInfo(10, 25.0, 3, 2), ranges, files)
     padded = np.concatenate([clip[:1].repeat(3, 0), clip, clip[-1:].repeat(3, 0)])
     for start, stop in [(0, 10), (-3, 2), (3, 5), (7, 13), (-3, 13), (9, 10)]:
-        np.testing.assert_array_equal(stream.read(start, stop), padded[start + 3:stop + 3])
+        np.testing.assert_array_equal(stream.read(start, stop), padded[start + 3 : stop + 3])
     assert [s for s, _ in stream.chunks()] == [0, 4, 8]
     np.testing.assert_array_equal(np.concatenate([c for _, c in stream.chunks()]), clip)
 

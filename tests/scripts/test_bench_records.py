@@ -28,8 +28,10 @@ def test_records_keep_provenance_and_the_page_shows_the_latest_marking_stale_one
     monkeypatch.setattr(benchmarks_page, "PAGE", repo / "docs" / "benchmarks.md")
     first = git(repo, "rev-parse", "HEAD")
     started = {"date": "2026-01-01T00:00:00+00:00", "load_start": 0.5, "commit": bench.commit()}
-    rows = [{"bench": "geometry", "metric": "m_a", "value": 1.0, "unit": "px"},
-            {"bench": "geometry", "metric": "m_b", "value": 2.0, "unit": "px"}]
+    rows = [
+        {"bench": "geometry", "metric": "m_a", "value": 1.0, "unit": "px"},
+        {"bench": "geometry", "metric": "m_b", "value": 2.0, "unit": "px"},
+    ]
     path = bench.record("geometry", rows, started, ["geometry", "--json", "--record"])
     entries = [json.loads(line) for line in path.read_text().splitlines()]
     assert [e["commit"] for e in entries] == [first, first] and entries[0]["machine"]["cores"] >= 1

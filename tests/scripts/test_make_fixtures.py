@@ -18,8 +18,9 @@ from stages.actor_pack import load_pack
 from stages.layout import load_layout
 
 REPO = Path(__file__).resolve().parents[2]
-TINY = Spec(target_size=(72, 96), clip_size=(96, 72), clip_frames=6, fps=30, captured=30, examples=10,
-            heldout_images=2, supersample=1)
+TINY = Spec(
+    target_size=(72, 96), clip_size=(96, 72), clip_frames=6, fps=30, captured=30, examples=10, heldout_images=2, supersample=1
+)
 
 
 def _digests(root: Path) -> dict[str, str]:
@@ -170,8 +171,24 @@ def test_wrinkles_are_not_a_warp_of_the_neutral():
 
 def test_render_command_writes_image_and_truth(tmp_path):
     prefix = tmp_path / "face"
-    assert main(["render", "--identity", "9", "--controls", "smile=0.7,jaw_drop=0.5", "--pose", "10,-5,3", "--size", "64x80",
-                 "--out", str(prefix)]) == 0
+    assert (
+        main(
+            [
+                "render",
+                "--identity",
+                "9",
+                "--controls",
+                "smile=0.7,jaw_drop=0.5",
+                "--pose",
+                "10,-5,3",
+                "--size",
+                "64x80",
+                "--out",
+                str(prefix),
+            ]
+        )
+        == 0
+    )
     img = cv2.imread(str(prefix.with_suffix(".png")))
     assert img.shape == (80, 64, 3)
     with np.load(prefix.with_suffix(".npz"), allow_pickle=False) as z:
@@ -222,7 +239,9 @@ def test_mesh_barely_folds_under_single_controls():
 def _opening(points: np.ndarray, layout) -> np.ndarray:
     """Inner-lip gap (mean of the two middle pairs) over the outer-eye-corner distance, ``(...)``."""
     i = layout.index
-    gap = points[..., [i("mouth_inner_7"), i("mouth_inner_8")], 1].mean(-1) - points[..., [i("mouth_inner_2"), i("mouth_inner_3")], 1].mean(-1)
+    gap = points[..., [i("mouth_inner_7"), i("mouth_inner_8")], 1].mean(-1) - points[
+        ..., [i("mouth_inner_2"), i("mouth_inner_3")], 1
+    ].mean(-1)
     return gap / np.linalg.norm(points[..., i("eye_l_6"), :] - points[..., i("eye_r_6"), :], axis=-1)
 
 
@@ -252,7 +271,9 @@ def test_jaw_drop_is_the_hinge_then_the_wide_rotation():
 def test_wide_jaw_drop_opens_the_mouth_to_half_the_eye_distance():
     layout = load_layout("zhang134")
     for seed in (2, 4, 6):
-        opening = [_opening(render_identity(seed, {"jaw_drop": j}, supersample=1)["points"], layout) for j in (0.0, 0.25, 0.5, 0.75, 1.0)]
+        opening = [
+            _opening(render_identity(seed, {"jaw_drop": j}, supersample=1)["points"], layout) for j in (0.0, 0.25, 0.5, 0.75, 1.0)
+        ]
         assert np.all(np.diff(opening) > 0.02) and abs(opening[0]) < 0.02
         assert 0.44 < opening[-1] < 0.56, (seed, opening)
 

@@ -23,8 +23,14 @@ def square_face(side: float = 40.0) -> np.ndarray:
     (100, 200), others elsewhere), outer eye corners 100 px apart."""
     layout = load_layout("zhang134")
     xy = np.zeros((len(NAMES), 2))
-    centres = {"mouth": (100, 200), "eye_l": (60, 100), "eye_r": (140, 100), "brow_l": (60, 60),
-               "brow_r": (140, 60), "nose": (100, 150)}
+    centres = {
+        "mouth": (100, 200),
+        "eye_l": (60, 100),
+        "eye_r": (140, 100),
+        "brow_l": (60, 60),
+        "brow_r": (140, 60),
+        "nose": (100, 150),
+    }
     for region, outline in occluder.REGION_OUTLINES.items():
         polygon = layout.subregion(outline).polygon
         corners = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * side / 2 + centres[region]
@@ -58,7 +64,7 @@ def test_hand_is_opaque_inside_soft_at_its_edge_and_shaded():
     hand = occluder.make_hand()
     assert hand.alpha.min() >= 0.0 and hand.alpha.max() <= 1.0
     inside = hand.alpha > 0.99
-    palm_area = np.pi * 0.5 * 0.58 * hand.palm_px ** 2
+    palm_area = np.pi * 0.5 * 0.58 * hand.palm_px**2
     assert 1.5 * palm_area < inside.sum() < 3.0 * palm_area  # palm and five digits
     edge = (hand.alpha > 0.05) & (hand.alpha < 0.95)
     assert 0 < edge.sum() < 0.2 * inside.sum()
@@ -119,17 +125,23 @@ def test_rows_of_the_real_texture_clip(tmp_path):
 
 
 def test_cli_says_in_one_line_when_a_clip_is_too_short(tmp_path):
-    result = subprocess.run([sys.executable, "scripts/occluder.py", "--clip", str(CLIP), "--work", str(tmp_path)],
-                            cwd=REPO, capture_output=True, text=True, timeout=300)
+    result = subprocess.run(
+        [sys.executable, "scripts/occluder.py", "--clip", str(CLIP), "--work", str(tmp_path)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert result.returncode == 1 and "Traceback" not in result.stderr
     said = [line for line in result.stderr.splitlines() if line.startswith("occluder:")]
     assert said == [f"occluder: {CLIP}: clip too short for 30-frame occluder events: 48 frames, need 70"]
 
 
 def test_aggregates_are_over_the_clips_and_the_variants_there():
-    rows = [occluder.row(f"real_occlusion_{k}_{s}", v, "fraction")
-            for s, values in (("a", (0.9, 0.8, 0.0)), ("b", (1.0, np.nan, 0.01)))
-            for k, v in zip(("recall", "precision", "false_frac"), values)]
+    rows = [
+        occluder.row(f"real_occlusion_{k}_{s}", v, "fraction")
+        for s, values in (("a", (0.9, 0.8, 0.0)), ("b", (1.0, np.nan, 0.01)))
+        for k, v in zip(("recall", "precision", "false_frac"), values)
+    ]
     value = {r["metric"]: r["value"] for r in occluder.aggregate_rows(rows, ["a", "b"])}
-    assert value == {"real_occlusion_recall_min": 0.9, "real_occlusion_precision_min": 0.8,
-                     "real_occlusion_false_frac_max": 0.01}
+    assert value == {"real_occlusion_recall_min": 0.9, "real_occlusion_precision_min": 0.8, "real_occlusion_false_frac_max": 0.01}

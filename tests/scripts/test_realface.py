@@ -15,8 +15,17 @@ from scripts.facegen.render import project
 from scripts.make_realface import main
 from scripts.realface.clip import fit_real_face, make_clip, pose, render_state
 from scripts.realface.expression import EXPRESSIONS, deform
-from scripts.realface.landmarks import (LIPS_INNER_LOWER, LIPS_INNER_UPPER, MOUTH_CORNERS, NOSE_TIP, UPPER_LIDS,
-                                        detect, inner_lip_polygon, open_landmarker, point_groups)
+from scripts.realface.landmarks import (
+    LIPS_INNER_LOWER,
+    LIPS_INNER_UPPER,
+    MOUTH_CORNERS,
+    NOSE_TIP,
+    UPPER_LIDS,
+    detect,
+    inner_lip_polygon,
+    open_landmarker,
+    point_groups,
+)
 from scripts.realface.mesh import MOUTH_OPEN_MAX, build_mesh
 from scripts.realface.motion import ANGLE_LIMITS_DEG, make_motion
 from scripts.realface.photo import source_photo
@@ -44,7 +53,7 @@ def _outside_mouth(face, grow: int) -> np.ndarray:
 
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:
     mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
-    return float(10 * np.log10(255.0 ** 2 / max(mse, 1e-12)))
+    return float(10 * np.log10(255.0**2 / max(mse, 1e-12)))
 
 
 def test_identity_pose_reproduces_the_photo(face):
@@ -119,7 +128,7 @@ def test_yaw_moves_the_nose_tip_as_projected(face):
     # the texture moved with it: the nose patch of the photo is found where the truth says
     nose = np.round(face.landmarks[NOSE_TIP, :2]).astype(int)
     r = 10
-    patch = cv2.cvtColor(face.photo, cv2.COLOR_RGB2GRAY)[nose[1] - r:nose[1] + r + 1, nose[0] - r:nose[0] + r + 1]
+    patch = cv2.cvtColor(face.photo, cv2.COLOR_RGB2GRAY)[nose[1] - r : nose[1] + r + 1, nose[0] - r : nose[0] + r + 1]
     gray = cv2.cvtColor(frame.image, cv2.COLOR_RGB2GRAY)
     score = cv2.matchTemplate(gray, patch, cv2.TM_CCOEFF_NORMED)
     y, x = np.unravel_index(np.argmax(score), score.shape)
@@ -131,8 +140,7 @@ def test_mediapipe_finds_the_truth_points_on_rendered_frames(face):
     """Texture and geometry agree: MediaPipe on a rendered frame lands on the truth points (within
     its own error, larger on the face outline and under the synthetic expressions, which its face
     model reads its own way; measured at 256 px: 0.9 px rigid, 2.4 px with expressions)."""
-    states = [(ZERO, np.array([12.0, -6.0, 5.0]), 1.5, 1.2),
-              (np.array([0.5, 0.5, 0.6]), np.array([-10.0, 5.0, -4.0]), 3.5, 1.5)]
+    states = [(ZERO, np.array([12.0, -6.0, 5.0]), 1.5, 1.2), (np.array([0.5, 0.5, 0.6]), np.array([-10.0, 5.0, -4.0]), 3.5, 1.5)]
     groups = point_groups()
     with open_landmarker() as landmarker:
         for params, angles, inner_px, eyes_px in states:

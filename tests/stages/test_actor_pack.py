@@ -88,10 +88,20 @@ def _replace(path: Path, old: str, new: str) -> None:
     [
         (lambda r: (r / "images" / "ex1.png").unlink(), ["pack.yaml", "examples[1].image", "file not found"]),
         (lambda r: (r / "images" / "ex0.png").write_bytes(b"not a png"), ["ex0.png", "examples[0].image", "cannot read image"]),
-        (lambda r: _replace(r / "points" / "standard.csv", "\nchin,", "\nXchin,"), ["standard.csv", "standard.points", "unknown point name"]),
-        (lambda r: (r / "points" / "neutral.csv").write_text("".join((r / "points" / "neutral.csv").read_text().splitlines(True)[:-1])),
-         ["neutral.csv", "neutral.points", "expected 134 points"]),
-        (lambda r: _replace(r / "points" / "teeth0.csv", "\nnose_tip,", "\nnose_tip,900"), ["teeth0.csv", "teeth_examples[0].points", "outside the 40x30 image"]),
+        (
+            lambda r: _replace(r / "points" / "standard.csv", "\nchin,", "\nXchin,"),
+            ["standard.csv", "standard.points", "unknown point name"],
+        ),
+        (
+            lambda r: (r / "points" / "neutral.csv").write_text(
+                "".join((r / "points" / "neutral.csv").read_text().splitlines(True)[:-1])
+            ),
+            ["neutral.csv", "neutral.points", "expected 134 points"],
+        ),
+        (
+            lambda r: _replace(r / "points" / "teeth0.csv", "\nnose_tip,", "\nnose_tip,900"),
+            ["teeth0.csv", "teeth_examples[0].points", "outside the 40x30 image"],
+        ),
         (lambda r: np.savez(r / "captured.npz", points=np.zeros((3, 100, 2))), ["captured.npz", "'captured'", "(..., 134, 2)"]),
         (lambda r: np.savez(r / "captured.npz", other=np.zeros(3)), ["captured.npz", "no array 'points'"]),
         (lambda r: _replace(r / "pack.yaml", "[0, 0, 1]]", "[0, 0, 2]]"), ["pack.yaml", "'intrinsics'"]),
@@ -161,6 +171,7 @@ def test_yaml_aliases_in_a_manifest_are_refused_with_their_position(pack_dir):
 
 
 # -- bounds checked before anything large is read -------------------------------------------
+
 
 def test_an_image_larger_than_its_manifest_says_is_refused_undecoded(pack_dir, monkeypatch):
     pack_dir = pack_dir[0]

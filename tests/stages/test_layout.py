@@ -58,8 +58,15 @@ def test_subregions_tile_the_mean_face(layout):
 
     px = (mean_template(layout) + (100.0, 110.0)) * 2.0  # mm -> px, face inside a 400x460 image
     mask = subregion_mask(layout, px, (400, 460))
-    contour = np.array([px[layout.index(n)] for n in [f"contour_{k}" for k in range(17)] + ["temple_r"]
-                        + [f"hairline_{k}" for k in range(4, -1, -1)] + ["temple_l"]])
+    contour = np.array(
+        [
+            px[layout.index(n)]
+            for n in [f"contour_{k}" for k in range(17)]
+            + ["temple_r"]
+            + [f"hairline_{k}" for k in range(4, -1, -1)]
+            + ["temple_l"]
+        ]
+    )
     import cv2
 
     face = np.zeros(mask.shape, np.uint8)
@@ -91,7 +98,10 @@ def _data() -> dict:
         (lambda d: d.pop("rigid"), "rigid"),
         (lambda d: d["points"].append(d["points"][0]), "points"),
         (lambda d: d["subregions"][0]["polygon"].append("no_such_point"), "subregions[0] (forehead).polygon"),
-        (lambda d: d["subregions"][1]["polygon"].__setitem__(slice(None), ["glabella", "chin"]), "subregions[1] (glabella).polygon"),
+        (
+            lambda d: d["subregions"][1]["polygon"].__setitem__(slice(None), ["glabella", "chin"]),
+            "subregions[1] (glabella).polygon",
+        ),
         (lambda d: d["no_blend"].append(["eye_l", "nowhere"]), "no_blend[7]"),
         (lambda d: d["feature_point_sets"][1].__setitem__("level", 0), "feature_point_sets"),
         (lambda d: d["feature_point_sets"][0].__setitem__("level", 3), "feature_point_sets[0].level"),

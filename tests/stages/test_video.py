@@ -170,18 +170,21 @@ def _damaged(path: Path, tiny: Path, how: str) -> None:
         data = data[: len(data) * 2 // 3]
     else:
         mid = len(data) // 2
-        data[mid:mid + 3000] = np.random.default_rng(0).integers(0, 256, 3000, dtype=np.uint8).tobytes()
+        data[mid : mid + 3000] = np.random.default_rng(0).integers(0, 256, 3000, dtype=np.uint8).tobytes()
     path.write_bytes(bytes(data))
 
 
-@pytest.mark.parametrize("kind, words", [
-    ("missing", "no such file"),
-    ("text", "not a readable video"),
-    ("empty", "contains no video frames"),
-    ("truncated", "corrupt or truncated"),
-    ("corrupt", "corrupt or truncated"),
-    ("bgr4", "unsupported pixel format bgr4"),
-])
+@pytest.mark.parametrize(
+    "kind, words",
+    [
+        ("missing", "no such file"),
+        ("text", "not a readable video"),
+        ("empty", "contains no video frames"),
+        ("truncated", "corrupt or truncated"),
+        ("corrupt", "corrupt or truncated"),
+        ("bgr4", "unsupported pixel format bgr4"),
+    ],
+)
 def test_bad_input_is_one_line_stage_error_naming_the_file(tmp_path, kind, words):
     tiny = tmp_path / "tiny.mp4"
     write_clip(tiny, frames=24, width=64, height=48)
@@ -241,8 +244,8 @@ def _with_display_rotation(path: Path, out: Path, a: int, b: int, c: int, d: int
     at = data.find(b"tkhd")
     version = data[at + 4]
     matrix = at + 8 + (20 if version == 0 else 32) + 16  # times, track id, duration; reserved, layer, ...
-    assert struct.unpack(">9i", data[matrix:matrix + 36])[:5] == (65536, 0, 0, 0, 65536)  # identity before
-    data[matrix:matrix + 36] = struct.pack(">9i", a << 16, b << 16, 0, c << 16, d << 16, 0, 0, 0, 1 << 30)
+    assert struct.unpack(">9i", data[matrix : matrix + 36])[:5] == (65536, 0, 0, 0, 65536)  # identity before
+    data[matrix : matrix + 36] = struct.pack(">9i", a << 16, b << 16, 0, c << 16, d << 16, 0, 0, 0, 1 << 30)
     out.write_bytes(bytes(data))
     return out
 
@@ -273,7 +276,7 @@ def _clip_with_audio(path: Path, *, frames: int, fps: int, audio_codec: str, sam
             container.mux(video.encode(av.VideoFrame.from_ndarray(image, format="rgb24")))
         step = 1024
         for k in range(0, len(tone), step):
-            block = tone[k:k + step]
+            block = tone[k : k + step]
             frame = av.AudioFrame.from_ndarray(block[None, :], format="fltp", layout="mono")
             frame.sample_rate, frame.pts = sample_rate, k
             container.mux(audio.encode(frame))

@@ -76,8 +76,7 @@ def test_colour_tags_match_the_conversion(tmp_path):
     assert tags == (5, 1, 1, 13)
     r, g, b = colours.T
     y = 0.299 * r + 0.587 * g + 0.114 * b
-    expected = np.stack([16 + 219 * y / 255, 128 + 224 * (b - y) / (255 * 1.772),
-                         128 + 224 * (r - y) / (255 * 1.402)], axis=1)
+    expected = np.stack([16 + 219 * y / 255, 128 + 224 * (b - y) / (255 * 1.772), 128 + 224 * (r - y) / (255 * 1.402)], axis=1)
     for plane, (ey, eu, ev) in zip(planes, expected):
         assert abs(plane[:64].mean() - ey) < 1.5
         assert abs(plane[64:80].mean() - eu) < 1.5 and abs(plane[80:96].mean() - ev) < 1.5

@@ -26,8 +26,7 @@ def _bt601_limited(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
         return 0.299 * c[..., 0] + 0.587 * c[..., 1] + 0.114 * c[..., 2]
 
     mean = e.reshape(h // 2, 2, w // 2, 2, 3).mean(axis=(1, 3))
-    return (16 + 219 * luma(e), 128 + 224 * (mean[..., 2] - luma(mean)) / 1.772,
-            128 + 224 * (mean[..., 0] - luma(mean)) / 1.402)
+    return (16 + 219 * luma(e), 128 + 224 * (mean[..., 2] - luma(mean)) / 1.772, 128 + 224 * (mean[..., 0] - luma(mean)) / 1.402)
 
 
 @pytest.fixture(scope="module")
@@ -36,8 +35,7 @@ def images() -> np.ndarray:
     rng = np.random.default_rng(7)
     cube = np.array([[r, g, b] for r in (0, 255) for g in (0, 255) for b in (0, 255)], np.uint8)
     corners = np.repeat(np.repeat(cube.reshape(2, 4, 3), 8, axis=0), 8, axis=1)  # (16, 32, 3)
-    return [synthetic_frames(3, 4, width=96, height=64)[0], rng.integers(0, 256, (48, 70, 3), np.uint8),
-            corners]
+    return [synthetic_frames(3, 4, width=96, height=64)[0], rng.integers(0, 256, (48, 70, 3), np.uint8), corners]
 
 
 def test_planes_are_bt601_limited_range_within_rounding(images):
@@ -78,7 +76,7 @@ def test_out_planes_may_have_padded_rows(images):
     """An FFmpeg frame's planes (lines padded past the width) are filled in place."""
     image = images[1]  # 70 px wide
     frame = av.VideoFrame(70, 48, "yuv420p")
-    views = tuple(np.frombuffer(p, np.uint8).reshape(p.height, p.line_size)[:, :p.width] for p in frame.planes)
+    views = tuple(np.frombuffer(p, np.uint8).reshape(p.height, p.line_size)[:, : p.width] for p in frame.planes)
     assert views[0].strides[0] > 70  # padded: the test covers strided rows
     rgb_to_ycbcr420(image, out=views)
     for a, b in zip(_planes(frame), rgb_to_ycbcr420(image), strict=True):
@@ -87,9 +85,15 @@ def test_out_planes_may_have_padded_rows(images):
         rgb_to_ycbcr420(image, out=views[:2] + (np.empty((24, 36), np.uint8),))
 
 
-@pytest.mark.parametrize("image, error", [
-    (np.zeros((5, 4, 3), np.uint8), ValueError), (np.zeros((4, 4, 2), np.uint8), ValueError),
-    (np.zeros((0, 4, 3), np.uint8), ValueError), (np.zeros((4, 4, 3), np.float32), TypeError)])
+@pytest.mark.parametrize(
+    "image, error",
+    [
+        (np.zeros((5, 4, 3), np.uint8), ValueError),
+        (np.zeros((4, 4, 2), np.uint8), ValueError),
+        (np.zeros((0, 4, 3), np.uint8), ValueError),
+        (np.zeros((4, 4, 3), np.float32), TypeError),
+    ],
+)
 def test_bad_images_are_refused(image, error):
     with pytest.raises(error, match="rgb_to_ycbcr420: expected"):
         rgb_to_ycbcr420(image)
@@ -99,8 +103,11 @@ def _planes(frame: av.VideoFrame) -> list[np.ndarray]:
     """A yuv420p frame's Y', Cb, Cr planes (PyAV's own copy, ``to_ndarray``)."""
     i420 = frame.to_ndarray()
     h, w = frame.height, frame.width
-    return [i420[:h], i420[h:].reshape(-1)[:h * w // 4].reshape(h // 2, w // 2),
-            i420[h:].reshape(-1)[h * w // 4:].reshape(h // 2, w // 2)]
+    return [
+        i420[:h],
+        i420[h:].reshape(-1)[: h * w // 4].reshape(h // 2, w // 2),
+        i420[h:].reshape(-1)[h * w // 4 :].reshape(h // 2, w // 2),
+    ]
 
 
 def _decoded_planes(path: Path) -> list[list[np.ndarray]]:

@@ -36,8 +36,9 @@ def test_masked_feature_keeps_the_other_features_parameters(model):
 
 
 def test_invalid_frame_gives_nan(model):
-    mu, fv = analyze_frames(model, [scene.scene(np.zeros(4), np.array([1.0, 0, 0, 0]))],
-                            np.array([[1.0, 0, 0, 0]]), np.zeros(1, bool), None)
+    mu, fv = analyze_frames(
+        model, [scene.scene(np.zeros(4), np.array([1.0, 0, 0, 0]))], np.array([[1.0, 0, 0, 0]]), np.zeros(1, bool), None
+    )
     assert np.isnan(mu).all() and not fv.any()
 
 

@@ -9,6 +9,7 @@ from stages.eigen.model import analyze_frames, similarities_from_points
 from stages.eigen.packface import PackFace, pca_parameters, point_depth
 from stages.eigen.training import train_on_renders
 from stages.layout import subregion_mask
+
 PACK = Path(os.environ.get("EXPRESSION_FIXTURES", Path(__file__).resolve().parents[3] / "fixtures")) / "packs" / "performer"
 
 

@@ -29,8 +29,7 @@ def clip(T=5):
 
 def test_points_bundle_follows_the_contract(bundle):
     frames, similarity, pose, truth = clip()
-    out = AnalyzeEigenfeatures().run({"frames": frames, "similarity": similarity, "pose": pose, "model": bundle},
-                                     PARAMS, CTX)
+    out = AnalyzeEigenfeatures().run({"frames": frames, "similarity": similarity, "pose": pose, "model": bundle}, PARAMS, CTX)
     points, params = out["points"], out["parameters"]
     assert points["xy"].shape == (5, 6, 2) and points["xy"].dtype == np.float64 and np.isfinite(points["xy"]).all()
     assert points["valid"].shape == (5, 6) and points["valid"].dtype == bool
@@ -49,18 +48,19 @@ def test_model_file_and_errors(bundle, tmp_path):
     frames, similarity, pose, _ = clip(2)
     path = tmp_path / "model.npz"
     np.savez(path, **bundle)
-    out = AnalyzeEigenfeatures().run({"frames": frames, "similarity": similarity, "pose": pose},
-                                     {**PARAMS, "model_file": str(path)}, CTX)
+    out = AnalyzeEigenfeatures().run(
+        {"frames": frames, "similarity": similarity, "pose": pose}, {**PARAMS, "model_file": str(path)}, CTX
+    )
     assert out["points"]["xy"].shape == (2, 6, 2)
     with pytest.raises(StageError, match="exactly one"):
-        AnalyzeEigenfeatures().run({"frames": frames, "similarity": similarity, "pose": pose, "model": bundle},
-                                   {**PARAMS, "model_file": str(path)}, CTX)
+        AnalyzeEigenfeatures().run(
+            {"frames": frames, "similarity": similarity, "pose": pose, "model": bundle}, {**PARAMS, "model_file": str(path)}, CTX
+        )
     with pytest.raises(StageError, match="pose"):
         AnalyzeEigenfeatures().run({"frames": frames, "similarity": similarity, "model": bundle}, PARAMS, CTX)
     with pytest.raises(StageError, match="3 frames"):
         short = {**similarity, "params": np.tile([1.0, 0, 0, 0], (3, 1)), "valid": np.ones(3, bool)}
-        AnalyzeEigenfeatures().run({"frames": frames, "similarity": short, "model": bundle},
-                                   {**PARAMS, "rotation": False}, CTX)
+        AnalyzeEigenfeatures().run({"frames": frames, "similarity": short, "model": bundle}, {**PARAMS, "rotation": False}, CTX)
 
 
 def test_training_on_a_broken_pack_names_the_field(tmp_path):
@@ -75,11 +75,8 @@ def test_similarity_from_points_matches_the_given_similarity(bundle):
     model_neutral = np.asarray(bundle["neutral"])
     xy = np.stack([model_neutral * s[0] + s[2:] for s in similarity["params"]])  # a = s, b = 0
     points = {"xy": xy, "valid": np.ones(xy.shape[:2], bool), "names": bundle["point_names"]}
-    given = AnalyzeEigenfeatures().run({"frames": frames, "similarity": similarity, "pose": pose, "model": bundle},
-                                       PARAMS, CTX)
-    fitted = AnalyzeEigenfeatures().run({"frames": frames, "points": points, "pose": pose, "model": bundle},
-                                        PARAMS, CTX)
+    given = AnalyzeEigenfeatures().run({"frames": frames, "similarity": similarity, "pose": pose, "model": bundle}, PARAMS, CTX)
+    fitted = AnalyzeEigenfeatures().run({"frames": frames, "points": points, "pose": pose, "model": bundle}, PARAMS, CTX)
     np.testing.assert_allclose(fitted["parameters"]["params"], given["parameters"]["params"], atol=1e-6)
     with pytest.raises(StageError, match="exactly one"):
-        AnalyzeEigenfeatures().run({"frames": frames, "similarity": similarity, "points": points, "model": bundle},
-                                   PARAMS, CTX)
+        AnalyzeEigenfeatures().run({"frames": frames, "similarity": similarity, "points": points, "model": bundle}, PARAMS, CTX)

@@ -23,7 +23,18 @@ def toy_model(*, samples: int = 60, q: int = 6, seed: int = 0, blur_px: float = 
     sims = [random_similarity(rng) for _ in params]
     renders = ((scene.scene(p, T), T) for p, T in zip(params, sims))
     geometry = fit_geometry_map(params, scene.NEUTRAL[None] + np.einsum("mc,cnk->mnk", params, MOTION))
-    return fit_eigen_model(renders, np.zeros((samples, 3)), params, windows=scene.windows(), neutral=scene.NEUTRAL,
-                           point_names=scene.NAMES, param_names=("p0", "p1", "p2", "p3"),
-                           rigid=tuple(range(len(scene.NAMES))), param_range=(0.0, 1.0), geometry=geometry, q=q,
-                           blur_px=blur_px, normalize=normalize)
+    return fit_eigen_model(
+        renders,
+        np.zeros((samples, 3)),
+        params,
+        windows=scene.windows(),
+        neutral=scene.NEUTRAL,
+        point_names=scene.NAMES,
+        param_names=("p0", "p1", "p2", "p3"),
+        rigid=tuple(range(len(scene.NAMES))),
+        param_range=(0.0, 1.0),
+        geometry=geometry,
+        q=q,
+        blur_px=blur_px,
+        normalize=normalize,
+    )

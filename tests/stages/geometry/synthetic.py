@@ -22,8 +22,9 @@ def texture(height: int, width: int, *, seed: int = 0, blur: float = 1.5) -> np.
     return image.astype(np.float32)
 
 
-def moving_clip(n_frames: int, *, size: tuple[int, int] = (160, 120), seed: int = 0, amplitude: float = 4.0
-                ) -> tuple[np.ndarray, np.ndarray]:
+def moving_clip(
+    n_frames: int, *, size: tuple[int, int] = (160, 120), seed: int = 0, amplitude: float = 4.0
+) -> tuple[np.ndarray, np.ndarray]:
     """A clip ``(T, H, W, 3)`` uint8 of a texture under known similarity transforms.
 
     Returns the frames and the transforms ``(T, 2, 3)`` mapping texture coordinates to frame
@@ -46,8 +47,9 @@ def moving_clip(n_frames: int, *, size: tuple[int, int] = (160, 120), seed: int 
         transforms.append(m)
     transforms = np.array(transforms)
     first = np.vstack([transforms[0], [0, 0, 1]])
-    transforms = np.einsum("tij,jk->tik", np.concatenate([transforms, np.tile([[[0, 0, 1]]], (n_frames, 1, 1))], 1),
-                           np.linalg.inv(first))[:, :2]
+    transforms = np.einsum(
+        "tij,jk->tik", np.concatenate([transforms, np.tile([[[0, 0, 1]]], (n_frames, 1, 1))], 1), np.linalg.inv(first)
+    )[:, :2]
     return np.stack(frames), transforms
 
 
@@ -56,9 +58,15 @@ def apply(transforms: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return np.einsum("tij,nj->tni", transforms[:, :, :2], xy) + transforms[:, None, :, 2]
 
 
-def pack_inputs(layout, *, model3d: np.ndarray | None = None, camera: np.ndarray | None = None,
-                size: tuple[int, int] = (640, 480), neutral: np.ndarray | None = None,
-                captured: np.ndarray | None = None) -> dict:
+def pack_inputs(
+    layout,
+    *,
+    model3d: np.ndarray | None = None,
+    camera: np.ndarray | None = None,
+    size: tuple[int, int] = (640, 480),
+    neutral: np.ndarray | None = None,
+    captured: np.ndarray | None = None,
+) -> dict:
     """``pack.load``'s ``layout``, ``model3d``, ``camera`` and ``geometry`` bundles of a made-up
     pack of ``layout`` (zeros where an array is not given; ``captured`` defaults to the neutral
     +- 1000 px, a range nothing leaves)."""
@@ -72,6 +80,5 @@ def pack_inputs(layout, *, model3d: np.ndarray | None = None, camera: np.ndarray
         "layout": layout_to_bundle(layout),
         "model3d": {"names": names, "xyz": np.zeros((n, 3)) if model3d is None else model3d},
         "camera": {"intrinsics": np.eye(3) if camera is None else camera, "size": np.array(size)},
-        "geometry": {"names": names, "neutral": neutral, "captured": captured, "examples": neutral[None],
-                     "size": np.array(size)},
+        "geometry": {"names": names, "neutral": neutral, "captured": captured, "examples": neutral[None], "size": np.array(size)},
     }

@@ -16,15 +16,17 @@ def test_rotation_matrix_is_opencvs_rodrigues():
     for w in [*RNG.normal(0.0, 1.0, (5, 3)), np.array([1e-14, 0.0, -2e-14]), np.zeros(3), np.array([0.0, np.pi, 0.0])]:
         np.testing.assert_allclose(rotation_matrix(w), cv2.Rodrigues(w)[0], atol=1e-12)
     batch = RNG.normal(0.0, 1.0, (2, 4, 3))
-    np.testing.assert_allclose(rotation_matrix(batch), Rotation.from_rotvec(batch.reshape(-1, 3)).as_matrix()
-                               .reshape(2, 4, 3, 3), atol=1e-12)
+    np.testing.assert_allclose(
+        rotation_matrix(batch), Rotation.from_rotvec(batch.reshape(-1, 3)).as_matrix().reshape(2, 4, 3, 3), atol=1e-12
+    )
 
 
 def test_rotation_vector_inverts_rotation_matrix():
     w = RNG.normal(0.0, 0.8, (6, 3))
     np.testing.assert_allclose(rotation_vector(rotation_matrix(w)), w, atol=1e-10)
-    np.testing.assert_allclose(rotation_vector(rotation_matrix(w[0])), cv2.Rodrigues(rotation_matrix(w[0]))[0].ravel(),
-                               atol=1e-10)
+    np.testing.assert_allclose(
+        rotation_vector(rotation_matrix(w[0])), cv2.Rodrigues(rotation_matrix(w[0]))[0].ravel(), atol=1e-10
+    )
 
 
 def test_skew_is_the_cross_product():
@@ -54,10 +56,12 @@ def test_rotation_vector_equals_scipys_conversion():
     rng = np.random.default_rng(5)
     axes = rng.normal(size=(300, 3))
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    cases = [Rotation.random(1000, random_state=4).as_matrix(),
-             Rotation.from_rotvec(axes * 1e-7).as_matrix(),
-             Rotation.from_rotvec(axes * (np.pi - 1e-9)).as_matrix(),
-             Rotation.random(300, random_state=6).as_matrix() + rng.normal(size=(300, 3, 3)) * 1e-13]
+    cases = [
+        Rotation.random(1000, random_state=4).as_matrix(),
+        Rotation.from_rotvec(axes * 1e-7).as_matrix(),
+        Rotation.from_rotvec(axes * (np.pi - 1e-9)).as_matrix(),
+        Rotation.random(300, random_state=6).as_matrix() + rng.normal(size=(300, 3, 3)) * 1e-13,
+    ]
     for R in cases:
         np.testing.assert_allclose(rotation_vector(R), Rotation.from_matrix(R).as_rotvec(), rtol=0, atol=1e-12)
     R = cases[0][:6].reshape(2, 3, 3, 3)

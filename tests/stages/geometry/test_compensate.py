@@ -34,8 +34,9 @@ def test_agrees_with_opencv_least_squares(seed):
     ours = fit_similarity(src, dst)
     # RANSAC with a threshold no point exceeds: every point an inlier, then Levenberg-Marquardt
     # refinement over all of them, i.e. the least-squares similarity of eq. 9.
-    matrix, inliers = cv2.estimateAffinePartial2D(src, dst, method=cv2.RANSAC, ransacReprojThreshold=1e4,
-                                                  maxIters=50, refineIters=100)
+    matrix, inliers = cv2.estimateAffinePartial2D(
+        src, dst, method=cv2.RANSAC, ransacReprojThreshold=1e4, maxIters=50, refineIters=100
+    )
     assert inliers.all()
     reference = np.array([matrix[0, 0], matrix[1, 0], matrix[0, 2], matrix[1, 2]])
     np.testing.assert_allclose(ours[:2], reference[:2], atol=1e-6)
@@ -100,8 +101,11 @@ def test_stage_with_layout_and_given_neutral(tmp_path):
     rng = np.random.default_rng(7)
     names, neutral, deform, params, xy = layout_bundle(rng)
     shifted = apply_similarity(np.array([1.0, 0.0, 5.0, -3.0]), neutral)  # the neutral seen elsewhere
-    points = {"xy": np.stack([apply_similarity(params[t], shifted + deform[t]) for t in range(len(xy))]),
-              "valid": np.ones(xy.shape[:2], bool), "names": names}
+    points = {
+        "xy": np.stack([apply_similarity(params[t], shifted + deform[t]) for t in range(len(xy))]),
+        "valid": np.ones(xy.shape[:2], bool),
+        "names": names,
+    }
     order = np.random.default_rng(8).permutation(len(names))
     given = {"xy": shifted[None, order], "valid": np.ones((1, len(names)), bool), "names": names[order]}
     out = SimilarityCompensate().run({"points": points, "neutral": given}, {"robust": True}, context(tmp_path))

@@ -44,8 +44,9 @@ def test_fit_recovers_pose_and_expression_exactly():
     R = Rotation.from_euler("yxz", [25, -12, 8], degrees=True).as_matrix()
     t, c = np.array([-20.0, 15.0, 640.0]), np.array([6.0, -4.0, 3.0, -2.0])
     observed = model.project(R, t, c)
-    fit = fit_face_model(model, observed, np.broadcast_to(np.eye(2), (len(SHAPE), 2, 2)), start_of(model),
-                         ridge=0.0, iterations=15)
+    fit = fit_face_model(
+        model, observed, np.broadcast_to(np.eye(2), (len(SHAPE), 2, 2)), start_of(model), ridge=0.0, iterations=15
+    )
     assert angle_deg(fit.R, R) < 1e-6
     np.testing.assert_allclose(fit.t, t, atol=1e-5)
     np.testing.assert_allclose(fit.c, c, atol=1e-5)
@@ -59,8 +60,9 @@ def test_without_expression_the_fit_is_pnp_and_agrees_with_opencv_under_noise():
     R = Rotation.from_euler("yxz", [-18, 9, -5], degrees=True).as_matrix()
     t = np.array([12.0, -6.0, 580.0])
     observed = model.project(R, t, np.zeros(0)) + RNG.normal(0.0, 0.7, (len(SHAPE), 2))
-    fit = fit_face_model(model, observed, np.broadcast_to(np.eye(2), (len(SHAPE), 2, 2)), start_of(model),
-                         huber_px=1e6, iterations=15)
+    fit = fit_face_model(
+        model, observed, np.broadcast_to(np.eye(2), (len(SHAPE), 2, 2)), start_of(model), huber_px=1e6, iterations=15
+    )
     ok, rvec, tvec = cv2.solvePnP(SHAPE, observed, CAMERA, None, flags=cv2.SOLVEPNP_ITERATIVE)
     assert ok
     assert angle_deg(fit.R, cv2.Rodrigues(rvec)[0]) < 1e-4
@@ -73,7 +75,7 @@ def test_robust_fit_bounds_an_outliers_pull_and_weights_follow_the_information()
     t, c = np.array([0.0, 0.0, 620.0]), np.array([4.0, -5.0])
     observed = model.project(R, t, c)
     bad = observed.copy()
-    bad[3] += (25.0, -18.0)                               # a lost point
+    bad[3] += (25.0, -18.0)  # a lost point
     unit = np.broadcast_to(np.eye(2), (len(SHAPE), 2, 2))
     fit = fit_face_model(model, bad, unit, start_of(model), ridge=0.0, iterations=20)
     plain = fit_face_model(model, bad, unit, start_of(model), ridge=0.0, huber_px=1e6, iterations=20)
@@ -97,8 +99,9 @@ def test_build_lifts_the_captured_expressions_at_the_generic_depth():
     np.testing.assert_allclose(model.project(np.eye(3), model.t0, np.zeros(5)), first, atol=1e-6)
     np.testing.assert_allclose(model.neutral[:, 2], SHAPE[:, 2], atol=1e-9)  # generic depths kept
     for geometry in captured:
-        fit = fit_face_model(model, geometry, np.broadcast_to(np.eye(2), (len(SHAPE), 2, 2)), start_of(model),
-                             ridge=0.0, iterations=10)
+        fit = fit_face_model(
+            model, geometry, np.broadcast_to(np.eye(2), (len(SHAPE), 2, 2)), start_of(model), ridge=0.0, iterations=10
+        )
         np.testing.assert_allclose(fit.xy, geometry, atol=1e-4)
         assert angle_deg(fit.R, np.eye(3)) < 1e-4
 
@@ -109,12 +112,12 @@ def test_estimate_face_poses_interpolates_frames_with_too_few_points():
     rotations = Rotation.from_euler("y", angles[:, None], degrees=True).as_matrix()
     image = np.stack([model.project(r, T0, np.zeros(0)) for r in rotations])
     valid = np.ones(image.shape[:2], bool)
-    valid[3, 3:] = False                                  # 3 points left in frame 3
+    valid[3, 3:] = False  # 3 points left in frame 3
     pose = estimate_face_poses(image, valid, model)
     assert pose["valid"].tolist() == [True, True, True, False, True, True]
     errors = [angle_deg(pose["R"][k], rotations[k]) for k in range(6)]
     assert max(errors[k] for k in (0, 1, 2, 4, 5)) < 1e-5
-    assert errors[3] < 1e-3                               # slerp between 12 and 20 degrees about y: exact
+    assert errors[3] < 1e-3  # slerp between 12 and 20 degrees about y: exact
     assert set(pose) == {"rvec", "tvec", "R", "reproj_err_px", "valid"}
     with pytest.raises(Exception, match="no frame has 4 valid points"):
         estimate_face_poses(image, np.zeros_like(valid), model)
@@ -138,7 +141,7 @@ def test_tracker_weighs_each_match_by_its_running_distance_to_the_model():
     noise = np.full(len(SHAPE), 9.0)  # model_noise_px^2
     for _ in range(30):
         found = true_xy + rng.normal(0, 0.1, true_xy.shape)
-        found[0] += rng.normal(0, 6.0, 2)      # a wandering match
+        found[0] += rng.normal(0, 6.0, 2)  # a wandering match
         q = tracker.reliability()
         fused = tracker.with_model(found, information, ok)
         p = tracker.fit.xy

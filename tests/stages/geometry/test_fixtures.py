@@ -63,8 +63,7 @@ def truth_of(truth: dict, names: np.ndarray, key: str = "points") -> np.ndarray:
 
 EYES_NOSE = ["eye_l_0", "eye_r_0", "eye_l_6", "eye_r_6", "nose_tip", "nose_ala_l", "nose_ala_r", "nose_base"]
 # measured 0.422, 1.696 (2D only) and 0.277, 0.983 (with the performer pack's face model)
-TRACK_MEAN_PX = {("calm", "2d_only"): 0.45, ("live", "2d_only"): 1.75,
-                 ("calm", "face_model"): 0.30, ("live", "face_model"): 1.02}
+TRACK_MEAN_PX = {("calm", "2d_only"): 0.45, ("live", "2d_only"): 1.75, ("calm", "face_model"): 0.30, ("live", "face_model"): 1.02}
 # Jitter: the mean second difference of the tracking error (px/frame^2), a high-pass measure that
 # slow drift and the smoother's lag barely touch. Smoothed / raw, face-model tracks, measured 0.360
 # (calm) and 0.820 (live).
@@ -81,8 +80,15 @@ LAG_RATIO = {"calm": 0.95, "live": 1.25}
 # (needed for wide openings) they were 0.165, 0.322, 0.210, and with the same clip but other
 # performer packs (captured jaw openings scaled 0.5 / 0.6 / 1.0) rigid PnP gives 0.226 / 0.218 /
 # 0.277 and the face model 0.291 / 0.232 / 0.230
-POSE_DEG = {("calm", "rigid"): 0.27, ("calm", "eyes_nose"): 0.36, ("calm", "face"): 0.35,
-            ("live", "rigid"): 1.3, ("live", "eyes_nose"): 1.85, ("live", "face"): 1.4}
+POSE_DEG = {
+    ("calm", "rigid"): 0.27,
+    ("calm", "eyes_nose"): 0.36,
+    ("calm", "face"): 0.35,
+    ("live", "rigid"): 1.3,
+    ("live", "eyes_nose"): 1.85,
+    ("live", "face"): 1.4,
+}
+
 
 @pytest.mark.parametrize("tracker", ["2d_only", "face_model"])
 def test_tracking_error(clip, tracker):
@@ -141,8 +147,9 @@ def test_pose_with_the_performers_own_model_is_exact():
     from stages.geometry.pose import estimate_poses
 
     rigid = list(layout.rigid)
-    pose = estimate_poses(truth["points"][:, rigid], np.ones((len(truth["R"]), len(rigid)), bool),
-                          truth["points3d"][0][rigid], pack.intrinsics)
+    pose = estimate_poses(
+        truth["points"][:, rigid], np.ones((len(truth["R"]), len(rigid)), bool), truth["points3d"][0][rigid], pack.intrinsics
+    )
     angle = np.degrees((Rotation.from_matrix(pose["R"]).inv() * Rotation.from_matrix(truth["R"])).magnitude())
     assert angle.max() < 1e-3
 
@@ -155,8 +162,7 @@ def test_mapping_onto_the_target_pack():
     ctx = context(Path("/nonexistent"))
     truth = dict(np.load(ROOT / "clips" / "calm_truth.npz", allow_pickle=False))
     frames = MemoryStream(decode(ROOT / "clips" / "calm.mp4"), chunk=16)
-    tracked = CorrelationTrack().run({"frames": frames, "init": ROOT / "clips" / "calm_track0.csv"}, {},
-                                     ctx)["points"]
+    tracked = CorrelationTrack().run({"frames": frames, "init": ROOT / "clips" / "calm_track0.csv"}, {}, ctx)["points"]
     smoothed = GaussianSmooth().run({"points": tracked}, {}, ctx)["points"]
     exact = dict(smoothed, xy=truth_of(truth, smoothed["names"]), valid=np.ones_like(smoothed["valid"]))
     columns = list(truth["tracked"])
@@ -164,8 +170,9 @@ def test_mapping_onto_the_target_pack():
     errors = {}
     for label, points in (("tracked", smoothed), ("exact", exact)):
         displacements = SimilarityCompensate().run({"points": points}, {}, ctx)["displacements"]
-        mapped = ExpressionMap().run({"displacements": displacements, "layout": target["layout"],
-                                      "geometry": target["geometry"]}, {}, ctx)["points"]
+        mapped = ExpressionMap().run(
+            {"displacements": displacements, "layout": target["layout"], "geometry": target["geometry"]}, {}, ctx
+        )["points"]
         errors[label] = np.linalg.norm(mapped["xy"][:, columns] - truth["target_points"][:, columns], axis=2).mean()
         assert mapped["valid"][:, columns].mean() > 0.95
     neutral_only = np.linalg.norm(mapped["xy"][:1, columns] - truth["target_points"][:, columns], axis=2).mean()
@@ -181,11 +188,13 @@ def test_tracker_refuses_a_pack_for_another_frame_size():
 
     frames = MemoryStream(decode(ROOT / "clips" / "live.mp4")[:3], chunk=16)
     target = pack_to_bundles(load_pack(ROOT / "packs" / "target"))
-    inputs = {"frames": frames, "init": ROOT / "clips" / "live_track0.csv",
-              **{port: target[port] for port in ("model3d", "geometry", "camera")}}
+    inputs = {
+        "frames": frames,
+        "init": ROOT / "clips" / "live_track0.csv",
+        **{port: target[port] for port in ("model3d", "geometry", "camera")},
+    }
     with pytest.raises(StageError, match="intrinsics are for 240x320 images, the clip's frames are 320x240"):
         CorrelationTrack().run(inputs, {}, context(Path("/nonexistent")))
     del inputs["camera"]
-    with pytest.raises(StageError, match="needs the inputs model3d, geometry, camera together .* got only model3d, "
-                                         "geometry"):
+    with pytest.raises(StageError, match="needs the inputs model3d, geometry, camera together .* got only model3d, geometry"):
         CorrelationTrack().run(inputs, {}, context(Path("/nonexistent")))

@@ -45,8 +45,9 @@ def poses(n_frames: int, *, seed: int) -> tuple[np.ndarray, np.ndarray]:
 
 def project_all(points: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Pixels ``(T, N, 2)`` of head points ``(T, N, 3)`` under the poses, with cv2.projectPoints."""
-    return np.stack([cv2.projectPoints(points[k], cv2.Rodrigues(R[k])[0], t[k], CAMERA, None)[0].reshape(-1, 2)
-                     for k in range(len(R))])
+    return np.stack(
+        [cv2.projectPoints(points[k], cv2.Rodrigues(R[k])[0], t[k], CAMERA, None)[0].reshape(-1, 2) for k in range(len(R))]
+    )
 
 
 def deformed_sequence(n_frames: int = 12, n_points: int = 40, *, amplitude_mm: float, seed: int = 0):
@@ -132,8 +133,14 @@ def test_stage_bundle_matches_compensate_similarity_and_flags_unsolved_frames(tm
     valid[4, 3] = False
     valid[0, 5] = False  # no neutral position: invalid throughout
     points = {"xy": image, "valid": valid, "names": names, "fps": np.array(30.0), "size": np.array([640, 480])}
-    pose = {"R": R, "tvec": t, "rvec": Rotation.from_matrix(R).as_rotvec(), "valid": np.ones(len(R), bool),
-            "reproj_err_px": np.zeros(len(R)), "camera": CAMERA}
+    pose = {
+        "R": R,
+        "tvec": t,
+        "rvec": Rotation.from_matrix(R).as_rotvec(),
+        "valid": np.ones(len(R), bool),
+        "reproj_err_px": np.zeros(len(R)),
+        "camera": CAMERA,
+    }
     pose["valid"][6] = False
     ctx = context(tmp_path)
     check_stage_class(PoseCompensate)
@@ -152,8 +159,9 @@ def test_stage_bundle_matches_compensate_similarity_and_flags_unsolved_frames(tm
     np.testing.assert_allclose(out["d"][good], (frontal - image[:1])[good], atol=1e-6)
     # map.expression takes it as it takes compensate.similarity's bundle
     target = pack_inputs(layout, neutral=np.zeros((layout.n_points, 2)) + 100)
-    mapped = ExpressionMap().run({"displacements": out, "layout": target["layout"], "geometry": target["geometry"]},
-                                 {"mode": "none"}, ctx)["points"]
+    mapped = ExpressionMap().run(
+        {"displacements": out, "layout": target["layout"], "geometry": target["geometry"]}, {"mode": "none"}, ctx
+    )["points"]
     assert mapped["xy"].shape == (len(R), layout.n_points, 2)
 
 
@@ -171,15 +179,21 @@ def test_stage_errors_name_the_problem(tmp_path):
     with pytest.raises(StageError, match="not_a_point"):
         PoseCompensate().run({"points": odd, "pose": pose, "model3d": pack["model3d"]}, {}, context(tmp_path))
     with pytest.raises(StageError, match="frames"):
-        PoseCompensate().run({"points": points, "pose": {k: v[:2] for k, v in pose.items()}, "model3d": pack["model3d"]},
-                             {}, context(tmp_path))
+        PoseCompensate().run(
+            {"points": points, "pose": {k: v[:2] for k, v in pose.items()}, "model3d": pack["model3d"]}, {}, context(tmp_path)
+        )
 
 
 def truth_bundle(clip: str) -> tuple[dict, dict]:
     truth = dict(np.load(FIXTURES / "clips" / f"{clip}_truth.npz", allow_pickle=False))
     tracked = truth["tracked"]
-    points = {"xy": truth["points"][:, tracked], "valid": np.ones((len(truth["points"]), len(tracked)), bool),
-              "names": truth["point_names"][tracked], "fps": truth["fps"], "size": truth["size"]}
+    points = {
+        "xy": truth["points"][:, tracked],
+        "valid": np.ones((len(truth["points"]), len(tracked)), bool),
+        "names": truth["point_names"][tracked],
+        "fps": truth["fps"],
+        "size": truth["size"],
+    }
     return truth, points
 
 
@@ -189,8 +203,13 @@ def test_fixture_true_points_and_pose_approach_the_ideal_compensation(tmp_path, 
     points without head motion). Measured: calm 0.10 px (2D similarity 0.50), live 1.00 px (2D 4.28);
     what is left is the generic model's depth error (mean face shape, not the performer's)."""
     truth, points = truth_bundle(clip)
-    pose = {"R": truth["R"], "tvec": truth["tvec"], "rvec": truth["rvec"], "valid": np.ones(len(truth["R"]), bool),
-            "camera": truth["intrinsics"]}
+    pose = {
+        "R": truth["R"],
+        "tvec": truth["tvec"],
+        "rvec": truth["rvec"],
+        "valid": np.ones(len(truth["R"]), bool),
+        "camera": truth["intrinsics"],
+    }
     ctx = context(tmp_path)
     pack = pack_to_bundles(load_pack(FIXTURES / "packs" / "performer"))
     ideal = truth["expression_points"][:, truth["tracked"]]
@@ -209,8 +228,7 @@ def test_fixture_live_with_pnp_pose_beats_similarity_by_far(tmp_path):
     truth, points = truth_bundle("live")
     ctx = context(tmp_path)
     pack = pack_to_bundles(load_pack(FIXTURES / "packs" / "performer"))
-    pose = PnPPose().run({"points": points, **{port: pack[port] for port in ("layout", "model3d", "camera")}}, {},
-                         ctx)["pose"]
+    pose = PnPPose().run({"points": points, **{port: pack[port] for port in ("layout", "model3d", "camera")}}, {}, ctx)["pose"]
     ours = PoseCompensate().run({"points": points, "pose": pose, "model3d": pack["model3d"]}, {}, ctx)["displacements"]
     ideal = truth["expression_points"][:, truth["tracked"]]
     error = np.linalg.norm(ours["d"] + ours["neutral"] - ideal, axis=-1).mean()

@@ -10,8 +10,14 @@ from runner.stage import StageError
 from stages.geometry.similarity import apply_similarity
 from stages.geometry.mapping import (
     relative_range,
-    NORMALIZATION_POINTS, ExpressionMap, captured_range, displacement_transforms, eye_distance, map_expression,
-    separate_lips, soft_limit,
+    NORMALIZATION_POINTS,
+    ExpressionMap,
+    captured_range,
+    displacement_transforms,
+    eye_distance,
+    map_expression,
+    separate_lips,
+    soft_limit,
 )
 from stages.layout import load_layout
 from tests.stages.geometry.synthetic import context, pack_inputs
@@ -33,8 +39,9 @@ def test_similarity_mode_scales_and_rotates_displacements():
     xy = map_expression(d, target, transforms)
     expected = target[None] + scale * np.einsum("ij,tnj->tni", rotation(angle), d)
     np.testing.assert_allclose(xy, expected, atol=1e-9)
-    np.testing.assert_allclose(map_expression(d, target, displacement_transforms(performer, target, np.arange(6),
-                                                                                mode="none")), target + d)
+    np.testing.assert_allclose(
+        map_expression(d, target, displacement_transforms(performer, target, np.arange(6), mode="none")), target + d
+    )
 
 
 def test_region_mode_uses_each_region_size():
@@ -43,8 +50,9 @@ def test_region_mode_uses_each_region_size():
     target = performer.copy()
     target[:4] = 2.0 * (performer[:4] - performer[:4].mean(axis=0)) + performer[:4].mean(axis=0)
     target[4:8] = 0.5 * (performer[4:8] - performer[4:8].mean(axis=0)) + performer[4:8].mean(axis=0)
-    transforms = displacement_transforms(performer, target, np.arange(9), mode="region",
-                                         regions=[np.arange(4), np.arange(4, 8), np.array([8])])
+    transforms = displacement_transforms(
+        performer, target, np.arange(9), mode="region", regions=[np.arange(4), np.arange(4, 8), np.array([8])]
+    )
     np.testing.assert_allclose(transforms[:4, 0, 0], 2.0, rtol=1e-12)
     np.testing.assert_allclose(transforms[4:8, 0, 0], 0.5, rtol=1e-12)
     np.testing.assert_allclose(transforms[:, 1, 0], 0.0, atol=1e-12)
@@ -75,8 +83,7 @@ def test_stage_maps_onto_the_pack_neutral(tmp_path):
     np.testing.assert_array_equal(out["xy"][:, others], np.broadcast_to(target_all[others], (4, len(others), 2)))
     assert out["valid"][:, tracked].sum() == 4 * len(tracked) - 1 and not out["valid"][:, others].any()
     assert not out["valid"][2, tracked[5]]
-    region = ExpressionMap().run({"displacements": bundle, **pack}, {"mode": "region", **affine},
-                                 context(tmp_path))["points"]
+    region = ExpressionMap().run({"displacements": bundle, **pack}, {"mode": "region", **affine}, context(tmp_path))["points"]
     np.testing.assert_allclose(region["xy"][:, free], target_all[free] + free_d / 1.5, atol=1e-9)  # one scale here
     del bundle["neutral"]
     with pytest.raises(StageError, match="neutral"):
@@ -94,8 +101,14 @@ def face(layout) -> np.ndarray:
     """A frontal face ``(N, 2)``: eye centres 100 px apart at y = 100, nose tip (150, 160), nose base
     (150, 175), hairline at y = 20, inner lips touching at y = 220; other points spread below."""
     xy = np.column_stack([np.linspace(60, 240, layout.n_points), np.linspace(200, 300, layout.n_points)])
-    place = {"eye_l_0": (125, 100), "eye_l_6": (75, 100), "eye_r_0": (175, 100), "eye_r_6": (225, 100),
-             "nose_tip": (150, 160), "nose_base": (150, 175)}
+    place = {
+        "eye_l_0": (125, 100),
+        "eye_l_6": (75, 100),
+        "eye_r_0": (175, 100),
+        "eye_r_6": (225, 100),
+        "nose_tip": (150, 160),
+        "nose_base": (150, 175),
+    }
     place |= {f"hairline_{k}": (90 + 30 * k, 20) for k in range(5)}
     place |= {f"mouth_inner_{k}": (120 + 12 * k, 220) for k in range(1, 5)}
     place |= {f"mouth_inner_{k}": (240 - 12 * k, 220) for k in range(6, 10)}
@@ -117,13 +130,15 @@ def test_eyes_nose_mode_ignores_a_low_stand_in_hairline(tmp_path):
     d = np.random.default_rng(3).normal(0, 3.0, (3, len(names), 2))
     bundle = {"d": d, "valid": np.ones((3, len(names)), bool), "names": names, "neutral": performer}
     tracked = list(layout.tracked)
-    mapped = {mode: ExpressionMap().run({"displacements": bundle, **pack},
-                                        {"mode": mode, "lids": "displacement"}, context(tmp_path))["points"]
-              for mode in ("eyes_nose", "similarity")}
+    mapped = {
+        mode: ExpressionMap().run({"displacements": bundle, **pack}, {"mode": mode, "lids": "displacement"}, context(tmp_path))[
+            "points"
+        ]
+        for mode in ("eyes_nose", "similarity")
+    }
     lips = [list(names).index(n) for n in ("mouth_inner_2", "mouth_inner_7", "eye_l_3", "eye_l_9", "eye_r_3", "eye_r_9")]
     others = np.setdiff1d(np.arange(len(names)), lips)  # the lip and lid guards may move them apart
-    np.testing.assert_allclose(mapped["eyes_nose"]["xy"][:, tracked][:, others], (target + 1.5 * d)[:, others],
-                               atol=1e-9)
+    np.testing.assert_allclose(mapped["eyes_nose"]["xy"][:, tracked][:, others], (target + 1.5 * d)[:, others], atol=1e-9)
     inflated = np.linalg.norm(mapped["similarity"]["xy"][:, tracked] - target, axis=2).mean()
     assert inflated > 1.1 * np.linalg.norm(1.5 * d, axis=2).mean()
     del bundle["names"]
@@ -164,15 +179,12 @@ def test_stage_range_limit_against_a_hand_computed_case(tmp_path):
     names = np.array(["eye_l_0", "eye_r_0", "chin"])
     d = np.zeros((4, 3, 2))
     d[:, 2, 1] = [2.0, 12.0, -10.0, 8.0]  # 8 px: 4 beyond the range, inside the margin
-    bundle = {"d": d, "valid": np.ones((4, 3), bool), "names": names,
-              "neutral": neutral[[layout.index(n) for n in names]]}
-    out = ExpressionMap().run({"displacements": bundle, **pack}, {"mode": "none", "range": "limit"},
-                              context(tmp_path))["points"]
+    bundle = {"d": d, "valid": np.ones((4, 3), bool), "names": names, "neutral": neutral[[layout.index(n) for n in names]]}
+    out = ExpressionMap().run({"displacements": bundle, **pack}, {"mode": "none", "range": "limit"}, context(tmp_path))["points"]
     expected = [2.0, 4.0 + 5.0 * np.tanh(8 / 5), -1.0 - 5.0 * np.tanh(9 / 5), 4.0 + 5.0 * np.tanh(4 / 5)]
     np.testing.assert_allclose(out["xy"][:, chin, 1] - neutral[chin, 1], expected, rtol=1e-12)
     np.testing.assert_array_equal(out["range_limited"], [False, True, True, False])
-    off = ExpressionMap().run({"displacements": bundle, **pack}, {"mode": "none", "range": "none"},
-                              context(tmp_path))["points"]
+    off = ExpressionMap().run({"displacements": bundle, **pack}, {"mode": "none", "range": "none"}, context(tmp_path))["points"]
     np.testing.assert_allclose(off["xy"][:, chin, 1] - neutral[chin, 1], d[:, 2, 1])
     assert not off["range_limited"].any()
     margin = next(p for p in ExpressionMap.params if p.name == "range_margin")
@@ -232,15 +244,16 @@ def test_the_log_names_the_points_limited_most(tmp_path, caplog):
     d[1:, 2, 1] = 9.0  # chin: 4 frames 9 px beyond its (empty) range, margin 5 px
     d[3, 3, 0] = 6.0  # nose tip: 1 frame
     d[4, 3, 0] = 4.0  # inside the margin: softened, not counted
-    bundle = {"d": d, "valid": np.ones((5, 4), bool), "names": names,
-              "neutral": neutral[[layout.index(n) for n in names]]}
+    bundle = {"d": d, "valid": np.ones((5, 4), bool), "names": names, "neutral": neutral[[layout.index(n) for n in names]]}
     with caplog.at_level("INFO"):
-        out = ExpressionMap().run({"displacements": bundle, **pack}, {"mode": "none", "range": "limit"},
-                                  context(tmp_path))["points"]
+        out = ExpressionMap().run({"displacements": bundle, **pack}, {"mode": "none", "range": "limit"}, context(tmp_path))[
+            "points"
+        ]
     np.testing.assert_array_equal(out["range_limited"], [False, True, True, True, True])
     assert "in 4 of 5 frames (range=limit), most often (frames): chin 4, nose_tip 1;" in caplog.text
     assert out["xy"][4, layout.index("nose_tip"), 0] - neutral[layout.index("nose_tip"), 0] == pytest.approx(
-        5.0 * np.tanh(4.0 / 5.0))
+        5.0 * np.tanh(4.0 / 5.0)
+    )
 
 
 def eyed_face(layout, *, eye_gap: float) -> np.ndarray:
@@ -268,6 +281,7 @@ def test_lids_close_by_the_performers_fraction_on_any_target(tmp_path):
     target's 16 px with them 225 px apart (0.071): a size-scaled closing leaves the target 1 px ajar; the lid ratio shuts it, halves
     it, widens it by the performer's fraction, and lids pushed past shut stop where they touch."""
     from stages.geometry.states import state_signals
+
     layout = load_layout("zhang134")
     performer = eyed_face(layout, eye_gap=10.0)
     target = apply_similarity(np.array([1.5, 0.0, -20.0, 10.0]), eyed_face(layout, eye_gap=16.0 / 1.5))
@@ -294,14 +308,19 @@ def test_the_targets_neutral_lips_are_closed_before_mapping(tmp_path):
     """A pack neutral with the inner lips 6 px apart: a performer at rest (lips closed, no
     displacement) seals the target's lips; close_lips=false keeps the pack's gap."""
     from stages.geometry.states import state_signals
+
     layout = load_layout("zhang134")
     target = eyed_face(layout, eye_gap=10.0)
     for k in range(6, 10):
         target[layout.index(f"mouth_inner_{k}"), 1] += 6.0
     pack = fake_pack(layout, target)
     names = np.array(layout.point_names)
-    bundle = {"d": np.zeros((2, len(names), 2)), "valid": np.ones((2, len(names)), bool), "names": names,
-              "neutral": eyed_face(layout, eye_gap=10.0)}
+    bundle = {
+        "d": np.zeros((2, len(names), 2)),
+        "valid": np.ones((2, len(names)), bool),
+        "names": names,
+        "neutral": eyed_face(layout, eye_gap=10.0),
+    }
     out = ExpressionMap().run({"displacements": bundle, **pack}, {}, context(tmp_path))["points"]
     np.testing.assert_allclose(state_signals(out["xy"], names)["mouth_open"], 0.0, atol=1e-12)
     kept = ExpressionMap().run({"displacements": bundle, **pack}, {"close_lips": False}, context(tmp_path))["points"]
@@ -345,12 +364,18 @@ def test_an_eye_never_seen_open_is_mapped_against_a_typical_open_eye(tmp_path):
     """The performer's neutral has both eyes shut (a clip with the eyes shut throughout, told by
     ``eye_open_known``): displacements of zero keep the target's eyes shut, not at its open rest."""
     from stages.geometry.states import state_signals
+
     layout = load_layout("zhang134")
     performer = eyed_face(layout, eye_gap=1.0)  # shut
     pack = fake_pack(layout, eyed_face(layout, eye_gap=12.0))
     names = np.array(layout.point_names)
-    bundle = {"d": np.zeros((2, len(names), 2)), "valid": np.ones((2, len(names)), bool), "names": names,
-              "neutral": performer, "eye_open_known": np.array([False, False])}
+    bundle = {
+        "d": np.zeros((2, len(names), 2)),
+        "valid": np.ones((2, len(names)), bool),
+        "names": names,
+        "neutral": performer,
+        "eye_open_known": np.array([False, False]),
+    }
     out = ExpressionMap().run({"displacements": bundle, **pack}, {}, context(tmp_path))["points"]
     gap = state_signals(out["xy"], names)["eye_open_l"] * 150.0
     assert (gap < 0.15 * 12.0).all()  # 1 px of the performer's 0.11 * 150 px typical gap: 12 px * 1 / 16.5

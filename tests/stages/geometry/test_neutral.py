@@ -32,8 +32,9 @@ def clip_without_a_neutral_start(layout, n_frames: int = 120, seed: int = 5):
     xy[np.ix_(crying, brows, [1])] += 6.0
     for name in ("eyeBlinkLeft", "eyeBlinkRight", "browDownLeft", "browDownRight"):
         shapes[crying, column[name]] = 0.8
-    mouth = ((np.arange(n_frames) >= 30) & (np.arange(n_frames) < 80)) | ((np.arange(n_frames) >= 100)
-                                                                       & (np.arange(n_frames) < 110))
+    mouth = ((np.arange(n_frames) >= 30) & (np.arange(n_frames) < 80)) | (
+        (np.arange(n_frames) >= 100) & (np.arange(n_frames) < 110)
+    )
     xy[np.ix_(mouth, lower_lip, [1])] += 25.0
     shapes[mouth, column["jawOpen"]] = 0.7
     return neutral, xy + rng.normal(0, 0.3, xy.shape), shapes
@@ -62,8 +63,9 @@ def test_occluded_frames_never_enter_a_regions_neutral():
     layout = load_layout("zhang134")
     neutral, xy, shapes = clip_without_a_neutral_start(layout)
     hidden = np.arange(len(xy)) >= 80
-    estimate = estimate_neutral(xy, layout.point_names, np.ones(len(xy), bool), shapes, BLENDSHAPE_NAMES,
-                                occluded={"mouth": hidden})
+    estimate = estimate_neutral(
+        xy, layout.point_names, np.ones(len(xy), bool), shapes, BLENDSHAPE_NAMES, occluded={"mouth": hidden}
+    )
     assert (estimate.frames["mouth"] < 80).all()
     assert np.abs(estimate.neutral - neutral).max() < 0.5
 

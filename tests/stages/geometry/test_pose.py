@@ -14,8 +14,9 @@ from tests.stages.geometry.synthetic import context, pack_inputs
 
 CAMERA = default_intrinsics((640, 480))
 # hairline arc and inner eye corners of a generic head, mm (x right, y down, z away from camera)
-MODEL = np.array([[-45, -75, 25], [-25, -85, 10], [0, -88, 5], [25, -85, 10], [45, -75, 25],
-                  [-15, 0, 5], [15, 0, 5]], dtype=np.float64)
+MODEL = np.array(
+    [[-45, -75, 25], [-25, -85, 10], [0, -88, 5], [25, -85, 10], [45, -75, 25], [-15, 0, 5], [15, 0, 5]], dtype=np.float64
+)
 
 
 def angle_deg(r1: np.ndarray, r2: np.ndarray) -> np.ndarray:
@@ -28,8 +29,7 @@ def sequence(n_frames: int, *, noise_px: float, seed: int = 0):
     t = np.arange(n_frames)
     rvec = np.stack([0.25 * np.sin(t / 6.0), 0.35 * np.sin(t / 9.0 + 1.0), 0.1 * np.sin(t / 5.0)], axis=1)
     tvec = np.stack([10 * np.sin(t / 8.0), -5 + 4 * np.cos(t / 7.0), 600 + 20 * np.sin(t / 10.0)], axis=1)
-    image = np.stack([cv2.projectPoints(MODEL, rvec[k], tvec[k], CAMERA, None)[0].reshape(-1, 2)
-                      for k in range(n_frames)])
+    image = np.stack([cv2.projectPoints(MODEL, rvec[k], tvec[k], CAMERA, None)[0].reshape(-1, 2) for k in range(n_frames)])
     return rvec, tvec, image + rng.normal(0, noise_px, image.shape)
 
 

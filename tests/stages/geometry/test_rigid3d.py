@@ -4,8 +4,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from stages.geometry.rigid3d import (choose_reference, compensate_rigid3d, euler_yaw_pitch_roll, expressiveness,
-                                     head_angle_deg, similarity_3d)
+from stages.geometry.rigid3d import (
+    choose_reference,
+    compensate_rigid3d,
+    euler_yaw_pitch_roll,
+    expressiveness,
+    head_angle_deg,
+    similarity_3d,
+)
 
 
 def _head(n=40, seed=0):
@@ -56,10 +62,14 @@ def test_frames_without_rigid_points_are_held_and_flagged():
 
 def test_choose_reference_prefers_frontal_neutral_frames():
     names = np.array(["_neutral", "eyeLookInLeft", "jawOpen", "browInnerUp"])
-    shapes = np.array([[0.9, 0.0, 0.6, 0.1],   # mouth open
-                       [0.9, 0.9, 0.0, 0.0],   # gaze only: counts as neutral
-                       [0.9, 0.0, 0.0, 0.05],  # neutral but turned 30 degrees
-                       [0.9, 0.0, 0.0, 0.0]])  # invalid frame
+    shapes = np.array(
+        [
+            [0.9, 0.0, 0.6, 0.1],  # mouth open
+            [0.9, 0.9, 0.0, 0.0],  # gaze only: counts as neutral
+            [0.9, 0.0, 0.0, 0.05],  # neutral but turned 30 degrees
+            [0.9, 0.0, 0.0, 0.0],
+        ]
+    )  # invalid frame
     assert expressiveness(shapes, names).tolist() == pytest.approx([0.7, 0.0, 0.05, 0.0])
     matrix = np.repeat(np.eye(4)[None], 4, axis=0)
     matrix[2, :3, :3] = Rotation.from_euler("Y", 30, degrees=True).as_matrix()
@@ -99,8 +109,12 @@ def _bundles(n_frames=6):
     xyz[4] = np.nan
     valid = np.repeat(face[:, None], len(names), axis=1)
     points = {"xy": xyz[..., :2], "z": xyz[..., 2], "valid": valid, "names": names}
-    marks = {"valid": face, "blendshapes": shapes, "blendshape_names": np.array(["_neutral", "jawOpen", "browInnerUp"]),
-             "matrix": np.repeat(np.eye(4)[None], n_frames, axis=0)}
+    marks = {
+        "valid": face,
+        "blendshapes": shapes,
+        "blendshape_names": np.array(["_neutral", "jawOpen", "browInnerUp"]),
+        "matrix": np.repeat(np.eye(4)[None], n_frames, axis=0),
+    }
     return points, marks, ref, names
 
 
@@ -130,8 +144,11 @@ def test_stage_refuses_points_without_depth():
     del points["z"]
     stage = CompensateRigid3D()
     with pytest.raises(StageError, match="no depth"):
-        stage.run({"points": points, "landmarks": marks}, {p.name: p.default for p in stage.params},
-                  Context(device="cpu", files_dir=None))
+        stage.run(
+            {"points": points, "landmarks": marks},
+            {p.name: p.default for p in stage.params},
+            Context(device="cpu", files_dir=None),
+        )
 
 
 def _face_with_open_lips(gap_px, roll_deg=0.0):
@@ -209,8 +226,12 @@ def test_stage_takes_displacements_from_the_reference_with_closed_lips(close_lip
     xy = np.stack([reference, face_closed, _face_with_open_lips(30.0)[1]])
     n = len(xy)
     points = {"xy": xy, "z": np.zeros(xy.shape[:2]), "valid": np.ones(xy.shape[:2], bool), "names": names}
-    marks = {"valid": np.ones(n, bool), "blendshapes": np.zeros((n, 1), np.float32),
-             "blendshape_names": np.array(["_neutral"]), "matrix": np.repeat(np.eye(4)[None], n, axis=0)}
+    marks = {
+        "valid": np.ones(n, bool),
+        "blendshapes": np.zeros((n, 1), np.float32),
+        "blendshape_names": np.array(["_neutral"]),
+        "matrix": np.repeat(np.eye(4)[None], n, axis=0),
+    }
     stage = CompensateRigid3D()
     params = {p.name: p.default for p in stage.params} | {"neutral_frame": 0, "close_lips": close_lips}
     assert next(p for p in stage.params if p.name == "close_lips").default is True
@@ -221,10 +242,17 @@ def test_stage_takes_displacements_from_the_reference_with_closed_lips(close_lip
     assert opening == pytest.approx(0.0 if close_lips else 12.0, abs=1e-6)
 
 
-@pytest.mark.parametrize("neutral_frame, advice", [
-    (5, "the reference frame 5 set by neutral_frame is not a frontal neutral face (head turned 15.0 deg, expressiveness "
-        "0.00); neutral_frame=-1 estimates the neutral from the whole clip"),
-    (-1, "the most frontal frame of the clip, 0, is turned 15.0 deg: displacements are measured in a turned head frame")])
+@pytest.mark.parametrize(
+    "neutral_frame, advice",
+    [
+        (
+            5,
+            "the reference frame 5 set by neutral_frame is not a frontal neutral face (head turned 15.0 deg, expressiveness "
+            "0.00); neutral_frame=-1 estimates the neutral from the whole clip",
+        ),
+        (-1, "the most frontal frame of the clip, 0, is turned 15.0 deg: displacements are measured in a turned head frame"),
+    ],
+)
 def test_the_reference_warning_advises_what_was_not_done(caplog, neutral_frame, advice):
     """Frame 5 is turned 15 degrees (more than warn_angle_deg): named by the user, the warning
     does not tell them to set neutral_frame but that the estimate exists; with the neutral
@@ -262,16 +290,23 @@ def test_stage_holds_an_occluded_region_from_the_frames_around_it():
     points["xy"][1:3][:, lower] += 50.0  # what a landmarker guesses under a hand
     hidden = np.zeros((6, 1), bool)
     hidden[1:3, 0] = True
-    occlusion = {"regions": np.array(["mouth"]), "occluded": hidden, "region_points": lower[None],
-                 "names": names, "valid": np.ones(6, bool), "score": np.where(hidden, 0.0, 1.0)}
+    occlusion = {
+        "regions": np.array(["mouth"]),
+        "occluded": hidden,
+        "region_points": lower[None],
+        "names": names,
+        "valid": np.ones(6, bool),
+        "score": np.where(hidden, 0.0, 1.0),
+    }
     stage = CompensateRigid3D()
     params = {p.name: p.default for p in stage.params} | {"neutral_frame": 0, "close_lips": False}
     ctx = Context(device="cpu", files_dir=None)
     held = stage.run({"points": points, "landmarks": marks, "occlusion": occlusion}, params, ctx)["displacements"]
     seen = stage.run({"points": points, "landmarks": marks}, params, ctx)["displacements"]
     for t in (1, 2):
-        np.testing.assert_allclose(held["d"][t][lower], seen["d"][0][lower] + t / 3 * (seen["d"][3][lower] - seen["d"][0][lower]),
-                                   atol=1e-9)
+        np.testing.assert_allclose(
+            held["d"][t][lower], seen["d"][0][lower] + t / 3 * (seen["d"][3][lower] - seen["d"][0][lower]), atol=1e-9
+        )
     np.testing.assert_allclose(held["d"][:, ~lower], seen["d"][:, ~lower])
     np.testing.assert_array_equal(held["occluded"], [False, True, True, False, False, False])
     assert np.abs(seen["d"][1][lower, 1] - 2.0).min() > 40  # without the bundle the guess is taken

@@ -10,7 +10,13 @@ from scipy.ndimage import convolve1d, gaussian_filter1d
 from runner.stage import StageError
 from scripts.bench_smoothing import jitter, opening_face, retention
 from stages.geometry.smooth import (
-    GaussianSmooth, OneEuroSmooth, convolve_time, face_translation, gaussian_kernel, gaussian_smooth, one_euro_smooth,
+    GaussianSmooth,
+    OneEuroSmooth,
+    convolve_time,
+    face_translation,
+    gaussian_kernel,
+    gaussian_smooth,
+    one_euro_smooth,
     one_euro_smooth_face,
 )
 from tests.stages.geometry.synthetic import context
@@ -112,8 +118,12 @@ def test_sigma_zero_is_identity():
 
 def test_stage_keeps_bundle_keys(tmp_path):
     rng = np.random.default_rng(4)
-    bundle = {"xy": rng.normal(size=(20, 3, 2)), "valid": np.ones((20, 3), bool),
-              "names": np.array(["a", "b", "c"]), "confidence": np.ones((20, 3), np.float32)}
+    bundle = {
+        "xy": rng.normal(size=(20, 3, 2)),
+        "valid": np.ones((20, 3), bool),
+        "names": np.array(["a", "b", "c"]),
+        "confidence": np.ones((20, 3), np.float32),
+    }
     out = GaussianSmooth().run({"points": bundle}, {"sigma": 1.0}, context(tmp_path))["points"]
     assert set(out) == set(bundle) and out["xy"].shape == (20, 3, 2)
     np.testing.assert_allclose(out["xy"], direct(bundle["xy"], bundle["valid"], 1.0, 3), atol=1e-9)
@@ -204,8 +214,9 @@ def test_one_euro_keeps_short_openings_and_removes_jitter():
         smoothed, _ = one_euro_smooth_face(noisy, every, fps=30.0, **defaults)
         for width in (3, 4, 5):
             assert retention(smoothed, clip, width) >= 0.95
-        small = one_euro_smooth_face(hardest["truth"] + rng.normal(0, noise, hardest["truth"].shape), every,
-                                     fps=30.0, **defaults)[0]
+        small = one_euro_smooth_face(
+            hardest["truth"] + rng.normal(0, noise, hardest["truth"].shape), every, fps=30.0, **defaults
+        )[0]
         assert retention(small, hardest, 3) >= 0.95
         gaussian = gaussian_smooth(noisy, sigma=1.5)[0]
         assert retention(gaussian, clip, 3) < 0.8  # what the Gaussian loses on the same openings
@@ -250,16 +261,18 @@ def test_one_euro_invalid_samples_are_interpolated_and_stay_flagged():
 
 def test_one_euro_stage_takes_the_bundle_fps(tmp_path):
     rng = np.random.default_rng(10)
-    bundle = {"xy": np.cumsum(rng.normal(size=(30, 3, 2)), axis=0), "valid": np.ones((30, 3), bool),
-              "names": np.array(["a", "b", "c"]), "fps": np.array(25.0)}
+    bundle = {
+        "xy": np.cumsum(rng.normal(size=(30, 3, 2)), axis=0),
+        "valid": np.ones((30, 3), bool),
+        "names": np.array(["a", "b", "c"]),
+        "fps": np.array(25.0),
+    }
     out = OneEuroSmooth().run({"points": bundle}, {}, context(tmp_path))["points"]
     assert set(out) == set(bundle)
-    np.testing.assert_allclose(out["xy"], one_euro_smooth_face(bundle["xy"], bundle["valid"], fps=25.0)[0],
-                               atol=1e-12)
+    np.testing.assert_allclose(out["xy"], one_euro_smooth_face(bundle["xy"], bundle["valid"], fps=25.0)[0], atol=1e-12)
     del bundle["fps"]
     out = OneEuroSmooth().run({"points": bundle}, {"fps": 50.0}, context(tmp_path))["points"]
-    np.testing.assert_allclose(out["xy"], one_euro_smooth_face(bundle["xy"], bundle["valid"], fps=50.0)[0],
-                               atol=1e-12)
+    np.testing.assert_allclose(out["xy"], one_euro_smooth_face(bundle["xy"], bundle["valid"], fps=50.0)[0], atol=1e-12)
     with pytest.raises(StageError, match="smooth.one_euro: min_cutoff must be > 0"):
         OneEuroSmooth().run({"points": bundle}, {"min_cutoff": 0.0}, context(tmp_path))
 
@@ -306,5 +319,6 @@ def test_time_convolution_matches_scipy_convolve1d():
     values = np.random.default_rng(7).normal(size=(40, 5, 2))
     for sigma in (0.5, 1.5, 8.0):
         kernel = gaussian_kernel(sigma, truncate=3.0)
-        np.testing.assert_allclose(convolve_time(values, kernel),
-                                   convolve1d(values, kernel, axis=0, mode="constant", cval=0.0), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(
+            convolve_time(values, kernel), convolve1d(values, kernel, axis=0, mode="constant", cval=0.0), rtol=0, atol=1e-12
+        )

@@ -62,5 +62,6 @@ def test_states_are_read_against_the_neutral_and_a_pack_range():
     beyond = beyond_coverage(values, covered)
     np.testing.assert_array_equal(beyond["eye_l_shut"], [False, True, False])
     assert not beyond["jaw_open"].any() and not beyond["brow_furrow"].any()
-    np.testing.assert_array_equal(beyond_coverage(values, covered, np.array([True, False, True]))["eye_l_shut"],
-                                  [False, False, False])
+    np.testing.assert_array_equal(
+        beyond_coverage(values, covered, np.array([True, False, True]))["eye_l_shut"], [False, False, False]
+    )

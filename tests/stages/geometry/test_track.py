@@ -74,7 +74,8 @@ def affine_clip(n_frames: int, *, size: tuple[int, int] = (160, 120), seed: int 
         k = t / (n_frames - 1)
         angle = np.deg2rad(30.0 * k)
         linear = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]) @ np.diag(
-            [1.0 - 0.25 * k, 1.0 + 0.1 * k])
+            [1.0 - 0.25 * k, 1.0 + 0.1 * k]
+        )
         m = np.hstack([linear, (centre - linear @ centre + [3.0 * k, -2.0 * k])[:, None]])
         image = cv2.warpAffine(base, m, size, flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
         frames.append(np.repeat(np.clip(np.rint(image), 0, 255).astype(np.uint8)[..., None], 3, axis=2))
@@ -131,9 +132,9 @@ def test_edge_template_takes_the_along_edge_position_from_its_neighbours():
     tracker.start(np.zeros((120, 160), np.uint8), origin)
     truth = origin + (2.5, -1.5)
     found = truth.copy()
-    found[0] += (0.0, 4.0)                                 # wrong along a vertical edge,
+    found[0] += (0.0, 4.0)  # wrong along a vertical edge,
     information = np.tile(np.eye(2) * 0.3, (10, 1, 1))
-    information[0] = np.diag([0.3, 0.0])                   # whose template pins x only
+    information[0] = np.diag([0.3, 0.0])  # whose template pins x only
     combined = tracker.with_neighbours(found, information, np.ones(10, bool))
     np.testing.assert_allclose(combined[0], truth[0], atol=1e-6)
     # a well-textured point keeps most of its own match: prior / (0.3 + prior) of it goes
@@ -223,13 +224,16 @@ def test_stage_reads_a_json_points_file(tmp_path):
     np.testing.assert_array_equal(out["points"]["xy"][0], init)
 
 
-@pytest.mark.parametrize("problem, message", [
-    ("missing", "not found"),
-    ("count", "do not match"),
-    ("names", "unknown"),
-    ("outside", "outside"),
-    ("garbled", "cannot read"),
-])
+@pytest.mark.parametrize(
+    "problem, message",
+    [
+        ("missing", "not found"),
+        ("count", "do not match"),
+        ("names", "unknown"),
+        ("outside", "outside"),
+        ("garbled", "cannot read"),
+    ],
+)
 def test_bad_first_frame_points(tmp_path, problem, message):
     frames, _, names, init = tracked_setup(tmp_path, n_frames=2)
     path = tmp_path / "first.json"

@@ -27,27 +27,40 @@ def test_bundled_correspondence_is_complete_and_affine():
     assert not c.weights[:, 468:].any()
 
 
-@pytest.mark.parametrize("change, message", [
-    (lambda d: d["points"].update(nose_tipp=1), "points.nose_tipp': unknown point name"),
-    (lambda d: d["points"].pop("chin"), "points': no entry for layout point 'chin'"),
-    (lambda d: d["points"].update(chin=478), "points.chin': vertex index 478 out of range"),
-    (lambda d: d["points"].update(chin=-1), "points.chin': vertex index -1 out of range"),
-    (lambda d: d["points"].update(chin={"vertices": [1, 2], "weights": [0.5, 0.6]}), "points.chin': weights sum to 1.1"),
-    (lambda d: d["points"].update(chin={"vertices": [1, 2], "weights": [1.0]}), "points.chin': expected 2 finite weights"),
-    (lambda d: d["points"].update(chin={"vertices": [1, 1], "weights": [0.5, 0.5]}), "points.chin': a vertex is listed twice"),
-    (lambda d: d["points"].update(chin={"vertices": [1], "weights": [1], "wieghts": 1}), "points.chin': unknown key 'wieghts'"),
-    (lambda d: d["points"].update(chin="152"), "points.chin': expected a vertex index"),
-    (lambda d: d.pop("mesh_vertices"), "mesh_vertices': missing"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda d: d["points"].update(nose_tipp=1), "points.nose_tipp': unknown point name"),
+        (lambda d: d["points"].pop("chin"), "points': no entry for layout point 'chin'"),
+        (lambda d: d["points"].update(chin=478), "points.chin': vertex index 478 out of range"),
+        (lambda d: d["points"].update(chin=-1), "points.chin': vertex index -1 out of range"),
+        (lambda d: d["points"].update(chin={"vertices": [1, 2], "weights": [0.5, 0.6]}), "points.chin': weights sum to 1.1"),
+        (lambda d: d["points"].update(chin={"vertices": [1, 2], "weights": [1.0]}), "points.chin': expected 2 finite weights"),
+        (
+            lambda d: d["points"].update(chin={"vertices": [1, 1], "weights": [0.5, 0.5]}),
+            "points.chin': a vertex is listed twice",
+        ),
+        (
+            lambda d: d["points"].update(chin={"vertices": [1], "weights": [1], "wieghts": 1}),
+            "points.chin': unknown key 'wieghts'",
+        ),
+        (lambda d: d["points"].update(chin="152"), "points.chin': expected a vertex index"),
+        (lambda d: d.pop("mesh_vertices"), "mesh_vertices': missing"),
+    ],
+)
 def test_validation_errors_name_the_entry(change, message):
     with pytest.raises(ValueError, match="c.yaml: field '" + message.replace("(", r"\(")):
         parse(change)
 
 
 def test_layout_from_mesh_is_the_weighted_sum_of_the_vertices():
-    c = parse(lambda d: d["points"].update(
-        hairline_2={"vertices": [10, 151], "weights": [1.5, -0.5]}, chin=152,
-        cheek_l={"vertices": [50, 205, 187], "weights": [0.2, 0.3, 0.5]}))
+    c = parse(
+        lambda d: d["points"].update(
+            hairline_2={"vertices": [10, 151], "weights": [1.5, -0.5]},
+            chin=152,
+            cheek_l={"vertices": [50, 205, 187], "weights": [0.2, 0.3, 0.5]},
+        )
+    )
     rng = np.random.default_rng(3)
     xy = rng.uniform(0, 500, (3, 478, 2))
     points = layout_from_mesh(xy, c)

@@ -7,7 +7,13 @@ import pytest
 from skimage import data
 
 from stages.landmarks.landmarker import (
-    BLENDSHAPE_NAMES, MODEL_PATH, N_MESH, Landmarker, crop_around, tiles, verify_model,
+    BLENDSHAPE_NAMES,
+    MODEL_PATH,
+    N_MESH,
+    Landmarker,
+    crop_around,
+    tiles,
+    verify_model,
 )
 from tests.stages.landmarks.conftest import CROP, FACE_BOX, to_upscaled
 
@@ -36,7 +42,8 @@ def test_blendshape_names_are_the_models():
     from mediapipe.tasks.python import BaseOptions, vision
 
     options = vision.FaceLandmarkerOptions(
-        base_options=BaseOptions(model_asset_path=str(MODEL_PATH)), output_face_blendshapes=True)
+        base_options=BaseOptions(model_asset_path=str(MODEL_PATH)), output_face_blendshapes=True
+    )
     with vision.FaceLandmarker.create_from_options(options) as task:
         result = task.detect(mp.Image(image_format=mp.ImageFormat.SRGB, data=data.astronaut()))
     assert tuple(c.category_name for c in result.face_blendshapes[0]) == BLENDSHAPE_NAMES
@@ -63,7 +70,7 @@ def test_integer_shift_moves_points_by_the_shift(landmarker, face):
     found = []
     for dx, dy in [(10, 20), (47, 33)]:
         frame = canvas.copy()
-        frame[dy:dy + face.shape[0], dx:dx + face.shape[1]] = face
+        frame[dy : dy + face.shape[0], dx : dx + face.shape[1]] = face
         landmarker.reset()
         found.append(landmarker.detect(frame).xy - (dx, dy))
     assert np.abs(found[1] - found[0]).mean() < 0.3
@@ -104,7 +111,7 @@ def test_tiles_cover_the_image_with_half_overlap():
     assert (regions[:, 2] == 60).all() and (regions[:, 3] == 60).all()
     covered = np.zeros((120, 200), bool)
     for x0, y0, w, h in regions:
-        covered[y0:y0 + h, x0:x0 + w] = True
+        covered[y0 : y0 + h, x0 : x0 + w] = True
     assert covered.all()
     assert set(regions[:, 0]) == {0, 30, 60, 90, 120, 140} and set(regions[:, 1]) == {0, 30, 60}
 
@@ -135,9 +142,9 @@ def test_several_faces_choose_by_the_rule(select, expected):
     small = np.ascontiguousarray(data.astronaut()[y0:y1, x0:x1])  # mesh ~90 px wide
     large = cv2.resize(small, None, fx=1.6, fy=1.6, interpolation=cv2.INTER_CUBIC)
     frame = np.full((560, 720, 3), 100, np.uint8)
-    frame[10:10 + large.shape[0], 10:10 + large.shape[1]] = large
+    frame[10 : 10 + large.shape[0], 10 : 10 + large.shape[1]] = large
     cy, cx = 280 - small.shape[0] // 2, 360 - small.shape[1] // 2 + 60
-    frame[cy:cy + small.shape[0], cx:cx + small.shape[1]] = small
+    frame[cy : cy + small.shape[0], cx : cx + small.shape[1]] = small
     with Landmarker(select=select) as lm:
         mesh = lm.detect(frame)
     assert mesh.valid and mesh.faces == 2
@@ -157,7 +164,7 @@ def _two_faces(left_scale: float, right_scale: float) -> np.ndarray:
     for scale, cx in ((left_scale, 160), (right_scale, 480)):
         image = cv2.resize(face, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
         h, w = image.shape[:2]
-        frame[210 - h // 2:210 - h // 2 + h, cx - w // 2:cx - w // 2 + w] = image
+        frame[210 - h // 2 : 210 - h // 2 + h, cx - w // 2 : cx - w // 2 + w] = image
     return frame
 
 

@@ -23,7 +23,7 @@ def clip(face):
     frames = np.full((len(SHIFTS) + 1, 600, 600, 3), 100, np.uint8)
     h, w = face.shape[:2]
     for t, (dx, dy) in enumerate(SHIFTS):
-        frames[t, 140 + dy:140 + dy + h, 150 + dx:150 + dx + w] = face
+        frames[t, 140 + dy : 140 + dy + h, 150 + dx : 150 + dx + w] = face
     return frames
 
 
@@ -59,7 +59,7 @@ def test_points_move_by_the_known_shift(landmarks):
         moved = (xy[t] - xy[0]).mean(axis=0)
         np.testing.assert_allclose(moved, shift, atol=0.4)
     # after frame 0 the face is searched in the crop around the previous one
-    assert (landmarks["region"][1:len(SHIFTS), 2] < 600).all() and (landmarks["region"][1:len(SHIFTS), :2] > 0).all()
+    assert (landmarks["region"][1 : len(SHIFTS), 2] < 600).all() and (landmarks["region"][1 : len(SHIFTS), :2] > 0).all()
 
 
 def test_layout_points_move_by_the_known_shift(landmarks):
@@ -86,7 +86,7 @@ def test_no_face_in_any_frame_is_a_stage_error():
 
 def test_small_face_warns_with_its_size(face, caplog):
     frames = np.full((1, 600, 600, 3), 100, np.uint8)
-    frames[0, 20:20 + face.shape[0], 10:10 + face.shape[1]] = face
+    frames[0, 20 : 20 + face.shape[0], 10 : 10 + face.shape[1]] = face
     ctx = Context(device="cpu", files_dir=lambda p: None, log=logging.getLogger("test.landmarks"))
     with caplog.at_level(logging.INFO, logger="test.landmarks"):
         bundle = FaceLandmarks().run({"frames": MemoryStream(frames)}, {"min_face_px": 400.0}, ctx)["landmarks"]
@@ -99,4 +99,6 @@ def test_bad_correspondence_is_a_stage_error(tmp_path, landmarks):
     bad = tmp_path / "bad.yaml"
     bad.write_text("name: bad\nlayout: zhang134\nmesh_vertices: 478\npoints: {chin: 152}\n")
     with pytest.raises(StageError, match="parameter 'correspondence'.*no entry for layout point"):
-        LayoutPoints().run({"landmarks": landmarks}, {"correspondence": str(bad)}, Context(device="cpu", files_dir=lambda p: None))
+        LayoutPoints().run(
+            {"landmarks": landmarks}, {"correspondence": str(bad)}, Context(device="cpu", files_dir=lambda p: None)
+        )

@@ -21,7 +21,7 @@ def synthetic_clip(frames: int, occluded: np.ndarray, seed: int = 0) -> np.ndarr
             strips[f] = rng.uniform(-0.05, 0.05) * u + rng.uniform(-0.05, 0.05, (K, 1, C))
         else:
             shift = rng.integers(0, 3)
-            strips[f] = rng.uniform(0.7, 1.3) * pattern[:, shift:shift + M + 2 * SHIFT]
+            strips[f] = rng.uniform(0.7, 1.3) * pattern[:, shift : shift + M + 2 * SHIFT]
         strips[f] += rng.normal(0, 0.02, strips[f].shape)
     return strips
 
@@ -93,7 +93,7 @@ def test_a_structured_occluder_for_half_the_clip_is_not_taken_for_the_region():
     gaps = np.where(np.arange(K) % 4 == 0, -0.6, 0.1)[:, None, None]  # constant across, varying along
     strips[occluded] = gaps + rng.normal(0, 0.02, (occluded.sum(), K, M + 2 * SHIFT, C))
     win = model.windows(strips, SHIFT)
-    energy = np.einsum("fsd,fsd->f", win[:, SHIFT:SHIFT + 1], win[:, SHIFT:SHIFT + 1])
+    energy = np.einsum("fsd,fsd->f", win[:, SHIFT : SHIFT + 1], win[:, SHIFT : SHIFT + 1])
     assert energy[occluded].min() > energy[~occluded].max()  # the occluder has more structure
     template, seen = model.template(win, positions=K, keep=0.5)
     np.testing.assert_array_equal(seen, ~occluded)

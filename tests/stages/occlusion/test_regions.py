@@ -14,8 +14,12 @@ def covered(region: str) -> set[str]:
 
 
 def test_regions_cover_their_layout_points_and_nothing_else():
-    assert covered("mouth") == ({f"mouth_outer_{k}" for k in range(16)} | {f"mouth_inner_{k}" for k in range(10)}
-                                | {f"teeth_upper_{k}" for k in range(4)} | {f"teeth_lower_{k}" for k in range(4)})
+    assert covered("mouth") == (
+        {f"mouth_outer_{k}" for k in range(16)}
+        | {f"mouth_inner_{k}" for k in range(10)}
+        | {f"teeth_upper_{k}" for k in range(4)}
+        | {f"teeth_lower_{k}" for k in range(4)}
+    )
     for side in "lr":
         assert covered(f"eye_{side}") == {f"eye_{side}_{k}" for k in range(12)} | {f"crease_{side}_{k}" for k in range(3)}
         assert covered(f"brow_{side}") == {f"brow_{side}_{k}" for k in range(8)}

@@ -65,8 +65,10 @@ def test_hand_over_the_mouth_from_the_first_frame_then_over_an_eye(tmp_path, tru
     frames 0-11, another tone over the image-left eye in frames 24-35. Measured when written:
     recall and precision 1.0 (12 frames each of mouth, nose, eye_l and brow_l covered)."""
     colour = skin(true_points)
-    events = [occluder.Event("mouth", 0, 12, colour),
-              occluder.Event("eye_l", 24, 36, tuple(float(c) for c in occluder.other_tone(np.array(colour))))]
+    events = [
+        occluder.Event("mouth", 0, 12, colour),
+        occluder.Event("eye_l", 24, 36, tuple(float(c) for c in occluder.other_tone(np.array(colour)))),
+    ]
     truth, occlusion = occluded_run(tmp_path, true_points, events)
     assert truth[:12, REGIONS.index("mouth")].all() and truth[24:36, REGIONS.index("eye_l")].all()
     judged = occlusion["valid"][:, None] & np.ones(len(REGIONS), bool)

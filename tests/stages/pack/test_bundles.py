@@ -51,8 +51,12 @@ def test_geometry_model3d_camera_round_trip(pack):
 def test_images_round_trip(pack):
     images = bundles.images_from_bundle(bundles.images_to_bundle(pack), pack.layout)
     assert images.path == "tiny" and images.image_size == pack.image_size
-    for got, want in [(images.neutral, pack.neutral), (images.standard, pack.standard),
-                      *zip(images.examples, pack.examples), *zip(images.teeth_examples, pack.teeth_examples)]:
+    for got, want in [
+        (images.neutral, pack.neutral),
+        (images.standard, pack.standard),
+        *zip(images.examples, pack.examples),
+        *zip(images.teeth_examples, pack.teeth_examples),
+    ]:
         assert got.name == want.name
         np.testing.assert_array_equal(got.image, want.image)
         np.testing.assert_array_equal(got.points, want.points)

@@ -42,8 +42,14 @@ class StillPerformer(SequenceStage):
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         geometry = inputs["geometry"]
         n = len(geometry["names"])
-        return {"displacements": {"d": np.zeros((3, n, 2)), "valid": np.ones((3, n), bool),
-                                  "names": geometry["names"], "neutral": geometry["neutral"]}}
+        return {
+            "displacements": {
+                "d": np.zeros((3, n, 2)),
+                "valid": np.ones((3, n), bool),
+                "names": geometry["names"],
+                "neutral": geometry["neutral"],
+            }
+        }
 
 
 PIPELINE = """
@@ -76,8 +82,7 @@ def run(tmp_path: Path):
 
     def statuses() -> dict[str, str]:
         pipeline = load_pipeline(path, registry)
-        runner = Runner(pipeline, bind_inputs(pipeline, clip=None, named=[]),
-                        Options(cache=CacheStore(tmp_path / "cache")))
+        runner = Runner(pipeline, bind_inputs(pipeline, clip=None, named=[]), Options(cache=CacheStore(tmp_path / "cache")))
         return {r.stage: r.status for r in runner.run()}
 
     assert statuses() == dict.fromkeys(("pack", "still", "map", "train", "build"), "ran")
@@ -86,8 +91,9 @@ def run(tmp_path: Path):
 
 def test_outputs_are_the_packs_bundles(run, tmp_path: Path):
     root, _ = run
-    pipeline = load_pipeline(tmp_path / "p.yaml", Registry(classes=[LoadPack, StillPerformer, ExpressionMap,
-                                                                     TrainHierarchicalPCA, BuildSynthesis]))
+    pipeline = load_pipeline(
+        tmp_path / "p.yaml", Registry(classes=[LoadPack, StillPerformer, ExpressionMap, TrainHierarchicalPCA, BuildSynthesis])
+    )
     runner = Runner(pipeline, bind_inputs(pipeline, clip=None, named=[]), Options(cache=CacheStore(tmp_path / "cache")))
     runner.run()
     for port, want in pack_to_bundles(load_pack(root)).items():
@@ -121,5 +127,5 @@ def test_layout_content_is_in_the_keys(run):
     assert statuses() == {"pack": "ran", "still": "cached", "map": "cached", "train": "cached", "build": "cached"}
     text = layout.read_text()
     name = re.search(r"^name: *(\S+)", text, re.M)
-    layout.write_text(text[:name.start(1)] + "renamed" + text[name.end(1):])
+    layout.write_text(text[: name.start(1)] + "renamed" + text[name.end(1) :])
     assert statuses() == {"pack": "ran", "still": "cached", "map": "ran", "train": "ran", "build": "ran"}

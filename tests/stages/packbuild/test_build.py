@@ -36,8 +36,9 @@ def built(tmp_path_factory):
     registry = Registry(classes=[VideoDecode, FaceLandmarks, LayoutPoints, PackFilter, PackSelect, PackWrite])
     # the clip sweeps the head (yaw +-20, pitch +-10 degrees) by design: every usable frame is a candidate
     pipeline = load_pipeline(REPO / "pack_build.yaml", registry, overrides=["select.pose_deg=30"])
-    runner = Runner(pipeline, bind_inputs(pipeline, clip=CLIP, named=[]),
-                    Options(cache=CacheStore(tmp / "cache"), out=tmp / "out"))
+    runner = Runner(
+        pipeline, bind_inputs(pipeline, clip=CLIP, named=[]), Options(cache=CacheStore(tmp / "cache"), out=tmp / "out")
+    )
     runner.run()
     return tmp / "out" / "pack", runner
 
@@ -67,6 +68,7 @@ def test_pack_yaml_records_what_the_examples_cover(built):
     points), and every state in ``shows`` reaches into its state in some example."""
     from stages.geometry.states import STATES, coverage, state_values
     from stages.layout import read_yaml
+
     folder, _ = built
     pack = load_pack(folder)
     record = read_yaml(folder / "pack.yaml", what="actor pack", noun="manifest", error=ValueError)["coverage"]
@@ -88,8 +90,9 @@ def test_pack_points_agree_with_the_truth(built):
     layout = load_layout("zhang134")
     true_xy = layout_from_mesh(mesh, load_correspondence("zhang134_mediapipe", layout=layout))
     errors = []
-    for expression, t in zip([pack.neutral, pack.standard, *pack.examples],
-                             [selection["neutral"], selection["standard"], *selection["examples"]]):
+    for expression, t in zip(
+        [pack.neutral, pack.standard, *pack.examples], [selection["neutral"], selection["standard"], *selection["examples"]]
+    ):
         params = selection["to_pack"][int(t)]
         scale = np.hypot(params[0], params[1])
         errors.append(np.linalg.norm(expression.points - apply_similarity(params, true_xy[int(t)]), axis=-1) / scale)
@@ -101,8 +104,11 @@ def test_pack_points_agree_with_the_truth(built):
 
 def test_no_usable_frame_names_each_filter_and_its_count(built):
     _, runner = built
-    inputs = {"frames": MemoryStream(np.zeros((48, 512, 512, 3), np.uint8)), "landmarks": runner.values[("landmarks", "landmarks")].get(),
-              "points": runner.values[("points", "points")].get()}
+    inputs = {
+        "frames": MemoryStream(np.zeros((48, 512, 512, 3), np.uint8)),
+        "landmarks": runner.values[("landmarks", "landmarks")].get(),
+        "points": runner.values[("points", "points")].get(),
+    }
     ctx = Context(device="cpu", files_dir=lambda port: None, log=logging.getLogger("test"))
     with pytest.raises(StageError, match=r"pack\.filter: 0 of 48 frames passed the filters .*rejected: head_pose 48"):
         PackFilter().run(inputs, {"max_yaw": 0.0}, ctx)
@@ -111,8 +117,11 @@ def test_no_usable_frame_names_each_filter_and_its_count(built):
 def test_compare_3d_reads_the_points_depth(built):
     _, runner = built
     points = runner.values[("points", "points")].get()
-    inputs = {"points": points, "landmarks": runner.values[("landmarks", "landmarks")].get(),
-              "filter": runner.values[("filter", "filter")].get()}
+    inputs = {
+        "points": points,
+        "landmarks": runner.values[("landmarks", "landmarks")].get(),
+        "filter": runner.values[("filter", "filter")].get(),
+    }
     ctx = Context(device="cpu", files_dir=lambda port: None, log=logging.getLogger("test"))
     params = {"pose_deg": 30.0, "compare_3d": True}
     chosen = PackSelect().run(inputs, params, ctx)["selection"]
@@ -139,16 +148,24 @@ def test_pack_records_each_images_matte_frame_and_cut(built):
         np.testing.assert_allclose(entry["similarity"], selection["to_pack"][entry["frame"]], atol=1e-8)
         matte = cv2.imread(str(folder / entry["matte"]), cv2.IMREAD_UNCHANGED)
         a, b, tx, ty = entry["similarity"]
-        inside = cv2.warpAffine(np.full((512, 512), 255, np.uint8), np.array([[a, -b, tx], [b, a, ty]]), (384, 512),
-                                borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        inside = cv2.warpAffine(
+            np.full((512, 512), 255, np.uint8),
+            np.array([[a, -b, tx], [b, a, ty]]),
+            (384, 512),
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0,
+        )
         np.testing.assert_array_equal(matte, inside)
     assert load_pack(folder).neutral.matte is not None
 
 
 def _write(built, tmp_path, caplog, **params):
     _, runner = built
-    inputs = {"frames": runner.values[("decode", "frames")].get(), "points": runner.values[("points", "points")].get(),
-              "selection": runner.values[("select", "selection")].get()}
+    inputs = {
+        "frames": runner.values[("decode", "frames")].get(),
+        "points": runner.values[("points", "points")].get(),
+        "selection": runner.values[("select", "selection")].get(),
+    }
     ctx = Context(device="cpu", files_dir=lambda port: tmp_path / port, log=logging.getLogger("test"))
     with caplog.at_level(logging.WARNING, logger="test"):
         PackWrite().run(inputs, params, ctx)
@@ -167,7 +184,9 @@ def test_pack_width_is_chosen_at_write_and_an_enlargement_is_warned_with_the_siz
 
 
 def test_a_face_far_smaller_than_the_pack_size_is_refused_with_the_sizes(built, tmp_path, caplog):
-    with pytest.raises(StageError, match=r"pack\.write: 1536x2048 pack images enlarge the 512x512 footage .*max_upscale=2: ask for width <= \d+"):
+    with pytest.raises(
+        StageError, match=r"pack\.write: 1536x2048 pack images enlarge the 512x512 footage .*max_upscale=2: ask for width <= \d+"
+    ):
         _write(built, tmp_path, caplog, width=1536)
 
 
@@ -178,8 +197,11 @@ def test_footage_whose_face_is_cut_by_the_frame_edge_in_most_frames(built):
     xy = np.array(points["xy"], np.float64)
     xy[2:, :, 0] += 300.0  # beyond the right edge of the 512 px frames
     points["xy"] = xy
-    inputs = {"frames": MemoryStream(np.zeros((48, 512, 512, 3), np.uint8)), "landmarks": runner.values[("landmarks", "landmarks")].get(),
-              "points": points}
+    inputs = {
+        "frames": MemoryStream(np.zeros((48, 512, 512, 3), np.uint8)),
+        "landmarks": runner.values[("landmarks", "landmarks")].get(),
+        "points": points,
+    }
     ctx = Context(device="cpu", files_dir=lambda port: None, log=logging.getLogger("test"))
     with pytest.raises(StageError, match=r"pack\.filter: [01] of 48 frames passed the filters .*out_of_frame 46"):
         PackFilter().run(inputs, {}, ctx)

@@ -22,6 +22,7 @@ LAYOUT = load_layout("zhang134")
 def clip():
     """The first FRAMES frames of astro.mp4 and their true layout points (N, 2) px."""
     import av
+
     with av.open(str(REALFACE / "astro.mp4")) as container:
         frames = np.stack([f.to_ndarray(format="rgb24") for _, f in zip(range(FRAMES), container.decode(video=0))])
     with np.load(REALFACE / "astro_truth.npz", allow_pickle=False) as truth:
@@ -57,7 +58,9 @@ def test_laplacian_sharpness_drops_with_blur_and_follows_the_mask():
     half[:, :32] = True
     flat = image.copy()
     flat[:, 32:] = 0
-    assert laplacian_sharpness(flat, half[:, :] & (np.arange(64) < 30)) == pytest.approx(laplacian_sharpness(image[:, :31]), rel=0.1)
+    assert laplacian_sharpness(flat, half[:, :] & (np.arange(64) < 30)) == pytest.approx(
+        laplacian_sharpness(image[:, :31]), rel=0.1
+    )
     assert laplacian_sharpness(image, np.zeros((64, 64), bool)) == 0.0
 
 
@@ -66,17 +69,26 @@ def test_each_bad_frame_is_rejected_for_its_own_cause(clip):
     frames, points = frames.copy(), points.copy()
     valid = np.ones(FRAMES, bool)
     angles = np.zeros((FRAMES, 3))
-    frames[2] = cv2.GaussianBlur(frames[2], (0, 0), 3.0)          # motion blur / defocus
+    frames[2] = cv2.GaussianBlur(frames[2], (0, 0), 3.0)  # motion blur / defocus
     cover(frames[3], points[3], [f"eye_{s}_{k}" for s in "lr" for k in range(12)], (20, 20, 20))  # sunglasses
-    cover(frames[4], points[4], [f"mouth_outer_{k}" for k in range(16)], (128, 128, 128))         # microphone
-    valid[5] = False                                               # no face found
-    angles[6] = (28.0, 0.0, 0.0)                                   # head turned
-    angles[7] = (0.0, 0.0, -19.0)                                  # head tilted
-    points[8] += (0.0, 200.0)                                      # chin below the frame
+    cover(frames[4], points[4], [f"mouth_outer_{k}" for k in range(16)], (128, 128, 128))  # microphone
+    valid[5] = False  # no face found
+    angles[6] = (28.0, 0.0, 0.0)  # head turned
+    angles[7] = (0.0, 0.0, -19.0)  # head tilted
+    points[8] += (0.0, 200.0)  # chin below the frame
     measured = measure_frames([(0, frames[:5]), (5, frames[5:])], points, valid, LAYOUT)
-    cause, scores = classify_frames(valid=valid, inside=measured["inside"], angles=angles, sharpness=measured["sharpness"],
-                                    colours=measured["colours"], max_yaw=20.0, max_pitch=15.0, max_roll=15.0,
-                                    min_sharpness=0.5, max_colour_change=10.0)
+    cause, scores = classify_frames(
+        valid=valid,
+        inside=measured["inside"],
+        angles=angles,
+        sharpness=measured["sharpness"],
+        colours=measured["colours"],
+        max_yaw=20.0,
+        max_pitch=15.0,
+        max_roll=15.0,
+        min_sharpness=0.5,
+        max_colour_change=10.0,
+    )
     expected = [KEEP, KEEP, "blur", "occlusion", "occlusion", "no_face", "head_pose", "head_pose", "out_of_frame", KEEP]
     assert cause.tolist() == [e if e == KEEP else CAUSES.index(e) for e in expected]
     assert cause_counts(cause).tolist() == [1, 1, 2, 1, 2]
@@ -89,6 +101,15 @@ def test_each_bad_frame_is_rejected_for_its_own_cause(clip):
 
 def test_classify_frames_rejects_mismatched_shapes():
     with pytest.raises(ValueError, match="angles"):
-        classify_frames(valid=np.ones(3, bool), inside=np.ones(3, bool), angles=np.zeros((2, 3)), sharpness=np.ones(3),
-                        colours=np.zeros((3, 3, 3)), max_yaw=1, max_pitch=1, max_roll=1, min_sharpness=0.5,
-                        max_colour_change=10)
+        classify_frames(
+            valid=np.ones(3, bool),
+            inside=np.ones(3, bool),
+            angles=np.zeros((2, 3)),
+            sharpness=np.ones(3),
+            colours=np.zeros((3, 3, 3)),
+            max_yaw=1,
+            max_pitch=1,
+            max_roll=1,
+            min_sharpness=0.5,
+            max_colour_change=10,
+        )

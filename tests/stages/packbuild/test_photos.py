@@ -12,8 +12,7 @@ from PIL import Image, ImageOps
 
 from runner.stage import StageError
 from stages.packbuild.identity import face_signature, majority_outliers, signature_distance
-from stages.packbuild.photos import (PhotosDecode, frame_size, letterbox, list_photos, photo_to_frame, read_photo,
-                                     scan_photos)
+from stages.packbuild.photos import PhotosDecode, frame_size, letterbox, list_photos, photo_to_frame, read_photo, scan_photos
 from tests.memory_stream import files_context
 
 ORIENTATION_TAG = 0x0112
@@ -26,7 +25,7 @@ def asymmetric_image(h=40, w=60):
     y, x = np.mgrid[:h, :w]
     image = np.stack([x * 4, y * 5, (x + y) * 2], axis=-1).astype(np.uint8)
     image[:8, :12] = 255
-    image[h - 6:h - 3, w - 9:w - 5] = (255, 0, 0)
+    image[h - 6 : h - 3, w - 9 : w - 5] = (255, 0, 0)
     return image
 
 
@@ -54,6 +53,7 @@ def test_lossless_photos_come_out_upright(tmp_path, suffix, orientation):
 @pytest.mark.parametrize("orientation", [1, 3, 6, 8])
 def test_jpeg_photos_come_out_upright(tmp_path, orientation):
     import cv2
+
     path = tmp_path / "photo.JPG"
     save(path, asymmetric_image(), orientation=orientation, quality=95)
     as_stored = cv2.imdecode(np.fromfile(path, np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)[..., ::-1]
@@ -119,7 +119,7 @@ def test_letterbox_maps_photo_points_as_photo_to_frame_says(size, frame):
     sx, sy, tx, ty = photo_to_frame(size, frame)
     weight = boxed[..., 0].astype(float)
     weight[weight < 20] = 0  # the replicated border carries no dot
-    fy, fx = np.mgrid[:frame[1], :frame[0]]
+    fy, fx = np.mgrid[: frame[1], : frame[0]]
     centroid = np.array([(weight * fx).sum(), (weight * fy).sum()]) / weight.sum()
     np.testing.assert_allclose(centroid, [sx * dot[0] + tx, sy * dot[1] + ty], atol=0.05 * max(sx, 1) + 0.1)
     assert abs(sx - sy) < 0.02 and min(frame[0] - sx * w, frame[1] - sy * h) < 1  # uniform, fills one side
@@ -200,7 +200,9 @@ def test_a_photo_beyond_the_pixel_limit_is_skipped_undecoded(tmp_path, caplog, m
     assert (info.frames, info.width, info.height) == (2, 60, 40)
     assert len(decoded) == 2 and (tmp_path / "b.png").stat().st_size not in decoded
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
-    assert len(warnings) == 1 and "1 image files of more than 100000000 px skipped undecoded: b.png (12000x12000 px)" in warnings[0]
+    assert (
+        len(warnings) == 1 and "1 image files of more than 100000000 px skipped undecoded: b.png (12000x12000 px)" in warnings[0]
+    )
 
 
 def test_skipped_photos_are_counted_and_the_first_five_named(tmp_path, caplog):
@@ -211,8 +213,8 @@ def test_skipped_photos_are_counted_and_the_first_five_named(tmp_path, caplog):
         PhotosDecode().stream_info({"photos": tmp_path}, {"max_side": 1920})
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warnings) == 1 and warnings[0].endswith(
-        "40 unreadable image files skipped: broken00.jpg, broken01.jpg, broken02.jpg, broken03.jpg, broken04.jpg "
-        "and 35 more")
+        "40 unreadable image files skipped: broken00.jpg, broken01.jpg, broken02.jpg, broken03.jpg, broken04.jpg and 35 more"
+    )
 
 
 def test_a_damaged_png_is_skipped_without_libpng_printing(tmp_path, capfd):

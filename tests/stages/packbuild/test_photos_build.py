@@ -39,8 +39,9 @@ WIDE, SMALL = 6, 10  # a 640x512 photo (the clip's frame padded), a 384x384 one 
 
 
 def registry():
-    return Registry(classes=[PhotosDecode, PhotoIdentity, VideoDecode, FaceLandmarks, LayoutPoints, PackFilter,
-                             PackSelect, PackWrite])
+    return Registry(
+        classes=[PhotosDecode, PhotoIdentity, VideoDecode, FaceLandmarks, LayoutPoints, PackFilter, PackSelect, PackWrite]
+    )
 
 
 def test_in_binds_the_photo_folder_and_a_folder_is_not_a_clip(tmp_path):
@@ -60,8 +61,11 @@ def save_jpeg(path, rgb, *, orientation=None):
 
 def run(folder, tmp, **options):
     pipeline = load_pipeline(REPO / "pack_build_photos.yaml", registry(), overrides=["select.pose_deg=30"])
-    runner = Runner(pipeline, bind_inputs(pipeline, clip=folder, named=[]),  # --in FOLDER
-                    Options(cache=CacheStore(tmp / "cache"), out=tmp / "out", **options))
+    runner = Runner(
+        pipeline,
+        bind_inputs(pipeline, clip=folder, named=[]),  # --in FOLDER
+        Options(cache=CacheStore(tmp / "cache"), out=tmp / "out", **options),
+    )
     return runner, runner.run()
 
 
@@ -124,8 +128,10 @@ def test_the_pack_from_photos_agrees_with_the_truth(built, clip_folder):
     errors = []
     for expression, t in zip([pack.neutral, pack.standard, *pack.examples], chosen):
         params = selection["to_pack"][int(t)]
-        errors.append(np.linalg.norm(expression.points - apply_similarity(params, true_xy[int(t)]), axis=-1)
-                      / np.hypot(params[0], params[1]))
+        errors.append(
+            np.linalg.norm(expression.points - apply_similarity(params, true_xy[int(t)]), axis=-1)
+            / np.hypot(params[0], params[1])
+        )
     errors = np.stack(errors)  # frame pixels, (chosen, 134)
     layout = load_layout("zhang134")
     eyes = [layout.index(f"eye_{s}_{k}") for s in "lr" for k in range(12)]
@@ -164,6 +170,7 @@ def astronaut_variants():
     """The astronaut photo under five similarities, and two faces of other proportions (x 0.8 wide;
     x 0.85 wide and x 1.1 high, about the face)."""
     from skimage.data import astronaut
+
     rgb = astronaut()
 
     def similarity(angle, scale, shift):
@@ -175,8 +182,13 @@ def astronaut_variants():
         m = np.array([[sx, 0, (1 - sx) * 220], [0, sy, (1 - sy) * 130]])
         return cv2.warpAffine(rgb, m, (512, 512), borderMode=cv2.BORDER_REPLICATE)
 
-    same = [rgb, similarity(8, 1, (0, 0)), similarity(-6, 0.8, (20, 10)), similarity(0, 1.2, (-30, 20)),
-            similarity(4, 0.9, (10, -10))]
+    same = [
+        rgb,
+        similarity(8, 1, (0, 0)),
+        similarity(-6, 0.8, (20, 10)),
+        similarity(0, 1.2, (-30, 20)),
+        similarity(4, 0.9, (10, -10)),
+    ]
     return same, [proportions(0.8, 1.0), proportions(0.85, 1.1)]
 
 

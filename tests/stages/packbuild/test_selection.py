@@ -30,8 +30,9 @@ def test_compose_similarity_is_applying_one_after_the_other():
     rng = np.random.default_rng(0)
     inner, outer = rng.normal(size=4), rng.normal(size=4)
     xy = rng.normal(size=(7, 2)) * 50
-    np.testing.assert_allclose(apply_similarity(compose_similarity(outer, inner), xy),
-                               apply_similarity(outer, apply_similarity(inner, xy)), atol=1e-9)
+    np.testing.assert_allclose(
+        apply_similarity(compose_similarity(outer, inner), xy), apply_similarity(outer, apply_similarity(inner, xy)), atol=1e-9
+    )
 
 
 def test_k_center_on_a_line_picks_the_far_end_then_the_middle():
@@ -110,10 +111,18 @@ def moving_clip(pack, repeats=3, noise_px=0.01, seed=0):
 def select(pack, xy, cluster, angles=None, **options):
     T = len(xy)
     blendshapes = np.where(cluster[:, None] == 0, 0.0, 0.3).astype(np.float32) * np.ones((T, len(BLENDSHAPE_NAMES)))
-    return select_frames(xy, np.ones(T, bool), layout=pack.layout, blendshapes=blendshapes,
-                         blendshape_names=np.array(BLENDSHAPE_NAMES), matrix=np.tile(np.eye(4), (T, 1, 1)),
-                         angles=np.zeros((T, 3)) if angles is None else angles, teeth_fraction=np.full(T, 0.5),
-                         size=(240, 320), **options)
+    return select_frames(
+        xy,
+        np.ones(T, bool),
+        layout=pack.layout,
+        blendshapes=blendshapes,
+        blendshape_names=np.array(BLENDSHAPE_NAMES),
+        matrix=np.tile(np.eye(4), (T, 1, 1)),
+        angles=np.zeros((T, 3)) if angles is None else angles,
+        teeth_fraction=np.full(T, 0.5),
+        size=(240, 320),
+        **options,
+    )
 
 
 def test_select_frames_one_example_per_distinct_expression_whatever_the_head_motion(pack):
@@ -132,7 +141,9 @@ def test_select_frames_one_example_per_distinct_expression_whatever_the_head_mot
     # the standard has the widest inner-lip gap, the teeth examples are open mouths
     assert chosen.mouth_open[chosen.standard] == pytest.approx(chosen.mouth_open.max())
     assert all(chosen.mouth_open[t] >= 0.08 for t in chosen.teeth) and len(chosen.teeth) == 2
-    assert chosen.warnings == [f"{len(chosen.captured)} captured geometries instead of {distinct + 3}: no more distinct expressions"]
+    assert chosen.warnings == [
+        f"{len(chosen.captured)} captured geometries instead of {distinct + 3}: no more distinct expressions"
+    ]
 
 
 def test_select_frames_warns_when_fewer_distinct_expressions_than_examples(pack):
@@ -146,18 +157,25 @@ def test_select_frames_warns_when_fewer_distinct_expressions_than_examples(pack)
 def test_select_frames_needs_two_usable_frames(pack):
     xy, cluster = moving_clip(pack, repeats=1)
     with pytest.raises(ValueError, match="1 usable frame"):
-        select_frames(xy, np.arange(len(xy)) == 0, layout=pack.layout,
-                      blendshapes=np.zeros((len(xy), len(BLENDSHAPE_NAMES))), blendshape_names=np.array(BLENDSHAPE_NAMES),
-                      matrix=np.tile(np.eye(4), (len(xy), 1, 1)), angles=np.zeros((len(xy), 3)),
-                      teeth_fraction=np.zeros(len(xy)), size=(240, 320))
+        select_frames(
+            xy,
+            np.arange(len(xy)) == 0,
+            layout=pack.layout,
+            blendshapes=np.zeros((len(xy), len(BLENDSHAPE_NAMES))),
+            blendshape_names=np.array(BLENDSHAPE_NAMES),
+            matrix=np.tile(np.eye(4), (len(xy), 1, 1)),
+            angles=np.zeros((len(xy), 3)),
+            teeth_fraction=np.zeros(len(xy)),
+            size=(240, 320),
+        )
 
 
 def test_frames_turned_or_nodding_away_from_the_neutral_are_not_candidates(pack):
     xy, cluster = moving_clip(pack)
     angles = np.zeros((len(xy), 3))
-    angles[cluster == 3] = (0.0, 12.0, 0.0)   # nodding: pitch 12 degrees from the neutral's
+    angles[cluster == 3] = (0.0, 12.0, 0.0)  # nodding: pitch 12 degrees from the neutral's
     angles[cluster == 5] = (-10.0, 0.0, 0.0)  # turned
-    angles[cluster == 7] = (0.0, 0.0, 25.0)   # rolled: in the image plane, the similarity undoes it
+    angles[cluster == 7] = (0.0, 0.0, 25.0)  # rolled: in the image plane, the similarity undoes it
     distinct = 1 + len(pack.examples)
     chosen = select(pack, xy, cluster, angles=angles, n_examples=distinct, n_captured=distinct, pose_deg=8.0)
     assert sorted(cluster[chosen.examples]) == [c for c in range(distinct) if c not in (3, 5)]
@@ -206,6 +224,7 @@ def test_states_seed_the_examples_and_never_a_blink_or_wink_as_neutral_or_standa
     alone would pass the blink by (it moves only the lids); seeded by the states, the blink is one,
     the neutral has open eyes, the standard is the widest opening with both eyes open."""
     from stages.geometry.signals import expression_signals
+
     opening = expression_signals(np.stack([e.points for e in pack.examples]), pack.layout.point_names)["mouth_open"]
     order = np.argsort(-opening)
     widest, second = (pack.examples[k].points for k in order[:2])
@@ -215,10 +234,20 @@ def test_states_seed_the_examples_and_never_a_blink_or_wink_as_neutral_or_standa
     cluster = np.array([k % 4 for k in range(28)] + [4, 5])
     blendshapes = np.full((len(xy), len(BLENDSHAPE_NAMES)), 0.3, np.float32)
     blendshapes[cluster == 2] = 0.0  # the blink looks least expressive to the blendshapes
-    chosen = select_frames(xy, np.ones(len(xy), bool), layout=pack.layout, blendshapes=blendshapes,
-                           blendshape_names=np.array(BLENDSHAPE_NAMES), matrix=np.tile(np.eye(4), (len(xy), 1, 1)),
-                           angles=np.zeros((len(xy), 3)), teeth_fraction=np.full(len(xy), 0.5), size=(240, 320),
-                           n_examples=3, n_captured=6, n_teeth=1)
+    chosen = select_frames(
+        xy,
+        np.ones(len(xy), bool),
+        layout=pack.layout,
+        blendshapes=blendshapes,
+        blendshape_names=np.array(BLENDSHAPE_NAMES),
+        matrix=np.tile(np.eye(4), (len(xy), 1, 1)),
+        angles=np.zeros((len(xy), 3)),
+        teeth_fraction=np.full(len(xy), 0.5),
+        size=(240, 320),
+        n_examples=3,
+        n_captured=6,
+        n_teeth=1,
+    )
     assert cluster[chosen.neutral] in (0, 3, 4, 5)  # eyes open (the blink scored best)
     np.testing.assert_array_equal(xy[chosen.standard], second)  # the widest opening with both eyes open, not the wink
     assert 2 in cluster[chosen.examples]  # the blink: eyes shut are shown

@@ -58,7 +58,7 @@ def test_contact_sheet_rows_columns_and_blank_cells():
     sheet = contact_sheet(images, columns=3, thumb_height=60)
     # thumbnails 45 x 60 px with a 2 px white border each side: 2 rows of 3 cells of 49 x 64
     assert sheet.shape == (2 * 64, 3 * 49, 3)
-    assert np.all(sheet[64 + 2:64 + 62, 2 * 49 + 2:2 * 49 + 47] == 255)  # the sixth cell is blank
+    assert np.all(sheet[64 + 2 : 64 + 62, 2 * 49 + 2 : 2 * 49 + 47] == 255)  # the sixth cell is blank
     assert np.all(sheet[64 + 50, 49 + 40] == 40)  # the fifth image, below its label
     assert np.all(sheet[0:2] == 255) and np.all(sheet[50, 40] == 0)  # border; the first image
 
@@ -75,4 +75,7 @@ def test_a_letterboxed_photos_border_is_not_counted_as_real():
     out, matte = align_image(frame, np.array([1.0, 0.0, 0.0, 0.0]), (40, 30), valid=valid)
     np.testing.assert_array_equal(matte, valid)
     np.testing.assert_array_equal(out[:, 10:30], photo)
-    assert np.abs(np.diff(out[:, :8].astype(float), axis=1)).mean() < 0.5 * np.abs(np.diff(frame[:, 10:30].astype(float), axis=1)).mean()
+    assert (
+        np.abs(np.diff(out[:, :8].astype(float), axis=1)).mean()
+        < 0.5 * np.abs(np.diff(frame[:, 10:30].astype(float), axis=1)).mean()
+    )

@@ -33,15 +33,27 @@ def model() -> HierarchicalPCA:
 def toy_layout() -> Layout:
     """A layout over the toy face: its hierarchy, one subregion, four rigid and three tracked points."""
     sets = tuple(FeaturePointSet(s.name, s.level, s.points) for s in toy_hierarchy())
-    return Layout(name="toy", point_names=NAMES, subregions=(Subregion("face", (0, 1, 2), ()),), no_blend=(),
-                  feature_point_sets=sets, rigid=(0, 1, 2, 3), tracked=(0, 1, 2))
+    return Layout(
+        name="toy",
+        point_names=NAMES,
+        subregions=(Subregion("face", (0, 1, 2), ()),),
+        no_blend=(),
+        feature_point_sets=sets,
+        rigid=(0, 1, 2, 3),
+        tracked=(0, 1, 2),
+    )
 
 
 def test_train_reads_layout_and_geometry_and_returns_a_model_bundle(tmp_path):
     captured = toy_neutral() + expressions(low_rank_modes(6, seed=71), 35, seed=72)
     layout = layout_to_bundle(toy_layout())
-    geometry = {"names": np.array(NAMES), "neutral": toy_neutral(), "captured": captured, "examples": captured[:3],
-                "size": np.array([64, 64])}
+    geometry = {
+        "names": np.array(NAMES),
+        "neutral": toy_neutral(),
+        "captured": captured,
+        "examples": captured[:3],
+        "size": np.array([64, 64]),
+    }
     params = {"n_components": 6, "variance_kept": 1.0}
     check_stage_class(TrainHierarchicalPCA)
     out = TrainHierarchicalPCA().run({"layout": layout, "geometry": geometry}, params, context(tmp_path))
@@ -50,8 +62,9 @@ def test_train_reads_layout_and_geometry_and_returns_a_model_bundle(tmp_path):
     expected = fit_hierarchical_pca(toy_neutral(), captured, toy_hierarchy(), n_components=6, point_names=NAMES)
     np.testing.assert_array_equal(bundle["components"], expected.to_bundle()["components"])
     with pytest.raises(StageError, match="propagate.train: pack_geometry bundle: key 'names'"):
-        TrainHierarchicalPCA().run({"layout": layout, "geometry": geometry | {"names": np.array(NAMES[::-1])}},
-                                   params, context(tmp_path))
+        TrainHierarchicalPCA().run(
+            {"layout": layout, "geometry": geometry | {"names": np.array(NAMES[::-1])}}, params, context(tmp_path)
+        )
 
 
 def test_points_and_displacements_inputs_agree(model, tmp_path):
@@ -105,10 +118,12 @@ def test_bad_inputs_raise_stage_errors(model, tmp_path):
 def test_parameter_ranges_are_declared():
     """Out-of-range values are refused when the graph is loaded (Param.problem), not in run()."""
     declared = {(cls.name, p.name): p for cls in (TrainHierarchicalPCA, HierarchicalPropagation) for p in cls.params}
-    for key, bad, good in [(("propagate.hierarchical", "max_iterations"), 0, 1),
-                           (("propagate.hierarchical", "stop_progress_px"), -1e-3, 0.0),
-                           (("propagate.train", "n_components"), 0, 1),
-                           (("propagate.train", "variance_kept"), 1.5, 1.0)]:
+    for key, bad, good in [
+        (("propagate.hierarchical", "max_iterations"), 0, 1),
+        (("propagate.hierarchical", "stop_progress_px"), -1e-3, 0.0),
+        (("propagate.train", "n_components"), 0, 1),
+        (("propagate.train", "variance_kept"), 1.5, 1.0),
+    ]:
         assert "out of range" in declared[key].problem(bad) and declared[key].problem(good) is None, key
 
 
@@ -122,8 +137,9 @@ PACK = Path(__file__).resolve().parents[3] / "fixtures" / "packs" / "target"
 
 def test_train_and_propagate_on_the_fixture_pack(tmp_path):
     pack = pack_to_bundles(load_pack(PACK))
-    bundle = TrainHierarchicalPCA().run({"layout": pack["layout"], "geometry": pack["geometry"]},
-                                        {"n_components": 8, "variance_kept": 1.0}, context(tmp_path))["pca_model"]
+    bundle = TrainHierarchicalPCA().run(
+        {"layout": pack["layout"], "geometry": pack["geometry"]}, {"n_components": 8, "variance_kept": 1.0}, context(tmp_path)
+    )["pca_model"]
     model = HierarchicalPCA.from_bundle(bundle)
     assert sorted(model.levels.tolist()) == [0] + [1] * 4 + [2] * 16
     with np.load(PACK / "captured.npz", allow_pickle=False) as npz:

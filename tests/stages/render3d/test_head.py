@@ -17,8 +17,15 @@ def project(X: np.ndarray) -> np.ndarray:
 
 
 def motion(R, tvec, scale, ratio=1.0):
-    return head_motion_3d(np.asarray(R)[None], np.asarray(tvec, float)[None], np.array([scale]),
-                          source_center=CENTER, pivot=PIVOT, A=A, size_ratio=ratio)
+    return head_motion_3d(
+        np.asarray(R)[None],
+        np.asarray(tvec, float)[None],
+        np.array([scale]),
+        source_center=CENTER,
+        pivot=PIVOT,
+        A=A,
+        size_ratio=ratio,
+    )
 
 
 def test_reference_pose_leaves_the_mesh_in_place():
@@ -56,8 +63,16 @@ def test_bad_inputs_raise():
 
 def test_reference_rotation_turns_the_mesh_but_not_the_pivot_path():
     Rref = Rotation.from_euler("y", 15, degrees=True).as_matrix()
-    R, t = head_motion_3d(np.eye(3)[None], np.array([[6.0, 0.0, 0.0]]), np.ones(1), source_center=CENTER, pivot=PIVOT, A=A,
-                          size_ratio=1.0, reference=Rref)
+    R, t = head_motion_3d(
+        np.eye(3)[None],
+        np.array([[6.0, 0.0, 0.0]]),
+        np.ones(1),
+        source_center=CENTER,
+        pivot=PIVOT,
+        A=A,
+        size_ratio=1.0,
+        reference=Rref,
+    )
     np.testing.assert_allclose(R[0], Rref)
     moved = apply_head(PIVOT[None], R[0], t[0])[0]
     np.testing.assert_allclose(project(moved) - project(PIVOT), [6.0, 0.0], atol=1e-9)

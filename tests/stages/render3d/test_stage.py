@@ -90,8 +90,11 @@ def test_write_usd_stage(chain):
 def test_head_needs_a_relative_pose(chain):
     target = chain[-1]
     with pytest.raises(StageError, match="scale"):
-        HeadPose3D().run({**target, "pose": {"R": np.stack([np.eye(3)]), "tvec": np.zeros((1, 3))}}, {"translation_scale": 1.0},
-                         files_context(Path(".")))
+        HeadPose3D().run(
+            {**target, "pose": {"R": np.stack([np.eye(3)]), "tvec": np.zeros((1, 3))}},
+            {"translation_scale": 1.0},
+            files_context(Path(".")),
+        )
 
 
 def test_head_carries_the_mesh_models_depth_and_pivot(chain):
@@ -119,7 +122,9 @@ def test_missing_egl_is_a_stage_error_naming_the_packages(chain, tmp_path, monke
     _, _, mesh, head, texture, _, _ = chain
 
     def no_egl():
-        raise RuntimeError("no headless OpenGL context (EGL): test; install libegl1 libegl-mesa0 libgl1-mesa-dri (.ci/install-egl)")
+        raise RuntimeError(
+            "no headless OpenGL context (EGL): test; install libegl1 libegl-mesa0 libgl1-mesa-dri (.ci/install-egl)"
+        )
 
     monkeypatch.setattr(raster, "gl_context", no_egl)
     params = {"samples": 4, "resolution_scale": 1.5, "geometry": "synthesized", "compression": "zip"}
@@ -141,8 +146,13 @@ def test_chunks_rendered_on_two_threads_at_once_equal_one_thread(chain, tmp_path
         try:
             start.wait(10)
             for _ in range(3):
-                results[frame] = stage.process(frame, frame + 1, {"texture": texture, "mesh": mesh, "head": head},
-                                               params, files_context(tmp_path / str(frame)))
+                results[frame] = stage.process(
+                    frame,
+                    frame + 1,
+                    {"texture": texture, "mesh": mesh, "head": head},
+                    params,
+                    files_context(tmp_path / str(frame)),
+                )
         except Exception as exc:  # noqa: BLE001 - reported below
             errors.append(exc)
 

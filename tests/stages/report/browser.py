@@ -38,8 +38,9 @@ def visit(browser, page_path: Path, *, screenshot: Path | None = None) -> Visit:
         page.on("pageerror", lambda e: seen.page_errors.append(str(e)))
         page.on("request", lambda r: seen.requests.append(r.url))
         page.goto(page_path.resolve().as_uri(), wait_until="load")
-        seen.images = [tuple(size) for size in page.eval_on_selector_all(
-            "img", "els => els.map(e => [e.naturalWidth, e.naturalHeight])")]
+        seen.images = [
+            tuple(size) for size in page.eval_on_selector_all("img", "els => els.map(e => [e.naturalWidth, e.naturalHeight])")
+        ]
         if screenshot is not None:
             page.screenshot(path=str(screenshot), type="png")
     finally:

@@ -62,8 +62,9 @@ def gradients(T: int, H: int, W: int) -> np.ndarray:
     return np.stack([x + 0 * phase, (y + phase) % 1.0, 0.5 + 0.5 * np.sin(6 * (x + y) + phase * 6)], axis=-1)
 
 
-def inputs(T: int = 40, *, tracked_names: tuple[str, ...] | None = None, size: tuple[int, int] = (64, 48),
-           with_mapped: bool = True) -> dict[str, Any]:
+def inputs(
+    T: int = 40, *, tracked_names: tuple[str, ...] | None = None, size: tuple[int, int] = (64, 48), with_mapped: bool = True
+) -> dict[str, Any]:
     """The stage's inputs. ``tracked_names``: the performer's point subset (default: all points).
 
     Ground truth: target mouth opening ``truth_target_open``, performer ``truth_performer_open``
@@ -93,20 +94,38 @@ def inputs(T: int = 40, *, tracked_names: tuple[str, ...] | None = None, size: t
     out = {
         "performer": MemoryStream(performer_frames, fps=FPS),
         "result": MemoryStream(result_frames, fps=FPS),
-        "target": {"xy": target_xy, "valid": np.ones((T, len(names)), bool), "names": np.array(names),
-                   "iterations": rng.integers(1, 30, T), "input_error_px": rng.random(T)},
-        "tracked": {"xy": performer_xy[:, keep], "valid": valid, "names": np.array(names)[keep],
-                    "confidence": rng.random((T, len(keep))).astype(np.float32)},
-        "pose": {"R": R, "rvec": Rotation.from_matrix(R).as_rotvec(), "tvec": np.zeros((T, 3)),
-                 "reproj_err_px": rng.random(T), "valid": valid.any(axis=1)},
-        "similarity": {"params": np.tile([1.0, 0, 0, 0], (T, 1)), "residual_px": rng.random(T),
-                       "valid": valid.any(axis=1)},
+        "target": {
+            "xy": target_xy,
+            "valid": np.ones((T, len(names)), bool),
+            "names": np.array(names),
+            "iterations": rng.integers(1, 30, T),
+            "input_error_px": rng.random(T),
+        },
+        "tracked": {
+            "xy": performer_xy[:, keep],
+            "valid": valid,
+            "names": np.array(names)[keep],
+            "confidence": rng.random((T, len(keep))).astype(np.float32),
+        },
+        "pose": {
+            "R": R,
+            "rvec": Rotation.from_matrix(R).as_rotvec(),
+            "tvec": np.zeros((T, 3)),
+            "reproj_err_px": rng.random(T),
+            "valid": valid.any(axis=1),
+        },
+        "similarity": {"params": np.tile([1.0, 0, 0, 0], (T, 1)), "residual_px": rng.random(T), "valid": valid.any(axis=1)},
         "coefficients": {"coeff": coeff, "subregions": subregions, "examples": examples},
         "truth_target_open": target_open,
         "truth_performer_open": performer_open,
         "truth_ypr_deg": ypr,
     }
     if with_mapped:
-        out["mapped"] = {"xy": target_xy, "valid": np.ones((T, len(names)), bool), "names": np.array(names),
-                         "range_limited": limited, "lips_clamped": np.zeros(T, bool)}
+        out["mapped"] = {
+            "xy": target_xy,
+            "valid": np.ones((T, len(names)), bool),
+            "names": np.array(names),
+            "range_limited": limited,
+            "lips_clamped": np.zeros(T, bool),
+        }
     return out

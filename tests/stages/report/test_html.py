@@ -31,8 +31,12 @@ def test_sheet_images_are_the_chosen_frames_side_by_side():
     it than to any other chosen frame's, and within JPEG's loss (OpenCV's decoder, the frames)."""
     inputs = stage_inputs()
     images = sheet_images(sheet(inputs))
-    expected = {frame: side_by_side(inputs["performer"].frames[frame], inputs["result"].frames[frame],
-                                    height=SHEET_PARAMS["thumb_height"]) for frame, _, _ in images}
+    expected = {
+        frame: side_by_side(
+            inputs["performer"].frames[frame], inputs["result"].frames[frame], height=SHEET_PARAMS["thumb_height"]
+        )
+        for frame, _, _ in images
+    }
     for frame, _, jpeg in images:
         decoded = cv2.cvtColor(cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
         error = {f: np.abs(decoded.astype(int) - pair).mean() for f, pair in expected.items()}

@@ -49,8 +49,7 @@ def test_head_pose_prefers_ypr_deg_and_derives_it_from_R():
 
 def test_dominant_examples_and_warp_only():
     coeff = np.array([[[0.2, 0.8, np.nan], [np.nan, np.nan, 1.0]], [[0.0, 0.0, np.nan], [np.nan, np.nan, 0.0]]])
-    out = series.dominant_examples({"coeff": coeff, "subregions": np.array(["a", "b"]),
-                                    "examples": np.array(["e0", "e1", "t0"])})
+    out = series.dominant_examples({"coeff": coeff, "subregions": np.array(["a", "b"]), "examples": np.array(["e0", "e1", "t0"])})
     np.testing.assert_array_equal(out["example"], [[1, 2], [-1, -1]])
     np.testing.assert_array_equal(out["weight"], [[0.8, 1.0], [0.0, 0.0]])
 

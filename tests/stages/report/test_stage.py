@@ -121,8 +121,10 @@ def test_reads_only_the_contact_sheet_frames_in_ascending_order(tmp_path: Path):
 def test_page_is_byte_identical_across_runs_and_processes(tmp_path: Path):
     first = write(stage_inputs(), tmp_path / "a").read_bytes()
     assert write(stage_inputs(), tmp_path / "b").read_bytes() == first
-    script = ("import sys; from pathlib import Path; from tests.stages.report.test_stage import write, stage_inputs;"
-              "write(stage_inputs(), Path(sys.argv[1]))")
+    script = (
+        "import sys; from pathlib import Path; from tests.stages.report.test_stage import write, stage_inputs;"
+        "write(stage_inputs(), Path(sys.argv[1]))"
+    )
     env = {**os.environ, "PYTHONHASHSEED": "12345", "PYTHONPATH": str(REPO)}
     subprocess.run([sys.executable, "-c", script, str(tmp_path / "c")], cwd=REPO, env=env, check=True, timeout=300)
     assert (tmp_path / "c" / "report" / "index.html").read_bytes() == first
@@ -162,18 +164,22 @@ def test_states_section_curves_and_the_states_beyond_the_pack(tmp_path: Path):
     distance, plus the opening); frames the mapping flagged beyond the pack are listed by state;
     an estimated neutral is said so, its nearest frame the curves' reference and in the sheet."""
     from stages.geometry.states import STATE_NAMES
+
     truth = synthetic.inputs()
     inputs = {k: v for k, v in truth.items() if not k.startswith("truth")}
     T = len(truth["truth_target_open"])
     beyond = np.zeros((T, len(STATE_NAMES)), bool)
     beyond[[3, 4, 30], STATE_NAMES.index("eye_l_shut")] = True
-    inputs["mapped"] = dict(inputs["mapped"], state_names=np.array(STATE_NAMES), beyond_pack=beyond,
-                            coverage=np.zeros((len(STATE_NAMES), 2)))
-    inputs["displacements"] = {"neutral_frame": np.array(2), "neutral_estimated": np.array(True),
-                               "neutral_nearest_frame": np.array(12)}
+    inputs["mapped"] = dict(
+        inputs["mapped"], state_names=np.array(STATE_NAMES), beyond_pack=beyond, coverage=np.zeros((len(STATE_NAMES), 2))
+    )
+    inputs["displacements"] = {
+        "neutral_frame": np.array(2),
+        "neutral_estimated": np.array(True),
+        "neutral_nearest_frame": np.array(12),
+    }
     data = embedded(write(inputs, tmp_path))
-    np.testing.assert_allclose(data["states"]["mouth_open"]["target"], 2.0 / 60.0 + truth["truth_target_open"],
-                               atol=1e-9)
+    np.testing.assert_allclose(data["states"]["mouth_open"]["target"], 2.0 / 60.0 + truth["truth_target_open"], atol=1e-9)
     warnings = "\n".join(data["warnings"])
     assert "Beyond what the target pack's examples show: eye l shut in 3 frames" in warnings
     assert "estimated from the clip, region by region; the nearest single frame, 12" in warnings
@@ -189,8 +195,12 @@ def test_occluded_regions_are_shown_and_counted(tmp_path: Path):
     occluded[20, 1] = True
     valid = np.ones(T, bool)
     valid[list(synthetic.NO_FACE)] = False
-    inputs["occlusion"] = {"regions": np.array(["mouth", "eye_l"]), "occluded": occluded,
-                           "score": np.where(occluded, 0.1, 1.0).astype(np.float32), "valid": valid}
+    inputs["occlusion"] = {
+        "regions": np.array(["mouth", "eye_l"]),
+        "occluded": occluded,
+        "score": np.where(occluded, 0.1, 1.0).astype(np.float32),
+        "valid": valid,
+    }
     page = write(inputs, tmp_path)
     data = embedded(page)
     assert data["occlusion"] == {"mouth": occluded[:, 0].tolist(), "eye_l": occluded[:, 1].tolist()}

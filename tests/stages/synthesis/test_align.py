@@ -21,7 +21,9 @@ def test_apply_flow_matches_map_coordinates():
     flow = rng.uniform(-2, 2, (H, W, 2)).astype(np.float32)
     out = apply_flow(image, flow)
     yy, xx = np.mgrid[0:H, 0:W].astype(np.float64)
-    ref = np.stack([map_coordinates(image[..., c], [yy + flow[..., 1], xx + flow[..., 0]], order=1, mode="nearest") for c in range(3)], -1)
+    ref = np.stack(
+        [map_coordinates(image[..., c], [yy + flow[..., 1], xx + flow[..., 0]], order=1, mode="nearest") for c in range(3)], -1
+    )
     np.testing.assert_allclose(out[4:-4, 4:-4], ref[4:-4, 4:-4], atol=0.02)
     with pytest.raises(ValueError, match="flow"):
         apply_flow(image, flow[:-1])

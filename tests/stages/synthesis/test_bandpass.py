@@ -45,7 +45,9 @@ def numpy_bandpass(model: dict, coeffs: np.ndarray, power: float, sigma: float) 
     out = w[S][..., None] * model["outside"].astype(np.float64) / 255
     for s in range(S):
         imgs = (model["teeth"] if model["subregion_teeth"][s] else model["examples"]).astype(np.float64) / 255
-        low = np.stack([np.stack([gaussian_filter(im[..., ch], sigma, truncate=3.0, mode="mirror") for ch in range(3)], -1) for im in imgs])
+        low = np.stack(
+            [np.stack([gaussian_filter(im[..., ch], sigma, truncate=3.0, mode="mirror") for ch in range(3)], -1) for im in imgs]
+        )
         c = coeffs[s, : len(imgs)]
         c_hat = c**power / (c**power).sum()
         out += w[s][..., None] * (np.einsum("i,ihwc->hwc", c, low) + np.einsum("i,ihwc->hwc", c_hat, imgs - low))

@@ -32,6 +32,7 @@ def test_coefficients_stage_layout_and_values():
 def test_ridge_px_is_tau_squared_per_point_on_each_subregion():
     import torch
     from stages.synthesis.qp import project_onto_convex_hull
+
     pack = make_pack()
     model = build_synthesis_model(pack)
     rng = np.random.default_rng(1)
@@ -43,8 +44,11 @@ def test_ridge_px_is_tau_squared_per_point_on_each_subregion():
         teeth = bool(model["subregion_teeth"][s])
         ex = np.asarray(model["teeth_points" if teeth else "example_points"])[:, member[s]].reshape(-1, 2 * member[s].sum())
         target = xy[:, member[s]].reshape(3, -1)
-        ref, _ = project_onto_convex_hull(torch.from_numpy(np.broadcast_to(ex, (3,) + ex.shape).copy()), torch.from_numpy(target),
-                                          ridge=torch.full((3,), member[s].sum() * tau**2, dtype=torch.float64))
+        ref, _ = project_onto_convex_hull(
+            torch.from_numpy(np.broadcast_to(ex, (3,) + ex.shape).copy()),
+            torch.from_numpy(target),
+            ridge=torch.full((3,), member[s].sum() * tau**2, dtype=torch.float64),
+        )
         np.testing.assert_allclose(ours[:, s, : len(ex)].numpy(), ref.numpy(), atol=1e-7)
     plain, _ = SubregionQP(model).coefficients(xy)
     assert not np.allclose(ours.numpy(), plain.numpy(), atol=1e-3)

@@ -51,12 +51,17 @@ def test_flips_are_averaged_away_and_events_kept():
 def test_results_do_not_depend_on_the_chunk():
     points, _, solve = flipping_clip()
     whole = coherent_coefficients(solve, points, 0, 40, MEMBERS, sigma_frames=2.0, sigma_px=1.0)
-    pieces = np.concatenate([coherent_coefficients(solve, points, a, b, MEMBERS, sigma_frames=2.0, sigma_px=1.0)
-                             for a, b in ((0, 7), (7, 21), (21, 22), (22, 40))])
+    pieces = np.concatenate(
+        [
+            coherent_coefficients(solve, points, a, b, MEMBERS, sigma_frames=2.0, sigma_px=1.0)
+            for a, b in ((0, 7), (7, 21), (21, 22), (22, 40))
+        ]
+    )
     np.testing.assert_array_equal(pieces, whole)
     assert window_frames(2.0) == 6 and window_frames(0.0) == 0
-    np.testing.assert_array_equal(coherent_coefficients(solve, points, 3, 9, MEMBERS, sigma_frames=0.0, sigma_px=1.0),
-                                  solve(points[3:9]))
+    np.testing.assert_array_equal(
+        coherent_coefficients(solve, points, 3, 9, MEMBERS, sigma_frames=0.0, sigma_px=1.0), solve(points[3:9])
+    )
 
 
 @pytest.fixture(scope="module")

@@ -99,7 +99,9 @@ def test_teeth_examples_are_blended_with_sharpened_weights(model):
     c[0, -1] = [0.6, 0.4, 0.0, 0.0]
     teeth = model["region"] == S - 1
     plain = composite(prepare_compositor(model), torch.from_numpy(c), min_coeff=0.0)[0, :3].permute(1, 2, 0).numpy()
-    sharp = composite(prepare_compositor(model, teeth_power=4.0), torch.from_numpy(c), min_coeff=0.0)[0, :3].permute(1, 2, 0).numpy()
+    sharp = (
+        composite(prepare_compositor(model, teeth_power=4.0), torch.from_numpy(c), min_coeff=0.0)[0, :3].permute(1, 2, 0).numpy()
+    )
     T0, T1 = (model["teeth"][k].astype(np.float64) / 255 for k in (0, 1))
     w1 = 0.4**4 / (0.6**4 + 0.4**4)
     inside = teeth & (model["blend_r"] == 1)

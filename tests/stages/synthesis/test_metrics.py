@@ -29,7 +29,9 @@ def test_ssim_matches_scipy_and_known_values():
     assert masked_ssim(torch.from_numpy(a), torch.from_numpy(a), torch.ones(40, 50, dtype=torch.bool)) == 1.0
     mask = np.zeros((40, 50), bool)
     mask[5:20, 10:30] = True
-    assert abs(masked_ssim(torch.from_numpy(a), torch.from_numpy(b), torch.from_numpy(mask)) - scipy_ssim(a, b)[mask].mean()) < 1e-10
+    assert (
+        abs(masked_ssim(torch.from_numpy(a), torch.from_numpy(b), torch.from_numpy(mask)) - scipy_ssim(a, b)[mask].mean()) < 1e-10
+    )
 
 
 def test_masked_psnr():
@@ -44,6 +46,7 @@ def test_masked_psnr():
 
 def test_subregion_errors_pool_over_images():
     from stages.synthesis.metrics import pooled_psnr, subregion_errors
+
     region = np.full((4, 6), -1)
     region[:, :2] = 0
     region[:, 4:] = 1  # subregion 2 ("c") covers no pixel

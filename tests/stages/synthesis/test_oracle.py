@@ -24,7 +24,9 @@ def random_coeffs(rng: np.random.Generator, model, *, shared: bool) -> torch.Ten
     for b in range(2):
         one = rng.dirichlet(np.ones(M))
         for s in range(len(teeth)):
-            c[b, s, : Mt if teeth[s] else M] = rng.dirichlet(np.ones(Mt)) if teeth[s] else (one if shared else rng.dirichlet(np.ones(M)))
+            c[b, s, : Mt if teeth[s] else M] = (
+                rng.dirichlet(np.ones(Mt)) if teeth[s] else (one if shared else rng.dirichlet(np.ones(M)))
+            )
     return torch.from_numpy(c)
 
 

@@ -87,7 +87,13 @@ def test_runner_pipeline_matches_direct_synthesis(tmp_path: Path):
     # With the weights coherent in time (the default), chunk by chunk equals the whole clip at once.
     xy = np.stack([e.points for e in pack.examples][:5])
     synthesizer = Synthesizer(model)
-    whole = coherent_coefficients(lambda p: synthesizer.coefficients(p).numpy(), xy, 0, 5, model["subregion_points"],
-                                  sigma_frames=COHERENCE_FRAMES,
-                                  sigma_px=COHERENCE_SIZE * rms_radius(np.asarray(model["neutral_points"])))
+    whole = coherent_coefficients(
+        lambda p: synthesizer.coefficients(p).numpy(),
+        xy,
+        0,
+        5,
+        model["subregion_points"],
+        sigma_frames=COHERENCE_FRAMES,
+        sigma_px=COHERENCE_SIZE * rms_radius(np.asarray(model["neutral_points"])),
+    )
     np.testing.assert_allclose(runner.values[("coherent", "coeffs")].get()["coeffs"], whole, atol=1e-12)

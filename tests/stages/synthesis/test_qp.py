@@ -132,8 +132,15 @@ def test_ridge_matches_quadprog_with_the_tikhonov_term():
     for b in range(len(examples)):
         G = examples[b].T
         P = 2.0 * (G.T @ G + lam[b] * np.eye(G.shape[1]))
-        ref = solve_qp(P, -2.0 * G.T @ targets[b], G=-np.eye(G.shape[1]), h=np.zeros(G.shape[1]), A=np.ones((1, G.shape[1])),
-                       b=np.ones(1), solver="quadprog")
+        ref = solve_qp(
+            P,
+            -2.0 * G.T @ targets[b],
+            G=-np.eye(G.shape[1]),
+            h=np.zeros(G.shape[1]),
+            A=np.ones((1, G.shape[1])),
+            b=np.ones(1),
+            solver="quadprog",
+        )
         f = lambda x: ((targets[b] - x @ examples[b]) ** 2).sum() + lam[b] * x @ x  # noqa: E731
         assert abs(f(c[b].numpy()) - f(ref)) < 1e-6 * max(1.0, f(ref))
         assert float(dist2[b]) == pytest.approx(((targets[b] - c[b].numpy() @ examples[b]) ** 2).sum(), rel=1e-9)
@@ -146,8 +153,10 @@ def test_ridge_spreads_the_combination_and_zero_is_eq2():
     plain, _ = project_onto_convex_hull(ex, tg)
     zero, _ = project_onto_convex_hull(ex, tg, ridge=torch.zeros(6, dtype=torch.float64))
     np.testing.assert_allclose(zero.numpy(), plain.numpy(), atol=1e-9)
-    norms = [(project_onto_convex_hull(ex, tg, ridge=torch.full((6,), lam, dtype=torch.float64))[0] ** 2).sum(-1)
-             for lam in (0.0, 1e2, 1e4, 1e9)]
+    norms = [
+        (project_onto_convex_hull(ex, tg, ridge=torch.full((6,), lam, dtype=torch.float64))[0] ** 2).sum(-1)
+        for lam in (0.0, 1e2, 1e4, 1e9)
+    ]
     assert all(bool((a >= b - 1e-9).all()) for a, b in zip(norms, norms[1:]))  # ||c||^2 falls as lambda grows
     np.testing.assert_allclose(norms[-1].numpy(), 1 / 7, atol=1e-5)  # towards the uniform combination
     with pytest.raises(ValueError, match="ridge"):

@@ -48,9 +48,10 @@ def test_triangulation_tiles_the_image_once_and_keeps_the_teeth_inside_the_mouth
     vertices = np.concatenate([model["standard_points"], model["anchors"]])
     covered = np.zeros((H, W), np.int32)
     for k in range(len(model["triangles"])):
-        covered += triangle_index_map(vertices, model["triangles"][k:k + 1], (W, H), uncovered=-1) == 0
+        covered += triangle_index_map(vertices, model["triangles"][k : k + 1], (W, H), uncovered=-1) == 0
     assert covered.min() >= 1
     from matplotlib.path import Path as PolygonPath
+
     names = list(model["point_names"])
     std = model["standard_points"]
     outline = PolygonPath(std[model["teeth_polygon"]])
@@ -175,6 +176,7 @@ def test_output_width_is_a_parameter_and_a_size_the_footage_does_not_hold_is_ref
     assert half["frames"].shape == (2, H // 2, W // 2, 3) and half["filled"].shape == (2, H // 2, W // 2, 1)
     full = Synthesize().process(0, 2, inputs, params, ctx)
     import cv2
+
     small = cv2.resize(full["frames"][0].astype(np.float32), (W // 2, H // 2), interpolation=cv2.INTER_AREA)
     assert np.abs(small - half["frames"][0].astype(np.float32)).mean() < 0.02  # the same picture, smaller
     with pytest.raises(StageError, match=rf"parameter 'width': a {2 * W}x{2 * H} output enlarges 2.00x what the footage holds"):

@@ -87,9 +87,13 @@ def test_given_coefficients_replace_the_qp(pack, synth):
 
 def test_head_motion_translation_and_rotation_about_the_centre():
     pts = np.array([[[10.0, 0.0], [0.0, 0.0], [0.0, 10.0]]])
-    shift = head_motion_points(pts, np.array([[1.0, 0.0, 4.0, -2.0]]), source_center=np.zeros(2), target_center=np.zeros(2), scale=0.5)
+    shift = head_motion_points(
+        pts, np.array([[1.0, 0.0, 4.0, -2.0]]), source_center=np.zeros(2), target_center=np.zeros(2), scale=0.5
+    )
     np.testing.assert_allclose(shift, pts + [2.0, -1.0])
-    rot = head_motion_points(pts, np.array([[0.0, 1.0, 0.0, 0.0]]), source_center=np.zeros(2), target_center=np.zeros(2), scale=1.0)
+    rot = head_motion_points(
+        pts, np.array([[0.0, 1.0, 0.0, 0.0]]), source_center=np.zeros(2), target_center=np.zeros(2), scale=1.0
+    )
     np.testing.assert_allclose(rot[0], [[0.0, 10.0], [0.0, 0.0], [-10.0, 0.0]], atol=1e-12)  # 90 degrees about (0, 0)
 
 
@@ -211,8 +215,9 @@ def test_coefficient_memo_returns_the_qps_solution_and_stays_bounded(pack, model
     torch.testing.assert_close(synth.coefficients(points[:2]), direct[:2], rtol=0, atol=0)
     torch.testing.assert_close(synth.coefficients(points[[4, 1, 0, 3]]), direct[[4, 1, 0, 3]], rtol=0, atol=0)
     assert len(synth._memo) == 3
-    torch.testing.assert_close(synth.coefficients(points[[3]], mode="global"), synth.qp.coefficients(points[[3]], mode="global")[0],
-                               rtol=0, atol=0)  # the mode is part of the key
+    torch.testing.assert_close(
+        synth.coefficients(points[[3]], mode="global"), synth.qp.coefficients(points[[3]], mode="global")[0], rtol=0, atol=0
+    )  # the mode is part of the key
     none = Synthesizer(model, memo_frames=0)
     torch.testing.assert_close(none.coefficients(points), direct, rtol=0, atol=0)
     assert len(none._memo) == 0
@@ -228,7 +233,10 @@ def test_single_frame_process_equals_its_frame_in_a_chunk_on_other_threads(pack,
     ctx = Context(device="cpu", files_dir=lambda port: None)
     chunk = stage.process(0, 4, inputs, params, ctx)
     singles: dict[int, dict] = {}
-    threads = [threading.Thread(target=lambda k=k: singles.__setitem__(k, stage.process(k, k + 1, inputs, params, ctx))) for k in range(4)]
+    threads = [
+        threading.Thread(target=lambda k=k: singles.__setitem__(k, stage.process(k, k + 1, inputs, params, ctx)))
+        for k in range(4)
+    ]
     for thread in threads:
         thread.start()
     for thread in threads:
@@ -259,8 +267,11 @@ def test_warp_only_is_one_warp_of_the_neutral_rgba(pack, model):
     assert 0.0 <= float(rgba.min()) and float(rgba.max()) <= 1.0 and float(coeffs.abs().max()) == 0.0
 
     anchors = np.broadcast_to(model["anchors"], (3,) + model["anchors"].shape)
-    dst = torch.from_numpy(head_motion_points(np.concatenate([points, anchors], 1), sim, source_center=synth.center,
-                                              target_center=synth.center, scale=1.0))
+    dst = torch.from_numpy(
+        head_motion_points(
+            np.concatenate([points, anchors], 1), sim, source_center=synth.center, target_center=synth.center, scale=1.0
+        )
+    )
     neutral = torch.from_numpy(model["neutral"]).permute(2, 0, 1)[None].float() / 255.0
     src_neutral = torch.from_numpy(np.concatenate([model["neutral_points"], model["anchors"]]))[None].expand(3, -1, -1)
     src_standard = torch.from_numpy(np.concatenate([model["standard_points"], model["anchors"]]))[None].expand(3, -1, -1)

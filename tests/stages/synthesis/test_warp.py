@@ -13,9 +13,9 @@ W, H = 96, 80
 def smooth_image() -> np.ndarray:
     """(H, W, 3) float32 in [0, 1]: smooth gradients and waves (bilinear is accurate on it)."""
     y, x = np.mgrid[0:H, 0:W].astype(np.float32)
-    return np.stack(
-        [0.5 + 0.4 * np.sin(x / 7.0) * np.cos(y / 9.0), x / W, 0.5 + 0.3 * np.cos((x + y) / 11.0)], -1
-    ).astype(np.float32)
+    return np.stack([0.5 + 0.4 * np.sin(x / 7.0) * np.cos(y / 9.0), x / W, 0.5 + 0.3 * np.cos((x + y) / 11.0)], -1).astype(
+        np.float32
+    )
 
 
 def face_points(rng: np.random.Generator, n: int = 20) -> np.ndarray:
@@ -59,7 +59,9 @@ def test_global_affine_matches_cv2_warp_affine():
     Ainv = cv2.invertAffineTransform(A)
     np.testing.assert_allclose(grid[0, ..., 0].numpy(), Ainv[0, 0] * xs + Ainv[0, 1] * ys + Ainv[0, 2], atol=1e-9)
     np.testing.assert_allclose(grid[0, ..., 1].numpy(), Ainv[1, 0] * xs + Ainv[1, 1] * ys + Ainv[1, 2], atol=1e-9)
-    normalised, _ = backward_map(torch.from_numpy(src)[None], torch.from_numpy(dst)[None], tri, (W, H), dtype=torch.float64, source_size=(W, H))
+    normalised, _ = backward_map(
+        torch.from_numpy(src)[None], torch.from_numpy(dst)[None], tri, (W, H), dtype=torch.float64, source_size=(W, H)
+    )
     torch.testing.assert_close(normalised, grid * torch.tensor([2.0 / (W - 1), 2.0 / (H - 1)], dtype=torch.float64) - 1.0)
     inside = (grid[0, ..., 0] > 1) & (grid[0, ..., 0] < W - 2) & (grid[0, ..., 1] > 1) & (grid[0, ..., 1] < H - 2)
     diff = np.abs(out[0].permute(1, 2, 0).numpy() - ref)[inside.numpy()]
@@ -68,7 +70,7 @@ def test_global_affine_matches_cv2_warp_affine():
 
 def test_piecewise_warp_matches_per_triangle_opencv():
     rng = np.random.default_rng(3)
-    gy, gx = np.mgrid[20:H - 15:15, 18:W - 15:18].astype(np.float64)
+    gy, gx = np.mgrid[20 : H - 15 : 15, 18 : W - 15 : 18].astype(np.float64)
     inner = np.stack([gx.ravel(), gy.ravel()], 1) + rng.uniform(-3, 3, size=(gx.size, 2))  # no slivers
     src = np.concatenate([inner, border_anchors((W, H), per_side=2)])
     dst = src.copy()
@@ -127,7 +129,7 @@ def test_cpu_remap_matches_grid_sample_for_every_padding():
 def per_triangle_backward_map(src: np.ndarray, dst: np.ndarray, tri: np.ndarray, index: np.ndarray) -> np.ndarray:
     """(H, W, 2) float64: each pixel's covering triangle's dst -> src affine from cv2.getAffineTransform
     (identity where ``index`` is -1), an implementation independent of the warp module's."""
-    ys, xs = np.mgrid[0:index.shape[0], 0:index.shape[1]].astype(np.float64)
+    ys, xs = np.mgrid[0 : index.shape[0], 0 : index.shape[1]].astype(np.float64)
     out = np.stack([xs, ys], -1)
     for k in np.unique(index[index >= 0]):
         M = cv2.getAffineTransform(dst[tri[k]].astype(np.float32), src[tri[k]].astype(np.float32)).astype(np.float64)

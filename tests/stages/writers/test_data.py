@@ -129,8 +129,9 @@ def _csv_writer_text(columns: list[tuple[str, np.ndarray]]) -> str:
     out = io.StringIO()
     writer = csv.writer(out)
     writer.writerow([name for name, _ in columns])
-    writer.writerows(zip(*[v.astype(np.int64).tolist() if v.dtype.kind in "bi" else v.astype(np.float64).tolist()
-                           for _, v in columns]))
+    writer.writerows(
+        zip(*[v.astype(np.int64).tolist() if v.dtype.kind in "bi" else v.astype(np.float64).tolist() for _, v in columns])
+    )
     return out.getvalue()
 
 
@@ -138,8 +139,7 @@ def test_csv_is_what_csv_writer_writes(tmp_path: Path) -> None:
     bundles = _bundles(np.random.default_rng(3))
     bundles["pose"]["tvec"][0] = [np.inf, -0.0, 1e300]
     bundles["similarity"]["params"][1] = [5e-324, -1e-7, 1e16, 123456789.125]
-    WriteData().run({**bundles, "frames": MemoryStream(np.zeros((T, 2, 2, 3), np.uint8), fps=FPS)}, {},
-                    files_context(tmp_path))
+    WriteData().run({**bundles, "frames": MemoryStream(np.zeros((T, 2, 2, 3), np.uint8), fps=FPS)}, {}, files_context(tmp_path))
     expected = _csv_writer_text(data_columns(bundles, frames=T, fps=FPS))
     assert (tmp_path / "data" / "data.csv").read_bytes() == expected.encode()
 
@@ -148,14 +148,26 @@ def test_occlusion_columns_per_region(tmp_path: Path) -> None:
     occluded = np.zeros((T, 2), bool)
     occluded[1:3, 1] = True
     score = np.array([[1.0, 0.9], [0.8, 0.1], [np.nan, 0.2], [1.1, 0.95], [1.0, 1.0]], np.float32)
-    occlusion = {"regions": np.array(["mouth", "eye_l"]), "occluded": occluded, "score": score,
-                 "valid": np.array([True, True, False, True, True]), "region_points": np.ones((2, 3), bool),
-                 "names": np.array(["a", "b", "c"])}
+    occlusion = {
+        "regions": np.array(["mouth", "eye_l"]),
+        "occluded": occluded,
+        "score": score,
+        "valid": np.array([True, True, False, True, True]),
+        "region_points": np.ones((2, 3), bool),
+        "names": np.array(["a", "b", "c"]),
+    }
     frames = MemoryStream(np.zeros((T, 2, 2, 3), np.uint8), fps=FPS)
     WriteData().run({"occlusion": occlusion, "frames": frames}, {}, files_context(tmp_path))
     header, table = _read_csv(tmp_path / "data" / "data.csv")
-    assert header == ["frame", "time_s", "occluded_mouth", "occluded_eye_l", "occlusion_score_mouth",
-                      "occlusion_score_eye_l", "occlusion_valid"]
+    assert header == [
+        "frame",
+        "time_s",
+        "occluded_mouth",
+        "occluded_eye_l",
+        "occlusion_score_mouth",
+        "occlusion_score_eye_l",
+        "occlusion_valid",
+    ]
     np.testing.assert_array_equal(table["occluded_eye_l"], [0, 1, 1, 0, 0])
     np.testing.assert_array_equal(table["occlusion_score_mouth"], score[:, 0].astype(np.float64))
     np.testing.assert_array_equal(table["occlusion_valid"], [1, 1, 0, 1, 1])

@@ -17,7 +17,14 @@ from stages.color import srgb_to_linear, to_unit_float
 from stages.writers.atomic import atomic_write, temp_name
 from stages.writers import exr_file
 from stages.writers.exr import (
-    COMPRESSIONS, DEPTH_UNIT, WriteExr, coverage_box, exr_name, oiio_write_exr, to_linear_rgba, write_exr,
+    COMPRESSIONS,
+    DEPTH_UNIT,
+    WriteExr,
+    coverage_box,
+    exr_name,
+    oiio_write_exr,
+    to_linear_rgba,
+    write_exr,
 )
 from stages.writers.exr_file import ZIP_LEVEL
 from tests.memory_stream import MemoryStream, files_context
@@ -82,9 +89,7 @@ def test_round_trip_pixels_alpha_metadata(tmp_path: Path) -> None:
         np.testing.assert_allclose(spec.getattribute("exmap:pose_rvec"), inputs["pose"]["rvec"][i], rtol=1e-6)
         np.testing.assert_allclose(spec.getattribute("exmap:pose_tvec"), inputs["pose"]["tvec"][i], rtol=1e-6)
         assert spec.getattribute("exmap:pose_valid") == int(inputs["pose"]["valid"][i])
-        np.testing.assert_allclose(
-            spec.getattribute("exmap:similarity"), inputs["similarity"]["params"][i], rtol=1e-6
-        )
+        np.testing.assert_allclose(spec.getattribute("exmap:similarity"), inputs["similarity"]["params"][i], rtol=1e-6)
         assert spec.getattribute("exmap:similarity_valid") == int(inputs["similarity"]["valid"][i])
 
 
@@ -132,9 +137,11 @@ def test_failed_write_leaves_no_file(tmp_path: Path, monkeypatch: pytest.MonkeyP
     assert list(tmp_path.iterdir()) == []
     with pytest.raises(ValueError, match=r"\(H, W, 4\)"):
         write_exr(final, np.zeros((4, 4, 3), np.float32), attributes={})
+
     # a write that fails half way (the disk fills after the header): clear error, no file
     def disk_full(*args, **kwargs):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
     monkeypatch.setattr(exr_file, "chunk_data", disk_full)
     with pytest.raises(StageError, match="frame.000000.exr.*No space"):
         write_exr(final, np.zeros((4, 4, 4), np.float32), attributes={})
@@ -156,11 +163,16 @@ def test_own_writer_matches_openimageio_with_float_input_and_depth(tmp_path: Pat
     depth[2] = np.inf
     attributes = {"exmap:frame": 4, "exmap:head_R": tuple(np.eye(3).ravel() * 0.5)}
     write_exr(tmp_path / "own.exr", rgba, attributes=attributes, compression=compression, depth=depth)
-    oiio_write_exr(tmp_path / "oiio.exr", np.concatenate([rgba, depth[..., None]], axis=2),
-                   attributes={**attributes, "exmap:depth_unit": DEPTH_UNIT}, compression=compression)
+    oiio_write_exr(
+        tmp_path / "oiio.exr",
+        np.concatenate([rgba, depth[..., None]], axis=2),
+        attributes={**attributes, "exmap:depth_unit": DEPTH_UNIT},
+        compression=compression,
+    )
     ours, theirs = (oiio.ImageInput.open(str(tmp_path / name)) for name in ("own.exr", "oiio.exr"))
-    np.testing.assert_array_equal(ours.read_image(oiio.HALF)[..., :4].view(np.uint16),
-                                  theirs.read_image(oiio.HALF)[..., :4].view(np.uint16))
+    np.testing.assert_array_equal(
+        ours.read_image(oiio.HALF)[..., :4].view(np.uint16), theirs.read_image(oiio.HALF)[..., :4].view(np.uint16)
+    )
     np.testing.assert_array_equal(ours.read_image(oiio.FLOAT)[..., 4], depth)
     as_list = lambda spec: [(p.name, str(p.type), p.value) for p in spec.extra_attribs]  # noqa: E731
     assert as_list(ours.spec()) == as_list(theirs.spec())
@@ -264,8 +276,7 @@ def test_zip_level_changes_the_bytes_not_the_pixels(tmp_path: Path) -> None:
     """Why ``zip_level`` is in the cache key: other bytes, the same half floats."""
     rng = np.random.default_rng(8)
     frames = np.repeat(np.linspace(0, 1, 64 * 48, dtype=np.float32).reshape(1, 64, 48, 1), 3, axis=3)
-    inputs = {"frames": MemoryStream((frames + rng.random(frames.shape, dtype=np.float32) / 64).astype(np.float16),
-                                     fps=FPS)}
+    inputs = {"frames": MemoryStream((frames + rng.random(frames.shape, dtype=np.float32) / 64).astype(np.float16), fps=FPS)}
     WriteExr().process(0, 1, inputs, _params(zip_level=1), files_context(tmp_path / "fast"))
     WriteExr().process(0, 1, inputs, _params(zip_level=9), files_context(tmp_path / "small"))
     fast, small = (tmp_path / name / "exr" / exr_name(0) for name in ("fast", "small"))
@@ -326,8 +337,7 @@ def test_colour_that_does_not_vanish_under_zero_alpha_keeps_the_whole_frame(valu
     alpha = _face_mask(rng, 32, 24)
     srgb[0, 0, 1] = value
     assert coverage_box(srgb, alpha[..., 0]) == (slice(0, 32), slice(0, 24))
-    np.testing.assert_array_equal(to_linear_rgba(srgb, alpha).view(np.uint16),
-                                  _whole_frame_rgba(srgb, alpha).view(np.uint16))
+    np.testing.assert_array_equal(to_linear_rgba(srgb, alpha).view(np.uint16), _whole_frame_rgba(srgb, alpha).view(np.uint16))
 
 
 def test_coverage_box_is_the_bounding_box_of_non_zero_alpha() -> None:
@@ -360,9 +370,11 @@ def test_shot_channels_hold_the_head_the_plate_and_the_mattes(tmp_path: Path, co
     frames = rng.random((T, H, W, 3), dtype=np.float32)
     mattes = {port: rng.random((T, H, W, 1), dtype=np.float32).astype(np.float16) for port in ("mask", "head_matte", "filled")}
     R = np.stack([np.eye(3)] * T)
-    inputs = {"frames": MemoryStream(frames.astype(np.float16), fps=FPS),
-              **{port: MemoryStream(m, fps=FPS) for port, m in mattes.items()},
-              "head": {"R": R, "t": rng.normal(size=(T, 3))}}
+    inputs = {
+        "frames": MemoryStream(frames.astype(np.float16), fps=FPS),
+        **{port: MemoryStream(m, fps=FPS) for port, m in mattes.items()},
+        "head": {"R": R, "t": rng.normal(size=(T, 3))},
+    }
     WriteExr().process(0, T, inputs, _params(compression=compression), files_context(tmp_path))
     image = oiio.ImageInput.open(str(tmp_path / "exr" / exr_name(1)))
     spec = image.spec()

@@ -51,8 +51,9 @@ def _frame(seed: int, height: int = 70, width: int = 48) -> dict[str, np.ndarray
     y, x = np.mgrid[0:height, 0:width]
     blob = np.exp(-(((y - height / 2) / (height / 4)) ** 2 + ((x - width / 2) / (width / 3)) ** 2))
     blob[blob < 0.2] = 0
-    rgba = np.stack([blob * (0.3 + 0.2 * c) + blob * rng.random((height, width)) / 32 for c in range(3)] + [blob],
-                    axis=2).astype(np.float16)
+    rgba = np.stack([blob * (0.3 + 0.2 * c) + blob * rng.random((height, width)) / 32 for c in range(3)] + [blob], axis=2).astype(
+        np.float16
+    )
     return {name: rgba[..., c] for c, name in enumerate("RGBA")}
 
 
@@ -133,8 +134,10 @@ def test_a_fresh_process_writes_the_same_bytes(tmp_path: Path) -> None:
     """The same frame written by a new interpreter (other addresses, other caches) is the same file,
     and OpenImageIO reads its half floats back bit for bit."""
     path = tmp_path / "child.exr"
-    script = ("import sys; from pathlib import Path; from tests.stages.writers.test_exr_determinism import "
-              "_file_bytes, _frame; Path(sys.argv[1]).write_bytes(_file_bytes(_frame(1)))")
+    script = (
+        "import sys; from pathlib import Path; from tests.stages.writers.test_exr_determinism import "
+        "_file_bytes, _frame; Path(sys.argv[1]).write_bytes(_file_bytes(_frame(1)))"
+    )
     subprocess.run([sys.executable, "-c", script, str(path)], cwd=REPO, check=True)
     assert path.read_bytes() == _file_bytes(_frame(1))
     inp = oiio.ImageInput.open(str(path))

@@ -14,8 +14,15 @@ from zlib_ng import zlib_ng
 
 from stages.writers.exr import COLOR_SPACE, oiio_write_exr
 from stages.writers.exr_file import (
-    LINES_PER_CHUNK, ZIP_LEVEL, ZIP_LEVELS, chunk_data, header_bytes, scanlines, write_scanline_exr,
-    zero_block_data, zip_predictor,
+    LINES_PER_CHUNK,
+    ZIP_LEVEL,
+    ZIP_LEVELS,
+    chunk_data,
+    header_bytes,
+    scanlines,
+    write_scanline_exr,
+    zero_block_data,
+    zip_predictor,
 )
 
 ATTRIBUTES = {
@@ -115,10 +122,11 @@ def test_header_is_the_one_openimageio_writes(tmp_path: Path, compression: str, 
     pixels = rgba if z is None else np.concatenate([rgba.astype(np.float32), z[..., None]], axis=2)
     oiio_write_exr(theirs, np.ascontiguousarray(pixels), attributes=ATTRIBUTES, compression=compression)
     dtypes = {name: np.dtype(np.float16) for name in "RGBA"} | ({"Z": np.dtype(np.float32)} if depth else {})
-    header = header_bytes(11, 18, channels=dtypes, compression=compression,
-                          attributes={"colorInteropID": COLOR_SPACE, **ATTRIBUTES})
-    assert mine.read_bytes()[:len(header)] == header
-    assert theirs.read_bytes()[:len(header)] == header
+    header = header_bytes(
+        11, 18, channels=dtypes, compression=compression, attributes={"colorInteropID": COLOR_SPACE, **ATTRIBUTES}
+    )
+    assert mine.read_bytes()[: len(header)] == header
+    assert theirs.read_bytes()[: len(header)] == header
     ours, reference = _oiio_read(mine)[1], _oiio_read(theirs)[1]
     as_list = lambda spec: [(p.name, str(p.type), p.value) for p in spec.extra_attribs]  # noqa: E731
     assert as_list(ours) == as_list(reference)
@@ -134,8 +142,10 @@ def test_long_attribute_names_set_the_version_flag(tmp_path: Path) -> None:
     with open(path, "wb") as file:
         write_scanline_exr(file, {"A": np.ones((2, 2), np.float16)}, attributes={name: 1})
     assert _oiio_read(path)[1].getattribute(name) == 1
-    assert struct.unpack_from("<ii", header_bytes(2, 2, channels={"A": np.float16}, compression="zip",
-                                                  attributes={})) == (20000630, 2)
+    assert struct.unpack_from("<ii", header_bytes(2, 2, channels={"A": np.float16}, compression="zip", attributes={})) == (
+        20000630,
+        2,
+    )
 
 
 def test_incompressible_chunks_are_stored_raw_and_read_back(tmp_path: Path) -> None:
@@ -143,8 +153,7 @@ def test_incompressible_chunks_are_stored_raw_and_read_back(tmp_path: Path) -> N
     noise = rng.integers(0, 1 << 16, size=(33, 64, 4), dtype=np.uint16).view(np.float16)  # uniform bytes
     noise[16:32] = 0.25  # the middle chunk compresses
     data = io.BytesIO()
-    write_scanline_exr(data, {n: noise[..., c] for c, n in enumerate("RGBA")}, attributes={}, compression="zip",
-                       level=1)
+    write_scanline_exr(data, {n: noise[..., c] for c, n in enumerate("RGBA")}, attributes={}, compression="zip", level=1)
     header = header_bytes(64, 33, channels=dict.fromkeys("RGBA", np.float16), compression="zip", attributes={})
     sizes = _chunk_sizes(data.getvalue(), len(header), 3)
     line = 64 * 4 * 2
@@ -172,8 +181,7 @@ def test_zip_predictor_is_imfzips_loop() -> None:
     for block, got in zip(blocks, zip_predictor(blocks)):
         raw = [int(b) for b in block]
         reordered = raw[0::2] + raw[1::2]
-        expected = [reordered[0]] + [(reordered[i] - reordered[i - 1] + 128 + 256) % 256
-                                     for i in range(1, len(reordered))]
+        expected = [reordered[0]] + [(reordered[i] - reordered[i - 1] + 128 + 256) % 256 for i in range(1, len(reordered))]
         assert list(got) == expected
 
 

@@ -42,11 +42,18 @@ def test_pipeline_publishes_exr_frames_and_preview(tmp_path: Path) -> None:
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: writers-test\nVersion: 0\n")
     (info / "entry_points.txt").write_text(ENTRY_POINTS)
     (tmp_path / "p.yaml").write_text(PIPELINE)
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(info.parent), str(REPO)]),
-           "RUNNER_CACHE_DIR": str(tmp_path / "cache")}
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(info.parent), str(REPO)]),
+        "RUNNER_CACHE_DIR": str(tmp_path / "cache"),
+    }
     done = subprocess.run(
         [sys.executable, "-m", "runner.cli", "run", str(tmp_path / "p.yaml"), "--out", str(tmp_path / "out")],
-        env=env, cwd=tmp_path, capture_output=True, text=True, timeout=120,
+        env=env,
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert done.returncode == 0, done.stderr
 

@@ -16,9 +16,18 @@ def scene(tmp_path, T=3, V=5):
     R[1] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
     t = rng.normal(0, 5, (T, 3))
     path = tmp_path / "scene.usda"
-    write_usd_scene(path, vertices=vertices, triangles=np.array([[0, 1, 2], [2, 3, 4]]), uv=uv, size=(100, 120),
-                    camera=np.array([[384.0, 0, 49.5], [0, 384.0, 59.5], [0, 0, 1]]), fps=25.0, head_R=R, head_t=t,
-                    texture_files=[f"textures/texture.{k:06d}.png" for k in range(T)])
+    write_usd_scene(
+        path,
+        vertices=vertices,
+        triangles=np.array([[0, 1, 2], [2, 3, 4]]),
+        uv=uv,
+        size=(100, 120),
+        camera=np.array([[384.0, 0, 49.5], [0, 384.0, 59.5], [0, 0, 1]]),
+        fps=25.0,
+        head_R=R,
+        head_t=t,
+        texture_files=[f"textures/texture.{k:06d}.png" for k in range(T)],
+    )
     return path, vertices, uv, R, t
 
 
@@ -60,8 +69,15 @@ def test_front_faces_wind_counter_clockwise_towards_the_usd_camera(tmp_path):
     # one triangle facing the camera: counter-clockwise on screen with y down (pipeline convention)
     vertices = np.array([[[-10.0, -10.0, 300.0], [10.0, -10.0, 300.0], [0.0, 10.0, 300.0]]])
     path = tmp_path / "one.usda"
-    write_usd_scene(path, vertices=vertices, triangles=np.array([[0, 1, 2]]), uv=np.zeros((1, 3, 2)), size=(10, 10),
-                    camera=np.eye(3), fps=30.0)
+    write_usd_scene(
+        path,
+        vertices=vertices,
+        triangles=np.array([[0, 1, 2]]),
+        uv=np.zeros((1, 3, 2)),
+        size=(10, 10),
+        camera=np.eye(3),
+        fps=30.0,
+    )
     stage = Usd.Stage.Open(str(path))
     mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Root/Head/Face"))
     p = np.array(mesh.GetPointsAttr().Get(0))[np.array(mesh.GetFaceVertexIndicesAttr().Get())]
