@@ -94,7 +94,7 @@ def _worker(engine: EditorEngine, conn: Connection, inherited: list[Connection])
             reply = OK + answer(engine, job)
         except ValueError as exc:
             reply = BAD_INPUT + str(exc).encode()
-        except Exception as exc:  # a fault: reported to the server, which logs it and answers 500
+        except Exception as exc:  # noqa: BLE001 - a fault: reported to the server, which logs it and answers 500
             reply = FAULT + f"{type(exc).__name__}: {exc}".encode()
         conn.send_bytes(reply)
 

@@ -231,7 +231,7 @@ class Runner:
         def visit(node: StageNode) -> tuple[StageNode, Report | None, BaseException | None]:
             try:
                 return node, self._visit(node), None
-            except BaseException as exc:  # re-raised on the scheduling thread
+            except BaseException as exc:  # noqa: BLE001 - re-raised on the scheduling thread
                 return node, None, exc
             finally:
                 self._leave(node)

@@ -193,7 +193,7 @@ class ComputedStream(ChunkedStream):
                 with self._order:
                     if index == self._next:  # else a reader computed it meanwhile
                         self._keep_chunk(index, self._compute(index))
-            except BaseException as exc:  # raised to the reader of this chunk
+            except BaseException as exc:  # noqa: BLE001 - raised to the reader of this chunk
                 with self._state:
                     self._failed[index] = exc
             finally:

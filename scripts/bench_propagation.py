@@ -38,9 +38,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from stages.actor_pack import load_pack  # noqa: E402
-from stages.layout import Layout, load_layout  # noqa: E402
-from stages.propagation import fit_hierarchical_pca, motion_propagation  # noqa: E402
+from stages.actor_pack import load_pack
+from stages.layout import Layout, load_layout
+from stages.propagation import fit_hierarchical_pca, motion_propagation
 
 REPO = Path(__file__).resolve().parent.parent
 INPUT17 = (

@@ -64,7 +64,7 @@ from stages.actor_pack import load_pack  # noqa: E402
 from stages.geometry.compensate import fit_similarity  # noqa: E402
 from stages.mesh3d.model import build_target_model, lift  # noqa: E402
 from stages.mesh3d.synthesis import synthesize_3d  # noqa: E402
-from stages.render3d.frame import render_textured, scaled_intrinsics, to_display  # noqa: E402
+from stages.render3d.frame import render_textured, scaled_intrinsics  # noqa: E402
 from stages.render3d.head import apply_head  # noqa: E402
 from stages.render3d.raster import MeshRenderer  # noqa: E402
 from stages.color import linear_to_srgb, srgb_to_linear  # noqa: E402

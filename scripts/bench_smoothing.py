@@ -48,8 +48,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from stages.geometry.mapping import NORMALIZATION_POINTS, eye_distance  # noqa: E402
-from stages.geometry.smooth import (  # noqa: E402
+from stages.geometry.mapping import NORMALIZATION_POINTS, eye_distance
+from stages.geometry.smooth import (
     GaussianSmooth,
     OneEuroSmooth,
     gaussian_smooth,

@@ -56,9 +56,9 @@ import OpenImageIO as oiio
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from runner.stage import Context, StreamInfo  # noqa: E402
-from stages.video import VideoWriter, X264_PRESETS  # noqa: E402
-from stages.writers.exr import (  # noqa: E402
+from runner.stage import Context, StreamInfo
+from stages.video import VideoWriter, X264_PRESETS
+from stages.writers.exr import (
     COMPRESSIONS,
     WriteExr,
     exr_name,
@@ -66,8 +66,8 @@ from stages.writers.exr import (  # noqa: E402
     oiio_write_exr,
     to_linear_rgba,
 )
-from stages.writers.exr_file import ZIP_LEVEL, ZIP_LEVELS  # noqa: E402
-from stages.writers.preview import SideBySide  # noqa: E402
+from stages.writers.exr_file import ZIP_LEVEL, ZIP_LEVELS
+from stages.writers.preview import SideBySide
 
 WIDTH, HEIGHT = 600, 800  # the demo target's size (W x H)
 PRESETS = X264_PRESETS[: X264_PRESETS.index("medium") + 1]  # ultrafast .. medium (x264's default)

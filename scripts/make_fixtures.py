@@ -25,9 +25,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from scripts.facegen.face import CONTROLS, JAW_HINGE_END, expression_points3d, mean_model3d  # noqa: E402
-from scripts.facegen.io import Mp4Writer, save_npz, write_named_rows, write_png, write_points_csv  # noqa: E402
-from scripts.facegen.render import (  # noqa: E402
+from scripts.facegen.face import CONTROLS, JAW_HINGE_END, expression_points3d, mean_model3d
+from scripts.facegen.io import Mp4Writer, save_npz, write_named_rows, write_png, write_points_csv
+from scripts.facegen.render import (
     Camera,
     FaceModel,
     framing_translation,
@@ -37,7 +37,7 @@ from scripts.facegen.render import (  # noqa: E402
     rotation,
     texture_ppm,
 )
-from scripts.facegen.sequences import (  # noqa: E402
+from scripts.facegen.sequences import (
     STANDARD,
     TEETH,
     captured_controls,
@@ -47,8 +47,8 @@ from scripts.facegen.sequences import (  # noqa: E402
     farthest_point_selection,
     similarity_eq9,
 )
-from scripts.facegen.texture import DETAILS, detail_strengths  # noqa: E402
-from stages.layout import Layout, load_layout  # noqa: E402
+from scripts.facegen.texture import DETAILS, detail_strengths
+from stages.layout import Layout, load_layout
 
 PACK_HEAD_MM = 265.0  # face height spanning a pack image
 CLIP_HEAD_MM = 290.0  # looser framing for clips, room for head motion

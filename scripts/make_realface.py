@@ -18,8 +18,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from scripts.realface.clip import make_clip  # noqa: E402
-from scripts.realface.landmarks import MODEL_PATH  # noqa: E402
+from scripts.realface.clip import make_clip
+from scripts.realface.landmarks import MODEL_PATH
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -14,7 +14,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from stages.video import VideoWriter  # noqa: E402
+from stages.video import VideoWriter
 
 
 def synthetic_frames(start: int, stop: int, *, width: int, height: int) -> np.ndarray:

@@ -20,6 +20,11 @@ import numpy as np
 from runner.stage import Context, FrameStage, Param, SequenceStage, StageError, StreamInfo
 from stages.color import rgb_to_ycbcr420, to_uint8
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # annotations only; imported where used, so that importing this module stays light
+    import av
+
 CODECS = {"h264": ("libx264", "yuv420p", ".mp4"), "ffv1": ("ffv1", "bgr0", ".mkv")}
 # x264's presets, fastest first (docs/writers.md, "Encoder settings", measures them).
 X264_PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower", "veryslow")

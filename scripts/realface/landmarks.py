@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stages.landmarks.landmarker import MODEL_PATH, N_MESH, OUTER_EYE_CORNERS, Landmarker
+from stages.landmarks.landmarker import MODEL_PATH, N_MESH, Landmarker
 
 N_LANDMARKS = N_MESH
 

@@ -52,7 +52,10 @@ def dis_flow(
     dis.setPatchSize(int(patch_px))
     dis.setPatchStride(int(stride_px))
     dis.setVariationalRefinementAlpha(float(smoothness))
-    grey = lambda im: cv2.cvtColor(np.ascontiguousarray(im), cv2.COLOR_RGB2GRAY)  # noqa: E731
+
+    def grey(im):
+        return cv2.cvtColor(np.ascontiguousarray(im), cv2.COLOR_RGB2GRAY)
+
     return dis.calc(grey(reference), grey(image), None)
 
 

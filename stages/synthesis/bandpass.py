@@ -23,6 +23,11 @@ import math
 
 import numpy as np
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # annotations only; imported where used, so that importing this module stays light
+    import torch
+
 __all__ = ["gaussian_lowpass", "detail_band", "sharpened"]
 
 

@@ -18,6 +18,11 @@ import numpy as np
 from runner.stage import Context, SequenceStage, StageError
 from stages.synthesis.qp import project_onto_convex_hull
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # annotations only; imported where used, so that importing this module stays light
+    import torch
+
 __all__ = ["SubregionQP", "target_geometry", "candidate_table", "NameCoefficients"]
 
 QP_MODES = ("full", "global")

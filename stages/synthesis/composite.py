@@ -45,6 +45,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # annotations only; imported where used, so that importing this module stays light
+    import torch
+
 __all__ = ["Compositor", "Workspace", "prepare_compositor", "workspace", "mixed_coefficients", "composite", "MIN_COEFF"]
 
 MIN_COEFF = 0.01  # coefficients skipped in compositing: the coherent weights spread over 4.5 examples a subregion; 0.01 keeps 3.8, drops 0.3 % of their mass

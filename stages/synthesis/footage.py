@@ -33,6 +33,11 @@ from stages.synthesis.coefficients import SubregionQP
 from stages.synthesis.oracle import texture_grams
 from stages.synthesis.qp import solve_simplex_qp
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # annotations only; imported where used, so that importing this module stays light
+    import torch
+
 __all__ = ["K_CANDIDATES", "subregion_distance", "nearest_mean", "cv_errors", "FootageCoefficients"]
 
 K_CANDIDATES = (1, 2, 3, 5, 8, 12, 16, 24)

@@ -12,6 +12,11 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # annotations only; imported where used, so that importing this module stays light
+    import torch
+
 __all__ = ["masked_psnr", "ssim_map", "masked_ssim", "subregion_errors", "pooled_psnr"]
 
 

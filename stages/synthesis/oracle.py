@@ -24,6 +24,11 @@ import numpy as np
 
 from stages.synthesis.qp import solve_simplex_qp
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # annotations only; imported where used, so that importing this module stays light
+    import torch
+
 __all__ = ["texture_problems", "texture_grams", "texture_oracle"]
 
 

@@ -18,6 +18,11 @@ predictor-corrector on the KKT system of a simplex-constrained QP, for a whole b
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # annotations only; imported where used, so that importing this module stays light
+    import torch
+
 
 __all__ = ["solve_simplex_qp", "project_onto_convex_hull"]
 

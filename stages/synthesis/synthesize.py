@@ -31,6 +31,11 @@ from stages.synthesis.composite import MIN_COEFF, Compositor, Workspace, composi
 from stages.synthesis.coefficients import SubregionQP, target_geometry
 from stages.synthesis.warp import Buffers, scratch, warp_images
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # annotations only; imported where used, so that importing this module stays light
+    import torch
+
 __all__ = [
     "MODES",
     "HEAD_MOTION",

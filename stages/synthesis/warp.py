@@ -16,6 +16,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # annotations only; imported where used, so that importing this module stays light
+    import torch
+
 __all__ = ["Buffers", "scratch", "border_anchors", "triangulate", "triangle_index_map", "backward_map", "warp_images"]
 
 _SHIFT = 8  # sub-pixel bits for cv2.fillConvexPoly

@@ -37,6 +37,11 @@ from stages.writers.bundles import check_bundle
 from stages.writers.exr_file import COMPRESSION_CODES, ZIP_LEVEL, ZIP_LEVELS, write_scanline_exr
 from stages.writers.lut import apply_elementwise
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # annotations only; imported where used, so that importing this module stays light
+    import OpenImageIO as oiio
+
 COMPRESSIONS = ("zip", "zips", "piz", "rle", "none")  # OpenEXR's lossless codecs
 PLATE, FACE, FILLED = ("plate.R", "plate.G", "plate.B"), "face.A", "filled.A"
 SHOT_CHANNELS = PLATE + (FACE, FILLED)  # besides R, G, B, A (the head)

@@ -28,8 +28,8 @@ from typing import Any
 
 import pytest
 
-from tests.runner.helpers import REPO, read_log, runner_cmd, tree_bytes
-from tests.runner.test_batch import TAG, TWO_JOBS, _assert_gone, _env, _manifest, _tagged_pids, alone, site  # noqa: F401
+from tests.runner.helpers import read_log, runner_cmd, tree_bytes
+from tests.runner.test_batch import TAG, TWO_JOBS, _assert_gone, _env, _manifest, _tagged_pids, alone, site  # noqa: F401 - fixtures (alone, site) shared with test_batch: pytest finds them by name here
 
 pytestmark = pytest.mark.slow
 
@@ -142,7 +142,7 @@ def cluster(site: str) -> dict[str, Any]:  # noqa: F811 - the fixture imported a
         shutil.rmtree(temp, ignore_errors=True)
 
 
-def _driver_env(site: str, tmp_path: Path) -> dict[str, str]:  # noqa: F811
+def _driver_env(site: str, tmp_path: Path) -> dict[str, str]:  # noqa: F811 - `site` and `alone` are the fixtures imported above
     return {**_env(site, tmp_path), "RUNNER_LOCK_LEASE_S": LEASE_S}
 
 
@@ -161,7 +161,7 @@ def _job_starts(events: list[dict[str, Any]], job: str) -> list[dict[str, Any]]:
 ADD_CHUNKS = [0, 8, 16, 24, 32, 40]  # test.add's chunks of the 48-frame clip, 8 frames each
 
 
-def test_jobs_on_nodes_of_two_host_names_share_the_locks(site, cluster, alone, tmp_path):  # noqa: F811
+def test_jobs_on_nodes_of_two_host_names_share_the_locks(site, cluster, alone, tmp_path):  # noqa: F811 - `site` and `alone` are the fixtures imported above
     """Two jobs of the same shot at once, one on each 1-CPU node: one on this host, one on
     ``other-node``; each chunk is computed once (one job waits for the other's lock, judged by
     its heartbeat across the hosts), both outputs are `runner run`'s."""
@@ -185,7 +185,7 @@ def test_jobs_on_nodes_of_two_host_names_share_the_locks(site, cluster, alone, t
         assert tree_bytes(tmp_path / "out" / job) == alone["plus10"]
 
 
-def test_two_batches_at_once_share_the_cache(site, cluster, alone, tmp_path):  # noqa: F811
+def test_two_batches_at_once_share_the_cache(site, cluster, alone, tmp_path):  # noqa: F811 - `site` and `alone` are the fixtures imported above
     """Two `runner batch` drivers at once on the same cache, each with both shots (into their
     own folders): every chunk of a shot is computed by one of them only, and every output is
     `runner run`'s."""
@@ -216,7 +216,7 @@ def test_two_batches_at_once_share_the_cache(site, cluster, alone, tmp_path):  #
             assert tree_bytes(tmp_path / name / "out" / job) == alone[job]
 
 
-def test_a_node_killed_mid_batch_has_its_job_retried_on_another(site, cluster, alone, tmp_path):  # noqa: F811
+def test_a_node_killed_mid_batch_has_its_job_retried_on_another(site, cluster, alone, tmp_path):  # noqa: F811 - `site` and `alone` are the fixtures imported above
     """Once a job has committed a chunk on a worker node, that node is killed (its raylet, its
     workers and agents: SIGKILL): Ray retries the job on the other node, which breaks the killed
     job's lock (its heartbeat stopped) and resumes from the cache: the outputs are `runner

@@ -14,7 +14,7 @@ from runner.registry import Registry
 from runner.stage import FrameStage, StreamInfo
 from runner.streams import ComputedStream, chunk_ranges
 from tests.runner import test_streaming as streaming
-from tests.runner.test_streaming import EVENTS, N, STARTS, Double, Picker, Reader, Source, clip, run
+from tests.runner.test_streaming import EVENTS, STARTS, Double, Picker, Reader, Source, clip, run
 
 THREADS: list[tuple[str, int, str]] = []  # (stage, first frame, computing thread)
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from tests.memory_stream import MemoryStream, files_context as context  # noqa: F401 (re-exported)
+from tests.memory_stream import MemoryStream, files_context as context  # noqa: F401 - re-exported for the geometry tests
 
 
 def similarity_matrix(a: float, b: float, tx: float, ty: float) -> np.ndarray:

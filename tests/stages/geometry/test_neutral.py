@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from stages.geometry.neutral import REGIONS, estimate_neutral, point_regions
 from stages.geometry.rigid3d import hold_occluded

@@ -4,7 +4,6 @@ which order, unreadable files named and skipped, the frame-size rule and the let
 dot's centroid), and the face-shape signature's invariance to a similarity."""
 
 import logging
-from pathlib import Path
 
 import numpy as np
 import pytest

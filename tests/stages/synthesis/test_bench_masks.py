@@ -3,7 +3,6 @@
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from scripts.bench_synthesis import face_mask, wrinkle_mask
 from stages.actor_pack import load_pack
@@ -20,7 +19,10 @@ def test_wrinkle_areas_cover_forehead_furrow_eye_corners_nasolabial_only():
         x, y = np.round(p).astype(int)
         return bool(mask[y, x])
 
-    P = lambda n: pts[L.index(n)]  # noqa: E731
+    def P(n):
+
+        return pts[L.index(n)]
+
     assert at(P("forehead_c")) and at(P("glabella"))
     for s, sx in (("l", -1), ("r", 1)):
         eye_w = np.linalg.norm(P(f"eye_{s}_0") - P(f"eye_{s}_6"))

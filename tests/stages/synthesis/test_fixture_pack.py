@@ -3,7 +3,6 @@
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from stages.actor_pack import load_pack
 from stages.layout import subregion_mask

@@ -5,7 +5,6 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
-import pytest
 
 from runner.cache import CacheStore
 from runner.config import bind_inputs, load_pipeline

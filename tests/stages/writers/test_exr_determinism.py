@@ -85,7 +85,7 @@ def _run_on_stack(function, top: int, size: int = 4 << 20):
         def call(_: int | None) -> None:
             try:
                 result.append(function())
-            except BaseException as error:  # re-raised on the calling thread
+            except BaseException as error:  # noqa: BLE001 - re-raised on the calling thread
                 result.append(error)
 
         start = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_void_p)(call)

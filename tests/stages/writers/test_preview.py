@@ -7,9 +7,9 @@ import pytest
 
 from runner.stage import StageError
 from stages.writers.preview import SideBySide, side_by_side, side_by_side_size
+from tests.memory_stream import MemoryStream, files_context
 
 DEFAULTS = {param.name: param.default for param in SideBySide.params}
-from tests.memory_stream import MemoryStream, files_context
 
 
 def test_layout_sizes() -> None:
