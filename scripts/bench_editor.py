@@ -207,10 +207,7 @@ def run(args: argparse.Namespace) -> list[dict]:
     )
     opts = parser.parse_args(getattr(args, "extra", []))
     pack = opts.pack or bench_pack(Path(args.work))
-
-    def row(metric, value, unit):
-        return {"bench": "editor", "metric": metric, "value": value, "unit": unit}
-
+    row = lambda metric, value, unit: {"bench": "editor", "metric": metric, "value": value, "unit": unit}
     if opts.parts:
         parts = profile_parts(pack, point=opts.point)
         return [row(f"editor_part_{name}_cpu_ms", value, "ms") for name, value in parts.items()] + [

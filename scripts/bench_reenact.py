@@ -215,10 +215,7 @@ def evaluate(
                 scores[m]["wrinkle"].append(masked_psnr(img, real, wr))
                 scores[m]["subregions"].append(subregion_errors(img, real, region, names))
             if int(t) in sheet_at:
-
-                def as_u8(x):
-                    return (x.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
-
+                as_u8 = lambda x: (x.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
                 tiles += [
                     (f"truth {t}", truth[k]),
                     ("full", as_u8(out["full"][k])),

@@ -179,10 +179,7 @@ def target_expressions(frames: int = 60) -> np.ndarray:
     """``(T, 3)`` expression parameters (mouth open, brow raise, smile) of the pack's footage: a
     neutral start, then each expression and mixes rising and falling."""
     t = np.arange(frames)
-
-    def bump(start, length):
-        return np.clip(np.sin(np.pi * (t - start) / length), 0, None) * ((t >= start) & (t < start + length))
-
+    bump = lambda start, length: np.clip(np.sin(np.pi * (t - start) / length), 0, None) * ((t >= start) & (t < start + length))
     return np.column_stack(
         [bump(6, 16) + bump(40, 14), bump(20, 12) + 0.6 * bump(40, 14), bump(30, 14) + 0.5 * bump(46, 10)]
     ).clip(0, 1)

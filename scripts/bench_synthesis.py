@@ -85,9 +85,7 @@ def wrinkle_mask(layout: Layout, points: np.ndarray, size: tuple[int, int]) -> n
     """
     W, H = size
     mask = np.zeros((H, W), np.uint8)
-
-    def P(name):
-        return points[layout.index(name)]
+    P = lambda name: points[layout.index(name)]
 
     def poly(names: list[str]) -> None:
         cv2.fillPoly(mask, [np.round(np.array([P(n) for n in names]) * 16).astype(np.int32)], 1, cv2.LINE_8, 4)
@@ -230,10 +228,7 @@ def resized(expr: Expression, size: tuple[int, int], from_size: tuple[int, int])
 def speed_pack(pack: ActorPack, truths: list[Expression]) -> ActorPack:
     """The pack at 600x800 with exactly 15 examples (held-out expressions fill in)."""
     size = SPEED_SIZE
-
-    def r(e):
-        return resized(e, size, pack.image_size)
-
+    r = lambda e: resized(e, size, pack.image_size)
     examples = [r(e) for e in (pack.examples + truths)[:SPEED_EXAMPLES]]
     while len(examples) < SPEED_EXAMPLES:
         examples.append(examples[len(examples) % len(pack.examples)])

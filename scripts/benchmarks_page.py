@@ -42,9 +42,23 @@ def latest(path: Path) -> dict[str, dict]:
 
 
 def code_of(source: str) -> str:
-    """What a Python file does: its syntax tree without docstrings (comments and layout are not in it)."""
+    """What a Python file does: its syntax tree without docstrings, type annotations and the
+    imports for the type checker alone (``if TYPE_CHECKING:``, ``from typing import
+    TYPE_CHECKING``); comments and layout are not in it. Annotations are for the type checker
+    (the code postpones their evaluation, ``from __future__ import annotations``); an annotated
+    assignment keeps its place, so that a dataclass field stays a field."""
     tree = ast.parse(source)
     for node in ast.walk(tree):
+        if isinstance(node, ast.arg):
+            node.annotation = None
+        elif isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            node.returns = None
+        elif isinstance(node, ast.AnnAssign):
+            node.annotation = ast.Constant(value=None)
+        for field in ("body", "orelse"):
+            statements = getattr(node, field, None)
+            if isinstance(statements, list):
+                setattr(node, field, [s for s in statements if not _type_checking_block(s)])
         body = getattr(node, "body", None)
         if (
             isinstance(body, list)
@@ -55,6 +69,13 @@ def code_of(source: str) -> str:
         ):
             node.body = body[1:] or [ast.Pass()]
     return ast.dump(tree)
+
+
+def _type_checking_block(node: ast.AST) -> bool:
+    """``if TYPE_CHECKING:`` with no ``else``, or ``from typing import TYPE_CHECKING``."""
+    if isinstance(node, ast.ImportFrom):
+        return node.module == "typing" and [alias.name for alias in node.names] == ["TYPE_CHECKING"]
+    return isinstance(node, ast.If) and not node.orelse and isinstance(node.test, ast.Name) and node.test.id == "TYPE_CHECKING"
 
 
 def git(*args: str) -> subprocess.CompletedProcess:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stages.landmarks.landmarker import MODEL_PATH, N_MESH, Landmarker
+from stages.landmarks.landmarker import MODEL_PATH, N_MESH, OUTER_EYE_CORNERS, Landmarker  # noqa: F401 - OUTER_EYE_CORNERS re-exported for mesh.py
 
 N_LANDMARKS = N_MESH
 

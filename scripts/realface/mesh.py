@@ -20,9 +20,7 @@ import numpy as np
 from matplotlib.path import Path as PolygonPath
 from scipy.spatial import Delaunay
 
-from stages.landmarks.landmarker import OUTER_EYE_CORNERS
-
-from .landmarks import FACE_OVAL, LIPS_INNER_LOWER, LIPS_INNER_UPPER, N_LANDMARKS, NOSE_TIP, inner_lip_polygon
+from .landmarks import FACE_OVAL, LIPS_INNER_LOWER, LIPS_INNER_UPPER, N_LANDMARKS, NOSE_TIP, OUTER_EYE_CORNERS, inner_lip_polygon
 
 EYE_CORNERS_MM = 90.0
 HEAD_CENTRE_BEHIND_NOSE_MM = 100.0

@@ -52,10 +52,7 @@ def dis_flow(
     dis.setPatchSize(int(patch_px))
     dis.setPatchStride(int(stride_px))
     dis.setVariationalRefinementAlpha(float(smoothness))
-
-    def grey(im):
-        return cv2.cvtColor(np.ascontiguousarray(im), cv2.COLOR_RGB2GRAY)
-
+    grey = lambda im: cv2.cvtColor(np.ascontiguousarray(im), cv2.COLOR_RGB2GRAY)
     return dis.calc(grey(reference), grey(image), None)
 
 

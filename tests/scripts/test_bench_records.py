@@ -50,3 +50,19 @@ def test_records_keep_provenance_and_the_page_shows_the_latest_marking_stale_one
     assert text.count("| stale |") == 2  # both rows are stale now
     assert benchmarks_page.main(["--check"]) == 1
     assert benchmarks_page.main([]) == 0 and benchmarks_page.main(["--check"]) == 0
+
+
+def test_type_annotations_and_type_checking_imports_are_not_code():
+    """Annotations and the imports for the type checker alone leave a file's code as it is; a
+    changed default, a dropped field or a real import does not."""
+    plain = "import os\n\n\ndef f(a, b=1):\n    return a\n\n\nclass C:\n    x = 2\n    y: int\n"
+    typed = (
+        "import os\nfrom typing import TYPE_CHECKING\n\nif TYPE_CHECKING:\n    import torch\n\n\n"
+        "def f(a: torch.Tensor, b: int = 1) -> torch.Tensor:\n    return a\n\n\nclass C:\n    x: int = 2\n    y: str\n"
+    )
+    assert benchmarks_page.code_of(typed) == benchmarks_page.code_of(plain.replace("    x = 2", "    x: float = 2"))
+    assert benchmarks_page.code_of(plain) != benchmarks_page.code_of(plain.replace("    x = 2", "    x: int = 2"))  # a field now
+    assert benchmarks_page.code_of(typed) != benchmarks_page.code_of(typed.replace("b: int = 1", "b: int = 2"))
+    assert benchmarks_page.code_of(typed) != benchmarks_page.code_of(typed.replace("    y: str\n", ""))
+    assert benchmarks_page.code_of(plain) != benchmarks_page.code_of("import torch\n" + plain)
+    assert benchmarks_page.code_of(typed) != benchmarks_page.code_of(typed.replace("if TYPE_CHECKING:", "if True:"))

@@ -52,10 +52,7 @@ def test_robust_fit_resists_an_outlier():
     dst[3] += (25.0, -18.0)
     plain = fit_similarity(src, dst)
     robust = fit_similarity(src, dst, huber_px=1.0)
-
-    def error(p):
-        return np.abs(apply_similarity(p, src) - apply_similarity(truth, src)).max()
-
+    error = lambda p: np.abs(apply_similarity(p, src) - apply_similarity(truth, src)).max()
     assert error(robust) < 0.5 < error(plain)
 
 

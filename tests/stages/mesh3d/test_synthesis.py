@@ -36,10 +36,7 @@ def test_qp_on_3n_vectors_matches_an_independent_solve():
         for s in range(2):
             idx = np.flatnonzero(members[s])
             ref = independent_qp(examples[:, idx].reshape(M, -1), targets[t, idx].reshape(-1))
-
-            def obj(c):
-                return np.sum((targets[t, idx].reshape(-1) - c @ examples[:, idx].reshape(M, -1)) ** 2)
-
+            obj = lambda c: np.sum((targets[t, idx].reshape(-1) - c @ examples[:, idx].reshape(M, -1)) ** 2)
             assert obj(coeffs[t, s]) <= obj(ref) + 1e-6 * max(obj(ref), 1.0)
             np.testing.assert_allclose(coeffs[t, s], ref, atol=1e-4)
     assert np.all(coeffs >= 0) and np.allclose(coeffs.sum(-1), 1.0)

@@ -19,10 +19,7 @@ def test_wrinkle_areas_cover_forehead_furrow_eye_corners_nasolabial_only():
         x, y = np.round(p).astype(int)
         return bool(mask[y, x])
 
-    def P(n):
-
-        return pts[L.index(n)]
-
+    P = lambda n: pts[L.index(n)]
     assert at(P("forehead_c")) and at(P("glabella"))
     for s, sx in (("l", -1), ("r", 1)):
         eye_w = np.linalg.norm(P(f"eye_{s}_0") - P(f"eye_{s}_6"))

@@ -12,10 +12,7 @@ def scipy_ssim(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     c1, c2 = 0.01**2, 0.03**2
     out = []
     for ch in range(a.shape[0]):
-
-        def f(t):
-            return gaussian_filter(t, 1.5, truncate=3.5, mode="mirror")
-
+        f = lambda t: gaussian_filter(t, 1.5, truncate=3.5, mode="mirror")
         x, y = a[ch], b[ch]
         mx, my = f(x), f(y)
         vx, vy, cxy = f(x * x) - mx**2, f(y * y) - my**2, f(x * y) - mx * my

@@ -104,10 +104,7 @@ def test_general_qp_with_linear_term():
     c = solve_simplex_qp(torch.from_numpy(Q), torch.from_numpy(p)).numpy()
     for b in range(B):
         ref = solve_qp(Q[b], p[b], G=-np.eye(M), h=np.zeros(M), A=np.ones((1, M)), b=np.ones(1), solver="quadprog")
-
-        def f(x):
-            return 0.5 * x @ Q[b] @ x + p[b] @ x
-
+        f = lambda x: 0.5 * x @ Q[b] @ x + p[b] @ x
         assert abs(f(c[b]) - f(ref)) < 1e-6
 
 
@@ -144,10 +141,7 @@ def test_ridge_matches_quadprog_with_the_tikhonov_term():
             b=np.ones(1),
             solver="quadprog",
         )
-
-        def f(x):
-            return ((targets[b] - x @ examples[b]) ** 2).sum() + lam[b] * x @ x
-
+        f = lambda x: ((targets[b] - x @ examples[b]) ** 2).sum() + lam[b] * x @ x
         assert abs(f(c[b].numpy()) - f(ref)) < 1e-6 * max(1.0, f(ref))
         assert float(dist2[b]) == pytest.approx(((targets[b] - c[b].numpy() @ examples[b]) ** 2).sum(), rel=1e-9)
 

@@ -174,10 +174,7 @@ def test_own_writer_matches_openimageio_with_float_input_and_depth(tmp_path: Pat
         ours.read_image(oiio.HALF)[..., :4].view(np.uint16), theirs.read_image(oiio.HALF)[..., :4].view(np.uint16)
     )
     np.testing.assert_array_equal(ours.read_image(oiio.FLOAT)[..., 4], depth)
-
-    def as_list(spec):
-        return [(p.name, str(p.type), p.value) for p in spec.extra_attribs]
-
+    as_list = lambda spec: [(p.name, str(p.type), p.value) for p in spec.extra_attribs]
     assert as_list(ours.spec()) == as_list(theirs.spec())
     assert ours.spec().getattribute("exmap:depth_unit") == DEPTH_UNIT
     ours.close(), theirs.close()

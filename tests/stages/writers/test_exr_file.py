@@ -128,10 +128,7 @@ def test_header_is_the_one_openimageio_writes(tmp_path: Path, compression: str, 
     assert mine.read_bytes()[: len(header)] == header
     assert theirs.read_bytes()[: len(header)] == header
     ours, reference = _oiio_read(mine)[1], _oiio_read(theirs)[1]
-
-    def as_list(spec):
-        return [(p.name, str(p.type), p.value) for p in spec.extra_attribs]
-
+    as_list = lambda spec: [(p.name, str(p.type), p.value) for p in spec.extra_attribs]
     assert as_list(ours) == as_list(reference)
     assert ours.getattribute("oiio:ColorSpace") == COLOR_SPACE
     assert str(ours.getattribute("exmap:pose_rvec")) and ours.getattribute("exmap:frame") == 12
