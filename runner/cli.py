@@ -37,6 +37,7 @@ cache_dir_option = click.option(
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="expression-mapping", message="%(prog)s %(version)s")
 def cli() -> None:
     """Run a DAG of stages declared in a pipeline.yaml, caching every result so that an
     interrupted run resumes where it stopped."""

@@ -10,6 +10,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import av
@@ -171,6 +172,13 @@ def cli_main(*args: str | Path) -> tuple[int, str, str]:
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), pytest.raises(SystemExit) as info:
         main([str(a) for a in args])
     return info.value.code, out.getvalue(), err.getvalue()
+
+
+def test_version_is_the_installed_package_version():
+    code, out, err = cli_main("--version")
+    assert (code, out, err) == (0, f"runner {importlib.metadata.version('expression-mapping')}\n", "")
+    with open(REPO / "pyproject.toml", "rb") as f:
+        assert importlib.metadata.version("expression-mapping") == tomllib.load(f)["project"]["version"]
 
 
 def test_config_errors_exit_2_with_positions(tmp_path, monkeypatch):
