@@ -1,9 +1,11 @@
 # Two entry points (README): `make run` runs the default pipeline on the bundled fixture clip,
 # `make test` runs the test suite. Both create the virtual environment on first use.
+# `make test-fast` runs the tests not marked slow, browser, ray or subprocess (pyproject.toml);
+# `make lint` runs ruff (lint and format check) and mypy; `make bench` records benchmark areas.
 PY := .venv/bin/python
 VENV_STAMP := .venv/.installed-$(shell sha256sum pyproject.toml | cut -c1-12)
 
-.PHONY: run test browser egl bench fixtures clean
+.PHONY: run test test-fast lint browser egl bench fixtures clean
 
 $(VENV_STAMP): pyproject.toml
 	test -x $(PY) || python3 -m venv .venv
@@ -18,6 +20,23 @@ run: $(VENV_STAMP)
 
 test: $(VENV_STAMP) browser egl
 	$(PY) -m pytest -q tests
+
+test-fast: $(VENV_STAMP)
+	$(PY) -m pytest -q -m "not slow and not browser and not ray and not subprocess" tests
+
+lint: $(VENV_STAMP)
+	.venv/bin/ruff check .
+	.venv/bin/ruff format --check .
+	.venv/bin/mypy
+
+# The benchmark areas of scripts/bench.py, each recorded to benchmarks/results/AREA.jsonl, then
+# docs/benchmarks.md rendered from the records. The default leaves out the areas that run for a
+# long time (real, reenact, batch, shot): `make bench AREAS="real shot"` records those.
+AREAS ?= runner geometry propagation synthesis writers e2e landmarks smoothing editor eigen render3d photo_identity
+
+bench: $(VENV_STAMP) browser egl
+	set -e; for area in $(AREAS); do $(PY) scripts/bench.py $$area --json --record; done
+	$(PY) scripts/benchmarks_page.py
 
 # Debian's Chromium for the browser tests (editor, run report); a no-op once installed.
 browser:
