@@ -4,9 +4,8 @@ A synthetic face of 48 points, one coordinate each, shares a slow head motion (a
 over 5 s plus a drift of 1.5 px/s); a third of them (the mouth's) open every 40 frames: a
 raised-cosine bump (:func:`raised_cosine`) of 3, 4 or 5 frames at half height (zero to zero over
 twice that) and an amplitude drawn from 10-40 px per point. White noise of ``sigma`` px (a real
-landmarker's jitter: 0.3-1.0 px) is added. The widths are calibrated on what a team-mate
-measured on a real landmarker's clips: the Gaussian of sigma 1.5 removed 14-29% of the
-mouth-opening amplitude there, 18-36% here.
+landmarker's jitter: 0.3-1.0 px) is added. The widths are calibrated on a real landmarker's
+clips: the Gaussian of sigma 1.5 removes 14-29% of the mouth-opening amplitude there, 18-36% here.
 
 Rows for ``raw`` (no smoothing), ``gaussian`` (``smooth.gaussian``, sigma 1.5), ``one_euro``
 (``smooth.one_euro`` with its stage defaults: the face's frame) and ``one_euro_image`` (the same

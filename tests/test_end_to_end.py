@@ -107,7 +107,7 @@ def test_data_files_agree_and_mapping_beats_neutral(paper_run):
     name = str(data["target_names"][0])
     np.testing.assert_allclose([float(r[f"target_{name}_x"]) for r in rows], data["target_xy"][:, 0, 0], atol=1e-6)
     # The mapped target geometry against the ideal mapping (the target rendered with the
-    # performer's controls). Measured 0.52 px when this test was written; leaving the target at
+    # performer's controls). Measured: 0.52 px; leaving the target at
     # its neutral scores 0.79 px on this clip.
     error = np.linalg.norm(data["target_xy"] - truth["target_points"], axis=-1).mean()
     neutral = load_pack(REPO / "fixtures" / "packs" / "target").neutral.points
@@ -137,7 +137,7 @@ def test_rerun_is_all_cached_and_byte_identical(default_run):
 
 
 def test_default_pipeline_follows_the_performer(default_run):
-    """The landmarker path on the synthetic calm clip. Measured when written: the target's mouth
+    """The landmarker path on the synthetic calm clip. Measured: the target's mouth
     opening / brow raise / mouth width follow the landmarker's performer geometry at r 0.997 /
     0.959 / 0.998 (amplitude ratio 1.07 / 1.13 / 1.08), and the truth at r 0.965 / 0.978 / 0.990.
     (MediaPipe on the generator's faces reads the brows at 0.61 of their true motion and the mouth

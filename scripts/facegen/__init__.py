@@ -1,2 +1,2 @@
-"""Synthetic faces with full ground truth (issue 3): a 3D-aware procedural face, expression
+"""Synthetic faces with full ground truth: a 3D-aware procedural face, expression
 controls, geometry-driven expression details, and a pinhole renderer. See docs/fixtures.md."""

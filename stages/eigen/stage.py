@@ -1,7 +1,7 @@
 """Stage wrappers of the eigenfeature analysis (Valente & Dugelay): ``train.eigenfeatures`` and
 ``analyze.eigenfeatures``, a second reading of the performer's expression beside point tracking.
 
-``analyze.eigenfeatures`` outputs, for all layout points (docs/CONTRACTS.md), a ``points`` bundle
+``analyze.eigenfeatures`` outputs, for all layout points (docs/architecture.md), a ``points`` bundle
 (the geometry in the frame, placed by the frame's 2D similarity) and a ``displacements`` bundle
 in the neutral's frame (``d = x(mu) - x_neutral``: the expression without head motion, what the
 compensation stages make of tracked points), which ``map.expression`` takes as it takes

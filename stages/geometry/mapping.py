@@ -16,8 +16,8 @@ linear part ``S`` of a normalization: the target geometry is ``y_i + S_i d_i``.
   eye corners alone lack. The face-size ratio and the in-plane rotation between the two neutrals.
 - ``similarity``: the same similarity fitted on the layout's rigid points (the paper's hairline
   points and inner eye corners, Sec. 12.1). On a real face the hairline is a stand-in (a landmark
-  mesh has none; it is extrapolated and may sit lower than the target's), which inflated the
-  mapped motion x1.25-1.42 on real clips (a team-mate's measurement).
+  mesh has none; it is extrapolated and may sit lower than the target's), which inflates the
+  mapped motion on real clips (x1.25-1.42).
 - ``region``: the rotation of ``similarity`` with a scale per feature point set of the layout's
   hierarchy level 1 (Sec. 10): the RMS radius about their centroid of the set's points on the
   target's neutral over the same on the performer's. A point in several sets takes the mean of

@@ -4,27 +4,23 @@ The Face Landmarker (Google, Apache-2.0; ``models/NOTICE``) finds faces with a s
 detector, then fits its 478-vertex face mesh (468 face vertices + 2 x 5 iris points) to each, and
 gives 52 blendshape scores and a 4x4 facial transformation matrix per face.
 
-Pixel convention (measured, not assumed)
-----------------------------------------
+Pixel convention
+----------------
 MediaPipe returns landmarks normalized by the image size. ``x = x_norm * W`` and
 ``y = y_norm * H`` are already in the project's convention (origin at the centre of the top-left
-pixel, OpenCV's): the astronaut photo's face, upscaled by s = 1 ... 5 with ``cv2.resize`` (which
-maps pixel centres, ``x_s + 0.5 = s (x + 0.5)``), gives per-vertex positions that fit
-``x_s = s a + b`` with intercept b = -0.47 ... -0.61 px in x and -0.45 ... -0.53 px in y over four
-crops (residual 0.07 px rms); the centre convention predicts b = -0.5, a corner origin (x + 0.5)
-predicts b = 0. A horizontal flip agrees: mean x of the flipped image's mesh + mean x of the
-original's - (W - 1) = 0.04 ... 0.48 px at 1x (centre convention: 0, corner: 1).
-``tests/stages/landmarks/test_landmarker.py`` checks the convention with the horizontal flip and
-a sub-pixel shift.
+pixel, OpenCV's): a face upscaled by s with ``cv2.resize`` (which maps pixel centres,
+``x_s + 0.5 = s (x + 0.5)``) gives positions that fit ``x_s = s a + b`` with b close to -0.5 px,
+what the centre convention predicts (a corner origin predicts b = 0), and a horizontally flipped
+image's mesh mirrors about ``(W - 1) / 2``. ``tests/stages/landmarks/test_landmarker.py`` checks
+the convention with the horizontal flip and a sub-pixel shift.
 
 Depth ``z`` is MediaPipe's relative depth (smaller = nearer the camera, origin near the head's
 centre) multiplied by the width of the image the face was found in, so it has the px scale of x.
 
 Small faces
 -----------
-The detector only finds faces that fill much of its input (measured on the astronaut photo,
-face about 90 px wide: found on a 768 x 768 canvas, lost on 1024 x 1024; at half size, 45 px, lost
-on 512 x 512). So :class:`Landmarker` searches, per frame and in order:
+The detector only finds faces that fill much of its input (a face about 90 px wide is found on a
+768 x 768 canvas and lost on 1024 x 1024). So :class:`Landmarker` searches, per frame and in order:
 
 1. a square crop around the previous frame's face (``crop_scale`` x its larger bounding-box side);
 2. the whole frame;
@@ -34,16 +30,13 @@ on 512 x 512). So :class:`Landmarker` searches, per frame and in order:
 The first region with a face wins. Regions are whole-pixel crops, so positions map back by
 adding the crop's offset. The landmark model works on its own fixed-size crop of the face, taken
 from the detector's box, so the region changes the points only by the box's variation (a few
-tenths of a px, measured below and in the tests' shift checks). Astronaut on a 1024 x 1024 canvas, 6 frames:
-whole frame only finds 0/6; tiles find 6/6 (7.9 frames/s, 0.47 px from the 512 x 512 result),
-tiles then the crop 6/6 (25.8 frames/s, 0.31 px). On 2048 x 2048 the face (4% of the frame) is
-lost: tiles of 1024 px are still too large.
+tenths of a px; the tests' shift checks bound it). After the first frame the crop around the
+previous face is the cheap case, and the tiles find a small face that the whole frame misses; a
+face below about 4 % of the frame's side is lost even by the tiles.
 
-IMAGE mode, one independent call per frame: MediaPipe's VIDEO mode (whole frame, its own tracking
-and landmark smoothing) was measured against it. Astronaut photo with per-frame random sub-pixel
-shifts and noise (sigma 2 levels, 60 frames): point scatter 0.16 px here, 0.33 px in VIDEO mode.
-On the three dev clips VIDEO mode's frame-to-frame second difference of the layout points is
-12-28 % lower (its tracking and smoothing; it also lags) and it needs 1.2-1.3x less CPU; smoothing is left to the
+IMAGE mode, one independent call per frame, rather than MediaPipe's VIDEO mode (whole frame, its
+own tracking and landmark smoothing): on still, noisy input IMAGE mode's points scatter less;
+VIDEO mode's smoothing lowers the frame-to-frame jitter but lags, smoothing is left to the
 pipeline's smoothing stages, and VIDEO mode cannot follow the crop's changing region.
 """
 

@@ -1,4 +1,4 @@
-"""The bundles of an actor pack (docs/CONTRACTS.md, "Packs in the graph") and the objects they stand for, both ways.
+"""The bundles of an actor pack (docs/architecture.md, "Packs in the graph") and the objects they stand for, both ways.
 
 ``pack.load`` (:mod:`stages.pack.stage`) splits a loaded :class:`stages.actor_pack.ActorPack`
 into five bundles so that each stage's cache key covers exactly the part it reads:

@@ -1,4 +1,4 @@
-"""``pack.load``: an actor pack folder read once and split into typed bundles (docs/CONTRACTS.md, "Packs in the graph").
+"""``pack.load``: an actor pack folder read once and split into typed bundles (docs/architecture.md, "Packs in the graph").
 
 The stage's key is the pack folder's digest (every file under it) plus, through
 :func:`runner.depends.depends_on`, the bundled layout file a manifest names. Its outputs are

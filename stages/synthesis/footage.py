@@ -1,4 +1,4 @@
-"""Coefficients learned from the footage a pack was built from (issue 13; benchmark for now).
+"""Coefficients learned from the footage a pack was built from (used by the benchmarks, not by a stage).
 
 Eq. 2-5 choose a subregion's convex-combination coefficients from its few feature points alone,
 and on real faces those points predict only moderately which examples' texture fits

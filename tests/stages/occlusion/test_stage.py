@@ -62,7 +62,7 @@ def test_clean_clip_has_no_occlusion(clean):
 
 def test_hand_over_the_mouth_from_the_first_frame_then_over_an_eye(tmp_path, true_points):
     """The clip starts occluded (a cut into a scene): the performer's own skin over the mouth in
-    frames 0-11, another tone over the image-left eye in frames 24-35. Measured when written:
+    frames 0-11, another tone over the image-left eye in frames 24-35. Measured:
     recall and precision 1.0 (12 frames each of mouth, nose, eye_l and brow_l covered)."""
     colour = skin(true_points)
     events = [
@@ -79,7 +79,7 @@ def test_hand_over_the_mouth_from_the_first_frame_then_over_an_eye(tmp_path, tru
 
 def test_hand_over_the_mouth_for_half_the_clip(tmp_path, true_points):
     """The mouth hidden in frames 0-23 of 48: the clip's model of the mouth still comes from the
-    frames where it is seen. Measured when written: mouth and nose found in all 24 frames, no
+    frames where it is seen. Measured: mouth and nose found in all 24 frames, no
     flag in the other 24; recall 0.96 (the hand also hides more than half of the image-right eye
     in 2 frames, not flagged), precision 0.89 (under the hand, at the largest head turn, the
     landmarker puts the image-right brow 0.12-0.27 eye distances off in frames 18-23, flagged: the
@@ -122,7 +122,7 @@ def test_inconsistent_inputs_are_stage_errors(clean):
 
 def test_head_turned_30_degrees_either_way_is_not_occlusion(tmp_path):
     """The real-texture face turned to 30 degrees of yaw each way (with pitch and a mouth
-    opening) is never flagged. Measured when written: lowest visibility 0.35, the image-right
+    opening) is never flagged. Measured: lowest visibility 0.35, the image-right
     brow at -30 degrees, where the renderer, which has no head beyond the photo's face, shows the
     background past the far temple; every other region 0.6 or more."""
     from scripts.realface.clip import fit_real_face, render_state
