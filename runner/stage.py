@@ -146,7 +146,7 @@ class Stage:
     """Base of both stage shapes; subclasses set the class attributes below."""
 
     name: ClassVar[str]  # registered name, e.g. "track.correlation"
-    version: ClassVar[str]  # bump to invalidate cache entries made by older code
+    version: ClassVar[str]  # bump to invalidate cache entries made by older code; CHANGELOG.md lists each version
     doc: ClassVar[str] = ""  # one line shown by `runner stages`
     inputs: ClassVar[Mapping[str, str]] = {}  # port name -> port type
     optional_inputs: ClassVar[frozenset[str]] = frozenset()

@@ -402,7 +402,7 @@ class WriteVideo(SequenceStage):
     """Encode a frame stream to one video file (H.264 MP4 or FFV1 MKV)."""
 
     name = "write.video"
-    version = "5"  # 5: H.264 frames converted by stages.color.rgb_to_ycbcr420 (was swscale); 4: superfast
+    version = "5"
     doc = "Encode frames (uint8, or float sRGB in [0, 1]) to a video file: H.264 MP4 or FFV1 MKV; audio copied from 'audio'."
     inputs = {"frames": "frames", "audio": "video"}
     optional_inputs = frozenset({"audio"})

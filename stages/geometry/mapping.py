@@ -380,7 +380,7 @@ class ExpressionMap(SequenceStage):
     """
 
     name = "map.expression"
-    version = "5"  # 5: lid ratio (an eye never seen open against a typical open eye), the target's lips closed in its neutral, range modes, states beyond the pack
+    version = "5"
     doc = (
         "performer displacements onto the target's neutral (Sec. 11): size-normalized, eyes closing by the "
         "performer's fraction, range mode, lips and lids never crossing; states beyond the pack listed"

@@ -355,7 +355,7 @@ class CompensateRigid3D(SequenceStage):
     extension of Sec. 12 for real footage)."""
 
     name = "compensate.rigid3d"
-    version = "5"  # 5: the neutral estimated region by region over the clip (stages.geometry.neutral); occlusion held; the 2D head motion relative to the clip's median placement
+    version = "5"
     doc = (
         "neutral estimated from the whole clip (or a named frame); 3D similarity of the rigid points; "
         "displacements, pose, 2D similarity; occluded regions held"

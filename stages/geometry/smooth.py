@@ -135,7 +135,7 @@ class GaussianSmooth(SequenceStage):
     """``smooth.gaussian``: each trajectory of a ``points`` bundle smoothed over time."""
 
     name = "smooth.gaussian"
-    version = "3"  # 3: the time convolution in numpy (convolve_time), equal to scipy's to rounding
+    version = "3"
     doc = "Gaussian smoothing of point trajectories over time (normalized, mask-aware, odd reflection at the ends)"
     inputs = {"points": "points"}
     outputs = {"points": "points"}

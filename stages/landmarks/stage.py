@@ -41,7 +41,7 @@ class FaceLandmarks(SequenceStage):
     """
 
     name = "landmarks.mediapipe"
-    version = "2"  # 2: the face overlapping the previous frame's is followed (was: the rule per frame)
+    version = "2"
     doc = "MediaPipe Face Landmarker: 478-point face mesh, 52 blendshapes and head matrix per frame"
     inputs = {"frames": "frames"}
     outputs = {"landmarks": "landmarks"}

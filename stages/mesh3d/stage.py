@@ -68,7 +68,7 @@ class Mesh3DSynthesize(SequenceStage):
     """``mesh3d.synthesize``: lift the target geometry to 3D and synthesize it from 3D examples."""
 
     name = "mesh3d.synthesize"
-    version = "3"  # 3: the whole head with the synthesis model
+    version = "3"
     doc = "Sec. 9: target 2D geometry per frame -> 3D expression mesh (per-subregion QP on 3n-vectors, vertex blending)"
     inputs = {
         "layout": "layout",

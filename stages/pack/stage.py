@@ -20,7 +20,7 @@ class LoadPack(SequenceStage):
     """``pack.load``: load and validate an actor pack (:func:`stages.actor_pack.load_pack`)."""
 
     name = "pack.load"
-    version = "3"  # 3: the example expressions' points in the geometry bundle; validity mattes and the footage scale in the images bundle
+    version = "3"
     doc = "read an actor pack folder: layout, neutral/captured geometry, images, generic 3D model, camera"
     inputs = {"pack": "dir"}
     outputs = {

@@ -238,7 +238,7 @@ class PhotosDecode(FrameStage):
     everything downstream."""
 
     name = "photos.decode"
-    version = "2"  # 2: the 'valid' output (which pixels of a frame are the photo's)
+    version = "2"
     doc = "Decode a folder of photos (jpg, png, tif, webp; EXIF orientation) into RGB uint8 frames of one size"
     inputs = {"photos": "dir"}
     outputs = {"frames": "frames", "valid": "frames"}

@@ -150,7 +150,7 @@ class PackSelect(SequenceStage):
     """
 
     name = "pack.select"
-    version = "3"  # 3: examples seeded by the footage's expression states; neutral and standard with open eyes
+    version = "3"
     doc = "choose a pack's neutral, standard, examples (greedy k-center), teeth examples and captured geometries"
     inputs = {"points": "points", "landmarks": "landmarks", "filter": "frame_filter"}
     outputs = {"selection": "pack_selection"}
@@ -290,7 +290,7 @@ class PackWrite(SequenceStage):
     each frame the validity mattes may count as real."""
 
     name = "pack.write"
-    version = "3"  # 3: validity mattes, no edge-replicated pixels; image width chosen here; source frames recorded; the examples' coverage of each expression state
+    version = "3"
     doc = "write the actor pack: aligned, exposure-matched images, validity mattes, points, captured.npz, model3d, pack.yaml, sheet.png"
     inputs = {"frames": "frames", "points": "points", "selection": "pack_selection", "valid": "frames"}
     optional_inputs = frozenset({"valid"})

@@ -70,7 +70,7 @@ class HierarchicalPropagation(SequenceStage):
     """
 
     name = "propagate.hierarchical"
-    version = "3"  # 3: the mapping's per-frame flags passed on
+    version = "3"
     doc = "hierarchical-PCA motion propagation of a tracked subset to all feature points"
     inputs = {"pca_model": "pca_model", "displacements": "displacements", "points": "points"}
     optional_inputs = frozenset({"displacements", "points"})

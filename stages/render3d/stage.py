@@ -90,7 +90,7 @@ class HeadPose3D(SequenceStage):
     """``render3d.head``: the performer's relative head pose as a rigid motion of the target mesh."""
 
     name = "render3d.head"
-    version = "3"  # 3: from the pack's geometry, model and camera (no mesh); the depth of every point
+    version = "3"
     doc = "Sec. 14.1: performer head pose (compensate.rigid3d) -> rigid motion of the target's 3D model, mm; point depths"
     inputs = {
         "geometry": "pack_geometry",
@@ -192,7 +192,7 @@ class Render3D(FrameStage):
     """``render3d``: the textured target mesh under the performer's head pose (Sec. 14.1)."""
 
     name = "render3d"
-    version = "2"  # 2: the whole head, projective texturing, mattes, the shot channels
+    version = "2"
     doc = "Sec. 14.1: Sec. 9 mesh (the whole head) + synthesized texture under the head pose; z-buffer, MSAA, mattes, depth; EXR"
     inputs = {
         "texture": "frames",

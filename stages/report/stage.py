@@ -36,7 +36,7 @@ class ContactSheet(SequenceStage):
     """``report.sheet``: performer | result JPEGs at the contact sheet's frames (see the module doc)."""
 
     name = "report.sheet"
-    version = "2"  # 2: the reference frame in the sheet
+    version = "2"
     doc = "the report's contact sheet: performer | result JPEGs at evenly spaced frames and the expression peaks"
     inputs = {
         "performer": "frames",
@@ -86,7 +86,7 @@ class WriteReport(SequenceStage):
     """``write.report``: ``index.html`` under the ``report`` files output (see the module doc)."""
 
     name = "write.report"
-    version = "5"  # 5: the states section (eyes, lip seal, beyond the pack) and the occluded face regions
+    version = "5"
     doc = "an HTML page to judge the run: contact sheet, expression/pose/tracking curves, coefficients, warnings"
     inputs = {
         "sheet": "sheet",

@@ -331,7 +331,7 @@ class BuildSynthesis(SequenceStage):
     stands in for the :class:`ActorPack` of :func:`build_synthesis_model`)."""
 
     name = "synthesis.build"
-    version = "4"  # 4: surround anchors (the mouth outline a constraint), validity and head mattes, the outside from the neutral, teeth mixing
+    version = "4"
     doc = "offline: align examples and teeth examples to the standard image, subregion mask, blend weight map"
     inputs = {"layout": "layout", "images": "pack_images"}
     outputs = {"model": "synthesis_model"}

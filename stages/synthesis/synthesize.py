@@ -687,7 +687,7 @@ class Synthesize(FrameStage):
     """
 
     name = "synthesis.synthesize"
-    version = "8"  # 8: min_coeff 0.01; example weights coherent in time (stages.synthesis.coherence); depth-aware head turn, output size, head and filled mattes, fill, teeth mix, the outside from the neutral
+    version = "8"
     doc = (
         "per-subregion QP + compositing + blending + warp (head turned in depth): target points per frame -> "
         "half-float sRGB frames, face mask, head matte, filled matte, coefficients"

@@ -190,7 +190,7 @@ class WriteData(SequenceStage):
     """Writes ``data.npz`` and ``data.csv``: every connected per-frame bundle, one row per frame."""
 
     name = "write.data"
-    version = "2"  # 2: the occlusion input
+    version = "2"
     doc = "per-frame points, pose, similarity, QP coefficients and occluded regions as data.npz and data.csv"
     inputs = {**BUNDLE_PORTS, "frames": "frames"}
     optional_inputs = frozenset(inputs)

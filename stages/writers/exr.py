@@ -369,9 +369,6 @@ class WriteExr(FrameStage):
     """Writes ``frame.%06d.exr`` per frame: half float, scene-linear, premultiplied RGBA, metadata."""
 
     name = "write.exr"
-    # 2: own zip writer (ISA-L's deflate); 3: zlib's deflate, whose bytes do not depend on the thread
-    # (other bytes, the same pixels); 4: zlib-ng's deflate (as deterministic, 3x faster at level 1);
-    # 5: the shot channels with 'head_matte' (plate, face and filled mattes), the head motion in the header
     version = "5"
     doc = "EXR per frame: half float, scene-linear (sRGB decoded); the head (associated alpha), the plate, face and filled mattes"
     inputs = {

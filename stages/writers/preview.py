@@ -79,7 +79,7 @@ class SideBySide(FrameStage):
     """Performer | result, uint8 RGB at a common even height, for ``write.video``."""
 
     name = "preview.side_by_side"
-    version = "3"  # 3: bilinear for shrinks above one half (was area averaging)
+    version = "3"
     doc = "performer | result frames side by side (uint8 RGB, even size) for a preview video"
     inputs = {"performer": "frames", "result": "frames"}
     outputs = {"frames": "frames"}

@@ -218,7 +218,7 @@ class WriteUsd(SequenceStage):
     """``write.usd``: ``scene.usda`` (animated mesh, head xform, texture sequence, camera), textures, head pose CSV."""
 
     name = "write.usd"
-    version = "3"  # 2: the primvar reader's varname is a string (usd-core validation); 3: the whole head
+    version = "3"
     doc = "USD scene of the 3D expression: time-sampled mesh points and UVs, head xform, texture sequence; head_pose.csv"
     inputs = {"mesh": "mesh3d", "head": "head3d", "texture": "frames", "mask": "frames"}
     optional_inputs = frozenset({"head", "mask"})
