@@ -41,7 +41,7 @@ import signal
 import socket
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -396,7 +396,7 @@ def _show(state: _State, event: dict[str, Any], log: Callable[[dict[str, Any]], 
         echo(f"[{name}] {line}")
 
 
-def _table(states) -> list[str]:
+def _table(states: Iterable[_State]) -> list[str]:
     """The final table: one row per job."""
     rows = [("job", "status", "seconds", "ran/cached", "output or error")]
     for s in states:

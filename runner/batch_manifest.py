@@ -29,6 +29,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import yaml
 
@@ -61,7 +62,7 @@ class Job:
 class _Fields:
     """A job's (or the defaults') fields: value and node of each."""
 
-    values: dict[str, object] = field(default_factory=dict)
+    values: dict[str, Any] = field(default_factory=dict)
     nodes: dict[str, yaml.Node] = field(default_factory=dict)
 
 
@@ -162,14 +163,14 @@ def _job(
     defaults: _Fields,
     base: Path,
     registry: Registry,
-    pipelines: dict,
+    pipelines: dict[tuple[str, tuple[str, ...]], Pipeline | ConfigError],
 ) -> Job | None:
     """The job ``name`` checked as ``runner run`` checks its command line; None (issues
     recorded) if it is invalid."""
     key = f"jobs.{name}"
     count = len(r.issues)
 
-    def field_of(fname: str) -> tuple[object, yaml.Node] | None:
+    def field_of(fname: str) -> tuple[Any, yaml.Node] | None:
         for fields in (own, defaults):
             if fname in fields.values:
                 return fields.values[fname], fields.nodes[fname]

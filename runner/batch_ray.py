@@ -60,12 +60,12 @@ def start_local_ray(cpus: int, *, note: Callable[[str], None]) -> Callable[[], N
     except ImportError as exc:
         note(f"note: Ray's node API is missing ({exc}); starting the whole local Ray with ray.init()")
         ray.init(address="local", num_cpus=cpus, include_dashboard=False, **RAY_OPTIONS)
-        return ray.shutdown
+        return ray.shutdown  # type: ignore[no-any-return]  # Ray is read as untyped
 
-    class BatchNode(Node):
+    class BatchNode(Node):  # type: ignore[misc]  # Ray is read as untyped
         """A head node without the dashboard head (the API server)."""
 
-        def start_api_server(self, *, include_dashboard, raise_on_failure) -> None:
+        def start_api_server(self, *, include_dashboard: bool | None, raise_on_failure: bool) -> None:
             """Start nothing: no dashboard, no job or state API on a batch's own Ray."""
 
     enable_token_auth_by_default()  # as ray.init() does for a local Ray: RAY_AUTH_MODE=token unless set

@@ -36,7 +36,7 @@ import shutil
 import socket
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -229,7 +229,7 @@ class CacheStore:
     # -- locks -----------------------------------------------------------------------------
 
     @contextmanager
-    def locked(self, key: str, *, on_wait=None) -> Iterator[None]:
+    def locked(self, key: str, *, on_wait: Callable[[dict[str, Any]], None] | None = None) -> Iterator[None]:
         """Hold the lock of entry ``key``; waits while a live process holds it, breaks it if
         its holder is dead. ``on_wait(holder)`` is called once when waiting starts."""
         self.locks_dir.mkdir(parents=True, exist_ok=True)
@@ -273,7 +273,8 @@ class CacheStore:
     @staticmethod
     def _read_lock(path: Path) -> dict[str, Any] | None:
         try:
-            return json.loads(path.read_text())
+            holder: dict[str, Any] = json.loads(path.read_text())
+            return holder
         except (OSError, ValueError):
             return None
 

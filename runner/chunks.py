@@ -621,7 +621,7 @@ def defines_stream_info(cls: type[FrameStage]) -> bool:
     return cls.stream_info is not FrameStage.stream_info
 
 
-def map_ordered(fn: Callable[[int], Any], items: list[int], *, jobs: int):
+def map_ordered(fn: Callable[[int], Any], items: list[int], *, jobs: int) -> Iterator[tuple[int, Any]]:
     """Yield ``(item, fn(item))``; with ``jobs > 1`` up to ``jobs`` calls run in threads, at
     most ``2 * jobs`` submitted ahead (bounded memory). The first exception cancels the rest."""
     if jobs <= 1:
@@ -629,7 +629,7 @@ def map_ordered(fn: Callable[[int], Any], items: list[int], *, jobs: int):
             yield item, fn(item)
         return
     pool = ThreadPoolExecutor(max_workers=jobs)
-    pending: dict[Future, int] = {}
+    pending: dict[Future[Any], int] = {}
     queue = list(items)
     try:
         while queue or pending:

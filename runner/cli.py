@@ -14,6 +14,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any, NoReturn
 
 import click
 
@@ -116,7 +117,7 @@ def run(
     _INTERRUPTED.clear()
     log_file = open(log_json, "w", encoding="utf-8") if log_json else None
 
-    def log(event: dict) -> None:
+    def log(event: dict[str, Any]) -> None:
         if log_file is not None:
             log_file.write(json.dumps({"time": time.time(), **event}) + "\n")
             log_file.flush()
@@ -212,7 +213,7 @@ def batch(
         raise click.UsageError(f"runner batch needs Ray ({exc}): pip install 'expression-mapping[batch]'") from None
     with open(log_json, "w", encoding="utf-8") if log_json else contextlib.nullcontext() as log_file:
 
-        def log(event: dict) -> None:
+        def log(event: dict[str, Any]) -> None:
             if log_file is not None:
                 log_file.write(json.dumps(event) + "\n")
                 log_file.flush()
@@ -345,7 +346,7 @@ def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
-def _unraisable(args: object) -> None:
+def _unraisable(args: sys.UnraisableHookArgs) -> None:
     """A KeyboardInterrupt swallowed in a callback (an import lock's, a codec's) is not reported
     as "Exception ignored": :data:`_INTERRUPTED` carries it to the next event."""
     if not issubclass(args.exc_type, KeyboardInterrupt):
@@ -396,7 +397,7 @@ def main(argv: list[str] | None = None) -> None:
     sys.exit(code or 0)
 
 
-def exit_now(code: int) -> None:
+def exit_now(code: int) -> NoReturn:
     """End the process with exit status ``code`` once its own threads have finished and its
     output is flushed, skipping the interpreter's teardown: unloading torch, OpenCV and
     matplotlib module by module took 1.0-1.3 s after every run that synthesized (0.2 s without

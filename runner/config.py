@@ -28,9 +28,10 @@ only.
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import yaml
 
@@ -172,7 +173,7 @@ class _Reader:
         return entries
 
 
-def load_pipeline(path: Path, registry: Registry, *, overrides: list[str] = ()) -> Pipeline:
+def load_pipeline(path: Path, registry: Registry, *, overrides: Sequence[str] = ()) -> Pipeline:
     """Read, validate and resolve a pipeline file.
 
     Parameters
@@ -354,7 +355,7 @@ def _parse_typed(text: str, kind: type) -> Any:
     return kind(text)
 
 
-def _apply_overrides(r: _Reader, stages: dict[str, StageNode], overrides: list[str]) -> None:
+def _apply_overrides(r: _Reader, stages: dict[str, StageNode], overrides: Sequence[str]) -> None:
     for text in overrides:
         where = Where("--set")
         target, eq, raw = text.partition("=")
@@ -435,7 +436,7 @@ def bind_inputs(pipeline: Pipeline, *, clip: Path | None, named: list[str]) -> d
     ``--input NAME=PATH`` for any, else the declared default. Raises :class:`ConfigError` naming
     what is missing."""
     issues: list[Issue] = []
-    values: dict[str, Path] = {}
+    values: dict[str, Path | None] = {}
     clip_names = clip_inputs(pipeline)
     if clip is not None:
         if len(clip_names) != 1:
@@ -473,4 +474,4 @@ def bind_inputs(pipeline: Pipeline, *, clip: Path | None, named: list[str]) -> d
             issues.append(Issue(decl.where, f"inputs.{decl.name}", f"missing input: {path}: no such folder"))
     if issues:
         raise ConfigError(issues)
-    return values
+    return cast("dict[str, Path]", values)  # a missing value is an issue above

@@ -41,7 +41,7 @@ def canonical_json(value: Any) -> str:
     return json.dumps(value, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
 
 
-def cache_key(material: Mapping[str, Any]) -> str:
+def cache_key(material: Any) -> str:
     """sha256 hex digest of :func:`canonical_json` of ``material``."""
     return hashlib.sha256(canonical_json(material).encode("utf-8")).hexdigest()
 
@@ -65,7 +65,7 @@ def array_digest(array: np.ndarray) -> str:
     if array.dtype.hasobject:
         raise TypeError("object arrays cannot be hashed or stored without pickle")
     h = hashlib.sha256(canonical_json({"dtype": array.dtype.str, "shape": list(array.shape)}).encode())
-    h.update(memoryview(np.ascontiguousarray(array)).cast("B"))
+    h.update(memoryview(np.ascontiguousarray(array)).cast("B"))  # type: ignore[arg-type]  # numpy arrays are buffers
     return h.hexdigest()
 
 

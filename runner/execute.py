@@ -391,7 +391,7 @@ class Runner:
                 report.seconds, report.cpu_seconds = self._in_child[node.name]
         return report
 
-    def _import_ahead(self, waiting: list[StageNode], ended: queue.Queue) -> None:
+    def _import_ahead(self, waiting: list[StageNode], ended: queue.Queue[Any]) -> None:
         """Import the modules the ``waiting`` stages declare (:attr:`runner.stage.Stage.imports`),
         once each, while this thread would only wait for a streamed section that computes: once
         a streamed stage has computed a chunk in this run (a cached run, whose streams are only

@@ -111,7 +111,8 @@ class Keys:
     def memo(self, node: StageNode) -> dict[str, Any] | None:
         """The key material remembered from ``node``'s last completed run, or None."""
         try:
-            return json.loads(self._memo_path(node).read_text())
+            material: dict[str, Any] = json.loads(self._memo_path(node).read_text())
+            return material
         except (OSError, ValueError):
             return None
 

@@ -84,9 +84,10 @@ def showing() -> Iterator[None]:
 @contextmanager
 def recording() -> Iterator[list[str]]:
     """Collect the warning lines logged on this thread while the block runs (each once)."""
-    token = _recorder.set([])
+    lines: list[str] = []
+    token = _recorder.set(lines)
     try:
-        yield _recorder.get()
+        yield lines
     finally:
         _recorder.reset(token)
 

@@ -57,7 +57,7 @@ def spec(*, pipeline: Path, overrides: list[str], bound: dict[str, Path], cache:
     )
 
 
-def start(argument: str) -> subprocess.Popen:
+def start(argument: str) -> subprocess.Popen[str]:
     """Start the child process for :func:`spec`'s ``argument``; its events are lines of its
     standard output (text), its standard error is dropped."""
     package_root = str(Path(runner.__file__).resolve().parent.parent)
@@ -78,7 +78,8 @@ class Forked:
     ``stdout`` lines, :meth:`wait`, :meth:`terminate`, ``returncode``)."""
 
     def __init__(self, pid: int, stdout: IO[str]):
-        self.pid, self.stdout, self.returncode = pid, stdout, None
+        self.pid, self.stdout = pid, stdout
+        self.returncode: int | None = None
         self._lock = threading.Lock()
 
     def wait(self) -> int:

@@ -80,12 +80,13 @@ def save_outputs(declared: Mapping[str, str], result: Any, tmp: Path, *, frames:
     if not isinstance(result, dict) or set(result) != set(declared):
         got = sorted(result) if isinstance(result, dict) else type(result).__name__
         raise StageError(f"returned {got}, expected outputs {sorted(declared)}")
-    outputs, verified = {}, {}
+    outputs: dict[str, dict[str, Any]] = {}
+    verified: dict[str, Any] = {}
     for port, kind in declared.items():
         value = result[port]
         if kind == "frames":
             array = np.asarray(value)
-            check_frames(port, array, frames[0], frames[1])
+            check_frames(port, array, frames[0], frames[1])  # type: ignore[index]  # a frame stage is given its frames
             outputs[port] = {"type": kind, "digest": array_digest(array)}
         elif kind == "files":
             folder = tmp / "files" / port
@@ -100,7 +101,7 @@ def save_outputs(declared: Mapping[str, str], result: Any, tmp: Path, *, frames:
             arrays = _bundle_arrays(port, kind, value, frames)
             name = BUNDLE_FILE.format(port=port)
             with _naming(tmp / name):
-                np.savez(tmp / name, **arrays)
+                np.savez(tmp / name, **arrays)  # type: ignore[arg-type]  # numpy declares the keyword arrays too narrowly
             outputs[port] = {"type": kind, "file": name, "digest": bundle_digest(arrays), "sha256": file_digest(tmp / name)}
     if verified:
         (tmp / VERIFIED).write_text(json.dumps(verified, sort_keys=True))
@@ -123,7 +124,7 @@ def _bundle_arrays(port: str, kind: str, value: Any, frames: tuple[int, StreamIn
 
 def output_path(entry: Entry, port: str) -> Path:
     """The file (or ``files`` folder) of output ``port`` in ``entry``."""
-    return entry.path / entry.record["outputs"][port]["file"]
+    return entry.path / entry.record["outputs"][port]["file"]  # type: ignore[no-any-return]  # the record is JSON
 
 
 def _read_verified(path: Path, sha256: str | None) -> bytearray:

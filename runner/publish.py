@@ -33,6 +33,7 @@ import tempfile
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from runner.cache import Entry, holder_is_stale
 from runner.outputs import Damaged, copy_verified, file_stat, output_path, save_verified_stats, verified_stats
@@ -127,7 +128,7 @@ def remove_leftovers(out: Path) -> int:
     return removed
 
 
-def _ours_and_dead(path: Path, match: re.Match) -> bool:
+def _ours_and_dead(path: Path, match: re.Match[str]) -> bool:
     """Whether leftover folder ``path`` was written by a publish of stage ``match["stage"]`` in
     process ``match["pid"]`` of this host, which is gone: its marker says so, or (an ``.old``
     folder renamed away just before its marker was written) it is a whole published folder."""
@@ -194,7 +195,7 @@ def _record_path(records: Path, final: Path) -> Path:
     return Path(records) / f"{hashlib.sha256(os.fsencode(final.resolve())).hexdigest()}.json"
 
 
-def _keep_records(records: Path, final: Path, keys: list[str], listed: list[dict]) -> None:
+def _keep_records(records: Path, final: Path, keys: list[str], listed: list[dict[str, Any]]) -> None:
     """Record the stat of each file published in ``final`` (atomically; a failure only means
     the folder is published again next time)."""
     path = _record_path(records, final)
@@ -253,7 +254,7 @@ def publish(out: Path, item: Published, *, records: Path, on_damaged: Callable[[
         _remove_marked(old)
 
 
-def _build(out: Path, item: Published, tmp: Path, on_damaged: Callable[[Damaged], None]) -> list[dict]:
+def _build(out: Path, item: Published, tmp: Path, on_damaged: Callable[[Damaged], None]) -> list[dict[str, Any]]:
     """Fill the temporary folder ``tmp`` of ``item``: its marker, the verified copies, the
     manifest last; checks that ``out/<stage>`` may still be replaced. Returns the manifest's
     file list."""
@@ -285,7 +286,7 @@ class _DamagedEntry(Exception):
         self.index, self.damaged = index, damaged
 
 
-def _copy(item: Published, tmp: Path) -> list[dict]:
+def _copy(item: Published, tmp: Path) -> list[dict[str, Any]]:
     """Put every file of ``item`` into ``tmp``, verified, as copies (:func:`runner.outputs.copy_verified`);
     the manifest's file list."""
     listed = []

@@ -33,23 +33,24 @@ class StrictLoader(yaml.SafeLoader):
 
     def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node:
         if self.check_event(yaml.AliasEvent):
-            event = self.peek_event()
+            event = self.peek_event()  # type: ignore[no-untyped-call]
             raise yaml.composer.ComposerError(
                 None, None, f"alias *{event.anchor} is not allowed (aliases are refused)", event.start_mark
             )
         if self.check_event(yaml.SequenceStartEvent, yaml.MappingStartEvent) and self._depth >= MAX_DEPTH:
-            raise yaml.composer.ComposerError(None, None, f"nested deeper than {MAX_DEPTH} levels", self.peek_event().start_mark)
+            raise yaml.composer.ComposerError(None, None, f"nested deeper than {MAX_DEPTH} levels", self.peek_event().start_mark)  # type: ignore[no-untyped-call]
         self._depth += 1
         try:
-            node = super().compose_node(parent, index)
+            node: yaml.Node = super().compose_node(parent, index)  # type: ignore[assignment]  # None only at the stream end
         finally:
             self._depth -= 1
         if node.tag not in self.yaml_constructors:
             raise yaml.constructor.ConstructorError(None, None, f"tag {node.tag!r} is not allowed", node.start_mark)
         return node
 
-    def compose_mapping_node(self, anchor: str | None) -> yaml.MappingNode:
-        node = super().compose_mapping_node(anchor)
+    # PyYAML passes the node's anchor (types-PyYAML declares a dict)
+    def compose_mapping_node(self, anchor: str | None) -> yaml.MappingNode:  # type: ignore[override]
+        node = super().compose_mapping_node(anchor)  # type: ignore[arg-type]
         first: dict[tuple[str, str], yaml.Node] = {}
         for key, _ in node.value:
             if not isinstance(key, yaml.ScalarNode):
@@ -81,7 +82,7 @@ def read_text(path: str | Path) -> str:
         return data.decode("utf-8")
     except UnicodeDecodeError as exc:
         line_start = data.rfind(b"\n", 0, exc.start) + 1
-        mark = yaml.Mark(str(path), exc.start, data.count(b"\n", 0, exc.start), exc.start - line_start, None, None)
+        mark = yaml.Mark(str(path), exc.start, data.count(b"\n", 0, exc.start), exc.start - line_start, None, None)  # type: ignore[arg-type]  # no buffer
         raise yaml.MarkedYAMLError(
             problem=f"not UTF-8 text (byte 0x{data[exc.start]:02x}: {exc.reason})", problem_mark=mark
         ) from None

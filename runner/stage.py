@@ -197,7 +197,7 @@ class FrameStage(Stage):
         first ``frames`` input. Stages without one (decode, synthesize) override it."""
         for port, kind in self.inputs.items():
             if kind == "frames" and inputs.get(port) is not None:
-                return inputs[port].info
+                return inputs[port].info  # type: ignore[no-any-return]  # a frames input is a FrameStream
         raise NotImplementedError(f"{self.name} has no frames input; it must define stream_info")
 
     def process(

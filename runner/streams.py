@@ -74,7 +74,9 @@ class CachedStream(ChunkedStream):
         self._files = files
 
     def chunk(self, index: int, *, mmap: bool = False) -> np.ndarray:
-        return np.load(self._files[index], mmap_mode="r" if mmap else None, allow_pickle=False)
+        return np.load(  # type: ignore[no-any-return]  # a .npy file holds one array
+            self._files[index], mmap_mode="r" if mmap else None, allow_pickle=False
+        )
 
 
 class SharedStream(ChunkedStream):
@@ -159,7 +161,7 @@ class ComputedStream(ChunkedStream):
                         self._keep_chunk(i, frames)
         if self._read_ahead:
             self._queue(index + 1)
-        return frames
+        return frames  # type: ignore[return-value]  # computed above when not kept (the range ends at index)
 
     def _keep_chunk(self, index: int, frames: np.ndarray) -> None:
         """Keep chunk ``index`` (computed in order) and move the in-order position past it."""
