@@ -27,6 +27,8 @@ from runner.cache import CacheStore
 from runner.outputs import load_bundle
 from stages.actor_pack import load_pack
 
+pytestmark = [pytest.mark.slow, pytest.mark.subprocess]
+
 REPO = Path(__file__).resolve().parent.parent
 RUNNER = [sys.executable, "-c", "from runner.cli import main; main()"]
 TRUTH = REPO / "fixtures" / "clips" / "calm_truth.npz"

@@ -19,6 +19,8 @@ import pytest
 from stages.geometry.states import SEALED_GAP, state_signals
 from tests.test_end_to_end import run_cli
 
+pytestmark = [pytest.mark.slow, pytest.mark.subprocess]
+
 SIZE = 256
 
 

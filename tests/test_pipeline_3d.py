@@ -15,6 +15,8 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
+pytestmark = [pytest.mark.slow, pytest.mark.subprocess]
+
 REPO = Path(__file__).resolve().parent.parent
 RUNNER = [sys.executable, "-c", "from runner.cli import main; main()"]
 

@@ -170,6 +170,7 @@ def test_frames_of_the_performance(editor_server, performance):
         np.testing.assert_array_equal(json.loads(answer)["points"], data["target_xy"][3])
 
 
+@pytest.mark.subprocess
 def test_binding_a_remote_address_needs_an_explicit_option():
     result = subprocess.run(
         [sys.executable, "-m", "editor.cli", "--pack", str(PACK), "--host", "0.0.0.0"],
@@ -181,6 +182,7 @@ def test_binding_a_remote_address_needs_an_explicit_option():
     assert result.returncode == 2 and "--allow-remote" in result.stderr
 
 
+@pytest.mark.subprocess
 def test_an_allowed_remote_address_is_warned_about(tmp_path):
     # A folder without pack.yaml: the command warns, then stops before building anything.
     result = subprocess.run(
@@ -194,6 +196,7 @@ def test_an_allowed_remote_address_is_warned_about(tmp_path):
     assert result.returncode == 2 and "no pack.yaml" in result.stderr
 
 
+@pytest.mark.subprocess
 @pytest.mark.parametrize("content", [b"", b"PK\x03\x04 truncated"])
 def test_an_empty_or_truncated_performance_is_one_line_exit_2(tmp_path, content):
     performance = tmp_path / "data.npz"
@@ -305,6 +308,7 @@ def test_exports_are_built_off_the_event_loop_one_at_a_time(monkeypatch):
     assert [at_once for _, at_once in built] == [1, 1]
 
 
+@pytest.mark.subprocess
 def test_the_editor_started_in_the_background_stops_on_sigint():
     """A script's background job starts with SIGINT ignored (here: `trap "" INT`, then exec);
     the editor honours it anyway: exit 130."""

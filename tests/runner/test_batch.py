@@ -30,6 +30,8 @@ from runner.cache import CacheStore
 from runner.stage import Context, Param, SequenceStage
 from tests.runner.helpers import DATA, REPO, TINY, cli_env, read_log, run_cli, runner_cmd, tree_bytes
 
+pytestmark = [pytest.mark.ray, pytest.mark.subprocess]
+
 
 GRAPH = DATA / "graph.yaml"
 SLEEP_S = "0.3"  # per chunk of test.add on the module's Ray workers: a kill lands inside the work

@@ -31,7 +31,7 @@ import pytest
 from tests.runner.helpers import read_log, runner_cmd, tree_bytes
 from tests.runner.test_batch import TAG, TWO_JOBS, _assert_gone, _env, _manifest, _tagged_pids, alone, site  # noqa: F401 - fixtures (alone, site) shared with test_batch: pytest finds them by name here
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.ray, pytest.mark.subprocess]
 
 NODE = "RUNNER_BATCH_TEST_NODE"  # which node a Ray process belongs to (in its environment)
 RAY = Path(sys.executable).with_name("ray")

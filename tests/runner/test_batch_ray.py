@@ -18,6 +18,8 @@ import ray
 from runner.batch_ray import start_local_ray
 from tests.runner.test_batch import TAG, _assert_gone, _tagged_pids
 
+pytestmark = [pytest.mark.ray]
+
 # Scripts of the Python processes a batch on one machine does not use.
 UNUSED = {
     "dashboard head": "ray/dashboard/dashboard.py",
@@ -49,6 +51,7 @@ def _pid_and_nice() -> tuple[int, int]:
     return os.getpid(), os.getpriority(os.PRIO_PROCESS, 0)
 
 
+@pytest.mark.subprocess
 def test_local_ray_runs_tasks_without_the_unused_processes_and_stops_them_all():
     tag = f"batch-ray-{os.getpid()}"
     running, _, _ = _started(

@@ -53,6 +53,7 @@ def test_second_commit_of_same_key_keeps_the_first_unless_replacing(tmp_path):
         assert (entry.path / "v").read_text() == ("third" if replace else "first")
 
 
+@pytest.mark.subprocess
 def test_stale_lock_of_dead_process_is_broken(tmp_path):
     store = CacheStore(tmp_path)
     store.locks_dir.mkdir(parents=True)
@@ -102,6 +103,7 @@ def test_live_lock_makes_others_wait(tmp_path):
     assert waited[0]["pid"] == os.getpid()
 
 
+@pytest.mark.subprocess
 def test_gc_removes_leftovers_of_dead_runs_and_old_entries(tmp_path):
     store = CacheStore(tmp_path)
     dead = _dead_pid()

@@ -31,6 +31,7 @@ def _decoded(path: Path) -> np.ndarray:
         return np.stack([f.to_ndarray(format="rgb24") for f in container.decode(video=0)])
 
 
+@pytest.mark.subprocess
 def test_chain_runs_end_to_end_and_reruns_from_cache(env, tmp_path):
     out = tmp_path / "out"
     first = run_cli("run", CHAIN, "--in", TINY, "--out", out, "--log-json", tmp_path / "1.jsonl", env=env, cwd=tmp_path)
@@ -63,6 +64,7 @@ def test_chain_runs_end_to_end_and_reruns_from_cache(env, tmp_path):
     assert (out / "write" / "video.mp4").read_bytes() == published
 
 
+@pytest.mark.subprocess
 def test_param_change_reruns_only_stages_whose_inputs_changed(env, tmp_path):
     def run(name: str, *sets: str) -> dict[str, str]:
         args = [a for s in sets for a in ("--set", s)]
@@ -112,6 +114,7 @@ def test_param_change_reruns_only_stages_whose_inputs_changed(env, tmp_path):
     )
 
 
+@pytest.mark.subprocess
 def test_dry_run_reports_reasons_and_runs_nothing(env, tmp_path):
     out, cache = tmp_path / "out", Path(env["RUNNER_CACHE_DIR"])
     fresh = run_cli("run", GRAPH, "--out", out, "--dry-run", env=env, cwd=tmp_path)
@@ -132,6 +135,7 @@ def test_dry_run_reports_reasons_and_runs_nothing(env, tmp_path):
     assert sorted(e.key for e in CacheStore(cache).iter_entries()) == before
 
 
+@pytest.mark.subprocess
 def test_until_and_force(env, tmp_path):
     log = tmp_path / "until.jsonl"
     done = run_cli("run", GRAPH, "--out", tmp_path / "out", "--until", "mean", "--log-json", log, env=env, cwd=tmp_path)
@@ -147,6 +151,7 @@ def test_until_and_force(env, tmp_path):
     assert tree_bytes(tmp_path / "out" / "write") == published
 
 
+@pytest.mark.subprocess
 @pytest.mark.parametrize(
     "content, words",
     [
@@ -207,6 +212,7 @@ def test_config_errors_exit_2_with_positions(tmp_path, monkeypatch):
     assert not (tmp_path / "cache").exists()
 
 
+@pytest.mark.subprocess
 def test_stages_dag_and_cache_commands(env, tmp_path):
     listed = run_cli("stages", env=env, cwd=tmp_path)
     assert listed.returncode == 0
@@ -247,6 +253,7 @@ def test_a_swallowed_interrupt_is_not_reported_but_other_unraisables_are(capsys,
     assert "boom" in capsys.readouterr().err
 
 
+@pytest.mark.subprocess
 def test_exit_now_waits_for_threads_and_flushes(tmp_path):
     """The command's fast exit (no interpreter teardown) keeps the exit status, what was printed
     without a newline, and the work of a thread still running."""
@@ -267,6 +274,7 @@ def test_exit_now_waits_for_threads_and_flushes(tmp_path):
     assert marker.read_text() == "done"
 
 
+@pytest.mark.subprocess
 def test_empty_npz_in_a_pack_is_a_stage_failure_not_an_interrupt(tmp_path):
     """A zero-byte ``captured.npz``: one line naming the stage and the file, exit 1 (its
     EOFError is no interrupt, whatever click makes of it)."""
@@ -313,6 +321,7 @@ stages:
 """  # `mean` reads a source's frames while `video` computes: it runs in a child process (runner.offload)
 
 
+@pytest.mark.subprocess
 def test_warnings_are_one_line_each_once_and_given_again_by_a_cached_run(env, tmp_path):
     """A stage's own warning and a numpy RuntimeWarning of its computation: one line each on
     stderr (the stage ran in a child process and was then looked up by the run: still once),

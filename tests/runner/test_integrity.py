@@ -347,6 +347,7 @@ def _dead_pid() -> int:
     return proc.pid
 
 
+@pytest.mark.subprocess
 def test_leftovers_of_a_killed_publish_are_removed(tmp_path):
     """What a killed publish leaves (its marked temporary and replaced folders, or a replaced
     folder renamed away before its marker was written) is removed by the next run and by
@@ -367,6 +368,7 @@ def test_leftovers_of_a_killed_publish_are_removed(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == ["table"]
 
 
+@pytest.mark.subprocess
 def test_user_folders_named_like_leftovers_are_kept(tmp_path):
     """Hidden folders named ``.<name>.<digits>.old`` / ``.tmp`` that no publish of this tool
     wrote (no marker, no manifest of the stage) are a user's: a run and `cache gc` keep them."""

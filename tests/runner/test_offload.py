@@ -21,6 +21,8 @@ from runner.execute import Options, Runner
 from runner.registry import Registry
 from tests.runner.helpers import TINY, read_log, run_cli, stage_status
 
+pytestmark = [pytest.mark.subprocess]
+
 PIPELINE = """\
     chunk_frames: 8
     inputs:

@@ -44,6 +44,7 @@ def test_a_size_beyond_its_maximum_is_refused_before_anything_runs(pipeline, ove
     assert [str(issue) for issue in info.value.issues] == [f"--set: {override.split('=')[0]}: {message}"]
 
 
+@pytest.mark.subprocess
 def test_the_command_exits_2_on_select_width_20000(tmp_path, env):
     done = run_cli(
         "run",

@@ -4,10 +4,13 @@ memory like any other; a stage whose frame count differs from its input's is ref
 
 from __future__ import annotations
 
+import pytest
 import textwrap
 from pathlib import Path
 
 from tests.runner.helpers import REPO, read_log, run_cli, stage_status
+
+pytestmark = [pytest.mark.subprocess]
 
 # `add` is read by `half` (another size, cached, read by `write`) and by `mean` (a
 # sequence stage reading the stream), as `texture` is by `render3d` and `usd` in pipeline_3d.yaml;

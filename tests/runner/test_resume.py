@@ -16,6 +16,8 @@ import pytest
 from runner.cache import CacheStore
 from tests.runner.helpers import DATA, cli_env, read_log, run_cli, runner_cmd, stage_status, tree_bytes
 
+pytestmark = [pytest.mark.subprocess]
+
 GRAPH = DATA / "graph.yaml"
 PUBLISHED = ("write", "table")
 

@@ -54,6 +54,7 @@ def test_pipeline_refuses_with_position(tmp_path, case):
     assert issue_lines(info.value) == [expected]
 
 
+@pytest.mark.subprocess
 def test_cli_exit_2_one_line_no_traceback(tmp_path, env):
     for name, content in (("deep.yaml", "chunk_frames: " + DEEP), ("latin1.yaml", b"stages:\n  caf\xe9: {}\n")):
         path = write(tmp_path / name, content)
@@ -117,6 +118,7 @@ def test_layout_file_refuses_duplicate_keys(tmp_path):
     assert f"{layout}:" in str(info.value) and "duplicate key 'name' (first at line 1, column 1)" in str(info.value)
 
 
+@pytest.mark.subprocess
 def test_editor_refuses_a_bad_pack_manifest_with_exit_2(tmp_path):
     pack = tmp_path / "pack"
     shutil.copytree(PACK, pack)

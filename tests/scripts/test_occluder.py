@@ -105,6 +105,7 @@ def test_recall_precision_count_frames_and_regions():
     assert recall == 0.0 and np.isnan(precision)
 
 
+@pytest.mark.slow
 def test_rows_of_the_real_texture_clip(tmp_path):
     """The benchmark's rows on the 48-frame real-texture clip with 12-frame events (a dev clip
     takes the 30-frame default)."""
@@ -124,6 +125,7 @@ def test_rows_of_the_real_texture_clip(tmp_path):
     json.dumps(rows)
 
 
+@pytest.mark.subprocess
 def test_cli_says_in_one_line_when_a_clip_is_too_short(tmp_path):
     result = subprocess.run(
         [sys.executable, "scripts/occluder.py", "--clip", str(CLIP), "--work", str(tmp_path)],

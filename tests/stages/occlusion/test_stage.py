@@ -16,6 +16,8 @@ from stages.occlusion.regions import REGIONS, region_points
 from stages.occlusion.stage import DetectOcclusion
 from tests.memory_stream import MemoryStream, files_context
 
+pytestmark = [pytest.mark.slow]
+
 REPO = Path(__file__).resolve().parents[3]
 CLIP = REPO / "fixtures" / "realface" / "astro.mp4"
 TRUTH = REPO / "fixtures" / "realface" / "astro_truth.npz"

@@ -31,6 +31,8 @@ from stages.propagation.stage import TrainHierarchicalPCA
 from stages.synthesis.build import BuildSynthesis
 from tests.stages.test_actor_pack import _make_pack
 
+pytestmark = [pytest.mark.slow]
+
 
 class StillPerformer(SequenceStage):
     """Test source: three frames of zero displacement at every point of the pack's layout."""

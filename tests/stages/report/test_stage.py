@@ -118,6 +118,7 @@ def test_reads_only_the_contact_sheet_frames_in_ascending_order(tmp_path: Path):
     assert inputs["performer"].reads == 0 and inputs["result"].reads == 0  # chunks() never used
 
 
+@pytest.mark.subprocess
 def test_page_is_byte_identical_across_runs_and_processes(tmp_path: Path):
     first = write(stage_inputs(), tmp_path / "a").read_bytes()
     assert write(stage_inputs(), tmp_path / "b").read_bytes() == first

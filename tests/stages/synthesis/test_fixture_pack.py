@@ -1,5 +1,6 @@
 """Synthesizing the fixture target pack's own examples from their own geometry returns them."""
 
+import pytest
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +17,7 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float(10 * np.log10(1.0 / np.mean((a - b) ** 2)))
 
 
+@pytest.mark.slow
 def test_own_examples_come_back():
     pack = load_pack(PACK)
     synth = Synthesizer(build_synthesis_model(pack))

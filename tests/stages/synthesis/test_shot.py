@@ -163,6 +163,7 @@ def test_teeth_mix_shows_lips_not_squeezed_teeth_in_a_nearly_closed_mouth(pack, 
     assert abs(rendered - lips) < 0.3 * abs(teeth - lips)
 
 
+@pytest.mark.slow
 def test_output_width_is_a_parameter_and_a_size_the_footage_does_not_hold_is_refused(pack, model):
     from runner.stage import Context, StageError
     from stages.synthesis.synthesize import Synthesize

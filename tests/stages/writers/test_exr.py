@@ -191,6 +191,7 @@ for i in range(100000):
 """
 
 
+@pytest.mark.subprocess
 def test_killed_writer_leaves_only_complete_frames(tmp_path: Path) -> None:
     proc = subprocess.Popen([sys.executable, "-c", KILLED_WRITER, str(tmp_path)], cwd=REPO)
     try:

@@ -130,6 +130,7 @@ def test_files_are_equal_across_repeats_threads_and_interleaved_frames() -> None
         threading.stack_size(saved)
 
 
+@pytest.mark.subprocess
 def test_a_fresh_process_writes_the_same_bytes(tmp_path: Path) -> None:
     """The same frame written by a new interpreter (other addresses, other caches) is the same file,
     and OpenImageIO reads its half floats back bit for bit."""

@@ -12,6 +12,8 @@ import pytest
 
 from stages.video import probe
 
+pytestmark = [pytest.mark.subprocess]
+
 REPO = Path(__file__).resolve().parents[3]
 TINY = REPO / "fixtures" / "clips" / "tiny.mp4"
 
