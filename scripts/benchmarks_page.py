@@ -5,8 +5,8 @@
 For each area, the latest record of each metric: its value and unit, the commit and date of the
 run that recorded it, and the machine's load then. A row is marked *stale* when a file its area
 depends on (:data:`DEPENDS`, paths relative to the repository) changed after the recorded commit,
-or when it was recorded from a checkout with uncommitted changes; a Python file whose
-change is only comments, docstrings or layout does not count. ``--check`` exits 1 when the
+or when it was recorded from a checkout with uncommitted changes; a Python or YAML file
+whose change is only comments, docstrings or layout does not count. ``--check`` exits 1 when the
 page on disk differs from what the records give.
 """
 
@@ -18,6 +18,8 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+
+import yaml
 
 REPO = Path(__file__).resolve().parent.parent
 RESULTS = REPO / "benchmarks" / "results"
@@ -85,7 +87,8 @@ def git(*args: str) -> subprocess.CompletedProcess:
 def changed_since(commit: str, paths: tuple[str, ...]) -> bool:
     """Whether a file under ``paths`` does something else at HEAD than at ``commit`` (True when
     unknown): a Python file whose code is the same (:func:`code_of`: only comments, docstrings or
-    layout changed) does not count; any other file counts by its bytes."""
+    layout changed) or a YAML file with the same content (only comments changed) does not count;
+    any other file counts by its bytes."""
     if commit.endswith("-dirty") or commit == "unknown":
         return True
     names = git("diff", "--name-only", commit, "HEAD", "--", *paths)
@@ -93,12 +96,13 @@ def changed_since(commit: str, paths: tuple[str, ...]) -> bool:
         return True
     for name in names.stdout.split():
         before, after = git("show", f"{commit}:{name}"), git("show", f"HEAD:{name}")
-        if before.returncode != 0 or after.returncode != 0 or not name.endswith(".py"):
+        if before.returncode != 0 or after.returncode != 0 or not name.endswith((".py", ".yaml")):
             return True
+        meaning = code_of if name.endswith(".py") else yaml.safe_load
         try:
-            if code_of(before.stdout) != code_of(after.stdout):
+            if meaning(before.stdout) != meaning(after.stdout):
                 return True
-        except SyntaxError:
+        except (SyntaxError, yaml.YAMLError):
             return True
     return False
 

@@ -18,6 +18,7 @@ def test_records_keep_provenance_and_the_page_shows_the_latest_marking_stale_one
     repo = tmp_path / "repo"
     (repo / "stages").mkdir(parents=True)
     (repo / "stages" / "a.py").write_text("x = 1\n")
+    (repo / "pipeline.yaml").write_text("stages:\n  a: 1\n")
     git(repo, "init", "-q")
     git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qam", "one", "--allow-empty")
     git(repo, "add", ".")
@@ -40,6 +41,7 @@ def test_records_keep_provenance_and_the_page_shows_the_latest_marking_stale_one
     text = benchmarks_page.page()
     assert "| `m_a` | 1 | px |" in text and "| stale |" not in text
     (repo / "stages" / "a.py").write_text('"""A module."""\n\nx = (\n    1  # one\n)\n')  # words and layout only
+    (repo / "pipeline.yaml").write_text("stages:  # the graph\n  a: 1\n")
     git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qam", "words")
     assert "| stale |" not in benchmarks_page.page()
     bench.record("geometry", [{**rows[0], "value": 3.0}], started, ["geometry"])
