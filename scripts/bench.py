@@ -73,12 +73,20 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+RECORDING_OUTPUTS = (":(exclude)benchmarks/results", ":(exclude)docs/benchmarks.md")  # pathspecs
+
+
 def commit() -> str:
-    """The checkout's commit, ``-dirty`` when a tracked file differs from it; ``unknown`` outside git."""
+    """The checkout's commit, ``-dirty`` when a tracked file differs from it (the records and the
+    page rendered from them aside: recording writes them); ``unknown`` outside git."""
     try:
         head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True, check=True).stdout.strip()
         dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO, capture_output=True, text=True, check=True
+            ["git", "status", "--porcelain", "--untracked-files=no", "--", ".", *RECORDING_OUTPUTS],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            check=True,
         ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown"

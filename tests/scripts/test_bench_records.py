@@ -40,6 +40,13 @@ def test_records_keep_provenance_and_the_page_shows_the_latest_marking_stale_one
     (repo / "docs").mkdir()
     text = benchmarks_page.page()
     assert "| `m_a` | 1 | px |" in text and "| stale |" not in text
+    git(repo, "add", "benchmarks")
+    git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "records")
+    bench.record("geometry", rows, started, ["geometry"])  # the records themselves changed: not a dirty checkout
+    assert bench.commit() == git(repo, "rev-parse", "HEAD")
+    (repo / "stages" / "a.py").write_text("x = 9\n")
+    assert bench.commit().endswith("-dirty")
+    git(repo, "checkout", "-q", "--", "stages")
     (repo / "stages" / "a.py").write_text('"""A module."""\n\nx = (\n    1  # one\n)\n')  # words and layout only
     (repo / "pipeline.yaml").write_text("stages:  # the graph\n  a: 1\n")
     git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qam", "words")
