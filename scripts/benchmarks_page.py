@@ -12,7 +12,6 @@ page on disk differs from what the records give.
 
 from __future__ import annotations
 
-import argparse
 import ast
 import json
 import subprocess
@@ -22,6 +21,10 @@ from pathlib import Path
 import yaml
 
 REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))  # scripts.generated_page when run as a script
+
+from scripts.generated_page import page_main  # noqa: E402
+
 RESULTS = REPO / "benchmarks" / "results"
 PAGE = REPO / "docs" / "benchmarks.md"
 CODE = ("runner", "stages", "pipeline.yaml", "pack_build.yaml")  # what every area's figures depend on
@@ -143,17 +146,9 @@ def page() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--check", action="store_true", help="exit 1 when docs/benchmarks.md is not what the records give")
-    args = parser.parse_args(argv)
-    text = page()
-    if args.check:
-        if not PAGE.is_file() or PAGE.read_text(encoding="utf-8") != text:
-            print(f"{PAGE.relative_to(REPO)} is not up to date: run python scripts/benchmarks_page.py", file=sys.stderr)
-            return 1
-        return 0
-    PAGE.write_text(text, encoding="utf-8")
-    return 0
+    return page_main(
+        PAGE, page, name="docs/benchmarks.md", script="scripts/benchmarks_page.py", sources="benchmark records", argv=argv
+    )
 
 
 if __name__ == "__main__":

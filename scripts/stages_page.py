@@ -12,9 +12,8 @@ code. ``--check`` exits 1 when the page on disk differs from what the registry g
 
 from __future__ import annotations
 
-import argparse
-import sys
 from collections import defaultdict
+import sys
 from pathlib import Path
 
 import yaml
@@ -23,6 +22,10 @@ from runner.registry import Registry
 from runner.stage import FrameStage, Param, Stage
 
 REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))  # scripts.generated_page when run as a script
+
+from scripts.generated_page import page_main  # noqa: E402
+
 PAGE = REPO / "docs" / "stages.md"
 PIPELINES = (
     "pipeline.yaml",
@@ -108,17 +111,7 @@ def page(registry: Registry | None = None) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=(__doc__ or "").split("\n\n")[0])
-    parser.add_argument("--check", action="store_true", help="exit 1 when docs/stages.md is not what the registry gives")
-    args = parser.parse_args(argv)
-    text = page()
-    if args.check:
-        if not PAGE.is_file() or PAGE.read_text(encoding="utf-8") != text:
-            print(f"{PAGE.relative_to(REPO)} is not up to date: run python scripts/stages_page.py", file=sys.stderr)
-            return 1
-        return 0
-    PAGE.write_text(text, encoding="utf-8")
-    return 0
+    return page_main(PAGE, page, name="docs/stages.md", script="scripts/stages_page.py", sources="stage registry", argv=argv)
 
 
 if __name__ == "__main__":
