@@ -28,6 +28,7 @@ lint: $(VENV_STAMP)
 	.venv/bin/ruff check .
 	.venv/bin/ruff format --check .
 	.venv/bin/mypy
+	$(PY) scripts/benchmarks_page.py --check
 
 # The benchmark areas of scripts/bench.py, each recorded to benchmarks/results/AREA.jsonl, then
 # docs/benchmarks.md rendered from the records. The default leaves out the areas that run for a

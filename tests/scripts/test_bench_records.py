@@ -75,3 +75,29 @@ def test_type_annotations_and_type_checking_imports_are_not_code():
     assert benchmarks_page.code_of(typed) != benchmarks_page.code_of(typed.replace("    y: str\n", ""))
     assert benchmarks_page.code_of(plain) != benchmarks_page.code_of("import torch\n" + plain)
     assert benchmarks_page.code_of(typed) != benchmarks_page.code_of(typed.replace("if TYPE_CHECKING:", "if True:"))
+
+
+def test_the_check_says_it_cannot_tell_staleness_in_a_clone_without_the_recorded_commits(tmp_path, monkeypatch, capsys):
+    repo = tmp_path / "repo"
+    (repo / "benchmarks" / "results").mkdir(parents=True)
+    row = {
+        "metric": "m_a",
+        "value": 1.0,
+        "unit": "px",
+        "commit": "0" * 40,
+        "date": "2026-01-01",
+        "machine": {"load_start": 0.1, "load_end": 0.2},
+    }
+    (repo / "benchmarks" / "results" / "geometry.jsonl").write_text(json.dumps(row) + "\n")
+    git(repo, "init", "-q")
+    git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "one", "--allow-empty")
+    monkeypatch.setattr(benchmarks_page, "REPO", repo)
+    monkeypatch.setattr(benchmarks_page, "RESULTS", repo / "benchmarks" / "results")
+    monkeypatch.setattr(benchmarks_page, "PAGE", repo / "docs" / "benchmarks.md")  # no page at all
+    assert benchmarks_page.missing_commits() == ["0" * 40]
+    assert benchmarks_page.main(["--check"]) == 0
+    assert "lacks 1 recorded commits" in capsys.readouterr().err
+    git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "two", "--allow-empty")
+    row["commit"] = git(repo, "rev-parse", "HEAD")
+    (repo / "benchmarks" / "results" / "geometry.jsonl").write_text(json.dumps(row) + "\n")
+    assert benchmarks_page.missing_commits() == [] and benchmarks_page.main(["--check"]) == 1  # the page is missing
