@@ -24,11 +24,14 @@ wall time. Each figure is the best of ``--repeats`` runs. Rows (all per frame):
   the default level; ``piz``, ``rle``: OpenImageIO).
 - ``writers_exr_ms_zip_level<L>``, ``writers_exr_mb_zip_level<L>``: the same with ``zip`` at each
   deflate level L (1-9).
-- ``writers_exr_ms_<zip|none>_oiio``, ``writers_exr_mb_zip_oiio``: the writer before, OpenImageIO
-  for every codec, on the same frames in the same run; ``writers_exr_cpu_ratio_<zip|none>``: the
-  stage's CPU ms over that.
+- ``writers_exr_ms_<zip|zip1|none>_oiio``, ``writers_exr_mb_<zip|zip1|none>_oiio``: the writer before,
+  OpenImageIO for every codec, on the same frames in the same run (``zip`` at OpenImageIO's default
+  level, ``zip1`` as ``compression="zip:1"``, the stage's level); ``writers_exr_cpu_ratio_<zip|zip1|none>``:
+  the stage's CPU ms over that (``zip1``: like with like, both at deflate level 1).
 - ``writers_exr_fps_zip_serial`` / ``writers_exr_fps_zip_<N>threads``: wall frames/s of
-  ``write.exr`` serial and at the stage's default (N frames in parallel, OpenEXR's pool on).
+  ``write.exr`` serial and at the stage's default (N frames in parallel, OpenEXR's pool on);
+  ``writers_exr_fps_zip1_oiio_<N>threads``: OpenImageIO at ``zip:1`` frame by frame with OpenEXR's
+  pool of N threads, and ``writers_exr_fps_ratio_zip1_<N>threads`` the stage's wall frames/s over it.
 - ``writers_stream_ms_<exr|video|preview>``, ``writers_stream_ms_total``: the writers of the
   ``bench.py e2e`` run stage by stage as the pipeline runs them (``pipeline_paper.yaml``'s
   parameters, stage defaults, 16-frame chunks, the EXR with one writer thread): ``write.exr``,
@@ -220,15 +223,19 @@ def exr_rows(result: np.ndarray, work: Path, repeats: int, threads: int) -> list
             rows += measure(
                 f"zip_level{level}", lambda: write_exr(result, alpha, folder, threads=1, compression="zip", zip_level=level)
             )[0]
-        for compression in ("zip", "none"):
-            before, ms_before, _ = measure(
-                f"{compression}_oiio", lambda: write_exr_oiio(result, alpha, folder, compression=compression)
-            )
-            rows += before + [_row(f"writers_exr_cpu_ratio_{compression}", ms[compression] / ms_before, "after/before")]
+        for name, codec, own in (("zip", "zip", "zip"), ("zip1", f"zip:{ZIP_LEVEL}", "zip"), ("none", "none", "none")):
+            before, ms_before, _ = measure(f"{name}_oiio", lambda: write_exr_oiio(result, alpha, folder, compression=codec))
+            rows += before + [_row(f"writers_exr_cpu_ratio_{name}", ms[own] / ms_before, "after/before")]
+        oiio.attribute("exr_threads", threads)
+        _, wall_oiio, _ = best_of(repeats, lambda: write_exr_oiio(result, alpha, folder, compression=f"zip:{ZIP_LEVEL}"))
     finally:
         oiio.attribute("exr_threads", pool)
     _, wall, _ = best_of(repeats, lambda: write_exr(result, alpha, folder, threads=threads, compression="zip"))
-    rows.append(_row(f"writers_exr_fps_zip_{threads}threads", len(result) / wall, "frames/s"))
+    rows += [
+        _row(f"writers_exr_fps_zip_{threads}threads", len(result) / wall, "frames/s"),
+        _row(f"writers_exr_fps_zip1_oiio_{threads}threads", len(result) / wall_oiio, "frames/s"),
+        _row(f"writers_exr_fps_ratio_zip1_{threads}threads", wall_oiio / wall, "after/before"),
+    ]
     shutil.rmtree(folder, ignore_errors=True)
     return rows
 
