@@ -1,7 +1,8 @@
 # Two entry points (README): `make run` runs the default pipeline on the bundled fixture clip,
 # `make test` runs the test suite. Both create the virtual environment on first use.
 # `make test-fast` runs the tests not marked slow, browser, ray or subprocess (pyproject.toml);
-# `make lint` runs ruff (lint and format check) and mypy; `make bench` records benchmark areas.
+# `make lint` runs ruff (lint and format check), mypy and import-linter (the packages' layers,
+# pyproject.toml); `make bench` records benchmark areas.
 PY := .venv/bin/python
 VENV_STAMP := .venv/.installed-$(shell sha256sum pyproject.toml | cut -c1-12)
 
@@ -12,7 +13,7 @@ $(VENV_STAMP): pyproject.toml
 	$(PY) -m pip install -q --disable-pip-version-check -e '.[test]'
 	# bytecode of the editable packages, as pip writes it for installed ones: start-up does not
 	# recompile them where PYTHONDONTWRITEBYTECODE is set (stale files are recompiled by mtime)
-	$(PY) -m compileall -q runner stages editor scripts > /dev/null
+	$(PY) -m compileall -q runner stages editor lab scripts > /dev/null
 	rm -f .venv/.installed-* && touch $@
 
 run: $(VENV_STAMP)
@@ -28,6 +29,7 @@ lint: $(VENV_STAMP)
 	.venv/bin/ruff check .
 	.venv/bin/ruff format --check .
 	.venv/bin/mypy
+	.venv/bin/lint-imports
 	$(PY) scripts/benchmarks_page.py --check
 
 # The benchmark areas of scripts/bench.py, each recorded to benchmarks/results/AREA.jsonl, then

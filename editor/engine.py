@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 import torch
 
-from editor.points_file import MAX_POINT_VALUES
+from stages.geometry.points_file import MAX_POINT_VALUES
 from editor.preview import PreviewSynthesizer
 from stages.propagation.pinned import PinnedPropagation
 from runner.stage import Context, SequenceStage, StageError
@@ -99,7 +99,7 @@ def read_performance(path: Path, layout: Layout) -> np.ndarray:
     ------
     ValueError
         The file is not a readable ``.npz`` (:class:`stages.npz_file.NpzError`: empty,
-        truncated, an array of more than :data:`editor.points_file.MAX_POINT_VALUES` values), has
+        truncated, an array of more than :data:`stages.geometry.points_file.MAX_POINT_VALUES` values), has
         no ``target_xy`` of the layout's shape, its names differ from the layout's, or it holds
         non-finite values (the message names the file and the field).
     """

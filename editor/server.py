@@ -50,7 +50,7 @@ from aiohttp import web
 from editor import validate
 from editor.engine import EditorEngine
 from editor.geometry import interpolate_keyframes
-from editor.points_file import points_file_bytes
+from stages.geometry.points_file import points_file_bytes
 from editor.renderers import Renderers
 
 STATIC = Path(__file__).resolve().parent / "static"

@@ -1,5 +1,4 @@
-"""Frame streams handed to stages: chunks read from ``.npy`` files, shared as they are computed,
-or computed on demand.
+"""Frame streams handed to stages: chunks shared as they are computed, or computed on demand.
 
 Both implement :class:`runner.stage.FrameStream`: ``read(start, stop)`` with indices clamped to
 the clip by edge replication, and ``chunks()`` over the whole clip in order. Only the chunks a
@@ -11,7 +10,6 @@ from __future__ import annotations
 import threading
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
-from pathlib import Path
 
 import numpy as np
 
@@ -64,19 +62,6 @@ class ChunkedStream:
         for index, (start, _) in enumerate(self.ranges):
             self.asked(index)
             yield start, self.chunk(index)
-
-
-class CachedStream(ChunkedStream):
-    """Chunks stored as ``.npy`` files, one per chunk, read when touched."""
-
-    def __init__(self, info: StreamInfo, ranges: list[tuple[int, int]], files: list[Path]):
-        super().__init__(info, ranges)
-        self._files = files
-
-    def chunk(self, index: int, *, mmap: bool = False) -> np.ndarray:
-        return np.load(  # type: ignore[no-any-return]  # a .npy file holds one array
-            self._files[index], mmap_mode="r" if mmap else None, allow_pickle=False
-        )
 
 
 class SharedStream(ChunkedStream):

@@ -85,8 +85,8 @@ def synthetic_geometries(n_test: int, *, n_captured: int = 40, n_examples: int =
     the scale of a 600x800 image, with 0.3 px of annotation noise; as in the fixture packs, the
     test expressions are captured geometries not chosen as examples.
     """
-    from scripts.facegen.face import expression_points3d, make_identity, neutral_points3d
-    from scripts.facegen.sequences import captured_controls, farthest_point_selection
+    from stages.eigen.facegen.face import expression_points3d, make_identity, neutral_points3d
+    from lab.facegen.sequences import captured_controls, farthest_point_selection
 
     layout = load_layout("zhang134")
     identity = make_identity(seed, layout)

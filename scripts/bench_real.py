@@ -35,7 +35,7 @@ Two kinds of input:
   (with ``--target``: ``real_cross_image_mouth_*_pack``), what the image rows are read against. A contact sheet per
   clip (performer | output at 6 frames across the clip) is written to
   ``<work>/real/<stem>/sheet.png``.
-- **Real-texture clips** (``scripts/realface``: the astronaut photo of scikit-image moved with
+- **Real-texture clips** (``lab/realface``: the astronaut photo of scikit-image moved with
   known head pose and expression; truth exact). Per geometry method — ``landmarker`` (raw mesh
   points), ``default`` (the pipeline's smoothed points) and ``correlation`` (the paper's NCC
   tracker on the layout's tracked subset, started from the true first-frame points):
@@ -384,7 +384,7 @@ def aggregate(rows: list[dict[str, Any]], stems: list[str]) -> list[dict[str, An
 
 def realtex_rows(work: Path, frames: int, seeds: list[int]) -> list[dict[str, Any]]:
     """Geometry and pose against truth on real-texture clips (astronaut photo, known motion)."""
-    from scripts.realface.clip import make_clip
+    from lab.realface.clip import make_clip
     from stages.geometry.signals import follow
     from stages.geometry.track import track_points
     from stages.landmarks.correspondence import layout_from_mesh, load_correspondence

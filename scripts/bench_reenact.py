@@ -21,17 +21,17 @@ Methods: ``full`` (the paper's per-subregion synthesis), ``warponly`` (the neutr
 geometry), ``global`` (one convex combination over the face, Pighin et al.), ``nearest`` (the
 example nearest in geometry, warped), and two bounds that see the truth: ``oracle`` (per
 subregion, the convex combination of the aligned examples fitted to the true frame, in the standard
-geometry: ``stages.synthesis.oracle``; the best any choice of per-subregion coefficients can do)
+geometry: ``lab.synthesis.oracle``; the best any choice of per-subregion coefficients can do)
 and ``oracleglobal`` (one such fit over the whole face: the best of a global combination); and
 ``footage`` / ``footageglobal``: coefficients learned from the build frames the pack passed
-(``stages.synthesis.footage``: per subregion / over the whole face, the mean of the oracle
+(``lab.synthesis.footage``: per subregion / over the whole face, the mean of the oracle
 coefficients of the k build frames nearest in geometry, k by blocked cross-validation on the build
 frames; eq. 2 for the teeth). Rows
 per clip (suffix ``_<clip stem>``), the method as a suffix of the metric (none for ``full``):
 ``reenact_psnr_db`` and ``reenact_ssim`` over the face, ``reenact_wrinkle_psnr_db`` over the forehead, glabella, eye zones (crow's feet) and cheeks
 (nasolabial folds), each the mean over the test frames; ``reenact_subregion_psnr_db_<subregion>``
 over each layout subregion on the frame's points, the PSNR of the squared error pooled over the
-test frames (``stages.synthesis.metrics.pooled_psnr``). Also ``reenact_test_frames``,
+test frames (``lab.synthesis.metrics.pooled_psnr``). Also ``reenact_test_frames``,
 ``reenact_examples``, ``reenact_coverage_px`` (the examples' k-center radius) and
 ``reenact_rejected_<cause>`` (build frames ``pack.filter`` rejected, per cause),
 ``reenact_footage_k`` / ``reenact_footage_k_global`` (the cross-validated k) and
@@ -138,11 +138,20 @@ def build_pack(
 
 
 def evaluate(
-    clip: Frames, points: dict[str, np.ndarray], pack_dir: Path, test: np.ndarray, footage: np.ndarray, **synthesis: float
+    clip: Frames,
+    points: dict[str, np.ndarray],
+    pack_dir: Path,
+    test: np.ndarray,
+    footage: np.ndarray,
+    *,
+    flow_max_px: float = 0.0,
+    **synthesis: float,
 ) -> tuple[dict[str, dict[str, list]], list, dict[str, int]]:
     """Per method, the face PSNR, SSIM, wrinkle PSNR and subregion errors of every test frame;
     sheet tiles; the footage coefficients' cross-validated k per mode. ``footage``: the build
-    frames the footage coefficients learn from (time order). ``synthesis``: keyword options of
+    frames the footage coefficients learn from (time order). ``flow_max_px``: the synthesized
+    examples' alignment refined by optical flow bounded to this many px
+    (:func:`lab.synthesis.align.refine_model`; 0: as built). ``synthesis``: keyword options of
     the ``Synthesizer`` (its defaults when absent)."""
     import torch
     from stages.actor_pack import load_pack
@@ -150,17 +159,18 @@ def evaluate(
     from stages.layout import subregion_mask
     from stages.packbuild.selection import stable_columns
     from stages.packbuild.writing import align_image
+    from lab.synthesis.align import refine_model
     from stages.synthesis.build import build_synthesis_model
-    from stages.synthesis.footage import FootageCoefficients
-    from stages.synthesis.metrics import masked_psnr, masked_ssim, subregion_errors
-    from stages.synthesis.oracle import texture_oracle
+    from lab.synthesis.footage import FootageCoefficients
+    from lab.synthesis.metrics import masked_psnr, masked_ssim, subregion_errors
+    from lab.synthesis.oracle import texture_oracle
     from stages.synthesis.synthesize import Synthesizer
     from stages.synthesis.warp import warp_images
 
     pack = load_pack(pack_dir)
     layout, size = pack.layout, pack.image_size
     model = build_synthesis_model(pack)
-    synth = Synthesizer(model, **synthesis)
+    synth = Synthesizer(refine_model(model, max_px=flow_max_px), **synthesis)
     columns = stable_columns(layout)
     wrinkle = [k for k, s in enumerate(layout.subregions) if s.name in WRINKLE_SUBREGIONS]
     anchors = np.asarray(model["anchors"])
@@ -234,9 +244,7 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     parser.add_argument("--pose-deg", type=float, help="pack.select's pose_deg (default: the stage's)")
     parser.add_argument("--detail-power", type=float, help="band-pass blending power (default: the Synthesizer's)")
     parser.add_argument("--detail-sigma-px", type=float, help="band-pass split, Gaussian sigma, px (default: the Synthesizer's)")
-    parser.add_argument(
-        "--flow-max-px", type=float, help="optical-flow refinement bound, px, 0: off (default: the Synthesizer's)"
-    )
+    parser.add_argument("--flow-max-px", type=float, help="optical-flow refinement bound, px, 0: off (default: 0)")
     parser.add_argument(
         "--ridge-px", type=float, help="coefficient regularisation of the QPs, px, 0: plain eq. 2 (default: the Synthesizer's)"
     )
@@ -245,7 +253,7 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     if not clips:
         raise SystemExit(f"bench reenact: no clip given and none in {DEV_CLIPS}")
     from stages.packbuild.writing import contact_sheet, write_png
-    from stages.synthesis.metrics import pooled_psnr
+    from lab.synthesis.metrics import pooled_psnr
 
     rows: list[dict[str, Any]] = []
     margins: dict[str, list[float]] = {"warponly": [], "global": []}

@@ -59,7 +59,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from scripts.facegen.render import Camera, background, make_face, render, rotation  # noqa: E402
+from stages.eigen.facegen.render import Camera, background, make_face, render, rotation  # noqa: E402
 from stages.actor_pack import load_pack  # noqa: E402
 from stages.geometry.compensate import fit_similarity  # noqa: E402
 from stages.mesh3d.model import build_target_model, lift  # noqa: E402

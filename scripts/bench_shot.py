@@ -7,7 +7,7 @@
 Four parts, each run by the CLI (``runner run``) as a user runs it:
 
 **Head turns against truth** (``--no-turn`` skips). The real-texture generator
-(``scripts/realface``, with its backdrop: the head of face, hair, ears and neck in front of a static
+(``lab/realface``, with its backdrop: the head of face, hair, ears and neck in front of a static
 background) renders the target twice: a frontal clip with expressions, made into a pack by
 ``pack_build.yaml``; and a performance of the same person at known poses (neutral expression,
 yaw up to +-30 deg, pitch up to +-15 deg, roll up to +-10 deg, from a frontal start). The
@@ -187,7 +187,7 @@ def target_expressions(frames: int = 60) -> np.ndarray:
 
 def render_clip(face, path: Path, params: np.ndarray, angles: np.ndarray, fps: int = 25) -> dict[str, np.ndarray]:
     """Render a real-texture clip (H.264, crf 12) and return its truth: frames, landmark points, coverage."""
-    from scripts.realface.clip import render_state
+    from lab.realface.clip import render_state
     from stages.video import VideoWriter
 
     size = face.mesh.size
@@ -205,7 +205,7 @@ def render_clip(face, path: Path, params: np.ndarray, angles: np.ndarray, fps: i
 def face_region(points: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """``(H, W) bool``: inside the face oval of MediaPipe landmarks ``points (478, 2)``."""
     import cv2
-    from scripts.realface.landmarks import FACE_OVAL
+    from lab.realface.landmarks import FACE_OVAL
 
     mask = np.zeros(shape, np.uint8)
     cv2.fillPoly(mask, [np.round(points[list(FACE_OVAL)]).astype(np.int32)], 1)
@@ -216,7 +216,7 @@ def turn_rows(work: Path) -> list[dict[str, Any]]:
     """The head-turn part (module docstring)."""
     import cv2
     import yaml
-    from scripts.realface.clip import fit_real_face
+    from lab.realface.clip import fit_real_face
     from stages.packbuild.writing import contact_sheet, write_png
 
     work.mkdir(parents=True, exist_ok=True)

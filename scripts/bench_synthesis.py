@@ -15,13 +15,13 @@ regions: the paper's central claim; rows prefixed ``synth_combo_``, e.g.
 
 * ``synth_subregion_psnr_db_<subregion>``: PSNR over each layout subregion (rasterized on the true
   geometry), the squared error pooled over the held-out expressions
-  (``stages.synthesis.metrics.pooled_psnr``: averaging per-image dB would let an expression that
+  (``lab.synthesis.metrics.pooled_psnr``: averaging per-image dB would let an expression that
   leaves a subregion exactly as in the neutral, 100+ dB under ``warp-only``, dominate the mean);
 
 for the method (``full``), ``_warponly`` (traditional expression mapping: the neutral warped) and
 ``_global`` (one convex combination over the whole face, Pighin et al.); and, as bounds that see the
 truth, ``_oracle`` / ``_oracleglobal`` (per subregion / over the whole face, the convex combination
-of the aligned examples fitted to the true image: ``stages.synthesis.oracle``). A contact sheet
+of the aligned examples fitted to the true image: ``lab.synthesis.oracle``). A contact sheet
 (truth | ours | warp-only | global) goes to ``<work>/synthesis/synthesis_sheet.png`` (the
 README's ``docs/img/synthesis_sheet.png`` is a copy of it).
 
@@ -62,15 +62,16 @@ sys.path.insert(0, str(ROOT))
 from stages.actor_pack import ActorPack, Expression, load_pack  # noqa: E402
 from stages.layout import Layout, subregion_mask  # noqa: E402
 from stages.synthesis.build import build_synthesis_model  # noqa: E402
-from stages.synthesis.metrics import masked_psnr, masked_ssim, pooled_psnr, subregion_errors  # noqa: E402
-from stages.synthesis.oracle import texture_oracle  # noqa: E402
-from stages.synthesis.synthesize import DETAIL_POWER, DETAIL_SIGMA_PX, FLOW_MAX_PX, RIDGE_PX, Synthesizer  # noqa: E402
+from lab.synthesis.metrics import masked_psnr, masked_ssim, pooled_psnr, subregion_errors  # noqa: E402
+from lab.synthesis.oracle import texture_oracle  # noqa: E402
+from lab.synthesis.align import refine_model  # noqa: E402
+from stages.synthesis.synthesize import DETAIL_POWER, DETAIL_SIGMA_PX, RIDGE_PX, Synthesizer  # noqa: E402
 from stages.synthesis.warp import warp_images  # noqa: E402
 
 SPEED_SIZE = (600, 800)  # (W, H)
 SPEED_EXAMPLES = 15
 MODES = (("full", ""), ("warp-only", "_warponly"), ("global", "_global"))
-ORACLES = (("full", "_oracle"), ("global", "_oracleglobal"))  # texture oracles (stages.synthesis.oracle)
+ORACLES = (("full", "_oracle"), ("global", "_oracleglobal"))  # texture oracles (lab.synthesis.oracle)
 
 
 def wrinkle_mask(layout: Layout, points: np.ndarray, size: tuple[int, int]) -> np.ndarray:
@@ -136,13 +137,17 @@ def to_tensor(image: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(image).permute(2, 0, 1).double() / 255.0
 
 
-def quality(pack: ActorPack, truths: list[Expression], sheet_path: Path, **synthesis: float) -> list[dict]:
+def quality(
+    pack: ActorPack, truths: list[Expression], sheet_path: Path, *, flow_max_px: float = 0.0, **synthesis: float
+) -> list[dict]:
     """PSNR / SSIM per mode over held-out expressions; writes the contact sheet.
 
-    ``synthesis``: keyword options of :class:`Synthesizer` (its defaults when absent).
+    ``flow_max_px``: the examples' alignment refined by optical flow bounded to this many px
+    (:func:`lab.synthesis.align.refine_model`; 0: as built). ``synthesis``: keyword options of
+    :class:`Synthesizer` (its defaults when absent).
     """
     model = build_synthesis_model(pack)
-    synth = Synthesizer(model, **synthesis)
+    synth = Synthesizer(refine_model(model, max_px=flow_max_px), **synthesis)
     size = pack.image_size
     methods = [(mode, suffix) for mode, suffix in MODES] + [(suffix, suffix) for _, suffix in ORACLES]
     scores = {key: {"psnr": [], "ssim": [], "wrinkle": [], "subregions": []} for key, _ in methods}
@@ -248,7 +253,15 @@ def speed_pack(pack: ActorPack, truths: list[Expression]) -> ActorPack:
 
 
 def speed(
-    pack: ActorPack, truths: list[Expression], *, frames: int, chunk: int, repeats: int, device: str = "cpu", **synthesis: float
+    pack: ActorPack,
+    truths: list[Expression],
+    *,
+    frames: int,
+    chunk: int,
+    repeats: int,
+    device: str = "cpu",
+    flow_max_px: float = 0.0,
+    **synthesis: float,
 ) -> list[dict]:
     """synth_fps (sparse) and synth_fps_direct, interleaved runs, best of ``repeats`` each; on
     ``device`` ``cuda`` the rows are named ``synth_fps_cuda`` ... (each timed run waits for the GPU).
@@ -258,7 +271,8 @@ def speed(
     machine.
     """
     big = speed_pack(pack, truths)
-    synth = Synthesizer(build_synthesis_model(big), device=device, memo_frames=0, **synthesis)  # every QP solved
+    model = refine_model(build_synthesis_model(big), max_px=flow_max_px)
+    synth = Synthesizer(model, device=device, memo_frames=0, **synthesis)  # every QP solved
     sx, sy = SPEED_SIZE[0] / pack.image_size[0], SPEED_SIZE[1] / pack.image_size[1]
     geometry = (np.asarray(pack.captured_points, np.float64) + 0.5) * [sx, sy] - 0.5
     geometry = geometry[np.arange(frames) % len(geometry)]
@@ -317,7 +331,7 @@ def run(args: argparse.Namespace) -> list[dict]:
     )
     parser.add_argument("--detail-power", type=float, default=DETAIL_POWER, help="band-pass blending power (1: plain eq. 6)")
     parser.add_argument("--detail-sigma-px", type=float, default=DETAIL_SIGMA_PX, help="band-pass split, Gaussian sigma, px")
-    parser.add_argument("--flow-max-px", type=float, default=FLOW_MAX_PX, help="optical-flow refinement bound, px (0: off)")
+    parser.add_argument("--flow-max-px", type=float, default=0.0, help="optical-flow refinement bound, px (0: off)")
     parser.add_argument(
         "--ridge-px", type=float, default=RIDGE_PX, help="coefficient regularisation of the QPs, px (0: plain eq. 2)"
     )

@@ -27,11 +27,11 @@ from scripts.generated_page import page_main  # noqa: E402
 
 RESULTS = REPO / "benchmarks" / "results"
 PAGE = REPO / "docs" / "benchmarks.md"
-CODE = ("runner", "stages", "pipeline.yaml", "pack_build.yaml")  # what every area's figures depend on
+CODE = ("runner", "stages", "lab", "pipeline.yaml", "pack_build.yaml")  # what every area's figures depend on
 DEPENDS = {
-    "real": CODE + ("scripts/bench_real.py", "scripts/real_states.py", "scripts/occluder.py", "scripts/realface"),
-    "shot": CODE + ("scripts/bench_shot.py", "scripts/realface", "pipeline_3d.yaml"),
-    "e2e": CODE + ("scripts/bench_e2e.py", "scripts/make_fixtures.py", "scripts/facegen"),
+    "real": CODE + ("scripts/bench_real.py", "scripts/real_states.py", "scripts/occluder.py"),
+    "shot": CODE + ("scripts/bench_shot.py", "pipeline_3d.yaml"),
+    "e2e": CODE + ("scripts/bench_e2e.py", "scripts/make_fixtures.py"),
 }
 
 

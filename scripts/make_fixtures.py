@@ -25,9 +25,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from scripts.facegen.face import CONTROLS, JAW_HINGE_END, expression_points3d, mean_model3d
-from scripts.facegen.io import Mp4Writer, save_npz, write_named_rows, write_png, write_points_csv
-from scripts.facegen.render import (
+from stages.eigen.facegen.face import CONTROLS, JAW_HINGE_END, expression_points3d, mean_model3d
+from lab.facegen.io import Mp4Writer, save_npz, write_named_rows, write_png, write_points_csv
+from stages.eigen.facegen.render import (
+    NECK_PIVOT,
     Camera,
     FaceModel,
     framing_translation,
@@ -37,7 +38,7 @@ from scripts.facegen.render import (
     rotation,
     texture_ppm,
 )
-from scripts.facegen.sequences import (
+from lab.facegen.sequences import (
     STANDARD,
     TEETH,
     captured_controls,
@@ -47,12 +48,11 @@ from scripts.facegen.sequences import (
     farthest_point_selection,
     similarity_eq9,
 )
-from scripts.facegen.texture import DETAILS, detail_strengths
+from stages.eigen.facegen.texture import DETAILS, detail_strengths
 from stages.layout import Layout, load_layout
 
 PACK_HEAD_MM = 265.0  # face height spanning a pack image
 CLIP_HEAD_MM = 290.0  # looser framing for clips, room for head motion
-NECK_PIVOT = np.array([0.0, 70.0, 80.0])  # clip heads turn about this head-frame point (mm), like a neck
 
 
 @dataclass(frozen=True)

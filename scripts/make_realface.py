@@ -1,5 +1,5 @@
 """Write a real-texture ground-truth clip: the astronaut portrait's face with known head pose and
-expressions (scripts/realface, docs/realface.md).
+expressions (lab/realface, docs/realface.md).
 
     python scripts/make_realface.py --out DIR --frames 48 --seed 0 [--size 512] [--lossless] [--backdrop]
 
@@ -18,8 +18,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from scripts.realface.clip import make_clip
-from scripts.realface.landmarks import MODEL_PATH
+from lab.realface.clip import make_clip
+from lab.realface.landmarks import MODEL_PATH
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -335,14 +335,14 @@ def aggregate(per_clip: dict[str, dict[str, float]]) -> list[dict[str, Any]]:
 
 
 def states_sheet(work: Path, path: Path, run: Callable[..., Any], *, size: int = 512, height: int = 150) -> None:
-    """A contact sheet of the states: the real-texture ``states`` clip (scripts/realface: the
+    """A contact sheet of the states: the real-texture ``states`` clip (lab/realface: the
     astronaut photo's face holding each state in turn) mapped by the default pipeline onto its
     bundled target; one column per state at the middle of its hold, performer over result,
     labelled. Public-domain and generated material only, so the sheet may be committed."""
     import av
     import cv2
 
-    from scripts.realface.clip import make_clip
+    from lab.realface.clip import make_clip
 
     clip, truth_path = make_clip(work / "states_clip", frames=0, seed=3, size=size, script="states")
     run(clip, work / "states_run")

@@ -1,4 +1,4 @@
-"""An in-memory :class:`runner.stage.FrameStream` and a stage context for calling stages directly."""
+"""Frame streams for calling stages directly (in memory, or chunks in ``.npy`` files) and a stage context."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ from typing import Iterator
 import numpy as np
 
 from runner.stage import Context, StreamInfo
+from runner.streams import ChunkedStream
 
 
 class MemoryStream:
@@ -27,6 +28,18 @@ class MemoryStream:
         for start in range(0, len(self.frames), self.chunk):
             self.reads += 1
             yield start, self.read(start, min(start + self.chunk, len(self.frames)))
+
+
+class NpyStream(ChunkedStream):
+    """Chunks stored as ``.npy`` files, one per chunk, read when touched (``files[i]`` holds the
+    frames ``ranges[i]``, ``(stop - start, H, W, C)``)."""
+
+    def __init__(self, info: StreamInfo, ranges: list[tuple[int, int]], files: list[Path]) -> None:
+        super().__init__(info, ranges)
+        self._files = files
+
+    def chunk(self, index: int, *, mmap: bool = False) -> np.ndarray:
+        return np.load(self._files[index], mmap_mode="r" if mmap else None, allow_pickle=False)
 
 
 def files_context(root: Path) -> Context:

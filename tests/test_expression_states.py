@@ -1,6 +1,6 @@
 """Expression states reach the target, end to end, on real-texture clips with known expression.
 
-``scripts/realface`` renders the astronaut photo's face holding each state in turn (its
+``lab/realface`` renders the astronaut photo's face holding each state in turn (its
 ``states`` script) and alternating shut eyes with an open mouth so that no frame is a neutral
 face (``no_neutral``); the truth knows every frame's expression. The default pipeline runs on
 each through the CLI, as a user runs it. The landmarker reads this synthetic face's blinks, wide
@@ -27,7 +27,7 @@ SIZE = 256
 def run(folder: Path, script: str, seed: int) -> tuple[dict, dict, dict]:
     """The clip of ``script``, the default pipeline on it; its truth, data file and the target's
     and performer's state signals."""
-    from scripts.realface.clip import make_clip
+    from lab.realface.clip import make_clip
 
     clip, truth = make_clip(folder, frames=0, seed=seed, size=SIZE, script=script)
     result = run_cli(

@@ -2,7 +2,7 @@
 (Valente & Dugelay, "Early results on synthetic images").
 
 The paper's FAP values {-1, -0.5, 0, 0.5, 1} span each FAP's range; a face model gives its own
-levels: the face generator's expression controls (``scripts/facegen``, each in [0, 1], 0 =
+levels: the face generator's expression controls (``stages.eigen.facegen``, each in [0, 1], 0 =
 neutral) take {0, 0.25, 0.5, 0.75, 1} (:data:`PAPER_LEVELS`), the PCA parameters of a pack's
 captured geometries {-2, -1, 0, 1, 2} standard deviations (:mod:`.packface`). Angles are degrees,
 columns (yaw, pitch, roll) = rotation about Y, X, Z.

@@ -2,7 +2,7 @@
 "Synthesis of facial expressions": the realistic face model rendered under sampled animation
 vectors V = (P, mu); training in :mod:`.training`).
 
-The face is the fixture generator's (``scripts/facegen``) of the performer's identity, which a
+The face is the fixture generator's (:mod:`stages.eigen.facegen`) of the performer's identity, which a
 fixture pack names in its ``generator`` entry, rendered with the pack's camera; the animation
 parameters are the generator's 12 expression controls, each in [0, 1] (truth known). A pack made
 from footage of a real performer has no generator: :mod:`.packface` is its face model.
@@ -10,34 +10,15 @@ from footage of a real performer has no generator: :mod:`.packface` is its face 
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
-import sys
 from dataclasses import dataclass
 from pathlib import Path
-from types import ModuleType
 
 import numpy as np
 
+from stages.eigen.facegen import face as face_mod
+from stages.eigen.facegen import render
 from stages.eigen.sampling import paper_sampling, rich_sampling
 from stages.layout import load_layout, read_yaml
-
-CHECKOUT = Path(__file__).resolve().parents[2]  # holds scripts/facegen in a source checkout
-
-
-def generator() -> tuple[ModuleType, ModuleType, ModuleType]:
-    """The generator's modules ``(face, render, make_fixtures)``. In a source checkout whose root
-    is not on ``sys.path`` (the ``runner`` console script) the root is added; ValueError when the
-    generator is not there."""
-    if importlib.util.find_spec("scripts") is None:
-        if not (CHECKOUT / "scripts" / "facegen" / "render.py").is_file():
-            raise ValueError("expected the face generator scripts/facegen beside the stages package, got none")
-        sys.path.append(str(CHECKOUT))
-    return (
-        importlib.import_module("scripts.facegen.face"),
-        importlib.import_module("scripts.facegen.render"),
-        importlib.import_module("scripts.make_fixtures"),
-    )
 
 
 @dataclass
@@ -82,20 +63,17 @@ class PerformerRig:
 
     def pose(self, angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``R, t`` of the head turned by (yaw, pitch, roll) deg about the pivot from the reference."""
-        _, render, _ = generator()
         R = render.rotation(*angles) @ self.R0
         return R, self.t0 + self.R0 @ self.pivot - R @ self.pivot
 
     def points(self, controls: np.ndarray, angles: np.ndarray | None = None) -> np.ndarray:
         """Exact projections ``(N, 2)`` px of the layout points (no rendering)."""
-        face_mod, render, _ = generator()
         R, t = self.pose(np.zeros(3) if angles is None else angles)
         p3 = face_mod.expression_points3d(self.face.neutral, controls, self.face.layout)
         return render.project(p3, R, t, self.camera.A)[0]
 
     def render(self, controls: np.ndarray, angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Image ``(H, W, 3)`` uint8 and points ``(N, 2)`` px of one animation vector."""
-        face_mod, render, _ = generator()
         R, t = self.pose(angles)
         p3 = face_mod.expression_points3d(self.face.neutral, controls, self.face.layout)
         out = render.render(self.face, p3, R, t, self.camera, supersample=self.supersample, ppm=self.ppm)
@@ -117,7 +95,6 @@ def performer_rig(pack_dir: Path, *, supersample: int = 2) -> PerformerRig:
             f"{pack_dir}/pack.yaml: field 'generator': expected the generator's identity_seed and truth "
             "of the face generator), got none"
         )
-    face_mod, render, fixtures = generator()
     truth = np.load(Path(pack_dir) / str(gen["truth"]), allow_pickle=False)
     size = tuple(int(v) for v in manifest["image_size"])
     camera = render.Camera(np.asarray(truth["intrinsics"], dtype=np.float64), size)
@@ -129,7 +106,7 @@ def performer_rig(pack_dir: Path, *, supersample: int = 2) -> PerformerRig:
         np.asarray(truth["R"], dtype=np.float64),
         t0,
         render.texture_ppm(camera, t0[2]),
-        np.asarray(fixtures.NECK_PIVOT, dtype=np.float64),
+        np.asarray(render.NECK_PIVOT, dtype=np.float64),
         tuple(face_mod.CONTROLS),
         int(supersample),
     )

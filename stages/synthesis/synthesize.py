@@ -54,7 +54,6 @@ HEAD_MOTION = ("auto", "depth", "similarity", "none")
 DETAIL_POWER = 1.0  # band-pass blending defaults (docs/synthesis.md, "Fine texture")
 DETAIL_SIGMA_PX = 2.0
 TEETH_POWER = 4.0  # teeth examples' coefficients sharpened (composite.py, "Teeth mixing"): (0.6, 0.4) -> (0.84, 0.16)
-FLOW_MAX_PX = 0.0  # optical-flow refinement of the examples' alignment (0: off)
 RIDGE_PX = 0.0  # coefficient regularisation of the QPs (docs/synthesis.md, "Per-subregion vs global on real faces")
 COHERENCE_FRAMES = 2.0  # example weights coherent in time (stages.synthesis.coherence)
 COHERENCE_SIZE = 0.035
@@ -224,9 +223,6 @@ class Synthesizer:
         Band-pass blending (Sec. 15 remedy, :mod:`stages.synthesis.bandpass`): the examples'
         detail bands (finer than a Gaussian of ``detail_sigma_px``) are blended with the
         coefficients raised to ``detail_power`` and renormalised; 1 is plain eq. 6.
-    flow_max_px : float
-        Refine the examples' alignment by optical flow (Sec. 15 remedy, :mod:`stages.synthesis.align`),
-        the flow clipped to this many px per component; 0 leaves the examples as built.
     ridge_px : float
         Coefficient regularisation ``tau`` of the QPs, px (:class:`SubregionQP`; 0: plain eq. 2).
     teeth_power : float
@@ -249,7 +245,6 @@ class Synthesizer:
         device: str = "cpu",
         detail_power: float = DETAIL_POWER,
         detail_sigma_px: float = DETAIL_SIGMA_PX,
-        flow_max_px: float = FLOW_MAX_PX,
         ridge_px: float = RIDGE_PX,
         teeth_power: float = TEETH_POWER,
         memo_frames: int = MEMO_FRAMES,
@@ -257,9 +252,7 @@ class Synthesizer:
         padding_mode: str = "border",
     ) -> None:
         import torch
-        from stages.synthesis.align import refine_model
 
-        model = refine_model(model, max_px=flow_max_px)
         self.device = device
         self.qp = SubregionQP(model, device=device, ridge_px=ridge_px)
         self.compositor: Compositor = prepare_compositor(
@@ -536,7 +529,7 @@ class Synthesizer:
             Composite every example at every pixel (the paper's implementation; speed baseline).
         coeffs : (B, S, K) tensor, optional
             Composite with these coefficients instead of solving the QPs (``full`` / ``global``
-            modes; e.g. :func:`stages.synthesis.oracle.texture_oracle`); ``warp-only`` mode
+            modes; e.g. :func:`lab.synthesis.oracle.texture_oracle`); ``warp-only`` mode
             composites nothing and returns them as given.
         buffers : Buffers, optional
             Warp in these buffers (:func:`stages.synthesis.warp.warp_images`); ``rgba`` and the
@@ -761,14 +754,6 @@ class Synthesize(FrameStage):
             max=1000.0,
         ),
         Param(
-            "flow_max_px",
-            float,
-            FLOW_MAX_PX,
-            "refine the examples' alignment by optical flow (DIS) to the neutral, flow bounded to this many px (0 = off)",
-            min=0.0,
-            max=1000.0,
-        ),
-        Param(
             "ridge_px",
             float,
             RIDGE_PX,
@@ -830,7 +815,6 @@ class Synthesize(FrameStage):
         remedies = (
             float(params["detail_power"]),
             float(params["detail_sigma_px"]),
-            float(params["flow_max_px"]),
             float(params["ridge_px"]),
             float(params["teeth_power"]),
             *size,
@@ -842,9 +826,8 @@ class Synthesize(FrameStage):
                     device=device,
                     detail_power=remedies[0],
                     detail_sigma_px=remedies[1],
-                    flow_max_px=remedies[2],
-                    ridge_px=remedies[3],
-                    teeth_power=remedies[4],
+                    ridge_px=remedies[2],
+                    teeth_power=remedies[3],
                     output_size=size,
                 )
                 self._prepared = (model, device, remedies, synth)

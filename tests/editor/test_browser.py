@@ -66,7 +66,7 @@ def render_keyframes(points_file, *, out, cache) -> None:
     """Run editor/render_keyframes.yaml as `runner run` does, with ``points.load`` registered
     whether or not the installed distribution declares it yet."""
     targets = {ep.name: ep.value for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP)}
-    targets.setdefault("points.load", "editor.points_file:LoadPoints")
+    targets.setdefault("points.load", "stages.geometry.points_file:LoadPoints")
     pipeline = load_pipeline(REPO / "editor" / "render_keyframes.yaml", Registry(entry_points=targets))
     bound = bind_inputs(pipeline, clip=None, named=[f"keyframes={points_file}", f"target={PACK}"])
     Runner(pipeline, bound, Options(cache=CacheStore(cache), out=out)).run()

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from runner.stage import StreamInfo
-from runner.streams import CachedStream, ComputedStream, chunk_ranges
+from runner.streams import ComputedStream, chunk_ranges
+from tests.memory_stream import NpyStream
 
 
 def _clip(n: int) -> np.ndarray:
@@ -22,14 +23,14 @@ def test_chunk_ranges():
     assert chunk_ranges(0, 4) == []
 
 
-def test_cached_stream_reads_across_chunks_with_edge_replication(tmp_path):
+def test_chunked_stream_reads_across_chunks_with_edge_replication(tmp_path):
     clip = _clip(10)
     ranges = chunk_ranges(10, 4)
     files = []
     for s, e in ranges:
         np.save(tmp_path / f"{s}.npy", clip[s:e])
         files.append(tmp_path / f"{s}.npy")
-    stream = CachedStream(StreamInfo(10, 25.0, 3, 2), ranges, files)
+    stream = NpyStream(StreamInfo(10, 25.0, 3, 2), ranges, files)
     padded = np.concatenate([clip[:1].repeat(3, 0), clip, clip[-1:].repeat(3, 0)])
     for start, stop in [(0, 10), (-3, 2), (3, 5), (7, 13), (-3, 13), (9, 10)]:
         np.testing.assert_array_equal(stream.read(start, stop), padded[start + 3 : stop + 3])

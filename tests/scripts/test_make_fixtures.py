@@ -10,9 +10,9 @@ import cv2
 import numpy as np
 import pytest
 
-from scripts.facegen.face import CONTROLS, expression_points3d
-from scripts.facegen.sequences import controls_of, farthest_point_selection, similarity_eq9
-from scripts.facegen.texture import detail_strengths
+from stages.eigen.facegen.face import CONTROLS, expression_points3d
+from lab.facegen.sequences import controls_of, farthest_point_selection, similarity_eq9
+from stages.eigen.facegen.texture import detail_strengths
 from scripts.make_fixtures import Spec, main, make_set, render_identity
 from stages.actor_pack import load_pack
 from stages.layout import load_layout
@@ -134,7 +134,7 @@ def test_similarity_matches_opencv():
 
 def test_details_follow_the_deformation():
     layout = load_layout("zhang134")
-    from scripts.facegen.face import make_identity, neutral_points3d
+    from stages.eigen.facegen.face import make_identity, neutral_points3d
 
     neutral = neutral_points3d(make_identity(3, layout), layout)
 
@@ -220,8 +220,8 @@ def test_mesh_barely_folds_under_single_controls():
     """Seen frontally, the face triangles that turn over at any single control at full strength
     cover under 5 mm^2 in all (of about 25,000 mm^2 of face; slivers at the closed mouth corners
     and under the brows)."""
-    from scripts.facegen.mesh import HEAD_A, HEAD_B, HEAD_Y0, vertex_positions
-    from scripts.facegen.render import make_face
+    from stages.eigen.facegen.mesh import HEAD_A, HEAD_B, HEAD_Y0, vertex_positions
+    from stages.eigen.facegen.render import make_face
 
     layout = load_layout("zhang134")
     for seed in (1, 2, 3):
@@ -249,7 +249,7 @@ def test_jaw_drop_is_the_hinge_then_the_wide_rotation():
     """Chin and lower lip (fully jaw-borne) against scipy's rotations about the two documented axes."""
     from scipy.spatial.transform import Rotation
 
-    from scripts.facegen import face as F
+    from stages.eigen.facegen import face as F
 
     layout = load_layout("zhang134")
     neutral = F.neutral_points3d(F.make_identity(3, layout), layout)
@@ -294,7 +294,7 @@ def test_committed_target_pack_covers_what_performers_do():
 
 
 def test_combo_pack_moves_one_region_per_example_and_combines_them_held_out(tmp_path):
-    from scripts.facegen.sequences import COMBO_HELDOUT, REGION_MOVES
+    from lab.facegen.sequences import COMBO_HELDOUT, REGION_MOVES
     from scripts.make_fixtures import make_part
 
     make_part(tmp_path, "pack:combo", seed=5, spec=TINY)

@@ -1,4 +1,4 @@
-"""Real-texture ground-truth clips (scripts/realface): the renderer reproduces the photo, the
+"""Real-texture ground-truth clips (lab/realface): the renderer reproduces the photo, the
 truth follows the analytic projection, MediaPipe finds the truth points on rendered frames,
 same seed same clip, and the committed fixture is what the generator makes."""
 
@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 from matplotlib.path import Path as PolygonPath
 
-from scripts.facegen.render import project
+from stages.eigen.facegen.render import project
 from scripts.make_realface import main
-from scripts.realface.clip import fit_real_face, make_clip, pose, render_state
-from scripts.realface.expression import EXPRESSIONS, deform
-from scripts.realface.landmarks import (
+from lab.realface.clip import fit_real_face, make_clip, pose, render_state
+from lab.realface.expression import EXPRESSIONS, deform
+from lab.realface.landmarks import (
     LIPS_INNER_LOWER,
     LIPS_INNER_UPPER,
     MOUTH_CORNERS,
@@ -26,10 +26,10 @@ from scripts.realface.landmarks import (
     open_landmarker,
     point_groups,
 )
-from scripts.realface.mesh import MOUTH_OPEN_MAX, build_mesh
-from scripts.realface.motion import ANGLE_LIMITS_DEG, make_motion
-from scripts.realface.photo import source_photo
-from scripts.realface.render import interpolate, rasterize
+from lab.realface.mesh import MOUTH_OPEN_MAX, build_mesh
+from lab.realface.motion import ANGLE_LIMITS_DEG, make_motion
+from lab.realface.photo import source_photo
+from lab.realface.render import interpolate, rasterize
 from stages.video import VideoDecode, probe
 
 REPO = Path(__file__).resolve().parents[2]
@@ -70,7 +70,7 @@ def test_backdrop_stays_while_the_head_turns_in_front_of_it(face):
     """With a backdrop: at rest the frame is the photo; turned, the head moves and the background
     (the frame's bottom corners, beyond the head's rings) stays; the coverage is the head."""
     from dataclasses import replace
-    from scripts.realface.mesh import clean_plate
+    from lab.realface.mesh import clean_plate
 
     staged = replace(face, backdrop=clean_plate(face.photo, face.mesh))
     rest = render_state(staged, ZERO, ZERO, ZERO, supersample=1)[0]

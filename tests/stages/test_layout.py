@@ -54,7 +54,7 @@ def test_index_and_subregion_lookup(layout):
 
 def test_subregions_tile_the_mean_face(layout):
     """Rasterized on the mean template, the subregions cover the face and land where named."""
-    from scripts.facegen.face import mean_template
+    from stages.eigen.facegen.face import mean_template
 
     px = (mean_template(layout) + (100.0, 110.0)) * 2.0  # mm -> px, face inside a 400x460 image
     mask = subregion_mask(layout, px, (400, 460))

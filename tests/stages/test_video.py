@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 from runner.stage import Context, StageError, StreamInfo
-from runner.streams import CachedStream, chunk_ranges
+from runner.streams import chunk_ranges
 from scripts.make_test_clip import synthetic_frames, write_clip
+from tests.memory_stream import NpyStream
 from stages.video import ImageGray, VideoDecode, VideoWriter, WriteVideo, probe, to_gray
 
 
@@ -122,7 +123,7 @@ def test_write_video_stage_encodes_a_stream(tmp_path, lossless):
     ranges = chunk_ranges(37, 16)
     for s, e in ranges:
         np.save(tmp_path / f"{s}.npy", truth[s:e])
-    stream = CachedStream(StreamInfo(37, 30000 / 1001, 64, 48), ranges, [tmp_path / f"{s}.npy" for s, _ in ranges])
+    stream = NpyStream(StreamInfo(37, 30000 / 1001, 64, 48), ranges, [tmp_path / f"{s}.npy" for s, _ in ranges])
     out = tmp_path / "files"
     done = []
     ctx = Context("cpu", files_dir=lambda port: out, progress=done.append)

@@ -71,7 +71,7 @@ def test_samplings():
 
 
 def test_rotation_angles_invert_the_generators_rotation():
-    from scripts.facegen.render import rotation
+    from stages.eigen.facegen.render import rotation
 
     for angles in ((10.0, -5.0, 3.0), (-25.0, 15.0, -10.0)):
         np.testing.assert_allclose(rotation_angles(rotation(*angles)), angles, atol=1e-9)

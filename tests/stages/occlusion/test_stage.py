@@ -127,7 +127,7 @@ def test_head_turned_30_degrees_either_way_is_not_occlusion(tmp_path):
     opening) is never flagged. Measured: lowest visibility 0.35, the image-right
     brow at -30 degrees, where the renderer, which has no head beyond the photo's face, shows the
     background past the far temple; every other region 0.6 or more."""
-    from scripts.realface.clip import fit_real_face, render_state
+    from lab.realface.clip import fit_real_face, render_state
     from stages.video import VideoWriter
 
     face = fit_real_face(512)

@@ -4,7 +4,7 @@ import numpy as np
 import torch
 from scipy.ndimage import gaussian_filter
 
-from stages.synthesis.metrics import masked_psnr, masked_ssim, ssim_map
+from lab.synthesis.metrics import masked_psnr, masked_ssim, ssim_map
 
 
 def scipy_ssim(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -45,7 +45,7 @@ def test_masked_psnr():
 
 
 def test_subregion_errors_pool_over_images():
-    from stages.synthesis.metrics import pooled_psnr, subregion_errors
+    from lab.synthesis.metrics import pooled_psnr, subregion_errors
 
     region = np.full((4, 6), -1)
     region[:, :2] = 0

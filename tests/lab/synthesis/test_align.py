@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter, map_coordinates
 
-from stages.synthesis.align import apply_flow, dis_flow, refine_alignment
+from lab.synthesis.align import apply_flow, dis_flow, refine_alignment
 
 
 def textured(seed: int = 0, size: tuple[int, int] = (96, 128)) -> np.ndarray:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from editor.points_file import LoadPoints, points_file_bytes, read_points_file
+from stages.geometry.points_file import LoadPoints, points_file_bytes, read_points_file
 from runner.stage import Context, StageError
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .face import CONTROLS
+from stages.eigen.facegen.face import CONTROLS
 
 CONTROL_INDEX = {n: i for i, n in enumerate(CONTROLS)}
 

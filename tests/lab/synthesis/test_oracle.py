@@ -6,7 +6,7 @@ import torch
 
 from stages.synthesis.build import build_synthesis_model
 from stages.synthesis.composite import composite, prepare_compositor
-from stages.synthesis.oracle import texture_oracle
+from lab.synthesis.oracle import texture_oracle
 from tests.stages.synthesis.synthetic import make_pack
 
 

@@ -1,4 +1,4 @@
-"""The editor's points file and ``points.load``, the stage that feeds it to the pipeline.
+"""The points file the editor exports and ``points.load``, the stage that feeds it to the pipeline.
 
 A points file is an ``.npz`` (no pickle) with ``xy (T, N, 2) f8`` px (x right, y down, origin
 at the centre of the top-left pixel, the target neutral's frame), ``names (N,) str`` (the

@@ -1,6 +1,6 @@
 """MediaPipe's landmarks on a rendered clip against its truth: mean error per point group.
 
-    python -m scripts.realface.evaluate CLIP TRUTH [--model PATH]
+    python -m lab.realface.evaluate CLIP TRUTH [--model PATH]
 
 prints, per group (:func:`landmarks.point_groups`) and over all points, the mean and 95th
 percentile distance (px) between MediaPipe's landmarks on each decoded frame and the truth's

@@ -6,8 +6,8 @@ import torch
 
 from stages.synthesis.build import build_synthesis_model
 from stages.synthesis.composite import composite, prepare_compositor
-from stages.synthesis.footage import FootageCoefficients, cv_errors, nearest_mean, subregion_distance
-from stages.synthesis.oracle import texture_oracle
+from lab.synthesis.footage import FootageCoefficients, cv_errors, nearest_mean, subregion_distance
+from lab.synthesis.oracle import texture_oracle
 from tests.stages.synthesis.synthetic import make_pack
 
 

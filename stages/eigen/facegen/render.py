@@ -25,6 +25,7 @@ from .texture import Texture, build_texture, detail_strengths, frame_texture
 
 LIGHT = np.array([-0.5, -0.55, -0.8]) / np.linalg.norm([-0.5, -0.55, -0.8])  # towards the light, camera frame
 SHIFT = 4
+NECK_PIVOT = np.array([0.0, 70.0, 80.0])  # clip heads turn about this head-frame point (mm), like a neck
 
 
 def rotation(yaw: float, pitch: float, roll: float) -> np.ndarray:

@@ -6,7 +6,7 @@ reduced with ``cv2.INTER_AREA`` (the mean of each ``s x s`` block). The skin is 
 (triangles may fold over each other at large yaw); the mouth cavity is drawn wherever the skin
 leaves a hole (the opening between the inner lips), z-buffered among its own triangles.
 
-With a *backdrop* (:func:`scripts.realface.mesh.clean_plate`) the scene is a person in front of a
+With a *backdrop* (:func:`lab.realface.mesh.clean_plate`) the scene is a person in front of a
 static background: the head (the face and the rings of hair, ears and neck, ``mesh.head``) turns
 and moves, the backdrop stays where it is and shows wherever the head does not cover it (what a
 turned head uncovers is the inpainted plate, a guess every method has to make too). Without one,
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from scripts.facegen.render import project
+from stages.eigen.facegen.render import project
 
 from .landmarks import N_LANDMARKS
 from .mesh import RealFaceMesh

@@ -8,8 +8,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from scripts.facegen.io import save_npz
-from scripts.facegen.render import rotation
+from lab.facegen.io import save_npz
+from stages.eigen.facegen.render import rotation
 from stages.video import CODECS, VideoWriter
 
 from .expression import EXPRESSIONS, STATE_EXPRESSIONS, deform, expression_basis, state_basis
@@ -24,7 +24,7 @@ from .render import Frame, render
 class RealFace:
     """The photo, its landmarks ``(478, 3)`` px, the fitted mesh, its expression basis
     ``(3, V, 3)`` mm, the two textures (photo, mouth) as float32, and the backdrop (the clean plate
-    behind the head, :func:`scripts.realface.mesh.clean_plate`; None: the whole mesh moves)."""
+    behind the head, :func:`lab.realface.mesh.clean_plate`; None: the whole mesh moves)."""
 
     photo: np.ndarray
     landmarks: np.ndarray
@@ -88,10 +88,10 @@ def make_clip(
 ) -> tuple[Path, Path]:
     """Write ``out/<name>.mp4`` (or ``.mkv`` for ``codec="ffv1"``, lossless) and ``out/<name>_truth.npz``.
 
-    ``script`` (:data:`scripts.realface.motion.STATE_SCRIPTS`): a states clip instead of the seeded
+    ``script`` (:data:`lab.realface.motion.STATE_SCRIPTS`): a states clip instead of the seeded
     events, whose length is the script's (``frames`` is ignored) and whose truth also holds the
     held spans (``state_names (S,)``, ``state_spans (S, 2)`` inclusive frames). With ``backdrop``
-    the head moves in front of a static background (:mod:`scripts.realface.render`).
+    the head moves in front of a static background (:mod:`lab.realface.render`).
 
     Returns the two paths. Same arguments, same truth file bytes.
     """

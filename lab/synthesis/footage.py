@@ -4,7 +4,7 @@ Eq. 2-5 choose a subregion's convex-combination coefficients from its few featur
 and on real faces those points predict only moderately which examples' texture fits
 (docs/synthesis.md, "Per-subregion vs global on real faces"). The footage the pack was built from
 has both, geometry and texture, for many more frames than the examples: for each such *footage
-frame* the texture oracle (:mod:`stages.synthesis.oracle`) gives every subregion's best convex
+frame* the texture oracle (:mod:`lab.synthesis.oracle`) gives every subregion's best convex
 combination of the aligned examples. For a new geometry, each face subregion R takes
 
     c^R = (1 / k) sum_{f in N_k^R} c^R_f,
@@ -19,7 +19,7 @@ teeth examples (Sec. 8) in both modes.
 ``k`` is chosen per mode from the footage itself by blocked cross-validation: the footage frames
 are cut into ``folds`` contiguous runs in time (neighbouring frames are near copies, so leaving out
 single frames would always pick ``k = 1``); each run's frames are predicted from the other runs'
-and the texture error ``c^T Q_f c`` (:func:`stages.synthesis.oracle.texture_grams`), summed over
+and the texture error ``c^T Q_f c`` (:func:`lab.synthesis.oracle.texture_grams`), summed over
 subregions and frames, picks ``k``.
 """
 
@@ -30,7 +30,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from stages.synthesis.coefficients import SubregionQP
-from stages.synthesis.oracle import texture_grams
+from lab.synthesis.oracle import texture_grams
 from stages.synthesis.qp import solve_simplex_qp
 
 from typing import TYPE_CHECKING
