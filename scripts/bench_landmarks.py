@@ -1,7 +1,8 @@
 """Landmarks benchmark: Face Landmarker speed and the steadiness of the layout's rigid points on real clips.
 
-``python scripts/bench_landmarks.py --clip A.mp4 [--clip B.mp4 ...]`` (or through ``scripts/bench.py``).
-Per clip (rows tagged with the clip's file stem):
+``python scripts/bench_landmarks.py [--clip A.mp4 --clip B.mp4 ...]`` (or through ``scripts/bench.py``;
+default: the real-texture CI clip ``fixtures/realface/astro.mp4``). Per clip (rows tagged with the clip's
+file stem):
 
 - ``fps``: frames per second of :class:`Landmarker.detect` alone (decoding not counted, wall clock), in
   the default search order (previous face's crop, whole frame, tiles), ``fps_cpu`` the same per CPU
@@ -14,7 +15,12 @@ Per clip (rows tagged with the clip's file stem):
   the root mean square over pairs, in percent. ``_2d`` uses image distances (changed by head rotation
   too), ``_3d`` adds the mesh's relative depth z (px scale), which a rotation leaves unchanged;
 - ``mouth_3d``: the same figure for the mouth corners, lip midpoints and chin, which do move with the
-  expression: the rigid figure is small only if it is well below this one.
+  expression: the rigid figure is small only if it is well below this one;
+- ``truth_mean_px_<group>``, ``truth_p95_px_<group>``: for a real-texture clip with its truth beside it
+  (``<stem>_truth.npz`` with the 478 landmark ``points`` and ``visible``, :mod:`lab.realface`), the mean
+  and 95th percentile distance in px between the landmarker's points and the truth over the visible
+  points, per point group (eyes, irises, brows, nose, lips, other, face oval) and ``all``
+  (:mod:`lab.realface.evaluate`).
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ import av
 import numpy as np
 
 AREA = "landmarks"
+DEFAULT_CLIP = Path(__file__).resolve().parent.parent / "fixtures" / "realface" / "astro.mp4"
 MOUTH = ("mouth_outer_0", "mouth_outer_8", "mouth_outer_4", "mouth_outer_12", "mouth_inner_2", "mouth_inner_7", "chin")
 
 
@@ -65,8 +72,9 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     from stages.layout import load_layout
 
     parser = argparse.ArgumentParser(prog="bench.py landmarks")
-    parser.add_argument("--clip", type=Path, action="append", required=True, help="a video file (repeatable)")
+    parser.add_argument("--clip", type=Path, action="append", help=f"a video file (repeatable; default {DEFAULT_CLIP})")
     opts = parser.parse_args(getattr(args, "extra", []))
+    opts.clip = opts.clip or [DEFAULT_CLIP]
     layout = load_layout("zhang134")
     correspondence = load_correspondence("zhang134_mediapipe", layout=layout)
     rows = []
@@ -96,7 +104,29 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
             row("mouth_3d", pair_spread(points[:, list(layout.indices(MOUTH))], eye_distance), "% eye distance"),
             row("eye_distance", eye_distance, "px"),
         ]
+        rows += [row(metric, value, "px") for metric, value in truth_errors(clip).items()]
     return rows
+
+
+def truth_errors(clip: Path) -> dict[str, float]:
+    """``{truth_mean_px_<group>: px, truth_p95_px_<group>: px}`` against a real-texture clip's truth
+    (``<stem>_truth.npz`` beside it, 478 points per frame); empty without one."""
+    from lab.realface.evaluate import landmark_errors, summarize
+    from stages.video import VideoDecode, probe
+
+    truth_path = clip.with_name(f"{clip.stem}_truth.npz")
+    if not truth_path.is_file():
+        return {}
+    with np.load(truth_path, allow_pickle=False) as truth:
+        if "visible" not in truth or truth["points"].shape[1:] != (478, 2):
+            return {}
+        points, visible = truth["points"], truth["visible"]
+    frames = VideoDecode().process(0, probe(clip).frames, {"video": str(clip)}, {}, None)["frames"]
+    out = {}
+    for group, (mean, p95) in summarize(landmark_errors(frames, points, visible)).items():
+        out[f"truth_mean_px_{group.replace(' ', '_')}"] = mean
+        out[f"truth_p95_px_{group.replace(' ', '_')}"] = p95
+    return out
 
 
 if __name__ == "__main__":
