@@ -2,7 +2,7 @@
 
 Each area lives in `scripts/bench_<area>.py` and exposes `run(args) -> list[dict]`, one dict per
 metric: {"bench": AREA, "metric": NAME, "value": X, "unit": U}. With --json they are printed
-one JSON object per line (DESIGN.md); without, as a short table. With --record they are also
+one JSON object per line; without, as a short table. With --record they are also
 appended to `benchmarks/results/AREA.jsonl` with what the figures depend on: the commit (with
 `-dirty` when tracked files differ from it), the date, the command line, and the machine (cores,
 the 1-minute load average at the start and the end); `python scripts/benchmarks_page.py` renders
