@@ -24,6 +24,7 @@ from runner.dag import to_dot, to_mermaid
 from runner.errors import StageFailed
 from runner.notes import one_line_warnings
 from runner.registry import Registry, RegistryError
+from runner.bundle import describe
 from runner.stage import FrameStage
 
 EXIT_OK, EXIT_STAGE, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
@@ -251,7 +252,7 @@ def stages() -> int:
         click.echo(f"{name}  (v{cls.version}, {shape} stage)  {cls.doc}")
         for port, kind in cls.inputs.items():
             optional = ", optional" if port in cls.optional_inputs else ""
-            click.echo(f"    in   {port}: {kind}{optional}")
+            click.echo(f"    in   {port}: {describe(kind)}{optional}")
         for port, kind in cls.outputs.items():
             click.echo(f"    out  {port}: {kind}")
         for p in cls.params:

@@ -1,0 +1,26 @@
+"""The bundle types of the synthesis stages (:mod:`runner.bundle`, docs/synthesis.md).
+
+T is the frame count, S the subregions, M the example images.
+"""
+
+from __future__ import annotations
+
+from runner.bundle import BundleType, Field
+
+SYNTHESIS_MODEL = BundleType("synthesis_model", "The target's synthesis model of synthesis.build (Sec. 5-8).", ())
+
+SYNTHESIS_COEFFS = BundleType(
+    "synthesis_coeffs",
+    "The per-subregion combination coefficients of each synthesized frame (Sec. 6, eq. 3).",
+    (Field("coeffs", "f", ("T", "S", "M"), "", "coefficients of the examples per subregion"),),
+)
+
+COEFFICIENTS = BundleType(
+    "coefficients",
+    "The synthesis coefficients with the names of their subregions and examples.",
+    (
+        Field("coeff", "f", ("T", "S", "M"), "", "coefficients of the examples per subregion"),
+        Field("subregions", "U", ("S",), "", "subregion names"),
+        Field("examples", "U", ("M",), "", "example image names"),
+    ),
+)
