@@ -141,10 +141,8 @@ class AnalyzeEigenfeatures(SequenceStage):
         angles = None
         if params["rotation"]:
             pose = inputs.get("pose")
-            if pose is None or "R" not in pose or "valid" not in pose:
-                raise StageError(
-                    f"{self.name}: rotation=true needs the input 'pose' with fields 'R' and 'valid' (or set rotation=false)"
-                )
+            if pose is None:
+                raise StageError(f"{self.name}: rotation=true needs the input 'pose' (or set rotation=false)")
             if len(pose["R"]) != T:
                 raise StageError(f"{self.name}: input 'pose' field 'R' has {len(pose['R'])} frames, expected {T}")
             angles = rotation_angles(pose["R"])

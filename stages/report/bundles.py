@@ -16,5 +16,8 @@ SHEET = BundleType(
         Field("jpeg", "u", ("*",), "", "the K JPEGs one after the other"),
         Field("jpeg_end", "iu", ("K",), "", "byte offset where each JPEG ends"),
         Field("frames", "iu", (), "", "the clip's frame count T"),
+        Field("fps", "f", (), "Hz", "frames per second of the clip"),
+        Field("performer_size", "iu", (2,), "px", "(W, H) of the performer's frames"),
+        Field("result_size", "iu", (2,), "px", "(W, H) of the result's frames"),
     ),
 )
