@@ -4,7 +4,14 @@ from __future__ import annotations
 
 from runner.bundle import BundleType, Field
 
-FRAME_FILTER = BundleType("frame_filter", "The frames pack.filter found usable, with its reasons.", ())
+FRAME_FILTER = BundleType(
+    "frame_filter",
+    "The frames pack.filter found usable, with the reason each other frame was rejected.",
+    (
+        Field("keep", "b", ("T",), "", "usable frames"),
+        Field("cause_names", "U", ("C",), "", "the reasons a frame is rejected"),
+    ),
+)
 PACK_SELECTION = BundleType(
     "pack_selection",
     "The frames pack.select chose for the pack's images (frame indices into the footage).",
@@ -23,4 +30,13 @@ PACK_SELECTION = BundleType(
         Field("warnings", "U", ("*",), "", "what the selection could not do as asked"),
     ),
 )
-PHOTO_IDENTITY = BundleType("photo_identity", "Which photos of photos.identity show the same person.", ())
+PHOTO_IDENTITY = BundleType(
+    "photo_identity",
+    "Photos whose face shape (rigid landmark proportions) differs from the majority's.",
+    (
+        Field("names", "U", ("T",), "", "the photos' names, one per frame"),
+        Field("distance", "f", ("T",), "", "face-shape distance to the majority's (NaN without a face)"),
+        Field("differs", "b", ("T",), "", "the distance is above max_distance"),
+        Field("max_distance", "f", (), "", "the threshold it was judged with"),
+    ),
+)
