@@ -18,13 +18,13 @@ from typing import Any, NoReturn
 
 import click
 
+from runner.bundle import describe
 from runner.cache import DEFAULT_DIR, ENV_VAR, CacheStore, default_cache_dir, holder_is_stale
 from runner.config import ConfigError, Issue, Where, bind_inputs, load_pipeline
 from runner.dag import to_dot, to_mermaid
 from runner.errors import StageFailed
 from runner.notes import one_line_warnings
 from runner.registry import Registry, RegistryError
-from runner.bundle import describe
 from runner.stage import FrameStage
 
 EXIT_OK, EXIT_STAGE, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130

@@ -36,9 +36,9 @@ from typing import Any, cast
 import yaml
 
 from runner import safe_yaml
+from runner.bundle import PortType, accepts, describe
 from runner.dag import CycleError, topological_order
 from runner.registry import Registry, RegistryError, value_has_type
-from runner.bundle import PortType, accepts, describe
 from runner.stage import FrameStage, Param, Stage
 
 DEFAULT_CHUNK_FRAMES = 16

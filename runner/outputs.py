@@ -24,8 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from runner.cache import Entry
 from runner.bundle import BundleType
+from runner.cache import Entry
 from runner.digest import array_digest, bundle_digest, cache_key, file_digest
 from runner.stage import Context, StageError, StreamInfo
 

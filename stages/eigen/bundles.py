@@ -4,7 +4,17 @@ from __future__ import annotations
 
 from runner.bundle import BundleType, Field
 
-EIGEN_MODEL = BundleType("eigen_model", "The trained eigenfeature model of train.eigenfeatures.", ())
+EIGEN_MODEL = BundleType(
+    "eigen_model",
+    "The trained eigenfeature model of train.eigenfeatures (P parameters, W feature windows); the "
+    "fields that name what it estimates.",
+    (
+        Field("point_names", "U", ("N",), "", "layout point names"),
+        Field("param_names", "U", ("P",), "", "parameter names"),
+        Field("feature_names", "U", ("W",), "", "feature window names"),
+        Field("feature_points", "b", ("W", "N"), "", "the points each feature window covers"),
+    ),
+)
 EIGEN_PARAMETERS = BundleType(
     "eigen_parameters",
     "The expression parameters analyze.eigenfeatures estimated per frame (P parameters, W feature windows).",
