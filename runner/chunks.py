@@ -36,6 +36,7 @@ import numpy as np
 
 from runner import notes
 from runner.broadcast import Broadcast
+from runner.bundle import PortType
 from runner.cache import CacheStore, Entry
 from runner.config import StageNode
 from runner.depends import recording
@@ -77,7 +78,7 @@ class Value:
     values carry their ``digest``, None in a dry run when the producer has not run yet.
     """
 
-    type: str
+    type: PortType
     digest: str | None = None
     load: Callable[[], Any] | None = None
     chunks: FrameChunks | None = None

@@ -18,6 +18,7 @@ from typing import Any, NoReturn
 
 import click
 
+from runner.bundle import describe
 from runner.cache import DEFAULT_DIR, ENV_VAR, CacheStore, default_cache_dir, holder_is_stale
 from runner.config import ConfigError, Issue, Where, bind_inputs, load_pipeline
 from runner.dag import to_dot, to_mermaid
@@ -251,7 +252,7 @@ def stages() -> int:
         click.echo(f"{name}  (v{cls.version}, {shape} stage)  {cls.doc}")
         for port, kind in cls.inputs.items():
             optional = ", optional" if port in cls.optional_inputs else ""
-            click.echo(f"    in   {port}: {kind}{optional}")
+            click.echo(f"    in   {port}: {describe(kind)}{optional}")
         for port, kind in cls.outputs.items():
             click.echo(f"    out  {port}: {kind}")
         for p in cls.params:

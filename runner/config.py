@@ -36,6 +36,7 @@ from typing import Any, cast
 import yaml
 
 from runner import safe_yaml
+from runner.bundle import PortType, accepts, describe
 from runner.dag import CycleError, topological_order
 from runner.registry import Registry, RegistryError, value_has_type
 from runner.stage import FrameStage, Param, Stage
@@ -327,7 +328,9 @@ def _read_stages(r: _Reader, node: yaml.Node, registry: Registry, inputs: dict[s
                 stage.inputs[port] = Ref(upstream or None, out_port, _where(r.path, pvnode))
         for port in cls.inputs:
             if port not in stage.inputs and port not in cls.optional_inputs:
-                r.error(vnode, f"{key}.inputs.{port}", f"missing input: {uses} needs port {port!r} ({cls.inputs[port]})")
+                r.error(
+                    vnode, f"{key}.inputs.{port}", f"missing input: {uses} needs port {port!r} ({describe(cls.inputs[port])})"
+                )
         stages[name] = stage
     return stages
 
@@ -393,7 +396,7 @@ def _check_references(r: _Reader, stages: dict[str, StageNode], inputs: dict[str
                 if ref.port not in inputs:
                     r.error(ref.where, key, f"missing input: no pipeline input or stage output named {ref.port!r}")
                     continue
-                got = inputs[ref.port].type
+                got: PortType = inputs[ref.port].type
             else:
                 if ref.stage not in stages:
                     r.error(ref.where, key, f"missing input: no stage named {ref.stage!r}")
@@ -416,8 +419,8 @@ def _check_references(r: _Reader, stages: dict[str, StageNode], inputs: dict[str
                         "published to --out, not passed to other stages",
                     )
                     continue
-            if got != expected:
-                r.error(ref.where, key, f"port type mismatch: {port!r} takes {expected}, {ref} gives {got}")
+            if not accepts(expected, got):
+                r.error(ref.where, key, f"port type mismatch: {port!r} takes {describe(expected)}, {ref} gives {describe(got)}")
 
 
 def clip_inputs(pipeline: Pipeline) -> list[str]:

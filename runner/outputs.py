@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from runner.bundle import BundleType
 from runner.cache import Entry
 from runner.digest import array_digest, bundle_digest, cache_key, file_digest
 from runner.stage import Context, StageError, StreamInfo
@@ -58,13 +59,16 @@ def check_frames(port: str, frames: np.ndarray, count: int, info: StreamInfo) ->
         raise StageError(f"output {port!r}: expected frames ({count}, {info.height}, {info.width}, C), got {frames.shape}")
 
 
-def save_outputs(declared: Mapping[str, str], result: Any, tmp: Path, *, frames: tuple[int, StreamInfo] | None) -> dict[str, Any]:
+def save_outputs(
+    declared: Mapping[str, str | BundleType], result: Any, tmp: Path, *, frames: tuple[int, StreamInfo] | None
+) -> dict[str, Any]:
     """Store a stage's result in the entry folder ``tmp``; return the record's ``outputs``.
 
     Parameters
     ----------
     declared
-        The stage's output ports, name -> type.
+        The stage's output ports, name -> type. A bundle of a declared :class:`BundleType` is
+        checked against it (:meth:`BundleType.problems`).
     result
         What the stage returned: per port an array (frames: checked and digested, not stored),
         a dict of arrays (bundle) or None (``files``, already written under
@@ -102,13 +106,13 @@ def save_outputs(declared: Mapping[str, str], result: Any, tmp: Path, *, frames:
             name = BUNDLE_FILE.format(port=port)
             with _naming(tmp / name):
                 np.savez(tmp / name, **arrays)  # type: ignore[arg-type]  # numpy declares the keyword arrays too narrowly
-            outputs[port] = {"type": kind, "file": name, "digest": bundle_digest(arrays), "sha256": file_digest(tmp / name)}
+            outputs[port] = {"type": str(kind), "file": name, "digest": bundle_digest(arrays), "sha256": file_digest(tmp / name)}
     if verified:
         (tmp / VERIFIED).write_text(json.dumps(verified, sort_keys=True))
     return {"outputs": outputs}
 
 
-def _bundle_arrays(port: str, kind: str, value: Any, frames: tuple[int, StreamInfo] | None) -> dict[str, np.ndarray]:
+def _bundle_arrays(port: str, kind: str | BundleType, value: Any, frames: tuple[int, StreamInfo] | None) -> dict[str, np.ndarray]:
     if not isinstance(value, dict):
         raise StageError(f"output {port!r} ({kind}): expected a dict of arrays, got {type(value).__name__}")
     arrays = {k: np.asarray(v) for k, v in value.items()}
@@ -119,6 +123,10 @@ def _bundle_arrays(port: str, kind: str, value: Any, frames: tuple[int, StreamIn
         wrong = [k for k, a in arrays.items() if a.ndim == 0 or a.shape[0] != frames[0]]
         if wrong:
             raise StageError(f"output {port!r}: {wrong[0]!r} must have {frames[0]} rows (one per frame)")
+    if isinstance(kind, BundleType):
+        problems = kind.problems(arrays)
+        if problems:
+            raise StageError(f"output {port!r} ({kind.name}): {'; '.join(problems)}")
     return arrays
 
 

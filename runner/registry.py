@@ -17,7 +17,8 @@ from __future__ import annotations
 import importlib.metadata
 from collections.abc import Iterable, Mapping
 
-from runner.stage import FrameStage, Param, SequenceStage, Stage
+from runner.bundle import BundleType
+from runner.stage import RUNNER_TYPES, FrameStage, Param, SequenceStage, Stage
 
 ENTRY_POINT_GROUP = "expression_mapping.stages"
 PARAM_TYPES = (int, float, str, bool, list)
@@ -86,6 +87,13 @@ class Registry:
         return obj
 
 
+def _port_type(kind: object) -> bool:
+    """Whether ``kind`` is one port type: a non-empty string, or a bundle type not named as a runner type."""
+    if isinstance(kind, BundleType):
+        return bool(kind.name) and kind.name not in RUNNER_TYPES
+    return isinstance(kind, str) and bool(kind)
+
+
 def check_stage_class(stage_cls: type[Stage]) -> None:
     """Raise :class:`RegistryError` unless the class declares a complete, well-typed contract."""
     where = f"{stage_cls.__module__}.{stage_cls.__qualname__}"
@@ -94,9 +102,13 @@ def check_stage_class(stage_cls: type[Stage]) -> None:
     for attr in ("name", "version"):
         if not isinstance(getattr(stage_cls, attr, None), str) or not getattr(stage_cls, attr):
             raise RegistryError(f"{where}: class attribute {attr!r} must be a non-empty string")
-    for port, kind in {**stage_cls.inputs, **stage_cls.outputs}.items():
-        if not (isinstance(port, str) and isinstance(kind, str) and kind):
-            raise RegistryError(f"{where}: port {port!r} must map a name to a type string")
+    for port, kind in stage_cls.inputs.items():
+        accepted = kind if isinstance(kind, tuple) and kind and all(isinstance(t, BundleType) for t in kind) else (kind,)
+        if not (isinstance(port, str) and all(_port_type(t) for t in accepted)):
+            raise RegistryError(f"{where}: input {port!r} must map a name to a type string, a BundleType or a tuple of them")
+    for port, kind in stage_cls.outputs.items():
+        if not (isinstance(port, str) and _port_type(kind)):
+            raise RegistryError(f"{where}: output {port!r} must map a name to a type string or a BundleType")
     for kind in stage_cls.outputs.values():
         if kind in ("video", "file", "dir"):
             raise RegistryError(f"{where}: {kind!r} is a pipeline-input type, not an output type")

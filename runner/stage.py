@@ -7,7 +7,8 @@ values on its ports.
 
 Port types
 ----------
-A port type is a string. Four have a fixed meaning to the runner:
+A port type is a string or a declared bundle type (:mod:`runner.bundle`). Five strings have a
+fixed meaning to the runner:
 
 ``video``   a ``pathlib.Path`` to a media file (a pipeline input); digest = file bytes.
 ``file``    a ``pathlib.Path`` to any other file (a pipeline input, e.g. first-frame points);
@@ -19,9 +20,13 @@ A port type is a string. Four have a fixed meaning to the runner:
             ``ctx.files_dir(port)``; the runner keeps them in the cache entry and publishes them to
             ``--out/<stage>/``.
 
-Every other type name (``points``, ``pose``, ``similarity``, ``pca_model``…) is a *bundle*: a
-``dict[str, numpy.ndarray]`` stored as ``.npz`` without pickle (so no object arrays; strings as
-fixed-width unicode arrays). Two ports connect only when their type strings are equal.
+Every other port type is a *bundle*: a ``dict[str, numpy.ndarray]`` stored as ``.npz`` without
+pickle (so no object arrays; strings as fixed-width unicode arrays). A bundle's type is a
+:class:`runner.bundle.BundleType` declared by the package that produces it (``points``,
+``pose_pnp``, ``similarity``…: its fields, dtypes, shapes and units; docs/bundles.md lists them),
+or a plain string naming an undeclared bundle. Two ports connect only when the output's type
+name is one the input accepts (an input may accept a tuple of bundle types); the runner checks
+a declared bundle's fields when the stage's output is stored.
 
 What a result depends on
 ------------------------
@@ -38,6 +43,8 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, ClassVar, Iterator, Mapping, Protocol
+
+from runner.bundle import BundleType, PortType
 
 if TYPE_CHECKING:  # annotations only: `runner --help` and `runner cache` start without numpy
     import numpy as np
@@ -148,9 +155,9 @@ class Stage:
     name: ClassVar[str]  # registered name, e.g. "track.correlation"
     version: ClassVar[str]  # bump to invalidate cache entries made by older code; CHANGELOG.md lists each version
     doc: ClassVar[str] = ""  # one line shown by `runner stages`
-    inputs: ClassVar[Mapping[str, str]] = {}  # port name -> port type
+    inputs: ClassVar[Mapping[str, PortType]] = {}  # port name -> port type
     optional_inputs: ClassVar[frozenset[str]] = frozenset()
-    outputs: ClassVar[Mapping[str, str]] = {}
+    outputs: ClassVar[Mapping[str, str | BundleType]] = {}
     params: ClassVar[tuple[Param, ...]] = ()
     # Modules the stage's run imports (its heavy libraries): the runner imports them ahead while
     # its scheduling thread waits for other stages (a stream), so that the stage does not start

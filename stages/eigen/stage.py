@@ -18,6 +18,8 @@ from typing import Any, Iterator, Mapping
 import numpy as np
 
 from runner.stage import Context, FrameStream, Param, SequenceStage, StageError
+from stages.eigen.bundles import EIGEN_MODEL, EIGEN_PARAMETERS
+from stages.geometry.bundles import DISPLACEMENTS, HEAD_POSES, POINTS, SIMILARITY
 from stages.eigen.model import EigenModel, analyze_frames, parameters_to_points, similarities_from_points
 from stages.eigen.sampling import rotation_angles
 from stages.eigen.training import face_model, train_on_renders
@@ -33,7 +35,7 @@ class TrainEigenfeatures(SequenceStage):
     version = "2"
     doc = "eigenfeatures (PCA of feature patches) and linear estimator from renders of the performer's face model"
     inputs = {"pack": "dir"}
-    outputs = {"model": "eigen_model"}
+    outputs = {"model": EIGEN_MODEL}
     params = (
         Param(
             "sampling",
@@ -113,9 +115,9 @@ class AnalyzeEigenfeatures(SequenceStage):
     name = "analyze.eigenfeatures"
     version = "2"
     doc = "animation parameters and all layout points from eigenfeature scores (Valente & Dugelay)"
-    inputs = {"frames": "frames", "similarity": "similarity", "points": "points", "pose": "pose", "model": "eigen_model"}
+    inputs = {"frames": "frames", "similarity": SIMILARITY, "points": POINTS, "pose": HEAD_POSES, "model": EIGEN_MODEL}
     optional_inputs = frozenset({"similarity", "points", "pose", "model"})
-    outputs = {"points": "points", "displacements": "displacements", "parameters": "eigen_parameters"}
+    outputs = {"points": POINTS, "displacements": DISPLACEMENTS, "parameters": EIGEN_PARAMETERS}
     params = (
         Param("model_file", str, "", "a trained model (.npz of train.eigenfeatures) instead of the model input", file=True),
         Param("rotation", bool, True, "head rotation from the pose input in the estimator's observation (paper)"),
@@ -139,10 +141,8 @@ class AnalyzeEigenfeatures(SequenceStage):
         angles = None
         if params["rotation"]:
             pose = inputs.get("pose")
-            if pose is None or "R" not in pose or "valid" not in pose:
-                raise StageError(
-                    f"{self.name}: rotation=true needs the input 'pose' with fields 'R' and 'valid' (or set rotation=false)"
-                )
+            if pose is None:
+                raise StageError(f"{self.name}: rotation=true needs the input 'pose' (or set rotation=false)")
             if len(pose["R"]) != T:
                 raise StageError(f"{self.name}: input 'pose' field 'R' has {len(pose['R'])} frames, expected {T}")
             angles = rotation_angles(pose["R"])

@@ -17,6 +17,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
+from stages.geometry.bundles import DISPLACEMENTS, POINTS, SIMILARITY
 from stages.geometry.similarity import apply_similarity, fit_similarity, invert_similarity
 from stages.geometry.subset import named_columns, rigid_columns
 from stages.layout import load_layout
@@ -83,9 +84,9 @@ class SimilarityCompensate(SequenceStage):
     name = "compensate.similarity"
     version = "1"
     doc = "2D similarity motion compensation from the rigid points (eq. 8-9), displacements T^-1(x')-x"
-    inputs = {"points": "points", "neutral": "points"}
+    inputs = {"points": POINTS, "neutral": POINTS}
     optional_inputs = frozenset({"neutral"})
-    outputs = {"similarity": "similarity", "displacements": "displacements"}
+    outputs = {"similarity": SIMILARITY, "displacements": DISPLACEMENTS}
     params = (
         Param("layout", str, "zhang134", "layout name or YAML path (its rigid points)", file=True),
         Param("robust", bool, False, "Huber-reweighted least squares instead of plain least squares"),

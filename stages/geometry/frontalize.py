@@ -50,6 +50,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import Context, SequenceStage, StageError
+from stages.geometry.bundles import DISPLACEMENTS, HEAD_POSE_PNP, POINTS
+from stages.pack.bundle_types import PACK_MODEL3D
 from stages.geometry.camera import project_pose
 from stages.pack.bundles import model3d_from_bundle
 
@@ -180,8 +182,8 @@ class PoseCompensate(SequenceStage):
     name = "compensate.pose3d"
     version = "4"
     doc = "3D motion compensation: points lifted with the generic model and the pose, re-projected at frame 0's pose"
-    inputs = {"points": "points", "pose": "pose", "model3d": "pack_model3d"}
-    outputs = {"displacements": "displacements"}
+    inputs = {"points": POINTS, "pose": HEAD_POSE_PNP, "model3d": PACK_MODEL3D}
+    outputs = {"displacements": DISPLACEMENTS}
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         points, pose = inputs["points"], inputs["pose"]
@@ -201,8 +203,6 @@ class PoseCompensate(SequenceStage):
                 "track the rigid points in the first frame"
             )
         R, t = np.asarray(pose["R"], dtype=np.float64), np.asarray(pose["tvec"], dtype=np.float64)
-        if "camera" not in pose:
-            raise StageError(f"{self.name}: the pose bundle carries no 'camera' (connect pose.pnp's output)")
         camera = np.asarray(pose["camera"], dtype=np.float64)
         model = adapt_to_reference(generic, xy[0], R[0], t[0], camera)
         frontal, ok = frontalize(xy, model, R, t, camera, reference=0)

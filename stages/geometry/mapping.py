@@ -51,6 +51,8 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
+from stages.geometry.bundles import DISPLACEMENTS, POINTS
+from stages.pack.bundle_types import LAYOUT, PACK_GEOMETRY
 from stages.geometry.rigid3d import close_reference_lips
 from stages.geometry.signals import eye_line_frame
 from stages.geometry.similarity import fit_similarity
@@ -385,8 +387,8 @@ class ExpressionMap(SequenceStage):
         "performer displacements onto the target's neutral (Sec. 11): size-normalized, eyes closing by the "
         "performer's fraction, range mode, lips and lids never crossing; states beyond the pack listed"
     )
-    inputs = {"displacements": "displacements", "layout": "layout", "geometry": "pack_geometry"}
-    outputs = {"points": "points"}
+    inputs = {"displacements": DISPLACEMENTS, "layout": LAYOUT, "geometry": PACK_GEOMETRY}
+    outputs = {"points": POINTS}
     params = (
         Param("mode", str, "eyes_nose", "displacement normalization (eyes_nose | similarity | region | none)", choices=MODES),
         Param(

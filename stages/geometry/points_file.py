@@ -15,6 +15,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import Context, SequenceStage, StageError
+from stages.geometry.bundles import POINTS
 from stages.npz_file import NpzError, read_npz
 
 MAX_POINT_VALUES = 100_000_000  # values of one array (800 MB as float64: ~1.7 h of 134 points at 60 fps)
@@ -87,7 +88,7 @@ class LoadPoints(SequenceStage):
     version = "1"
     doc = "read a points file (npz: xy (T,N,2) px, names (N,), fps) into a points bundle"
     inputs = {"file": "file"}
-    outputs = {"points": "points"}
+    outputs = {"points": POINTS}
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         bundle = read_points_file(Path(inputs["file"]))

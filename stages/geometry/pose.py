@@ -24,6 +24,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
+from stages.geometry.bundles import HEAD_POSE_PNP, POINTS
+from stages.pack.bundle_types import CAMERA, LAYOUT, PACK_GEOMETRY, PACK_MODEL3D
 from stages.geometry.camera import project_pose, rotation_matrix, rotation_vector
 from stages.geometry.face_model import FaceModel, bundle_face_model, fit_face_model
 from stages.geometry.frontalize import adapt_to_reference, frontal_translation
@@ -245,9 +247,9 @@ class PnPPose(SequenceStage):
     name = "pose.pnp"
     version = "5"
     doc = "3D head pose per frame by PnP from the rigid points and the pack's generic 3D model (eq. 10)"
-    inputs = {"points": "points", "layout": "layout", "model3d": "pack_model3d", "camera": "camera", "geometry": "pack_geometry"}
+    inputs = {"points": POINTS, "layout": LAYOUT, "model3d": PACK_MODEL3D, "camera": CAMERA, "geometry": PACK_GEOMETRY}
     optional_inputs = frozenset({"camera", "geometry"})
-    outputs = {"pose": "pose"}
+    outputs = {"pose": HEAD_POSE_PNP}
     params = (
         Param(
             "intrinsics",

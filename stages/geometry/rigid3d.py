@@ -37,6 +37,9 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import SUMMARY, Context, Param, SequenceStage, StageError
+from stages.geometry.bundles import DISPLACEMENTS, HEAD_POSE_RELATIVE, POINTS, SIMILARITY
+from stages.landmarks.bundles import LANDMARKS
+from stages.occlusion.bundles import OCCLUSION
 from stages.geometry.camera import rotation_vector
 from stages.geometry.compensate import compensate as similarity_2d
 from stages.geometry.neutral import REST, NeutralEstimate, estimate_neutral
@@ -360,9 +363,9 @@ class CompensateRigid3D(SequenceStage):
         "neutral estimated from the whole clip (or a named frame); 3D similarity of the rigid points; "
         "displacements, pose, 2D similarity; occluded regions held"
     )
-    inputs = {"points": "points", "landmarks": "landmarks", "occlusion": "occlusion"}
+    inputs = {"points": POINTS, "landmarks": LANDMARKS, "occlusion": OCCLUSION}
     optional_inputs = frozenset({"occlusion"})
-    outputs = {"displacements": "displacements", "similarity": "similarity", "pose": "pose"}
+    outputs = {"displacements": DISPLACEMENTS, "similarity": SIMILARITY, "pose": HEAD_POSE_RELATIVE}
     params = (
         Param(
             "neutral_frame",

@@ -28,6 +28,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
+from stages.geometry.bundles import POINTS
 
 
 def gaussian_kernel(sigma: float, *, truncate: float = 3.0) -> np.ndarray:
@@ -137,8 +138,8 @@ class GaussianSmooth(SequenceStage):
     name = "smooth.gaussian"
     version = "3"
     doc = "Gaussian smoothing of point trajectories over time (normalized, mask-aware, odd reflection at the ends)"
-    inputs = {"points": "points"}
-    outputs = {"points": "points"}
+    inputs = {"points": POINTS}
+    outputs = {"points": POINTS}
     params = (
         Param("sigma", float, 1.5, "kernel standard deviation in frames (0 = off)", min=0.0, max=1000.0),
         Param("truncate", float, 3.0, "kernel radius in sigmas", min=0.0, max=20.0),
@@ -388,8 +389,8 @@ class OneEuroSmooth(SequenceStage):
     name = "smooth.one_euro"
     version = "1"
     doc = "One Euro smoothing of point trajectories (forward-backward, speed-adaptive cutoff, mask-aware)"
-    inputs = {"points": "points"}
-    outputs = {"points": "points"}
+    inputs = {"points": POINTS}
+    outputs = {"points": POINTS}
     params = (
         Param("min_cutoff", float, 1.0, "cutoff frequency of a resting point, Hz", min=0.0, max=1000.0),
         Param("beta", float, 1.5, "rise of the cutoff with the point's speed on the face, Hz per px/s", min=0.0, max=1000.0),

@@ -34,6 +34,8 @@ from typing import Any, Iterator, Mapping
 import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
+from stages.geometry.bundles import POINTS
+from stages.pack.bundle_types import CAMERA, PACK_GEOMETRY, PACK_MODEL3D
 from stages.geometry.face_model import FaceModel, bundle_face_model
 from stages.geometry.first_frame_points import order_by_layout, read_first_frame_points
 from stages.geometry.subset import rigid_columns
@@ -65,9 +67,9 @@ class CorrelationTrack(SequenceStage):
     name = "track.correlation"
     version = "7"
     doc = "track the layout's tracked subset through a clip (NCC, or CSRT/KCF/MOSSE/LK)"
-    inputs = {"frames": "frames", "init": "file", "model3d": "pack_model3d", "geometry": "pack_geometry", "camera": "camera"}
+    inputs = {"frames": "frames", "init": "file", "model3d": PACK_MODEL3D, "geometry": PACK_GEOMETRY, "camera": CAMERA}
     optional_inputs = frozenset(FACE_MODEL_INPUTS)
-    outputs = {"points": "points"}
+    outputs = {"points": POINTS}
     params = (
         Param("layout", str, "zhang134", "layout name or YAML path; its `tracked` subset is followed", file=True),
         Param("method", str, "ncc", "tracker", choices=METHODS),

@@ -8,6 +8,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
+from stages.geometry.bundles import POINTS
+from stages.landmarks.bundles import LANDMARKS
 from stages.landmarks.correspondence import Correspondence, layout_from_mesh, load_correspondence
 from stages.landmarks.landmarker import BLENDSHAPE_NAMES, N_MESH, SELECT_RULES, Landmarker
 from stages.layout import Layout, load_layout
@@ -44,7 +46,7 @@ class FaceLandmarks(SequenceStage):
     version = "2"
     doc = "MediaPipe Face Landmarker: 478-point face mesh, 52 blendshapes and head matrix per frame"
     inputs = {"frames": "frames"}
-    outputs = {"landmarks": "landmarks"}
+    outputs = {"landmarks": LANDMARKS}
     params = (
         Param("max_faces", int, 4, "faces looked for per searched region", min=1, max=16),
         Param("select", str, "largest", "face chosen when there are several (then followed)", choices=SELECT_RULES),
@@ -142,8 +144,8 @@ class LayoutPoints(SequenceStage):
     name = "landmarks.layout"
     version = "1"
     doc = "The layout's feature points (zhang134) as fixed combinations of face-mesh vertices"
-    inputs = {"landmarks": "landmarks"}
-    outputs = {"points": "points"}
+    inputs = {"landmarks": LANDMARKS}
+    outputs = {"points": POINTS}
     params = (
         Param("layout", str, "zhang134", "layout name or YAML path", file=True),
         Param("correspondence", str, "zhang134_mediapipe", "mesh correspondence name or YAML path", file=True),

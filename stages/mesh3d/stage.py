@@ -41,6 +41,10 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
+from stages.geometry.bundles import POINTS
+from stages.mesh3d.bundles import MESH3D
+from stages.pack.bundle_types import CAMERA, LAYOUT, PACK_IMAGES, PACK_MODEL3D
+from stages.synthesis.bundles import SYNTHESIS_MODEL
 from stages.mesh3d.model import build_target_model, lift
 from stages.mesh3d.synthesis import synthesize_3d
 from stages.pack.bundles import camera_from_bundle, images_from_bundle, layout_from_bundle, model3d_from_bundle
@@ -71,15 +75,15 @@ class Mesh3DSynthesize(SequenceStage):
     version = "3"
     doc = "Sec. 9: target 2D geometry per frame -> 3D expression mesh (per-subregion QP on 3n-vectors, vertex blending)"
     inputs = {
-        "layout": "layout",
-        "images": "pack_images",
-        "model3d": "pack_model3d",
-        "camera": "camera",
-        "points": "points",
-        "model": "synthesis_model",
+        "layout": LAYOUT,
+        "images": PACK_IMAGES,
+        "model3d": PACK_MODEL3D,
+        "camera": CAMERA,
+        "points": POINTS,
+        "model": SYNTHESIS_MODEL,
     }
     optional_inputs = frozenset({"model"})
-    outputs = {"mesh": "mesh3d"}
+    outputs = {"mesh": MESH3D}
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         try:

@@ -15,6 +15,8 @@ from typing import Any
 import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
+from stages.geometry.bundles import POINTS
+from stages.occlusion.bundles import OCCLUSION
 from stages.occlusion import model, profiles
 from stages.occlusion.regions import REGIONS, region_points
 
@@ -70,8 +72,8 @@ class DetectOcclusion(SequenceStage):
     name = "occlusion.detect"
     version = "1"
     doc = "occluded face regions (mouth, eyes, brows, nose) per frame, from the image against the clip's own appearance"
-    inputs = {"frames": "frames", "points": "points"}
-    outputs = {"occlusion": "occlusion"}
+    inputs = {"frames": "frames", "points": POINTS}
+    outputs = {"occlusion": OCCLUSION}
     params = (
         Param("threshold", float, 0.3, "occluded where the region's visibility is below this (1 = as typical)", min=0.0, max=1.0),
         Param("keep", float, 0.5, "visibility above which a frame re-estimates the region's model", min=0.0, max=1.0),

@@ -24,7 +24,8 @@ Images are ``(H, W, 3)`` uint8 RGB, validity mattes ``(H, W)`` uint8 (255 = a re
 image without a matte file gets 255 everywhere); points are in px, x right, y down, origin at the centre of
 the top-left pixel, rows in layout order. A bundle holds no file path, so moving a pack folder
 changes no key. The ``*_from_bundle`` functions check the keys and shapes and raise
-``ValueError`` naming the key; stages turn that into ``StageError`` naming their input.
+``ValueError`` naming the key; stages turn that into ``StageError`` naming their input. The
+five types, as the runner checks them, are declared in :mod:`stages.pack.bundle_types`.
 """
 
 from __future__ import annotations

@@ -12,6 +12,7 @@ from __future__ import annotations
 from typing import Any, Mapping
 
 from runner.stage import Context, SequenceStage
+from stages.pack.bundle_types import CAMERA, LAYOUT, PACK_GEOMETRY, PACK_IMAGES, PACK_MODEL3D
 from stages.actor_pack import load_pack
 from stages.pack.bundles import pack_to_bundles
 
@@ -24,11 +25,11 @@ class LoadPack(SequenceStage):
     doc = "read an actor pack folder: layout, neutral/captured geometry, images, generic 3D model, camera"
     inputs = {"pack": "dir"}
     outputs = {
-        "layout": "layout",
-        "geometry": "pack_geometry",
-        "images": "pack_images",
-        "model3d": "pack_model3d",
-        "camera": "camera",
+        "layout": LAYOUT,
+        "geometry": PACK_GEOMETRY,
+        "images": PACK_IMAGES,
+        "model3d": PACK_MODEL3D,
+        "camera": CAMERA,
     }
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:

@@ -32,6 +32,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import Context, FrameStage, Param, SequenceStage, StageError, StreamInfo
+from stages.landmarks.bundles import LANDMARKS
+from stages.packbuild.bundles import PHOTO_IDENTITY
 from stages.image_header import ImageTooLarge, image_size
 from stages.packbuild.identity import DIFFERENT_FACE_DISTANCE, face_signature, majority_outliers
 
@@ -294,8 +296,8 @@ class PhotoIdentity(SequenceStage):
     name = "photos.identity"
     version = "1"
     doc = "warn about photos of a folder whose face shape (rigid landmark proportions) differs from the majority's"
-    inputs = {"photos": "dir", "landmarks": "landmarks"}
-    outputs = {"identity": "photo_identity"}
+    inputs = {"photos": "dir", "landmarks": LANDMARKS}
+    outputs = {"identity": PHOTO_IDENTITY}
     params = (
         Param(
             "max_distance",

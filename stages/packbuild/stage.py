@@ -10,6 +10,9 @@ import numpy as np
 
 from runner.depends import not_recording
 from runner.stage import SUMMARY, Context, Param, SequenceStage, StageError
+from stages.geometry.bundles import POINTS
+from stages.landmarks.bundles import LANDMARKS
+from stages.packbuild.bundles import FRAME_FILTER, PACK_SELECTION
 from stages.actor_pack import MAX_CAPTURED, MAX_EXAMPLES, MAX_TEETH_EXAMPLES
 from stages.geometry.pose import default_intrinsics
 from stages.landmarks.stage import layout_and_correspondence
@@ -59,8 +62,8 @@ class PackFilter(SequenceStage):
     name = "pack.filter"
     version = "1"
     doc = "reject frames unusable for an actor pack: no face, cut by the border, head turned, blurred, eyes/mouth occluded"
-    inputs = {"frames": "frames", "landmarks": "landmarks", "points": "points"}
-    outputs = {"filter": "frame_filter"}
+    inputs = {"frames": "frames", "landmarks": LANDMARKS, "points": POINTS}
+    outputs = {"filter": FRAME_FILTER}
     params = (
         Param("max_yaw", float, 20.0, "largest |yaw| of a usable frame, degrees", min=0.0, max=180.0),
         Param("max_pitch", float, 15.0, "largest |pitch|, degrees", min=0.0, max=180.0),
@@ -152,8 +155,8 @@ class PackSelect(SequenceStage):
     name = "pack.select"
     version = "3"
     doc = "choose a pack's neutral, standard, examples (greedy k-center), teeth examples and captured geometries"
-    inputs = {"points": "points", "landmarks": "landmarks", "filter": "frame_filter"}
-    outputs = {"selection": "pack_selection"}
+    inputs = {"points": POINTS, "landmarks": LANDMARKS, "filter": FRAME_FILTER}
+    outputs = {"selection": PACK_SELECTION}
     params = (
         Param("width", int, 384, "pack image width, px", min=32, max=4096),
         Param("height", int, 512, "pack image height, px", min=32, max=4096),
@@ -292,7 +295,7 @@ class PackWrite(SequenceStage):
     name = "pack.write"
     version = "3"
     doc = "write the actor pack: aligned, exposure-matched images, validity mattes, points, captured.npz, model3d, pack.yaml, sheet.png"
-    inputs = {"frames": "frames", "points": "points", "selection": "pack_selection", "valid": "frames"}
+    inputs = {"frames": "frames", "points": POINTS, "selection": PACK_SELECTION, "valid": "frames"}
     optional_inputs = frozenset({"valid"})
     outputs = {"pack": "files"}
     params = (

@@ -7,6 +7,9 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
+from stages.geometry.bundles import DISPLACEMENTS, POINTS
+from stages.pack.bundle_types import LAYOUT, PACK_GEOMETRY
+from stages.propagation.bundles import PCA_MODEL
 from stages.pack.bundles import layout_and_geometry
 from stages.propagation.hierarchical_pca import HierarchicalPCA, fit_hierarchical_pca
 from stages.propagation.propagate import motion_propagation
@@ -19,8 +22,8 @@ class TrainHierarchicalPCA(SequenceStage):
     name = "propagate.train"
     version = "2"
     doc = "hierarchical PCA (1 + 4 + 16 feature point sets) of the pack's captured geometries"
-    inputs = {"layout": "layout", "geometry": "pack_geometry"}
-    outputs = {"pca_model": "pca_model"}
+    inputs = {"layout": LAYOUT, "geometry": PACK_GEOMETRY}
+    outputs = {"pca_model": PCA_MODEL}
     params = (
         Param("n_components", int, 8, "most principal components kept per feature point set (paper: 5-10)", min=1, max=256),
         Param(
@@ -72,9 +75,9 @@ class HierarchicalPropagation(SequenceStage):
     name = "propagate.hierarchical"
     version = "3"
     doc = "hierarchical-PCA motion propagation of a tracked subset to all feature points"
-    inputs = {"pca_model": "pca_model", "displacements": "displacements", "points": "points"}
+    inputs = {"pca_model": PCA_MODEL, "displacements": DISPLACEMENTS, "points": POINTS}
     optional_inputs = frozenset({"displacements", "points"})
-    outputs = {"displacements": "displacements", "points": "points"}
+    outputs = {"displacements": DISPLACEMENTS, "points": POINTS}
     params = (
         Param(
             "stop_progress_px",

@@ -39,6 +39,11 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import Context, FrameStage, Param, SequenceStage, StageError, StreamInfo
+from stages.geometry.bundles import DISPLACEMENTS, HEAD_POSE_RELATIVE
+from stages.landmarks.bundles import LANDMARKS
+from stages.mesh3d.bundles import MESH3D
+from stages.pack.bundle_types import CAMERA, PACK_GEOMETRY, PACK_MODEL3D
+from stages.render3d.bundles import HEAD3D
 from stages.geometry.rigid3d import euler_yaw_pitch_roll
 from stages.mesh3d.model import target_depth
 from stages.mesh3d.stage import GEOMETRY, mesh_vertices
@@ -93,15 +98,15 @@ class HeadPose3D(SequenceStage):
     version = "3"
     doc = "Sec. 14.1: performer head pose (compensate.rigid3d) -> rigid motion of the target's 3D model, mm; point depths"
     inputs = {
-        "geometry": "pack_geometry",
-        "model3d": "pack_model3d",
-        "camera": "camera",
-        "pose": "pose",
-        "performer": "displacements",
-        "landmarks": "landmarks",
+        "geometry": PACK_GEOMETRY,
+        "model3d": PACK_MODEL3D,
+        "camera": CAMERA,
+        "pose": HEAD_POSE_RELATIVE,
+        "performer": DISPLACEMENTS,
+        "landmarks": LANDMARKS,
     }
     optional_inputs = frozenset({"performer", "landmarks"})
-    outputs = {"head": "head3d"}
+    outputs = {"head": HEAD3D}
     params = (
         Param(
             "translation_scale",
@@ -132,10 +137,6 @@ class HeadPose3D(SequenceStage):
             raise StageError(f"{self.name}: {exc}") from None
         R = _field(pose, "R", self.name, "pose").astype(np.float64)
         tvec = _field(pose, "tvec", self.name, "pose").astype(np.float64)
-        if "scale" not in pose:
-            raise StageError(
-                f"{self.name}: input 'pose' has no field 'scale': connect compensate.rigid3d's pose (relative to the neutral frame)"
-            )
         scale = np.asarray(pose["scale"], np.float64)
         T = len(R)
         valid = np.asarray(pose["valid"], bool) if "valid" in pose else np.ones(T, bool)
@@ -199,8 +200,8 @@ class Render3D(FrameStage):
         "mask": "frames",
         "head_matte": "frames",
         "filled": "frames",
-        "mesh": "mesh3d",
-        "head": "head3d",
+        "mesh": MESH3D,
+        "head": HEAD3D,
     }
     optional_inputs = frozenset({"mask", "head_matte", "filled", "head"})
     outputs = {

@@ -21,6 +21,10 @@ from pathlib import Path
 from typing import Any
 
 from runner.stage import Context, Param, SequenceStage, StageError
+from stages.geometry.bundles import DISPLACEMENTS, HEAD_POSES, POINTS, SIMILARITY
+from stages.occlusion.bundles import OCCLUSION
+from stages.report.bundles import SHEET
+from stages.synthesis.bundles import COEFFICIENTS
 from stages.writers.atomic import atomic_write
 from stages.writers.bundles import check_bundle
 
@@ -41,13 +45,13 @@ class ContactSheet(SequenceStage):
     inputs = {
         "performer": "frames",
         "result": "frames",
-        "target": "points",
-        "tracked": "points",
-        "pose": "pose",
-        "displacements": "displacements",
+        "target": POINTS,
+        "tracked": POINTS,
+        "pose": HEAD_POSES,
+        "displacements": DISPLACEMENTS,
     }
     optional_inputs = frozenset({"displacements"})
-    outputs = {"sheet": "sheet"}
+    outputs = {"sheet": SHEET}
     params = (
         Param("sheet_frames", int, 8, "evenly spaced contact-sheet frames (the expression peaks are added)", min=0, max=200),
         Param("thumb_height", int, 180, "contact-sheet image height, px", min=16, max=2160),
@@ -89,15 +93,15 @@ class WriteReport(SequenceStage):
     version = "5"
     doc = "an HTML page to judge the run: contact sheet, expression/pose/tracking curves, coefficients, warnings"
     inputs = {
-        "sheet": "sheet",
-        "target": "points",
-        "tracked": "points",
-        "pose": "pose",
-        "similarity": "similarity",
-        "coefficients": "coefficients",
-        "displacements": "displacements",
-        "mapped": "points",
-        "occlusion": "occlusion",
+        "sheet": SHEET,
+        "target": POINTS,
+        "tracked": POINTS,
+        "pose": HEAD_POSES,
+        "similarity": SIMILARITY,
+        "coefficients": COEFFICIENTS,
+        "displacements": DISPLACEMENTS,
+        "mapped": POINTS,
+        "occlusion": OCCLUSION,
     }
     optional_inputs = frozenset({"displacements", "mapped", "occlusion"})
     outputs = {"report": "files"}

@@ -63,6 +63,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
+from stages.pack.bundle_types import LAYOUT, PACK_IMAGES
+from stages.synthesis.bundles import SYNTHESIS_MODEL
 from stages.actor_pack import ActorPack, Expression
 from stages.layout import Layout, subregion_mask
 from stages.pack.bundles import images_from_bundle, layout_from_bundle
@@ -333,8 +335,8 @@ class BuildSynthesis(SequenceStage):
     name = "synthesis.build"
     version = "4"
     doc = "offline: align examples and teeth examples to the standard image, subregion mask, blend weight map"
-    inputs = {"layout": "layout", "images": "pack_images"}
-    outputs = {"model": "synthesis_model"}
+    inputs = {"layout": LAYOUT, "images": PACK_IMAGES}
+    outputs = {"model": SYNTHESIS_MODEL}
     params = (
         Param(
             "band_px",

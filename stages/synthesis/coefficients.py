@@ -16,6 +16,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import Context, SequenceStage, StageError
+from stages.synthesis.bundles import COEFFICIENTS, SYNTHESIS_COEFFS, SYNTHESIS_MODEL
 from stages.synthesis.qp import project_onto_convex_hull
 
 from typing import TYPE_CHECKING
@@ -195,8 +196,8 @@ class NameCoefficients(SequenceStage):
     name = "synthesis.coefficients"
     version = "2"
     doc = "the coefficients synthesize composited with (eq. 2-5), laid out with subregion/example names"
-    inputs = {"model": "synthesis_model", "coeffs": "synthesis_coeffs"}
-    outputs = {"coefficients": "coefficients"}
+    inputs = {"model": SYNTHESIS_MODEL, "coeffs": SYNTHESIS_COEFFS}
+    outputs = {"coefficients": COEFFICIENTS}
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         model = inputs["model"]

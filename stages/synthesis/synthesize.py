@@ -25,6 +25,9 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from runner.stage import Context, FrameStage, Param, StageError, StreamInfo
+from stages.geometry.bundles import DISPLACEMENTS, POINTS, SIMILARITY
+from stages.render3d.bundles import HEAD3D
+from stages.synthesis.bundles import SYNTHESIS_COEFFS, SYNTHESIS_MODEL
 from stages.geometry.mapping import rms_radius
 from stages.synthesis.coherence import coherent_coefficients
 from stages.synthesis.composite import MIN_COEFF, Compositor, Workspace, composite, prepare_compositor, workspace
@@ -686,15 +689,15 @@ class Synthesize(FrameStage):
         "half-float sRGB frames, face mask, head matte, filled matte, coefficients"
     )
     inputs = {
-        "model": "synthesis_model",
-        "points": "points",
-        "displacements": "displacements",
-        "similarity": "similarity",
-        "performer": "displacements",
-        "head": "head3d",
+        "model": SYNTHESIS_MODEL,
+        "points": POINTS,
+        "displacements": DISPLACEMENTS,
+        "similarity": SIMILARITY,
+        "performer": DISPLACEMENTS,
+        "head": HEAD3D,
     }
     optional_inputs = frozenset({"points", "displacements", "similarity", "performer", "head"})
-    outputs = {"frames": "frames", "mask": "frames", "head_matte": "frames", "filled": "frames", "coeffs": "synthesis_coeffs"}
+    outputs = {"frames": "frames", "mask": "frames", "head_matte": "frames", "filled": "frames", "coeffs": SYNTHESIS_COEFFS}
     params = (
         Param(
             "mode",

@@ -6,7 +6,21 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from runner.bundle import BundleType
 from runner.stage import StageError
+from stages.geometry.bundles import HEAD_POSES, POINTS, SIMILARITY
+from stages.occlusion.bundles import OCCLUSION
+from stages.synthesis.bundles import COEFFICIENTS
+
+# Per writer kind (the key of the tables below, which names columns, files and EXR attributes):
+# the bundle types a writer's port of that kind takes.
+TYPES: dict[str, BundleType | tuple[BundleType, ...]] = {
+    "points": POINTS,
+    "pose": HEAD_POSES,
+    "similarity": SIMILARITY,
+    "coefficients": COEFFICIENTS,
+    "occlusion": OCCLUSION,
+}
 
 # Per port type: the fields a writer reads, and which of them have one row per frame.
 FIELDS = {

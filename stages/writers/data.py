@@ -19,7 +19,7 @@ import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
 from stages.writers.atomic import atomic_write
-from stages.writers.bundles import check_bundle, first_axis
+from stages.writers.bundles import TYPES, check_bundle, first_axis
 
 # port -> port type, in CSV column order
 BUNDLE_PORTS = {
@@ -192,7 +192,7 @@ class WriteData(SequenceStage):
     name = "write.data"
     version = "2"
     doc = "per-frame points, pose, similarity, QP coefficients and occluded regions as data.npz and data.csv"
-    inputs = {**BUNDLE_PORTS, "frames": "frames"}
+    inputs = {**{port: TYPES[kind] for port, kind in BUNDLE_PORTS.items()}, "frames": "frames"}
     optional_inputs = frozenset(inputs)
     outputs = {"data": "files"}
     params: tuple[Param, ...] = ()

@@ -31,6 +31,8 @@ from typing import Any
 import numpy as np
 
 from runner.stage import Context, FrameStage, Param, StageError
+from stages.geometry.bundles import HEAD_POSES, SIMILARITY
+from stages.render3d.bundles import HEAD3D
 from stages.color import srgb_to_linear, to_unit_float
 from stages.writers.atomic import atomic_write
 from stages.writers.bundles import check_bundle
@@ -376,9 +378,9 @@ class WriteExr(FrameStage):
         "mask": "frames",
         "head_matte": "frames",
         "filled": "frames",
-        "pose": "pose",
-        "similarity": "similarity",
-        "head": "head3d",
+        "pose": HEAD_POSES,
+        "similarity": SIMILARITY,
+        "head": HEAD3D,
     }
     optional_inputs = frozenset({"mask", "head_matte", "filled", "pose", "similarity", "head"})
     outputs = {"exr": "files"}

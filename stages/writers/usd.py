@@ -39,6 +39,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from runner.stage import Context, Param, SequenceStage, StageError
+from stages.mesh3d.bundles import MESH3D
+from stages.render3d.bundles import HEAD3D
 from stages.color import to_uint8
 from stages.mesh3d.stage import GEOMETRY, mesh_vertices
 
@@ -220,7 +222,7 @@ class WriteUsd(SequenceStage):
     name = "write.usd"
     version = "3"
     doc = "USD scene of the 3D expression: time-sampled mesh points and UVs, head xform, texture sequence; head_pose.csv"
-    inputs = {"mesh": "mesh3d", "head": "head3d", "texture": "frames", "mask": "frames"}
+    inputs = {"mesh": MESH3D, "head": HEAD3D, "texture": "frames", "mask": "frames"}
     optional_inputs = frozenset({"head", "mask"})
     outputs = {"usd": "files"}
     params = (

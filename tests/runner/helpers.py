@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from runner.bundle import BundleType, Field
 from runner.stage import Context, FrameStage, Param, SequenceStage, StreamInfo
 from stages.video import WriteVideo
 
@@ -36,6 +37,7 @@ ENTRY_POINTS = {
     "test.add": "tests.runner.helpers:AddFrames",
     "test.mean": "tests.runner.helpers:MeanSeries",
     "test.warn_mean": "tests.runner.helpers:WarningMeanSeries",
+    "test.typed_mean": "tests.runner.helpers:TypedMeanSeries",
     "test.table": "tests.runner.helpers:SeriesTable",
     "test.slow_write": "tests.runner.helpers:SlowWriteVideo",
     "test.every_other": "tests.runner.helpers:EveryOtherFrame",
@@ -124,6 +126,28 @@ class MeanSeries(SequenceStage):
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         means = [chunk.reshape(len(chunk), -1).mean(axis=1) for _, chunk in inputs["frames"].chunks()]
         return {"series": {"mean": np.concatenate(means)}}
+
+
+SERIES = BundleType(
+    "series",
+    "mean intensity per frame",
+    (Field("mean", "f", ("T",), "", "mean intensity"), Field("frame", "iu", ("T",), "", "frame index")),
+)
+
+
+class TypedMeanSeries(MeanSeries):
+    """``test.mean`` with a declared output type (:data:`SERIES`); ``drop`` names a field it leaves
+    out of the bundle (a stage that returns less than it declares)."""
+
+    name = "test.typed_mean"
+    outputs = {"series": SERIES}
+    params = (Param("drop", str, "", "a field left out of the bundle"),)
+
+    def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
+        mean = super().run(inputs, params, ctx)["series"]["mean"]
+        series = {"mean": mean, "frame": np.arange(len(mean))}
+        series.pop(params["drop"], None)
+        return {"series": series}
 
 
 class WarningMeanSeries(MeanSeries):

@@ -170,6 +170,24 @@ def test_bad_clip_is_one_line_error(env, tmp_path, content, words):
     assert str(clip) in done.stderr and words in done.stderr
 
 
+@pytest.mark.subprocess
+def test_a_bundle_without_a_declared_field_fails_its_stage_in_one_line(env, tmp_path):
+    pipeline = tmp_path / "typed.yaml"
+    pipeline.write_text(
+        f"inputs:\n  clip: {{type: video, default: {TINY}}}\n"
+        "stages:\n"
+        "  decode: {uses: video.decode, inputs: {video: clip}}\n"
+        "  mean: {uses: test.typed_mean, params: {drop: frame}, inputs: {frames: decode.frames}}\n"
+    )
+    done = run_cli("run", pipeline, "--out", tmp_path / "out", env=env, cwd=tmp_path)
+    assert done.returncode == 1
+    assert done.stderr.strip().splitlines() == [
+        f"error: stage 'mean' (test.typed_mean): output 'series' (series): field 'frame' is missing [{TINY}]"
+    ]
+    kept = run_cli("run", pipeline, "--set", "mean.drop=", "--out", tmp_path / "out", env=env, cwd=tmp_path)
+    assert kept.returncode == 0, kept.stderr
+
+
 def cli_main(*args: str | Path) -> tuple[int, str, str]:
     """Run ``runner ARGS`` in this process: exit code, stdout, stderr (errors found before
     anything runs need no subprocess)."""
@@ -209,6 +227,37 @@ def test_config_errors_exit_2_with_positions(tmp_path, monkeypatch):
     code, out, err = cli_main("run", bad)
     assert code == 2 and "owned" not in out
     assert err == f"error: {bad}:3:11: yaml: tag 'tag:yaml.org,2002:python/object/apply:os.system' is not allowed\n"
+    assert not (tmp_path / "cache").exists()
+
+
+def test_a_head_pose_wired_to_a_stage_that_reads_the_other_one_fails_at_load(tmp_path, monkeypatch):
+    """pose.pnp's pose is absolute (tvec mm, with its camera), compensate.rigid3d's relative to the
+    head frame (tvec px, a scale): each reader takes one of them, checked before anything runs."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("RUNNER_CACHE_DIR", str(tmp_path / "cache"))
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(
+        "inputs: {clip: {type: video}, first: {type: file}, target: {type: dir}}\n"
+        "stages:\n"
+        "  decode: {uses: video.decode, inputs: {video: clip}}\n"
+        "  track: {uses: track.correlation, inputs: {frames: decode.frames, init: first}}\n"
+        "  marks: {uses: landmarks.mediapipe, inputs: {frames: decode.frames}}\n"
+        "  pack: {uses: pack.load, inputs: {pack: target}}\n"
+        "  pnp: {uses: pose.pnp, inputs: {points: track.points, layout: pack.layout, model3d: pack.model3d, camera: pack.camera}}\n"
+        "  rigid: {uses: compensate.rigid3d, inputs: {points: track.points, landmarks: marks.landmarks}}\n"
+        "  head:\n"
+        "    uses: render3d.head\n"
+        "    inputs: {geometry: pack.geometry, model3d: pack.model3d, camera: pack.camera, pose: pnp.pose}\n"
+        "  front: {uses: compensate.pose3d, inputs: {points: track.points, model3d: pack.model3d, pose: rigid.pose}}\n"
+    )
+    lines = bad.read_text().splitlines()
+    head, front = lines[10].index("pnp.pose") + 1, lines[11].index("rigid.pose") + 1  # 1-based columns
+    code, _, err = cli_main("run", bad)
+    assert code == 2
+    assert err.splitlines() == [
+        f"error: {bad}:11:{head}: stages.head.inputs.pose: port type mismatch: 'pose' takes pose_relative, pnp.pose gives pose_pnp",
+        f"error: {bad}:12:{front}: stages.front.inputs.pose: port type mismatch: 'pose' takes pose_pnp, rigid.pose gives pose_relative",
+    ]
     assert not (tmp_path / "cache").exists()
 
 

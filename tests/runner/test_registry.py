@@ -6,6 +6,7 @@ import sys
 
 import pytest
 
+from runner.bundle import BundleType
 from runner.registry import Registry, RegistryError, check_stage_class
 from runner.stage import FrameStage, Param, SequenceStage
 from stages.video import VideoDecode, WriteVideo
@@ -71,12 +72,22 @@ def test_stage_contract_checks():
         name, version = "a.b", "1"
         outputs = {"f": "frames"}
 
+    class StringsInATuple(SequenceStage):
+        name, version = "a.b", "1"
+        inputs = {"p": ("points", "pose")}
+
+    class BundleNamedAsARunnerType(SequenceStage):
+        name, version = "a.b", "1"
+        outputs = {"f": BundleType("files", "", ())}
+
     for cls, words in [
         (NoVersion, "'version'"),
         (BadDefault, "default of 'n'"),
         (NoShape, "define stream_info"),
         (FramesFromSequence, "only frame stages"),
         (UncachedBundle, "cached = False"),
+        (StringsInATuple, "input 'p' must map a name to a type string, a BundleType or a tuple of them"),
+        (BundleNamedAsARunnerType, "output 'f' must map a name to a type string or a BundleType"),
     ]:
         with pytest.raises(RegistryError, match=words):
             check_stage_class(cls)

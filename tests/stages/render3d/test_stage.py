@@ -87,16 +87,6 @@ def test_write_usd_stage(chain):
     assert (root / "usd" / "head_pose.csv").read_text().count("\n") == 3
 
 
-def test_head_needs_a_relative_pose(chain):
-    target = chain[-1]
-    with pytest.raises(StageError, match="scale"):
-        HeadPose3D().run(
-            {**target, "pose": {"R": np.stack([np.eye(3)]), "tvec": np.zeros((1, 3))}},
-            {"translation_scale": 1.0},
-            files_context(Path(".")),
-        )
-
-
 def test_head_carries_the_mesh_models_depth_and_pivot(chain):
     _, _, mesh, head, _, _, _ = chain
     np.testing.assert_allclose(head["pivot"], mesh["pivot"], atol=1e-9)
