@@ -19,7 +19,7 @@ import numpy as np
 
 from runner.stage import Context, FrameStream, Param, SequenceStage, StageError
 from stages.eigen.model import EigenModel, analyze_frames, parameters_to_points, similarities_from_points
-from stages.eigen.sampling import rotation_angles
+from stages.geometry.rotation import ypr_zyx
 from stages.eigen.training import face_model, train_on_renders
 
 
@@ -145,7 +145,7 @@ class AnalyzeEigenfeatures(SequenceStage):
                 )
             if len(pose["R"]) != T:
                 raise StageError(f"{self.name}: input 'pose' field 'R' has {len(pose['R'])} frames, expected {T}")
-            angles = rotation_angles(pose["R"])
+            angles = ypr_zyx(pose["R"])
             valid &= np.asarray(pose["valid"], dtype=bool)
         mu, feature_valid = analyze_frames(model, _frames(frames, ctx), similarity, valid, angles, ridge=float(params["ridge"]))
         read = ~np.isnan(mu).any(axis=1)

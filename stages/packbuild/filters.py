@@ -33,7 +33,7 @@ from typing import Iterable
 
 import numpy as np
 
-from stages.geometry.rigid3d import euler_yaw_pitch_roll
+from stages.geometry.rotation import ypr_yxz
 from stages.layout import Layout, subregion_mask
 
 CAUSES = ("no_face", "out_of_frame", "head_pose", "blur", "occlusion")
@@ -65,7 +65,7 @@ def head_angles(matrix: np.ndarray, valid: np.ndarray) -> np.ndarray:
     out = np.zeros((len(matrix), 3))
     if valid.any():
         R = matrix[valid, :3, :3]
-        out[valid] = euler_yaw_pitch_roll(R / np.cbrt(np.linalg.det(R))[:, None, None])
+        out[valid] = ypr_yxz(R / np.cbrt(np.linalg.det(R))[:, None, None])
     return out
 
 
