@@ -21,11 +21,10 @@ Schema
         params: {codec: h264, crf: 18}
         inputs: {frames: gray.frames}
 
-A file that ``extends:`` another is resolved to one node tree first, each node keeping the
-position in the file that wrote it (docs/runner.md, "extends:"). The file is read with
-:func:`runner.safe_yaml.compose` (the safe loader without aliases or
+The file is read with :func:`runner.safe_yaml.compose` (the safe loader without aliases or
 unknown tags) so that each node keeps its position; values are built with the safe constructor
-only.
+only. A file that ``extends:`` another is first resolved to one node tree, each node keeping its
+position in the file that wrote it (:func:`_overlay`; docs/runner.md, "extends:").
 """
 
 from __future__ import annotations
