@@ -90,7 +90,7 @@ def load_manifest(path: Path, registry: Registry) -> list[Job]:
     path = Path(path)
     shown = str(path)
     try:
-        root = safe_yaml.compose(safe_yaml.read_text(path))
+        root = safe_yaml.compose(safe_yaml.read_text(path), name=shown)
     except OSError as exc:
         raise ConfigError([Issue(Where(shown), "file", f"cannot read: {exc.strerror}")]) from None
     except yaml.YAMLError as exc:
@@ -99,7 +99,7 @@ def load_manifest(path: Path, registry: Registry) -> list[Job]:
         raise ConfigError([Issue(where, "yaml", safe_yaml.error_message(exc))]) from None
     if root is None:
         raise ConfigError([Issue(Where(shown), "jobs", "empty manifest")])
-    r = _Reader(shown)
+    r = _Reader()
     top = {name: vnode for name, _, vnode in r.mapping(root, "", TOP_KEYS)}
     base = path.resolve().parent
     defaults = _read_fields(r, top["defaults"], "defaults", DEFAULT_KEYS, base) if "defaults" in top else _Fields()

@@ -4,6 +4,7 @@ Schema
 ------
 .. code-block:: yaml
 
+    extends: pipeline.yaml           # optional: laid over this base pipeline (see _overlay)
     chunk_frames: 16                 # optional: frames per chunk of frame stages (default 16)
     inputs:                          # pipeline inputs, bound on the command line
       clip: {type: video}            # `--in PATH` binds the (single) video input
@@ -22,7 +23,8 @@ Schema
 
 The file is read with :func:`runner.safe_yaml.compose` (the safe loader without aliases or
 unknown tags) so that each node keeps its position; values are built with the safe constructor
-only.
+only. A file that ``extends:`` another is first resolved to one node tree, each node keeping its
+position in the file that wrote it (:func:`_overlay`; docs/runner.md, "extends:").
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ from runner.stage import FrameStage, Param, Stage
 DEFAULT_CHUNK_FRAMES = 16
 INPUT_TYPES = ("video", "file", "dir")
 NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_-]*$")
-TOP_KEYS = ("chunk_frames", "inputs", "stages")
+TOP_KEYS = ("extends", "chunk_frames", "inputs", "stages")
 STAGE_KEYS = ("uses", "params", "inputs")
 INPUT_KEYS = ("type", "default", "help")
 
@@ -136,20 +138,20 @@ class Pipeline:
         return seen
 
 
-def _where(path: str, node: yaml.Node) -> Where:
-    return Where(path, node.start_mark.line + 1, node.start_mark.column + 1)
+def _where(node: yaml.Node) -> Where:
+    """The position of ``node`` in the file that wrote it (its marks are named by the file)."""
+    return Where(node.start_mark.name, node.start_mark.line + 1, node.start_mark.column + 1)
 
 
 class _Reader:
     """Walks the composed node tree, collecting issues instead of stopping at the first."""
 
-    def __init__(self, path: str):
-        self.path = path
+    def __init__(self) -> None:
         self.issues: list[Issue] = []
         self._constructor = yaml.SafeLoader("")
 
     def error(self, node: yaml.Node | Where, key: str, message: str) -> None:
-        where = node if isinstance(node, Where) else _where(self.path, node)
+        where = node if isinstance(node, Where) else _where(node)
         self.issues.append(Issue(where, key, message))
 
     def value(self, node: yaml.Node) -> Any:
@@ -193,18 +195,8 @@ def load_pipeline(path: Path, registry: Registry, *, overrides: Sequence[str] = 
         port type mismatch, cycle, duplicate name.
     """
     path = Path(path)
-    shown = str(path)
-    try:
-        root = safe_yaml.compose(safe_yaml.read_text(path))
-    except OSError as exc:
-        raise ConfigError([Issue(Where(shown), "file", f"cannot read: {exc.strerror}")]) from None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
-        where = Where(shown, mark.line + 1, mark.column + 1) if mark else Where(shown)
-        raise ConfigError([Issue(where, "yaml", safe_yaml.error_message(exc))]) from None
-    r = _Reader(shown)
-    if root is None:
-        raise ConfigError([Issue(Where(shown), "stages", "empty pipeline file")])
+    r = _Reader()
+    root = _resolve_extends(r, _read_file(path, None), path, [path.resolve()])
     top = {name: (knode, vnode) for name, knode, vnode in r.mapping(root, "", TOP_KEYS)}
 
     chunk_frames = DEFAULT_CHUNK_FRAMES
@@ -216,7 +208,7 @@ def load_pipeline(path: Path, registry: Registry, *, overrides: Sequence[str] = 
         else:
             chunk_frames = value
 
-    inputs = _read_inputs(r, top["inputs"][1] if "inputs" in top else None, path.parent)
+    inputs = _read_inputs(r, top["inputs"][1] if "inputs" in top else None)
     if "stages" not in top:
         r.error(root, "stages", "missing: a pipeline needs a `stages` mapping")
         raise ConfigError(r.issues)
@@ -240,7 +232,7 @@ def load_pipeline(path: Path, registry: Registry, *, overrides: Sequence[str] = 
     )
 
 
-def _read_inputs(r: _Reader, node: yaml.Node | None, base: Path) -> dict[str, PipelineInput]:
+def _read_inputs(r: _Reader, node: yaml.Node | None) -> dict[str, PipelineInput]:
     inputs: dict[str, PipelineInput] = {}
     if node is None:
         return inputs
@@ -263,10 +255,83 @@ def _read_inputs(r: _Reader, node: yaml.Node | None, base: Path) -> dict[str, Pi
             if not isinstance(value, str):
                 r.error(fields["default"][1], f"{key}.default", f"wrong type: expected a path string, got {value!r}")
                 continue
+            base = Path(fields["default"][1].start_mark.name).parent  # the folder of the file that wrote it
             default = (base / value) if not Path(value).is_absolute() else Path(value)
         text = str(r.value(fields["help"][1])) if "help" in fields else ""
-        inputs[name] = PipelineInput(name, kind, default, text, _where(r.path, knode))
+        inputs[name] = PipelineInput(name, kind, default, text, _where(knode))
     return inputs
+
+
+def _read_file(path: Path, extended_at: yaml.Node | None) -> yaml.Node:
+    """The node tree of the pipeline file ``path`` (its marks named ``str(path)``).
+
+    Raises :class:`ConfigError` if it cannot be read, is not YAML or is empty; positioned at
+    ``extended_at`` (the ``extends:`` value naming it) when it is a base file that cannot be read."""
+    shown = str(path)
+    try:
+        root = safe_yaml.compose(safe_yaml.read_text(path), name=shown)
+    except OSError as exc:
+        if extended_at is None:
+            raise ConfigError([Issue(Where(shown), "file", f"cannot read: {exc.strerror}")]) from None
+        raise ConfigError([Issue(_where(extended_at), "extends", f"cannot read {shown}: {exc.strerror}")]) from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
+        where = Where(shown, mark.line + 1, mark.column + 1) if mark else Where(shown)
+        raise ConfigError([Issue(where, "yaml", safe_yaml.error_message(exc))]) from None
+    if root is None:
+        raise ConfigError([Issue(Where(shown), "stages", "empty pipeline file")])
+    return root
+
+
+def _resolve_extends(r: _Reader, root: yaml.Node, path: Path, chain: list[Path]) -> yaml.Node:
+    """``root`` (the tree of ``path``) with its ``extends:`` resolved: the base pipeline's tree,
+    itself resolved, overlaid with ``root``'s other entries (:func:`_overlay`). ``chain`` holds the
+    resolved files extending down to ``path``, which must not name one of them again."""
+    if not isinstance(root, yaml.MappingNode):
+        return root  # reported by the reader
+    named = [(k, v) for k, v in root.value if isinstance(k, yaml.ScalarNode) and k.value == "extends"]
+    if not named:
+        return root
+    vnode = named[0][1]
+    rest = yaml.MappingNode(root.tag, [e for e in root.value if e is not named[0]], start_mark=root.start_mark)
+    value = r.value(vnode)
+    if not isinstance(value, str) or not value:
+        r.error(vnode, "extends", f"wrong type: expected the path of a pipeline file, got {value!r}")
+        raise ConfigError(r.issues)
+    base_path = Path(value) if Path(value).is_absolute() else path.parent / value
+    if base_path.resolve() in chain:
+        cycle = " -> ".join(str(p) for p in [*chain, base_path.resolve()])
+        r.error(vnode, "extends", f"cycle of extends: {cycle}")
+        raise ConfigError(r.issues)
+    base = _read_file(base_path, vnode)
+    if not isinstance(base, yaml.MappingNode):
+        r.error(vnode, "extends", f"{base_path} is not a pipeline (expected a mapping)")
+        raise ConfigError(r.issues)
+    base = _resolve_extends(r, base, base_path, [*chain, base_path.resolve()])
+    return _overlay(r, base, rest, levels=4, key="")
+
+
+def _overlay(r: _Reader, base: yaml.Node, child: yaml.Node, *, levels: int, key: str) -> yaml.Node:
+    """``child`` laid over ``base``, mapping by mapping for ``levels`` levels (the top keys, the
+    names of stages and inputs, a stage's ``uses``/``params``/``inputs``, the names of parameters
+    and ports): a key of ``child`` replaces (or, if both are mappings, is laid over) the base's
+    value in its place, a new key is added after the base's, and a key whose value is null removes
+    the base's. Below ``levels`` (a parameter's value) ``child`` replaces ``base`` whole. Every node
+    keeps the marks of the file that wrote it."""
+    if levels == 0 or not (isinstance(base, yaml.MappingNode) and isinstance(child, yaml.MappingNode)):
+        return child
+    entries = {str(r.value(k)): (k, v) for k, v in base.value}
+    for knode, vnode in child.value:
+        name = str(r.value(knode))
+        sub = f"{key}.{name}" if key else name
+        if isinstance(vnode, yaml.ScalarNode) and vnode.tag == "tag:yaml.org,2002:null":
+            if entries.pop(name, None) is None:
+                r.error(vnode, sub, f"nothing to remove: {base.start_mark.name} has no {sub}")
+        elif name in entries:
+            entries[name] = (knode, _overlay(r, entries[name][1], vnode, levels=levels - 1, key=sub))
+        else:
+            entries[name] = (knode, vnode)
+    return yaml.MappingNode(child.tag, list(entries.values()), start_mark=child.start_mark)
 
 
 def _read_stages(r: _Reader, node: yaml.Node, registry: Registry, inputs: dict[str, PipelineInput]) -> dict[str, StageNode]:
@@ -297,7 +362,7 @@ def _read_stages(r: _Reader, node: yaml.Node, registry: Registry, inputs: dict[s
             r.error(uses_node, f"{key}.uses", str(exc))
             continue
         stage = StageNode(
-            name=name, uses=uses, cls=cls, params={p.name: p.default for p in cls.params}, inputs={}, where=_where(r.path, knode)
+            name=name, uses=uses, cls=cls, params={p.name: p.default for p in cls.params}, inputs={}, where=_where(knode)
         )
         schema = {p.name: p for p in cls.params}
         if "params" in fields:
@@ -313,7 +378,7 @@ def _read_stages(r: _Reader, node: yaml.Node, registry: Registry, inputs: dict[s
                     r.error(pvnode, pkey, problem)
                     continue
                 stage.params[pname] = float(value) if schema[pname].type is float else value
-                stage.param_where[pname] = _where(r.path, pvnode)
+                stage.param_where[pname] = _where(pvnode)
         if "inputs" in fields:
             for port, pknode, pvnode in r.mapping(fields["inputs"][1], f"{key}.inputs", None):
                 pkey = f"{key}.inputs.{port}"
@@ -325,7 +390,7 @@ def _read_stages(r: _Reader, node: yaml.Node, registry: Registry, inputs: dict[s
                     r.error(pvnode, pkey, f"wrong type: expected `stage.port` or an input name, got {text!r}")
                     continue
                 upstream, _, out_port = text.rpartition(".")
-                stage.inputs[port] = Ref(upstream or None, out_port, _where(r.path, pvnode))
+                stage.inputs[port] = Ref(upstream or None, out_port, _where(pvnode))
         for port in cls.inputs:
             if port not in stage.inputs and port not in cls.optional_inputs:
                 r.error(

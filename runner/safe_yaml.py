@@ -88,9 +88,15 @@ def read_text(path: str | Path) -> str:
         ) from None
 
 
-def compose(text: str) -> yaml.Node | None:
-    """The node tree of one YAML document (positions kept), read with :class:`StrictLoader`."""
-    return yaml.compose(text, Loader=StrictLoader)
+def compose(text: str, name: str = "<unicode string>") -> yaml.Node | None:
+    """The node tree of one YAML document (positions kept), read with :class:`StrictLoader`;
+    ``name`` (the file it came from) is the ``name`` of every node's marks."""
+    loader = StrictLoader(text)
+    loader.name = name
+    try:
+        return loader.get_single_node()
+    finally:
+        loader.dispose()
 
 
 def load(text: str) -> Any:

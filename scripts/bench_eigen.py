@@ -77,7 +77,8 @@ from stages.actor_pack import load_pack
 from stages.eigen.model import EigenModel, analyze_frames, parameters_to_points
 from stages.eigen.patches import FEATURES, feature_points
 from stages.eigen.packface import pca_parameters
-from stages.eigen.sampling import rich_sampling, rotation_angles
+from stages.eigen.sampling import rich_sampling
+from stages.geometry.rotation import ypr_zyx
 from stages.eigen.synthetic import PerformerRig, performer_rig
 from stages.eigen.training import train_on_renders, training_samples
 from stages.geometry.compensate import compensate, fit_similarity
@@ -154,7 +155,7 @@ def tracked_path(root: Path, kind: str, frames: list[np.ndarray]) -> dict[str, n
         "columns": columns,
         "similarity": sim["params"],
         "valid": sim["frame_valid"] & pose["valid"],
-        "angles": rotation_angles(pose["R"]),
+        "angles": ypr_zyx(pose["R"]),
     }
 
 
@@ -187,7 +188,7 @@ def clip_rows(
     start = time.perf_counter()
     mu, _ = analyze_frames(model, frames, tracked["similarity"], tracked["valid"], tracked["angles"])
     fps = T / (time.perf_counter() - start)
-    true_mu, _ = analyze_frames(model, frames, truth["similarity"], np.ones(T, bool), rotation_angles(truth["R"]))
+    true_mu, _ = analyze_frames(model, frames, truth["similarity"], np.ones(T, bool), ypr_zyx(truth["R"]))
     ridge_mu, _ = analyze_frames(model, frames, tracked["similarity"], tracked["valid"], tracked["angles"], ridge=ridge)
     controls = truth["controls"]
     suffix = f"_{sampling}_{kind}"

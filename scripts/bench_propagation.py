@@ -79,7 +79,7 @@ def pack_geometries(pack_dir: Path, n_test: int) -> Geometries:
 
 
 def synthetic_geometries(n_test: int, *, n_captured: int = 40, n_examples: int = 12, seed: int = 5) -> Geometries:
-    """The fixture generator's face model and expression recipes (``scripts/facegen``), no images.
+    """The fixture generator's face model and expression recipes (``stages/eigen/facegen``), no images.
 
     The captured expressions move the 3D points, seen frontally (orthographic) at 3 px/mm, about
     the scale of a 600x800 image, with 0.3 px of annotation noise; as in the fixture packs, the
@@ -99,7 +99,7 @@ def synthetic_geometries(n_test: int, *, n_captured: int = 40, n_examples: int =
     neutral = neutral3d[:, :2] * scale + centre
     examples = farthest_point_selection((faces - neutral).reshape(n_captured, -1), n_examples)
     return Geometries(
-        source=f"synthetic (scripts/facegen face model and recipes, seed {seed}, no fixture pack)",
+        source=f"synthetic (stages/eigen/facegen face model and recipes, seed {seed}, no fixture pack)",
         layout=layout,
         neutral=neutral,
         captured=faces,

@@ -154,10 +154,10 @@ FLIP = np.diag([1.0, -1.0, -1.0])
 def relative_ypr(R: np.ndarray, reference: int) -> np.ndarray:
     """``(T, 3, 3)`` rotations (camera frame) -> ``(T, 3)`` yaw, pitch, roll (deg) of
     ``R[t] R[ref]^T``."""
-    from stages.geometry.rigid3d import euler_yaw_pitch_roll
+    from stages.geometry.rotation import ypr_yxz
 
     R = R / np.cbrt(np.linalg.det(R))[:, None, None]
-    return euler_yaw_pitch_roll(R @ R[reference].T)
+    return ypr_yxz(R @ R[reference].T)
 
 
 def frontal_points(xy: np.ndarray, z: np.ndarray, R: np.ndarray, reference: int) -> np.ndarray:

@@ -6,7 +6,7 @@ Metrics (one clip, generated under ``args.work``: 300 frames, 640x480, H.264):
   its time over a bare PyAV decode loop (``to_ndarray("rgb24")``) measured in the same run.
 - ``runner_overhead_ratio``: ``runner run`` of decode -> image.gray -> write.video on an empty
   cache (in this process, so interpreter start-up is not counted) over the same stage code
-  called directly in a loop (decode chunk, to_gray, VideoWriter.write); target < 1.10. The
+  called directly in a loop (decode chunk, VideoWriter.write); target < 1.10. The
   runner streams gray's chunks into the encoder as it computes and stores them (see
   docs/runner.md, *Scheduling*), so x264's threads overlap the Python work as in the loop.
 - ``runner_noop_rerun_s``: wall time of a fully cached re-run of the same pipeline, as a user
@@ -41,7 +41,8 @@ sys.path.insert(0, str(REPO))
 
 from runner.registry import Registry  # noqa: E402
 from scripts.make_test_clip import write_clip  # noqa: E402
-from stages.video import VideoDecode, VideoWriter, WriteVideo, probe, to_gray  # noqa: E402
+from stages.color import luma_opencv  # noqa: E402
+from stages.video import VideoDecode, VideoWriter, WriteVideo, probe  # noqa: E402
 
 FRAMES, WIDTH, HEIGHT, CHUNK = 300, 640, 480, 16
 REPEATS = 3
@@ -100,7 +101,7 @@ def _direct(clip: Path, out: Path) -> None:
     with VideoWriter(out, fps=info.fps, width=info.width, height=info.height, codec="h264", crf=18, **defaults) as writer:
         for start in range(0, info.frames, CHUNK):
             frames = decode.process(start, min(start + CHUNK, info.frames), {"video": clip}, {}, None)["frames"]
-            writer.write(to_gray(frames))
+            writer.write(luma_opencv(frames)[..., None])
 
 
 def _decode_pyav(clip: Path) -> None:

@@ -16,9 +16,8 @@ from collections import defaultdict
 import sys
 from pathlib import Path
 
-import yaml
-
 from runner.bundle import describe
+from runner.config import load_pipeline
 from runner.registry import Registry
 from runner.stage import FrameStage, Param, Stage
 
@@ -43,11 +42,11 @@ PIPELINES = (
 def users(repo: Path = REPO) -> dict[str, list[str]]:
     """``{registered stage name: [pipeline file, ...]}`` over the bundled pipelines."""
     found: dict[str, list[str]] = defaultdict(list)
+    registry = Registry.from_entry_points()
     for name in PIPELINES:
-        stages = (yaml.safe_load((repo / name).read_text(encoding="utf-8")) or {}).get("stages", {})
-        for node in stages.values():
-            if name not in found[node["uses"]]:
-                found[node["uses"]].append(name)
+        for node in load_pipeline(repo / name, registry).stages.values():  # with what it `extends:`
+            if name not in found[node.uses]:
+                found[node.uses].append(name)
     return found
 
 

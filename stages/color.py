@@ -1,4 +1,4 @@
-"""sRGB <-> scene-linear conversions (IEC 61966-2-1) and 8-bit quantization.
+"""sRGB <-> scene-linear conversions (IEC 61966-2-1), 8-bit quantization, and grey (luma).
 
 One implementation serves numpy arrays and torch tensors: the array namespace is picked from the
 argument's type, and the result keeps the argument's type, dtype and device. torch is never
@@ -14,6 +14,11 @@ The sRGB transfer function (IEC 61966-2-1:1999, the piecewise curve):
 
 Values outside [0, 1] are not clipped: negatives follow the linear segment, values above 1 the
 power segment, so the conversions are inverse to each other on the whole real line.
+
+Grey is BT.601 luma of the encoded values, ``Y = 0.299 R + 0.587 G + 0.114 B``, two ways that do
+not give the same numbers, each kept for the stages that use it: :func:`luma_opencv` (OpenCV's
+``COLOR_RGB2GRAY``: for uint8 in 15-bit fixed point, rounded, uint8 out) and
+:func:`luma_float32` (the weights as float32, no rounding). Both are numpy only.
 """
 
 from __future__ import annotations
@@ -106,6 +111,31 @@ def to_uint8(image: Array) -> Array:
         image = image.astype(np.float32, copy=False)  # float16 has too few bits for x 255
     scaled = xp.round(xp.clip(image, 0.0, 1.0) * 255.0)
     return scaled.to(xp.uint8) if xp is not np else scaled.astype(np.uint8)
+
+
+BT601_LUMA = (0.299, 0.587, 0.114)  # Rec. ITU-R BT.601 Kr, 1 - Kr - Kb, Kb
+
+
+def luma_opencv(rgb: np.ndarray) -> np.ndarray:
+    """OpenCV's BT.601 luma (``cv2.cvtColor(..., COLOR_RGB2GRAY)``) of RGB images.
+
+    ``rgb (..., W, 3)`` uint8 or float32 -> ``(..., W)`` of the same dtype; uint8 is computed in
+    15-bit fixed point, ``(9798 R + 19235 G + 3735 B + 2^14) >> 15``. The leading axes are passed
+    to OpenCV as rows of one image ``(-1, W, 3)``.
+    """
+    import cv2
+
+    rgb = np.ascontiguousarray(rgb)
+    if rgb.ndim < 2 or rgb.shape[-1] != 3:
+        raise ValueError(f"expected RGB images (..., W, 3), got {rgb.shape}")
+    gray = cv2.cvtColor(rgb.reshape(-1, rgb.shape[-2], 3), cv2.COLOR_RGB2GRAY)
+    return gray.reshape(rgb.shape[:-1])
+
+
+def luma_float32(rgb: np.ndarray) -> np.ndarray:
+    """BT.601 luma ``(...)`` float32 of RGB values ``(..., 3)`` (any dtype, cast to float32), in
+    their own units: ``rgb @ (0.299, 0.587, 0.114)`` in float32, not rounded."""
+    return np.asarray(rgb, np.float32) @ np.array(BT601_LUMA, np.float32)
 
 
 HALF_INF_BITS = 0x7C00  # +inf as a float16 bit pattern

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from runner.stage import Context, FrameStage, Param, SequenceStage, StageError, StreamInfo
-from stages.color import rgb_to_ycbcr420, to_uint8
+from stages.color import luma_opencv, rgb_to_ycbcr420, to_uint8
 
 from typing import TYPE_CHECKING
 
@@ -199,16 +199,7 @@ class ImageGray(FrameStage):
         self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context
     ) -> dict[str, Any]:
         """``(B, H, W, 3)`` uint8 RGB -> ``(B, H, W, 1)`` uint8, Y = 0.299 R + 0.587 G + 0.114 B."""
-        return {"frames": to_gray(inputs["frames"].read(start, stop))}
-
-
-def to_gray(frames: np.ndarray) -> np.ndarray:
-    """``(B, H, W, 3)`` uint8 RGB -> ``(B, H, W, 1)`` uint8 BT.601 luma."""
-    import cv2
-
-    b, h, w, _ = frames.shape
-    gray = cv2.cvtColor(np.ascontiguousarray(frames).reshape(b * h, w, 3), cv2.COLOR_RGB2GRAY)
-    return gray.reshape(b, h, w, 1)
+        return {"frames": luma_opencv(inputs["frames"].read(start, stop))[..., None]}
 
 
 class VideoWriter:

@@ -15,6 +15,9 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
+from runner.config import load_pipeline
+from runner.registry import Registry
+
 pytestmark = [pytest.mark.slow, pytest.mark.subprocess]
 
 REPO = Path(__file__).resolve().parent.parent
@@ -76,14 +79,15 @@ def test_usd_scene_and_head_pose(out):
 
 
 def test_pipeline_3d_is_pipeline_yaml_plus_the_3d_stages():
-    import yaml
-
-    base = yaml.safe_load((REPO / "pipeline.yaml").read_text())
-    three = yaml.safe_load((REPO / "pipeline_3d.yaml").read_text())
-    assert three["inputs"] == base["inputs"]
-    for name, stage in base["stages"].items():
-        assert three["stages"].get(name) == stage, f"pipeline_3d.yaml's stage {name!r} differs from pipeline.yaml's"
-    assert {"texture", "mesh3d", "render3d", "usd"} <= set(three["stages"]) - set(base["stages"])
+    registry = Registry.from_entry_points()
+    base = load_pipeline(REPO / "pipeline.yaml", registry)
+    three = load_pipeline(REPO / "pipeline_3d.yaml", registry)
+    assert {n: (i.type, i.default) for n, i in three.inputs.items()} == {n: (i.type, i.default) for n, i in base.inputs.items()}
+    for name, stage in base.stages.items():
+        got = three.stages[name]
+        wiring = {port: str(ref) for port, ref in got.inputs.items()}
+        assert (got.uses, got.params, wiring) == (stage.uses, stage.params, {p: str(r) for p, r in stage.inputs.items()}), name
+    assert set(three.stages) - set(base.stages) == {"texture", "mesh3d", "render3d", "video3d", "usd"}
 
 
 def test_more_chunks_than_kept_ahead_stream_through(tmp_path):
@@ -91,9 +95,7 @@ def test_more_chunks_than_kept_ahead_stream_through(tmp_path):
     chunk by chunk, so a clip of more chunks than are computed ahead of the slowest reader (here
     12 chunks of 4 frames, `texture` read by `render3d` and `usd` at once) streams through; it
     waited forever when each `render3d` chunk's key read the whole `texture` stream."""
-    text = (REPO / "pipeline_3d.yaml").read_text().replace("chunk_frames: 16", "chunk_frames: 4")
-    text = text.replace("default: fixtures/", f"default: {REPO}/fixtures/")
-    (tmp_path / "pipeline.yaml").write_text(text)
+    (tmp_path / "pipeline.yaml").write_text(f"extends: {REPO / 'pipeline_3d.yaml'}\nchunk_frames: 4\n")
     result = run_cli(
         "run",
         str(tmp_path / "pipeline.yaml"),

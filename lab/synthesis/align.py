@@ -22,6 +22,8 @@ from typing import Mapping
 
 import numpy as np
 
+from stages.color import luma_opencv
+
 __all__ = ["dis_flow", "apply_flow", "refine_alignment", "refine_model"]
 
 
@@ -52,8 +54,7 @@ def dis_flow(
     dis.setPatchSize(int(patch_px))
     dis.setPatchStride(int(stride_px))
     dis.setVariationalRefinementAlpha(float(smoothness))
-    grey = lambda im: cv2.cvtColor(np.ascontiguousarray(im), cv2.COLOR_RGB2GRAY)
-    return dis.calc(grey(reference), grey(image), None)
+    return dis.calc(luma_opencv(reference), luma_opencv(image), None)
 
 
 def apply_flow(image: np.ndarray, flow: np.ndarray) -> np.ndarray:

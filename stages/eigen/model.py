@@ -26,8 +26,9 @@ import numpy as np
 
 from stages.eigen.eigenfeatures import eigen_scores, fit_eigenfeatures
 from stages.eigen.estimator import normal_equations, solve_estimator
-from stages.eigen.patches import FeatureWindow, patch_vectors, similarity_apply
+from stages.eigen.patches import FeatureWindow, patch_vectors
 from stages.geometry.compensate import fit_similarity
+from stages.geometry.similarity import apply_similarity
 
 ROTATION_ROWS = 3  # (r_x, r_y, r_z) = (pitch, yaw, roll) deg, first in lambda
 
@@ -388,4 +389,4 @@ def parameters_to_points(model: EigenModel, parameters: np.ndarray, similarity: 
     xy = model.geometry_base[None] + np.einsum("tc,cnk->tnk", mu, model.geometry_basis)
     if similarity is None:
         return xy
-    return np.stack([similarity_apply(s, p) for s, p in zip(np.asarray(similarity, dtype=np.float64), xy)])
+    return np.stack([apply_similarity(s, p) for s, p in zip(np.asarray(similarity, dtype=np.float64), xy)])

@@ -27,7 +27,8 @@ from __future__ import annotations
 import numpy as np
 
 from stages.actor_pack import ActorPack
-from stages.eigen.sampling import paper_sampling, rich_sampling, rotation_matrix
+from stages.eigen.sampling import paper_sampling, rich_sampling
+from stages.geometry.rotation import rotation_zyx
 
 PAPER_LEVELS_SD = (-2.0, -1.0, 0.0, 1.0, 2.0)  # the paper's {-1, -0.5, 0, 0.5, 1} over +-2 standard deviations
 RICH_ACTIVE = 0.5  # chance that a parameter is non-zero in a random combination
@@ -131,7 +132,7 @@ class PackFace:
         orthographic, about each geometry's centroid."""
         centre = points.mean(axis=1, keepdims=True)
         xyz = np.concatenate([points - centre, np.broadcast_to(self.depth[None, :, None], points.shape[:2] + (1,))], -1)
-        return np.einsum("bij,bnj->bni", rotation_matrix(angles), xyz)[..., :2] + centre
+        return np.einsum("bij,bnj->bni", rotation_zyx(angles), xyz)[..., :2] + centre
 
     def render_batch(self, params: np.ndarray, angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Images ``(B, H, W, 3)`` uint8 RGB and points ``(B, N, 2)`` px of parameters ``(B, C)``

@@ -18,6 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stages.color import luma_float32
+from stages.geometry.similarity import apply_similarity
+
 # Features (paper: "the eyes, eyebrows, and the mouth"), by layout point-name prefix. Each eye is
 # cut with its brow, crease and under-eye point, as the lids and brows move together in the
 # patch; the mouth with the lip-corner folds and the chin, which jaw drop and chin raise move.
@@ -103,18 +106,12 @@ def feature_windows(
     return tuple(windows)
 
 
-def similarity_apply(params: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """``T(x) = [[a, -b], [b, a]] x + (tx, ty)`` (eq. 8) of ``params`` ``(4,)`` on ``xy`` ``(..., 2)``."""
-    a, b, tx, ty = np.asarray(params, dtype=np.float64)
-    x, y = xy[..., 0], xy[..., 1]
-    return np.stack([a * x - b * y + tx, b * x + a * y + ty], axis=-1)
-
-
 def luminance(image: np.ndarray) -> np.ndarray:
-    """Rec. 601 luma ``(H, W)`` float32 in [0, 1] of an RGB uint8 image ``(H, W, 3)``."""
+    """Rec. 601 luma ``(H, W)`` float32 in [0, 1] of an RGB uint8 image ``(H, W, 3)``
+    (:func:`stages.color.luma_float32` / 255)."""
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
         raise TypeError(f"expected an RGB uint8 image (H, W, 3), got {image.dtype} {image.shape}")
-    return (image.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)) / 255.0
+    return luma_float32(image) / 255.0
 
 
 def cut_patches(
@@ -147,7 +144,7 @@ def cut_patches(
     H, W = gray.shape
     patches, valid = [], np.zeros(len(windows), dtype=bool)
     for j, window in enumerate(windows):
-        at = similarity_apply(similarity, window.grid())
+        at = apply_similarity(np.asarray(similarity, dtype=np.float64), window.grid())
         inside = (at[..., 0] >= -0.5) & (at[..., 0] <= W - 0.5) & (at[..., 1] >= -0.5) & (at[..., 1] <= H - 0.5)
         valid[j] = bool(np.all(np.isfinite(at))) and inside.mean() >= min_inside
         if not valid[j]:

@@ -69,33 +69,3 @@ def rich_sampling(
     controls = np.where(on, rng.uniform(span[0], span[1], (count, n_params)), 0.0)
     angles = rng.uniform(-1.0, 1.0, (count, 3)) * np.asarray(max_deg, dtype=np.float64)
     return controls, angles
-
-
-def rotation_angles(R: np.ndarray) -> np.ndarray:
-    """(yaw, pitch, roll) deg ``(..., 3)`` of rotations ``(..., 3, 3)`` with
-    ``R = Rz(roll) Ry(yaw) Rx(pitch)`` (the generator's and the fixtures' convention)."""
-    R = np.asarray(R, dtype=np.float64)
-    if R.shape[-2:] != (3, 3):
-        raise ValueError(f"expected rotations (..., 3, 3), got {R.shape}")
-    yaw = np.arcsin(np.clip(-R[..., 2, 0], -1.0, 1.0))
-    pitch = np.arctan2(R[..., 2, 1], R[..., 2, 2])
-    roll = np.arctan2(R[..., 1, 0], R[..., 0, 0])
-    return np.degrees(np.stack([yaw, pitch, roll], axis=-1))
-
-
-def rotation_matrix(angles: np.ndarray) -> np.ndarray:
-    """``R = Rz(roll) Ry(yaw) Rx(pitch)`` ``(..., 3, 3)`` of (yaw, pitch, roll) deg ``(..., 3)``,
-    the inverse of :func:`rotation_angles` (camera frame: x right, y down, z away)."""
-    yaw, pitch, roll = np.moveaxis(np.radians(np.asarray(angles, dtype=np.float64)), -1, 0)
-    c, s = np.cos, np.sin
-    one, zero = np.ones_like(yaw), np.zeros_like(yaw)
-    Rx = np.stack(
-        [np.stack([one, zero, zero], -1), np.stack([zero, c(pitch), -s(pitch)], -1), np.stack([zero, s(pitch), c(pitch)], -1)], -2
-    )
-    Ry = np.stack(
-        [np.stack([c(yaw), zero, s(yaw)], -1), np.stack([zero, one, zero], -1), np.stack([-s(yaw), zero, c(yaw)], -1)], -2
-    )
-    Rz = np.stack(
-        [np.stack([c(roll), -s(roll), zero], -1), np.stack([s(roll), c(roll), zero], -1), np.stack([zero, zero, one], -1)], -2
-    )
-    return Rz @ Ry @ Rx

@@ -21,7 +21,7 @@ from runner.stage import Context, FrameStream, Param, SequenceStage, StageError
 from stages.eigen.bundles import EIGEN_MODEL, EIGEN_PARAMETERS
 from stages.geometry.bundles import DISPLACEMENTS, HEAD_POSES, POINTS, SIMILARITY
 from stages.eigen.model import EigenModel, analyze_frames, parameters_to_points, similarities_from_points
-from stages.eigen.sampling import rotation_angles
+from stages.geometry.rotation import ypr_zyx
 from stages.eigen.training import face_model, train_on_renders
 
 
@@ -145,7 +145,7 @@ class AnalyzeEigenfeatures(SequenceStage):
                 raise StageError(f"{self.name}: rotation=true needs the input 'pose' (or set rotation=false)")
             if len(pose["R"]) != T:
                 raise StageError(f"{self.name}: input 'pose' field 'R' has {len(pose['R'])} frames, expected {T}")
-            angles = rotation_angles(pose["R"])
+            angles = ypr_zyx(pose["R"])
             valid &= np.asarray(pose["valid"], dtype=bool)
         mu, feature_valid = analyze_frames(model, _frames(frames, ctx), similarity, valid, angles, ridge=float(params["ridge"]))
         read = ~np.isnan(mu).any(axis=1)

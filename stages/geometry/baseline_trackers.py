@@ -8,7 +8,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from stages.geometry.correlation import inside, to_gray
+from stages.geometry.correlation import inside, intensity
 
 
 class LKTracker:
@@ -28,7 +28,7 @@ class LKTracker:
 
     @staticmethod
     def _gray8(frame: np.ndarray) -> np.ndarray:
-        return np.clip(np.rint(to_gray(frame)), 0, 255).astype(np.uint8)
+        return np.clip(np.rint(intensity(frame)), 0, 255).astype(np.uint8)
 
     def start(self, frame: np.ndarray, xy: np.ndarray) -> None:
         self.previous = self._gray8(frame)

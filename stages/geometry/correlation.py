@@ -11,16 +11,15 @@ import functools
 
 import numpy as np
 
+from stages.color import luma_opencv
 from stages.geometry.similarity import apply_similarity, fit_similarity
 
 
-def to_gray(frame: np.ndarray) -> np.ndarray:
-    """An ``(H, W)``, ``(H, W, 1)`` or RGB ``(H, W, 3)`` frame as an ``(H, W)`` float32 image in
-    the frame's own intensity units."""
-    import cv2
-
+def intensity(frame: np.ndarray) -> np.ndarray:
+    """An ``(H, W)``, ``(H, W, 1)`` or RGB ``(H, W, 3)`` frame as the ``(H, W)`` float32 image the
+    trackers match, in the frame's own intensity units (RGB: :func:`stages.color.luma_opencv`)."""
     if frame.ndim == 3 and frame.shape[2] == 3:
-        frame = cv2.cvtColor(np.ascontiguousarray(frame), cv2.COLOR_RGB2GRAY)
+        frame = luma_opencv(frame)
     elif frame.ndim == 3:
         frame = frame[..., 0]
     return np.asarray(frame, dtype=np.float32)

@@ -28,7 +28,8 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from stages.actor_pack import ActorPack
-from stages.geometry.camera import project, rotation_matrix, skew
+from stages.geometry.camera import project
+from stages.geometry.rotation import rotation_rodrigues, skew
 from stages.geometry.similarity import fit_similarity
 from stages.geometry.frontalize import adapt_to_reference, frontal_translation
 from stages.pack.bundles import geometry_from_bundle, geometry_to_bundle, model3d_from_bundle, model3d_to_bundle
@@ -206,7 +207,7 @@ def fit_face_model(
         normal[6:, 6:] += np.diag(prior)
         gradient[6:] += prior * c
         step = np.linalg.solve(normal + 1e-9 * np.eye(6 + m), -gradient)
-        R = rotation_matrix(step[:3]) @ R
+        R = rotation_rodrigues(step[:3]) @ R
         t = t + step[3:6]
         c = c + step[6:]
     return FaceFit(R, t, c, model.project(R, t, c))

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.geometry.correlation import carry_along, correlation_peaks, inside, local_affines, sample_patches, to_gray
+from stages.geometry.correlation import carry_along, correlation_peaks, inside, local_affines, sample_patches, intensity
 from stages.geometry.face_model import FaceModel, fit_face_model
 from stages.geometry.tracker_options import DEFAULTS, TrackerOptions
 
@@ -57,7 +57,7 @@ class NCCTracker:
         self.lk_weight = np.exp(-(grid[:, None] ** 2 + grid[None, :] ** 2) / (2.0 * options.lk_sigma_px**2))
 
     def start(self, frame: np.ndarray, xy: np.ndarray) -> None:
-        self.first = to_gray(frame)
+        self.first = intensity(frame)
         self.height, self.width = self.first.shape
         self.origin = xy.astype(np.float64).copy()
         spread = np.sqrt(((self.origin - self.origin.mean(axis=0)) ** 2).sum(axis=1).mean())
@@ -150,7 +150,7 @@ class NCCTracker:
     def step(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         import cv2
 
-        image = to_gray(frame)
+        image = intensity(frame)
         predicted = self.last + self.velocity
         centre = np.rint(predicted)
         anchor = self.templates(predicted, self.trust)

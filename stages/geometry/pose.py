@@ -26,7 +26,8 @@ import numpy as np
 from runner.stage import Context, Param, SequenceStage, StageError
 from stages.geometry.bundles import HEAD_POSE_PNP, POINTS
 from stages.pack.bundle_types import CAMERA, LAYOUT, PACK_GEOMETRY, PACK_MODEL3D
-from stages.geometry.camera import project_pose, rotation_matrix, rotation_vector
+from stages.geometry.camera import project_pose
+from stages.geometry.rotation import rodrigues_vector, rotation_rodrigues
 from stages.geometry.face_model import FaceModel, bundle_face_model, fit_face_model
 from stages.geometry.frontalize import adapt_to_reference, frontal_translation
 from stages.geometry.smooth import gaussian_smooth
@@ -45,7 +46,7 @@ def default_intrinsics(size: tuple[int, int]) -> np.ndarray:
 
 def reprojection_error(rvec: np.ndarray, tvec: np.ndarray, model: np.ndarray, image: np.ndarray, camera: np.ndarray) -> float:
     """RMS distance in px between ``image (n, 2)`` and ``model (n, 3)`` projected with the pose."""
-    projected = project_pose(model, rotation_matrix(rvec), tvec, camera)[0]
+    projected = project_pose(model, rotation_rodrigues(rvec), tvec, camera)[0]
     return float(np.sqrt(np.mean(np.sum((projected - image) ** 2, axis=1))))
 
 
@@ -192,7 +193,7 @@ def estimate_poses(
             for t in range(n_frames)
         ]
     )
-    return {"rvec": rvec, "tvec": tvec, "R": rotation_matrix(rvec), "reproj_err_px": error, "valid": solved}
+    return {"rvec": rvec, "tvec": tvec, "R": rotation_rodrigues(rvec), "reproj_err_px": error, "valid": solved}
 
 
 def estimate_face_poses(
@@ -233,12 +234,12 @@ def estimate_face_poses(
         ok = valid[t]
         xy = np.where(ok[:, None], image[t], 0.0)
         fit = fit_face_model(model, xy, np.eye(2)[None] * ok[:, None, None], fit, iterations=iterations)
-        rvec[t], tvec[t] = rotation_vector(fit.R), fit.t
+        rvec[t], tvec[t] = rodrigues_vector(fit.R), fit.t
         error[t] = np.sqrt(np.mean(np.sum((fit.xy - xy)[ok] ** 2, axis=1)))
     if smooth_sigma > 0:
         rvec[solved], tvec[solved] = (x[solved] for x in smooth_poses(rvec, tvec, solved, sigma=smooth_sigma))
     rvec, tvec = interpolate_poses(rvec, tvec, solved)
-    return {"rvec": rvec, "tvec": tvec, "R": rotation_matrix(rvec), "reproj_err_px": error, "valid": solved}
+    return {"rvec": rvec, "tvec": tvec, "R": rotation_rodrigues(rvec), "reproj_err_px": error, "valid": solved}
 
 
 class PnPPose(SequenceStage):

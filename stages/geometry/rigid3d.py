@@ -40,9 +40,9 @@ from runner.stage import SUMMARY, Context, Param, SequenceStage, StageError
 from stages.geometry.bundles import DISPLACEMENTS, HEAD_POSE_RELATIVE, POINTS, SIMILARITY
 from stages.landmarks.bundles import LANDMARKS
 from stages.occlusion.bundles import OCCLUSION
-from stages.geometry.camera import rotation_vector
 from stages.geometry.compensate import compensate as similarity_2d
 from stages.geometry.neutral import REST, NeutralEstimate, estimate_neutral
+from stages.geometry.rotation import rodrigues_vector, ypr_yxz
 from stages.geometry.signals import expression_signals
 from stages.geometry.subset import named_columns
 
@@ -231,13 +231,6 @@ def nearest_valid(valid: np.ndarray) -> np.ndarray:
     """``(T,)`` bool -> ``(T,)`` int: each frame's nearest valid frame (itself when valid)."""
     good = np.flatnonzero(valid)
     return good[np.abs(np.arange(len(valid))[:, None] - good[None]).argmin(axis=1)]
-
-
-def euler_yaw_pitch_roll(R: np.ndarray) -> np.ndarray:
-    """``(T, 3, 3)`` rotations -> ``(T, 3)`` degrees (yaw, pitch, roll), ``R = Ry Rx Rz``."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(R).as_euler("YXZ", degrees=True)
 
 
 def expressiveness(blendshapes: np.ndarray, names: np.ndarray) -> np.ndarray:
@@ -534,12 +527,12 @@ class CompensateRigid3D(SequenceStage):
 
         pose = {
             "R": fit["R"],
-            "rvec": rotation_vector(fit["R"]),
+            "rvec": rodrigues_vector(fit["R"]),
             "tvec": fit["t"],
             "scale": fit["s"],
             "reproj_err_px": fit["residual_px"],
             "valid": frame_valid,
-            "ypr_deg": euler_yaw_pitch_roll(fit["R"]),
+            "ypr_deg": ypr_yxz(fit["R"]),
             "neutral_frame": np.array(reference),
         }
         return {"displacements": displacements, "similarity": similarity, "pose": pose}

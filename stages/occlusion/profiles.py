@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stages.color import luma_float32
+
 #: Samples along each contour.
 POSITIONS = 16
 #: Samples added at each end of every normal, so the structure is matched up to this many steps off.
@@ -235,7 +237,7 @@ def channels(rgb: np.ndarray) -> np.ndarray:
     """The two channels of strips ``(..., K, M, 3)`` RGB: ``(..., K, M, 2)`` Weber luminance and
     mean-free redness (module doc), each over its own strip."""
     rgb = np.asarray(rgb, np.float32)
-    luma = rgb @ np.array([0.299, 0.587, 0.114], np.float32)
+    luma = luma_float32(rgb)
     weber = luma / np.maximum(luma.mean(axis=(-2, -1), keepdims=True), 1.0) - 1.0
     red = np.log((rgb[..., 0] + 8.0) / (rgb[..., 1] + 8.0))
     red -= red.mean(axis=(-2, -1), keepdims=True)

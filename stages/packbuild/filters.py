@@ -33,7 +33,8 @@ from typing import Iterable
 
 import numpy as np
 
-from stages.geometry.rigid3d import euler_yaw_pitch_roll
+from stages.color import luma_opencv
+from stages.geometry.rotation import ypr_yxz
 from stages.layout import Layout, subregion_mask
 
 CAUSES = ("no_face", "out_of_frame", "head_pose", "blur", "occlusion")
@@ -65,7 +66,7 @@ def head_angles(matrix: np.ndarray, valid: np.ndarray) -> np.ndarray:
     out = np.zeros((len(matrix), 3))
     if valid.any():
         R = matrix[valid, :3, :3]
-        out[valid] = euler_yaw_pitch_roll(R / np.cbrt(np.linalg.det(R))[:, None, None])
+        out[valid] = ypr_yxz(R / np.cbrt(np.linalg.det(R))[:, None, None])
     return out
 
 
@@ -158,7 +159,7 @@ def measure_frame(image: np.ndarray, points: np.ndarray, layout: Layout) -> tupl
     crop = image[y0:y1, x0:x1]
     lab = cv2.cvtColor(crop.astype(np.float32) / 255.0, cv2.COLOR_RGB2Lab).astype(np.float64)
     masks = region_masks(layout, np.asarray(points, np.float64) - (x0, y0), crop.shape[:2])
-    sharp = laplacian_sharpness(cv2.cvtColor(crop, cv2.COLOR_RGB2GRAY), masks["face"])
+    sharp = laplacian_sharpness(luma_opencv(crop), masks["face"])
     colours = np.array([lab[masks[r]].mean(0) if masks[r].any() else np.full(3, np.nan) for r in OCCLUSION_REGIONS])
     teeth = 0.0
     if masks["mouth"].any() and masks["skin"].any():

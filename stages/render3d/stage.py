@@ -44,7 +44,7 @@ from stages.landmarks.bundles import LANDMARKS
 from stages.mesh3d.bundles import MESH3D
 from stages.pack.bundle_types import CAMERA, PACK_GEOMETRY, PACK_MODEL3D
 from stages.render3d.bundles import HEAD3D
-from stages.geometry.rigid3d import euler_yaw_pitch_roll
+from stages.geometry.rotation import ypr_yxz
 from stages.mesh3d.model import target_depth
 from stages.mesh3d.stage import GEOMETRY, mesh_vertices
 from stages.pack.bundles import camera_from_bundle, geometry_from_bundle, model3d_from_bundle
@@ -184,7 +184,7 @@ class HeadPose3D(SequenceStage):
             "camera": A,
             "size": np.array(geometry.size, np.int64),
         }
-        out["ypr_deg"] = euler_yaw_pitch_roll(rotation)
+        out["ypr_deg"] = ypr_yxz(rotation)
         ctx.progress(T)
         return {"head": out}
 

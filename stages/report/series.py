@@ -11,7 +11,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from stages.geometry.rigid3d import euler_yaw_pitch_roll
+from stages.geometry.rotation import ypr_yxz
 from stages.geometry.signals import BROWS, LOWER_INNER_LIP, SIGNALS, UPPER_INNER_LIP, expression_signals
 
 # Point groups whose members expression_signals averages: a geometry may carry only some of them
@@ -146,13 +146,13 @@ def expression_series(
 def head_pose_series(pose: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     """Yaw, pitch, roll in degrees per frame (NaN where the pose is invalid).
 
-    Uses the bundle's ``ypr_deg (T, 3)`` when present, else :func:`euler_yaw_pitch_roll` of
+    Uses the bundle's ``ypr_deg (T, 3)`` when present, else :func:`ypr_yxz` of
     ``R (T, 3, 3)`` (``R = Ry Rx Rz``).
     """
     if "ypr_deg" in pose:
         ypr = np.asarray(pose["ypr_deg"], np.float64)
     else:
-        ypr = euler_yaw_pitch_roll(np.asarray(pose["R"], np.float64))
+        ypr = ypr_yxz(np.asarray(pose["R"], np.float64))
     ypr = np.where(np.asarray(pose["valid"], bool)[:, None], ypr, np.nan)
     return {"yaw": ypr[:, 0], "pitch": ypr[:, 1], "roll": ypr[:, 2]}
 

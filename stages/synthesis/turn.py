@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from stages.geometry.camera import project
 from stages.mesh3d.model import lift
 
 __all__ = ["MOUTH_BEHIND_MM", "turned_points", "depth_order"]
@@ -70,8 +71,7 @@ def turned_points(
     moved = np.einsum("bij,bpj->bpi", np.asarray(R, np.float64), X) + np.asarray(t, np.float64)[:, None, :]
     w = np.asarray(weight, np.float64)[None, :, None]
     X2 = w * moved + (1.0 - w) * X
-    p = X2 @ np.asarray(A if A_out is None else A_out, np.float64).T
-    return p[..., :2] / p[..., 2:3], X2[..., 2]
+    return project(X2, A if A_out is None else A_out)[0], X2[..., 2]
 
 
 def depth_order(triangles: np.ndarray, z: np.ndarray, *, behind: np.ndarray | None = None) -> np.ndarray:

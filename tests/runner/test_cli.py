@@ -19,7 +19,8 @@ import pytest
 
 from runner.cache import CacheStore
 from runner.cli import main
-from stages.video import VideoDecode, to_gray
+from stages.color import luma_opencv
+from stages.video import VideoDecode
 from tests.runner.helpers import DATA, REPO, TINY, chunk_status, read_log, run_cli, runner_cmd, stage_status, tree_bytes
 
 GRAPH = DATA / "graph.yaml"
@@ -39,9 +40,9 @@ def test_chain_runs_end_to_end_and_reruns_from_cache(env, tmp_path):
     assert stage_status(read_log(tmp_path / "1.jsonl")) == {"decode": "on demand", "gray": "ran", "write": "ran"}
     # The published video is the grayscale of the clip (H.264 at crf 18: close, not exact).
     video = _decoded(out / "write" / "video.mp4")
-    truth = to_gray(VideoDecode().process(0, 48, {"video": TINY}, {}, None)["frames"])
+    truth = luma_opencv(VideoDecode().process(0, 48, {"video": TINY}, {}, None)["frames"])
     assert video.shape == (48, 120, 160, 3)
-    assert np.abs(video[..., 1].astype(int) - truth[..., 0]).mean() < 2.0
+    assert np.abs(video[..., 1].astype(int) - truth).mean() < 2.0
     manifest = json.loads((out / "write" / "manifest.json").read_text())
     assert [f["path"] for f in manifest["files"]] == ["video.mp4"]
     # One summary line per stage on stdout; gray was computed while write encoded it (gray's

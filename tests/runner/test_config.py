@@ -197,7 +197,7 @@ def test_duplicate_names(tmp_path):
 
 def test_unknown_keys_and_yaml_syntax(tmp_path):
     assert issues(tmp_path, "stage: {}\n") == [
-        "1:1: stage: unknown key (expected one of: chunk_frames, inputs, stages)",
+        "1:1: stage: unknown key (expected one of: extends, chunk_frames, inputs, stages)",
         "1:1: stages: missing: a pipeline needs a `stages` mapping",
     ]
     assert issues(tmp_path, "stages: [\n")[0].startswith("2:1: yaml:")
@@ -265,3 +265,82 @@ def test_python_tags_are_refused_with_their_position(tmp_path):
     found = issues(tmp_path, "stages:\n  a:\n    uses: !!python/object/apply:os.system ['true']\n")
     assert found == ["3:11: yaml: tag 'tag:yaml.org,2002:python/object/apply:os.system' is not allowed"]
     assert issues(tmp_path, GOOD, overrides=["track.ids=!!python/name:os.system"])[0].startswith("--set: track.ids: wrong type")
+
+
+def write(folder: Path, name: str, text: str) -> Path:
+    path = folder / name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(textwrap.dedent(text).lstrip("\n"))
+    return path
+
+
+def test_extends_overlays_stages_params_and_wiring(tmp_path):
+    write(tmp_path, "base/p.yaml", GOOD)
+    child = write(
+        tmp_path,
+        "child.yaml",
+        """
+        extends: base/p.yaml
+        chunk_frames: 8
+        inputs:
+          clip: {default: clips/c.mp4}
+        stages:
+          track:
+            params: {radius: 9, ids: null}
+            inputs: {pack: null}
+          smooth: null
+          encode: {uses: t.encode, inputs: {points: track.points}}
+        """,
+    )
+    p = load_pipeline(child, REGISTRY)
+    assert list(p.stages) == ["src", "track", "encode"]
+    assert p.chunk_frames == 8
+    assert p.stages["track"].params == {"radius": 9, "sigma": 2.0, "mode": "fast", "flip": False, "ids": []}
+    assert {port: str(ref) for port, ref in p.stages["track"].inputs.items()} == {"frames": "src.frames"}
+    assert (p.inputs["clip"].type, p.inputs["clip"].default) == ("video", tmp_path / "clips" / "c.mp4")
+    assert p.inputs["pack"].default == tmp_path / "base" / "packs" / "a"  # relative to the file that wrote it
+    assert p.stages["src"].where.file == str(tmp_path / "base" / "p.yaml")
+    assert p.stages["track"].param_where["radius"].file == str(child)
+    assert p.stages["track"].param_where["sigma"].file == str(tmp_path / "base" / "p.yaml")
+
+
+def test_extends_errors_are_positioned_in_the_file_that_wrote_them(tmp_path):
+    write(tmp_path, "base.yaml", "stages:\n  src: {uses: t.source, params: {crf: 3}, inputs: {video: clip}}\n")
+    child = write(tmp_path, "child.yaml", "extends: base.yaml\ninputs: {clip: {type: video}}\nstages:\n  gone: null\n")
+    with pytest.raises(ConfigError) as info:
+        load_pipeline(child, REGISTRY)
+    assert [str(i) for i in info.value.issues] == [
+        f"{tmp_path / 'base.yaml'}:2:34: stages.src.params.crf: unknown parameter of t.source (known: none)",
+        f"{child}:4:9: stages.gone: nothing to remove: {tmp_path / 'base.yaml'} has no stages.gone",
+    ]
+
+
+@pytest.mark.parametrize(
+    ("files", "expected"),
+    [
+        (
+            {"p.yaml": "extends: missing.yaml\n"},
+            "p.yaml:1:10: extends: cannot read {tmp}/missing.yaml: No such file or directory",
+        ),
+        ({"p.yaml": "extends: [a]\n"}, "p.yaml:1:10: extends: wrong type: expected the path of a pipeline file, got ['a']"),
+        (
+            {"p.yaml": "extends: list.yaml\n", "list.yaml": "- a\n"},
+            "p.yaml:1:10: extends: {tmp}/list.yaml is not a pipeline (expected a mapping)",
+        ),
+        (
+            {"p.yaml": "extends: a.yaml\n", "a.yaml": "extends: p.yaml\n"},
+            "a.yaml:1:10: extends: cycle of extends: {tmp}/p.yaml -> {tmp}/a.yaml -> {tmp}/p.yaml",
+        ),
+        (
+            {"p.yaml": "extends: bad.yaml\n", "bad.yaml": "stages: [\n"},
+            "bad.yaml:2:1: yaml: expected the node content, but found '<stream end>'",
+        ),
+    ],
+)
+def test_extends_problems_are_positioned(tmp_path, files, expected):
+    for name, text in files.items():
+        write(tmp_path, name, text)
+    with pytest.raises(ConfigError) as info:
+        load_pipeline(tmp_path / "p.yaml", REGISTRY)
+    assert tmp_path == tmp_path.resolve()  # the cycle names resolved paths
+    assert [str(i) for i in info.value.issues] == [f"{tmp_path}/{expected.format(tmp=tmp_path)}"]

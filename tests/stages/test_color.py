@@ -5,7 +5,7 @@ import OpenImageIO as oiio
 import pytest
 import torch
 
-from stages.color import linear_to_srgb, srgb_to_linear, to_uint8, to_unit_float
+from stages.color import linear_to_srgb, luma_float32, luma_opencv, srgb_to_linear, to_uint8, to_unit_float
 
 # (sRGB-encoded, linear) pairs from the standard's piecewise definition.
 KNOWN = [
@@ -86,3 +86,27 @@ def test_half_floats_quantize_as_float32() -> None:
     strided = every.reshape(256, 256)[1::3, ::2]
     np.testing.assert_array_equal(to_uint8(strided), expected.reshape(256, 256)[1::3, ::2])
     assert to_uint8(np.zeros((0, 3), np.float16)).shape == (0, 3)
+
+
+def test_luma_opencv_is_bt601_in_15_bit_fixed_point():
+    """uint8: ``(9798 R + 19235 G + 3735 B + 2^14) >> 15`` (weights summing to 2^15), written out
+    here; float32: the weights, within float32 rounding. Any leading shape."""
+    rgb = np.random.default_rng(3).integers(0, 256, (2, 64, 96, 3), dtype=np.uint8)
+    wide = rgb.astype(np.int64)
+    expected = (9798 * wide[..., 0] + 19235 * wide[..., 1] + 3735 * wide[..., 2] + (1 << 14)) >> 15
+    gray = luma_opencv(rgb)
+    assert gray.shape == (2, 64, 96) and gray.dtype == np.uint8
+    np.testing.assert_array_equal(gray, expected)
+    unit = rgb.astype(np.float32) / 255.0
+    np.testing.assert_allclose(luma_opencv(unit), unit.astype(np.float64) @ [0.299, 0.587, 0.114], rtol=0, atol=1e-6)
+    assert luma_opencv(unit).dtype == np.float32
+    with pytest.raises(ValueError, match="RGB images"):
+        luma_opencv(np.zeros((4, 4), np.uint8))
+
+
+def test_luma_float32_is_not_rounded():
+    rgb = np.array([[10, 20, 30], [255, 255, 255], [1, 0, 0]], np.uint8)
+    luma = luma_float32(rgb)
+    assert luma.dtype == np.float32
+    np.testing.assert_allclose(luma, [0.299 * 10 + 0.587 * 20 + 0.114 * 30, 255.0, 0.299], rtol=1e-6)
+    assert luma_opencv(rgb[None])[0, 2] == 0  # where the uint8 path rounds 0.299 down

@@ -15,7 +15,8 @@ from runner.stage import Context, StageError, StreamInfo
 from runner.streams import chunk_ranges
 from scripts.make_test_clip import synthetic_frames, write_clip
 from tests.memory_stream import NpyStream
-from stages.video import ImageGray, VideoDecode, VideoWriter, WriteVideo, probe, to_gray
+from stages.color import luma_opencv
+from stages.video import ImageGray, VideoDecode, VideoWriter, WriteVideo, probe
 
 
 def _decode_all(path: Path) -> np.ndarray:
@@ -91,7 +92,7 @@ def test_h264_writer_is_browser_friendly_close_and_bit_exact(tmp_path):
     decoded = _decode_all(paths[0])
     assert decoded.shape == (20, 48, 64, 3)
     # 4:2:0 halves chroma resolution (the pattern's hue wraps are sharp): judge luma.
-    assert _psnr(to_gray(decoded[:, :47, :63]), to_gray(truth)) > 38
+    assert _psnr(luma_opencv(decoded[:, :47, :63]), luma_opencv(truth)) > 38
     # The padding row/column repeat the last ones (not black).
     assert np.abs(decoded[:, 47].astype(int) - decoded[:, 46]).mean() < 4
     assert np.abs(decoded[:, :, 63].astype(int) - decoded[:, :, 62]).mean() < 4

@@ -13,7 +13,8 @@ import pytest
 
 from runner.stage import StageError
 from scripts.make_test_clip import synthetic_frames
-from stages.video import X264_PRESETS, VideoWriter, WriteVideo, to_gray
+from stages.color import luma_opencv
+from stages.video import X264_PRESETS, VideoWriter, WriteVideo
 
 
 def _encode(path: Path, frames: np.ndarray, **options) -> bytes:
@@ -46,7 +47,7 @@ def test_preset_reaches_x264_and_keeps_the_picture(tmp_path, frames, preset, sub
     options = _x264_options(_encode(tmp_path / "v.mp4", frames, preset=preset))
     assert options["subme"] == subme and options["mbtree"] == "0"
     decoded = _decode(tmp_path / "v.mp4")
-    mse = np.mean((to_gray(decoded).astype(np.float64) - to_gray(frames)) ** 2)
+    mse = np.mean((luma_opencv(decoded).astype(np.float64) - luma_opencv(frames)) ** 2)
     assert 10 * np.log10(255.0**2 / mse) > 38
 
 

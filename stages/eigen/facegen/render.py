@@ -29,7 +29,8 @@ NECK_PIVOT = np.array([0.0, 70.0, 80.0])  # clip heads turn about this head-fram
 
 
 def rotation(yaw: float, pitch: float, roll: float) -> np.ndarray:
-    """``R = Rz(roll) @ Ry(yaw) @ Rx(pitch)`` ``(3, 3)`` from angles in degrees."""
+    """``R = Rz(roll) @ Ry(yaw) @ Rx(pitch)`` ``(3, 3)`` from angles in degrees; independent of
+    ``stages.geometry.rotation.rotation_zyx`` on purpose: the ground truth the tests compare against."""
     y, p, r = np.deg2rad([yaw, pitch, roll])
     rx = np.array([[1, 0, 0], [0, np.cos(p), -np.sin(p)], [0, np.sin(p), np.cos(p)]])
     ry = np.array([[np.cos(y), 0, np.sin(y)], [0, 1, 0], [-np.sin(y), 0, np.cos(y)]])
@@ -60,7 +61,8 @@ def framing_translation(camera: Camera, *, head_mm: float) -> np.ndarray:
 
 
 def project(points3d: np.ndarray, R: np.ndarray, t: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Project head-frame points ``(..., 3)`` mm: returns pixels ``(..., 2)`` and camera depth ``(...)`` mm (eq. 10)."""
+    """Project head-frame points ``(..., 3)`` mm: returns pixels ``(..., 2)`` and camera depth ``(...)`` mm (eq. 10);
+    independent of ``stages.geometry.camera`` on purpose: the ground truth the tests compare against."""
     cam = points3d @ R.T + t
     img = cam @ A.T
     return img[..., :2] / img[..., 2:3], cam[..., 2]

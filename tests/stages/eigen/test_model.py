@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 
 from stages.eigen.model import EigenModel, analyze_frames, parameters_to_points
-from stages.eigen.sampling import paper_sampling, rich_sampling, rotation_angles
+from stages.eigen.sampling import paper_sampling, rich_sampling
+from stages.geometry.rotation import ypr_zyx
 from tests.stages.eigen import scene
 from tests.stages.eigen.toy import MOTION, random_similarity, toy_model
 
@@ -70,8 +71,8 @@ def test_samplings():
     assert c.shape == (50, 12) and 0 <= c.min() and c.max() <= 1 and np.all(np.abs(a).max(axis=0) <= [25, 15, 10])
 
 
-def test_rotation_angles_invert_the_generators_rotation():
+def test_ypr_zyx_inverts_the_generators_rotation():
     from stages.eigen.facegen.render import rotation
 
     for angles in ((10.0, -5.0, 3.0), (-25.0, 15.0, -10.0)):
-        np.testing.assert_allclose(rotation_angles(rotation(*angles)), angles, atol=1e-9)
+        np.testing.assert_allclose(ypr_zyx(rotation(*angles)), angles, atol=1e-9)

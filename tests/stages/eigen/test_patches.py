@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from stages.eigen.patches import cut_patches, feature_windows, luminance, similarity_apply
+from stages.eigen.patches import cut_patches, feature_windows, luminance
 from tests.stages.eigen import scene
 
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
@@ -67,9 +67,7 @@ def test_a_feature_outside_the_image_is_masked_not_a_crash():
     assert patches[1].shape == windows[1].shape and not patches[1].any()
 
 
-def test_similarity_apply_and_luminance_contracts():
-    T = similarity(2.0, 90.0, 1.0, 2.0)
-    np.testing.assert_allclose(similarity_apply(T, np.array([[1.0, 0.0]])), [[1.0, 4.0]], atol=1e-12)
+def test_luminance_and_window_contracts():
     with pytest.raises(TypeError, match="uint8"):
         luminance(np.zeros((4, 4, 3), np.float32))
     with pytest.raises(ValueError, match="neutral points"):

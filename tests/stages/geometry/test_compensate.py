@@ -18,6 +18,13 @@ def random_similarity(rng: np.random.Generator) -> np.ndarray:
     return np.array([scale * np.cos(angle), scale * np.sin(angle), *rng.uniform(-20, 20, 2)])
 
 
+def test_apply_similarity_scales_turns_and_moves():
+    """(a, b) = 2 (cos 90, sin 90), t = (1, 2): (1, 0) -> 2 (0, 1) + (1, 2); any leading shape."""
+    T = np.array([0.0, 2.0, 1.0, 2.0])
+    np.testing.assert_allclose(apply_similarity(T, np.array([[1.0, 0.0]])), [[1.0, 4.0]], atol=1e-12)
+    assert apply_similarity(T, np.zeros((3, 4, 2))).shape == (3, 4, 2)
+
+
 def test_recovers_exact_similarity_and_inverts():
     rng = np.random.default_rng(0)
     src = rng.uniform(0, 200, (7, 2))

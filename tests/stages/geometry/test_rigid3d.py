@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from stages.geometry.rotation import ypr_yxz
 from stages.geometry.rigid3d import (
     choose_reference,
     compensate_rigid3d,
-    euler_yaw_pitch_roll,
     expressiveness,
     head_angle_deg,
     similarity_3d,
@@ -46,7 +46,7 @@ def test_compensation_undoes_head_rotation_and_keeps_expression():
     np.testing.assert_allclose(fit["d"][0], 0, atol=1e-9)
     for k in (1, 2):
         np.testing.assert_allclose(fit["d"][k], expression[:, :2], atol=1e-6)
-    np.testing.assert_allclose(euler_yaw_pitch_roll(fit["R"]), angles, atol=1e-6)
+    np.testing.assert_allclose(ypr_yxz(fit["R"]), angles, atol=1e-6)
     assert fit["frame_valid"].all()
 
 
