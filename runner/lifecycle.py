@@ -17,8 +17,6 @@ from runner.stage import Context, Stage
 
 T = TypeVar("T")
 
-THREADING = ("reentrant", "single")
-
 
 def lifecycle_context(stage: Stage, *, device: str) -> Context:
     """The :class:`Context` handed to ``open`` and ``close``: the device and the stage's logger;
@@ -38,8 +36,6 @@ class Lifecycle:
     it was opened. Thread-safe."""
 
     def __init__(self, stage: Stage, *, device: str):
-        if stage.threading not in THREADING:
-            raise ValueError(f"{stage.name}: threading must be one of {THREADING}, got {stage.threading!r}")
         self.stage = stage
         self._device = device
         self._opening = threading.Lock()

@@ -61,6 +61,7 @@ if TYPE_CHECKING:  # annotations only: `runner --help` and `runner cache` start 
     import numpy as np
 
 RUNNER_TYPES = ("video", "file", "dir", "frames", "files")
+THREADING = ("reentrant", "single")  # the values of Stage.threading
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ from runner.cache import CacheStore
 from runner.config import load_pipeline
 from runner.execute import Options, Runner, StageFailed
 from runner.lifecycle import Lifecycle, opened
-from runner.registry import Registry
+from runner.registry import Registry, RegistryError
 from runner.stage import FrameStage, Param, SequenceStage, StageError, StreamInfo
 
 N, H, W = 12, 2, 3
@@ -159,7 +159,8 @@ def test_opened_opens_and_closes_around_calls_outside_a_run():
 
 def test_an_unknown_threading_declaration_is_refused():
     class Odd(Source):
+        name = "t.odd"
         threading = "parallel"
 
-    with pytest.raises(ValueError, match="threading must be one of"):
-        Lifecycle(Odd(), device="cpu")
+    with pytest.raises(RegistryError, match="'threading' must be one of 'reentrant', 'single'"):
+        Registry(classes=[Odd])
