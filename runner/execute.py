@@ -173,7 +173,10 @@ class Runner:
             names the stage and the file).
         """
         with notes.showing():  # each distinct warning line once on stderr
-            return self._run()
+            try:
+                return self._run()
+            finally:  # after publishing, which may compute a damaged entry again
+                self._close_frame_stages()
 
     def _run(self) -> list[Report]:
         publishing = [node for node in self.selected() if "files" in node.cls.outputs.values()]
@@ -201,7 +204,6 @@ class Runner:
                 chunks.stop_producing()
             for chunks in self._lazy:
                 chunks.close()
-            self._close_frame_stages()
         if not self.opts.dry_run and self.opts.out is not None:
             for node in publishing:
                 ports = [p for p, kind in node.cls.outputs.items() if kind == "files"]
