@@ -188,6 +188,7 @@ class FrameChunks:
         self._upstream: dict[str, Any] | None = None
         self._streams: dict[str, ComputedStream] = {}
         self._readers: list[str] = []
+        self._producer_threads: list[threading.Thread] = []  # every producer started (:meth:`produce`)
         self._bar: tqdm | None = None
         self._depends: set[Path] = set()  # files recorded by runner.depends while chunks were computed
 
@@ -332,6 +333,7 @@ class FrameChunks:
             for k in range(threads)
         ]
         if not self.complete() and self.broadcast.produce(producers):
+            self._producer_threads += producers
             for thread in producers:
                 thread.start()
 
@@ -353,8 +355,11 @@ class FrameChunks:
                 self.broadcast.stop()
 
     def stop_producing(self) -> None:
-        """Stop the producer threads (after the chunks they compute) and wait for them."""
-        for producer in self.broadcast.stop():
+        """Stop the producer threads (after the chunks they compute) and wait for every one
+        started, also those a failed producer stopped already (:meth:`Broadcast.stop` hands
+        them out once)."""
+        self.broadcast.stop()
+        for producer in self._producer_threads:
             if producer is not threading.current_thread():
                 producer.join()
 
