@@ -54,11 +54,11 @@ from runner.cache import CacheStore
 from runner.config import ConfigError, bind_inputs, load_pipeline
 from runner.errors import StageFailed
 from runner.registry import Registry
+from runner.signals import EXIT_OK, EXIT_STAGE
 
 if TYPE_CHECKING:
     from runner.execute import Options
 
-EXIT_OK, EXIT_FAILED = 0, 1
 PROGRESS_EVERY_S = 2.0  # a job's chunk lines: a stage's first chunk, else at most one this often
 WAIT_S = 0.25
 
@@ -358,7 +358,7 @@ def run_batch(
     shutdown_s = time.perf_counter() - stopping
     seconds = time.perf_counter() - started
     counts = {s: sum(state.status == s for state in states.values()) for s in ("done", "cached", "failed")}
-    code = EXIT_FAILED if counts["failed"] else EXIT_OK
+    code = EXIT_STAGE if counts["failed"] else EXIT_OK
     for line in _table(states.values()):
         echo(line)
     echo(f"{len(jobs)} jobs: {counts['done']} done, {counts['cached']} cached, {counts['failed']} failed in {seconds:.1f} s")

@@ -44,6 +44,7 @@ from runner.digest import array_digest, cache_key, combine
 from runner.errors import stage_errors
 from runner.inputs import Inputs
 from runner.keys import Keys
+from runner.lifecycle import Lifecycle
 from runner.outputs import check_frames, entry_context, load_bundle, read_or_redo, save_outputs
 from runner.progress import Progress, Report
 from runner.stage import FrameStage, StreamInfo
@@ -152,6 +153,9 @@ class FrameChunks:
     order by up to ``2 * jobs`` chunks).
 
     What it uses of the run is ``run`` (:class:`RunServices`): keys, the store, progress.
+    The stage's ``process`` is called through :attr:`life` (:class:`runner.lifecycle.Lifecycle`:
+    opened before the first chunk computed, serialized for a ``"single"`` stage); the run
+    calls :meth:`close_stage` at its end.
     ``entries`` (one per chunk, None until resolved) and :meth:`redo` serve publishing.
     """
 
@@ -168,6 +172,7 @@ class FrameChunks:
         keep: int = 3,
     ):
         self.run, self.node, self.stage, self.inputs, self.info = run, node, stage, inputs, info
+        self.life = Lifecycle(stage, device=run.keys.device)  # opened by the first chunk computed
         self.forced, self.lazy = forced, lazy
         at_once = max(run.jobs, run.producers)  # chunks of this stage's readers computed at once
         self.broadcast = Broadcast(keep=keep + 2 * (at_once - 1))
@@ -184,6 +189,7 @@ class FrameChunks:
         self._upstream: dict[str, Any] | None = None
         self._streams: dict[str, ComputedStream] = {}
         self._readers: list[str] = []
+        self._producer_threads: list[threading.Thread] = []  # every producer started (:meth:`produce`)
         self._bar: tqdm | None = None
         self._depends: set[Path] = set()  # files recorded by runner.depends while chunks were computed
 
@@ -328,6 +334,7 @@ class FrameChunks:
             for k in range(threads)
         ]
         if not self.complete() and self.broadcast.produce(producers):
+            self._producer_threads += producers
             for thread in producers:
                 thread.start()
 
@@ -349,8 +356,11 @@ class FrameChunks:
                 self.broadcast.stop()
 
     def stop_producing(self) -> None:
-        """Stop the producer threads (after the chunks they compute) and wait for them."""
-        for producer in self.broadcast.stop():
+        """Stop the producer threads (after the chunks they compute) and wait for every one
+        started, also those a failed producer stopped already (:meth:`Broadcast.stop` hands
+        them out once)."""
+        self.broadcast.stop()
+        for producer in self._producer_threads:
             if producer is not threading.current_thread():
                 producer.join()
 
@@ -391,13 +401,9 @@ class FrameChunks:
             with timing, store.writing(key) as tmp:
                 with stage_errors(node):
                     with recording(set()) as files, notes.recording() as warned:
-                        result = self.stage.process(
-                            start,
-                            stop,
-                            self._inputs(),
-                            dict(node.params),
-                            entry_context(tmp, device=keys.device, progress=lambda n: None),
-                        )
+                        upstream, params = self._inputs(), dict(node.params)
+                        ctx = entry_context(tmp, device=keys.device, progress=lambda n: None)
+                        result = self.life.call(upstream, params, lambda: self.stage.process(start, stop, upstream, params, ctx))
                     record = save_outputs(node.cls.outputs, result, tmp, frames=(stop - start, self.info))
                 with self._book:  # a stage may read such a file once, for all its chunks
                     self._depends |= files
@@ -503,6 +509,14 @@ class FrameChunks:
         if self._bar is not None:
             self._bar.close()
 
+    def close_stage(self) -> None:
+        """Close the stage (:meth:`runner.stage.Stage.close`) once nothing computes its chunks
+        any more: the run's stage threads and producers have ended; its streams' read-ahead
+        threads are stopped here."""
+        for stream in self._streams.values():
+            stream.stop()
+        self.life.close()
+
     # -- outputs ---------------------------------------------------------------------------
 
     def stream(self, port: str, reader: str | None = None) -> ChunkedStream:
@@ -592,7 +606,8 @@ class FrameChunks:
         with timing, self.run.store.writing(f"again-{self.node.name}") as tmp, stage_errors(self.node):
             ctx = entry_context(tmp, device=self.run.keys.device, progress=lambda n: None)
             ctx.log = logging.getLogger(f"runner.stage.{self.node.name}")
-            result = self.stage.process(start, stop, self._inputs(), dict(self.node.params), ctx)
+            upstream, params = self._inputs(), dict(self.node.params)
+            result = self.life.call(upstream, params, lambda: self.stage.process(start, stop, upstream, params, ctx))
             frames = {port: np.asarray(result[port]) for port in self._frame_ports()}
             for port, array in frames.items():
                 check_frames(port, array, stop - start, self.info)

@@ -7,17 +7,14 @@ from __future__ import annotations
 
 import contextlib
 import json
-import logging
-import os
-import signal
 import sys
-import threading
 import time
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any
 
 import click
 
+from runner import signals
 from runner.bundle import describe
 from runner.cache import DEFAULT_DIR, ENV_VAR, CacheStore, default_cache_dir, holder_is_stale
 from runner.config import ConfigError, Issue, Where, bind_inputs, load_pipeline
@@ -25,9 +22,8 @@ from runner.dag import to_dot, to_mermaid
 from runner.errors import StageFailed
 from runner.notes import one_line_warnings
 from runner.registry import Registry, RegistryError
+from runner.signals import EXIT_INTERRUPTED, EXIT_OK, EXIT_STAGE, EXIT_USAGE, INTERRUPTED, exit_now
 from runner.stage import FrameStage
-
-EXIT_OK, EXIT_STAGE, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 
 cache_dir_option = click.option(
     "--cache-dir",
@@ -115,15 +111,15 @@ def run(
 
         if not torch.cuda.is_available():
             raise click.UsageError("--device cuda: CUDA is not available on this machine")
-    _INTERRUPTED.clear()
+    INTERRUPTED.clear()
     log_file = open(log_json, "w", encoding="utf-8") if log_json else None
 
     def log(event: dict[str, Any]) -> None:
         if log_file is not None:
             log_file.write(json.dumps({"time": time.time(), **event}) + "\n")
             log_file.flush()
-        if _INTERRUPTED.is_set() and event.get("event") != "run_end":
-            raise KeyboardInterrupt  # the signal's own exception was lost (see _interrupt)
+        if INTERRUPTED.is_set() and event.get("event") != "run_end":
+            raise KeyboardInterrupt  # the signal's own exception was lost (see runner.signals.interrupt)
 
     options = Options(
         cache=CacheStore(cache_dir or default_cache_dir()),
@@ -327,47 +323,17 @@ def cache_clear(cache_dir: Path | None) -> int:
     return EXIT_OK
 
 
-_INTERRUPTED = threading.Event()
-
-
-def _interrupt(signum: int, frame: object) -> None:
-    """SIGINT / SIGTERM: interrupt the run. The flag is kept because the KeyboardInterrupt raised
-    here can be swallowed when the signal lands inside a C callback (a codec's); the run then stops
-    at its next event (a chunk, a stage), still exit 130. A second signal ends the process at once
-    (exit 130), for a run whose stop waits on work that does not end: what it committed stays,
-    its locks are broken by the next run (the cache's commits are atomic)."""
-    if _INTERRUPTED.is_set():
-        try:
-            os.write(2, b"interrupted again: exiting now\n")
-        except OSError:  # a closed stderr (a pipe whose reader the first Ctrl-C ended)
-            pass
-        finally:
-            os._exit(EXIT_INTERRUPTED)
-    _INTERRUPTED.set()
-    raise KeyboardInterrupt
-
-
-def _unraisable(args: sys.UnraisableHookArgs) -> None:
-    """A KeyboardInterrupt swallowed in a callback (an import lock's, a codec's) is not reported
-    as "Exception ignored": :data:`_INTERRUPTED` carries it to the next event."""
-    if not issubclass(args.exc_type, KeyboardInterrupt):
-        sys.__unraisablehook__(args)
-
-
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point: maps errors to exit codes, one line each, no traceback.
 
     Python warnings of the libraries are one line each (:func:`runner.notes.one_line_warnings`).
-    SIGINT and SIGTERM both interrupt the run (exit 130, the cache left resumable). SIGINT is set
-    explicitly: a process started in the background of a non-interactive shell inherits it
-    ignored, and Python then keeps ignoring it.
+    SIGINT and SIGTERM both interrupt the run (exit 130, the cache left resumable;
+    :func:`runner.signals.install`).
 
     Called without ``argv`` (the process is the command: the console script, ``python -m``), it
     ends the process with :func:`exit_now` instead of the interpreter's teardown; with ``argv``
     (called from Python) it raises ``SystemExit`` as usual."""
-    signal.signal(signal.SIGTERM, _interrupt)
-    signal.signal(signal.SIGINT, _interrupt)
-    sys.unraisablehook = _unraisable
+    signals.install()
     one_line_warnings()
     try:
         code = cli.main(args=argv, prog_name="runner", standalone_mode=False)
@@ -385,7 +351,7 @@ def main(argv: list[str] | None = None) -> None:
         click.echo(f"error: {exc}", err=True)
         code = EXIT_STAGE
     except (KeyboardInterrupt, click.Abort) as exc:
-        if isinstance(exc.__cause__, EOFError) and not _INTERRUPTED.is_set():
+        if isinstance(exc.__cause__, EOFError) and not INTERRUPTED.is_set():
             raise exc.__cause__  # click turns an EOFError into Abort: a fault of ours, not an interrupt
         click.echo("interrupted", err=True)
         code = EXIT_INTERRUPTED
@@ -396,21 +362,6 @@ def main(argv: list[str] | None = None) -> None:
     if argv is None:
         exit_now(code or 0)
     sys.exit(code or 0)
-
-
-def exit_now(code: int) -> NoReturn:
-    """End the process with exit status ``code`` once its own threads have finished and its
-    output is flushed, skipping the interpreter's teardown: unloading torch, OpenCV and
-    matplotlib module by module took 1.0-1.3 s after every run that synthesized (0.2 s without
-    torch), and it writes nothing. Everything the command writes is already closed (the cache's
-    entries and ``--out`` are committed by atomic renames before this point)."""
-    for thread in threading.enumerate():
-        if thread is not threading.current_thread() and not thread.daemon:
-            thread.join()
-    logging.shutdown()
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(code)
 
 
 if __name__ == "__main__":

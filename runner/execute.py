@@ -62,6 +62,7 @@ from runner.digest import cache_key
 from runner.errors import StageFailed, stage_errors
 from runner.inputs import Inputs
 from runner.keys import Keys
+from runner.lifecycle import Lifecycle
 from runner.offload import Forked
 from runner.offload import fork as offload_fork
 from runner.offload import spec as offload_spec
@@ -144,6 +145,7 @@ class Runner:
             self.keys, self.store, self.progress, options.jobs, self.inputs, producers=options.producers or os.cpu_count() or 1
         )
         self._lazy: list[FrameChunks] = []  # lazy frame stages not reported yet
+        self._frame_stages: list[FrameChunks] = []  # every frame stage set up, closed at the run's end
         self._joined: dict[str, list[tuple[FrameChunks, str, threading.Thread]]] = {}  # per stage, the readers it registered
         self._producers: dict[FrameChunks, None] = {}  # lazy frame stages given a producer thread (ordered set)
         self._bound = bound
@@ -171,7 +173,10 @@ class Runner:
             names the stage and the file).
         """
         with notes.showing():  # each distinct warning line once on stderr
-            return self._run()
+            try:
+                return self._run()
+            finally:  # after publishing, which may compute a damaged entry again
+                self._close_frame_stages()
 
     def _run(self) -> list[Report]:
         publishing = [node for node in self.selected() if "files" in node.cls.outputs.values()]
@@ -214,6 +219,18 @@ class Runner:
         if not self.opts.dry_run:
             self.store.break_stale_locks()
         return reports
+
+    def _close_frame_stages(self) -> None:
+        """Close every frame stage that computed a chunk (:meth:`runner.stage.Stage.close`),
+        each even if closing another failed; the first failure is raised."""
+        with contextlib.ExitStack() as closing:
+            for chunks in reversed(self._frame_stages):
+                closing.callback(lambda c=chunks: self._close_stage(c))
+
+    @staticmethod
+    def _close_stage(chunks: FrameChunks) -> None:
+        with stage_errors(chunks.node):
+            chunks.close_stage()
 
     def _schedule(self, emit: Callable[[Report], None]) -> None:
         """Visit every selected stage once the stages it reads have had their turn: in
@@ -617,11 +634,15 @@ class Runner:
             if entry is not None:
                 return entry, False
             with self.store.writing(key or f"pending-{node.name}") as tmp:
-                values = {port: v.get(node.name) for port, v in inputs.items()}
-                with recording(set()) as files, notes.recording() as warned:
-                    result = node.cls().run(
-                        values, dict(node.params), entry_context(tmp, device=self.opts.device, progress=bar.update)
-                    )
+                values, params = {port: v.get(node.name) for port, v in inputs.items()}, dict(node.params)
+                ctx = entry_context(tmp, device=self.opts.device, progress=bar.update)
+                stage = node.cls()
+                life = Lifecycle(stage, device=self.opts.device)
+                try:
+                    with recording(set()) as files, notes.recording() as warned:
+                        result = life.call(values, params, lambda: stage.run(values, params, ctx))
+                finally:
+                    life.close()
                 record = save_outputs(node.cls.outputs, result, tmp, frames=None)
                 if key is None:
                     key = cache_key(self.keys.material(node, input_digests(inputs)))
@@ -653,6 +674,7 @@ class Runner:
                 )
         lazy = node.cls.cached and not self.opts.dry_run and self._is_read(node)
         chunks = FrameChunks(self.services, node, stage, inputs, info, forced=forced, lazy=lazy, keep=self._keep(node))
+        self._frame_stages.append(chunks)
         self.entries[node.name], self.redo[node.name] = chunks.entries, chunks.redo
         for port, kind in node.cls.outputs.items():
             load = None if kind == "frames" else (lambda p=port: chunks.load(p))

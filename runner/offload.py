@@ -9,8 +9,8 @@ sequence stages after it that read nothing else the run has still to compute (th
 smoothing, compensation and pose: ``Runner`` with ``until``), against the same cache, inputs,
 parameters and device, and goes on with the other stages meanwhile. The child is a fork of the
 run where that is safe (:func:`can_fork`: no other thread and no torch, OpenCV, Ray... loaded
-yet, as at a run's start), else a new interpreter (:func:`start`). The child commits the
-stages' entries as the run would (the cache's locks and atomic commits hold across processes, as
+yet, as at a run's start), else a new interpreter (:func:`start`, running :func:`runner.child.main`). The
+child commits the stages' entries as the run would (the cache's locks and atomic commits hold across processes, as
 for ``runner batch``); once it has ended, the run visits those stages and finds their entries. A
 child that fails leaves what it committed: the run computes the rest itself and reports its error
 as usual. The child's events come to the run on the child's standard output, one JSON object a
@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import IO, Any, NoReturn
 
 import runner
+from runner.signals import exit_now
 from runner.stage import SUMMARY
 
 SPEC_VERSION = 2
@@ -63,7 +64,7 @@ def start(argument: str) -> subprocess.Popen[str]:
     package_root = str(Path(runner.__file__).resolve().parent.parent)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [package_root, os.environ.get("PYTHONPATH")]))}
     return subprocess.Popen(
-        [sys.executable, "-c", "from runner.offload import main; main()", argument, str(os.getpid())],
+        [sys.executable, "-c", "from runner.child import main; main()", argument, str(os.getpid())],
         env=env,
         stdin=subprocess.DEVNULL,
         stdout=subprocess.PIPE,
@@ -127,7 +128,7 @@ def fork(make_runner: Callable[..., Any]) -> Forked | None:
         os.dup2(devnull, 2)
         global _events
         _events = os.fdopen(write, "w")
-        _child(make_runner, parent=os.getppid())
+        run_child(make_runner, parent=os.getppid())
     os.close(write)
     return Forked(pid, os.fdopen(read, "r"))
 
@@ -156,11 +157,10 @@ def _exit_when_orphaned(parent: int) -> None:
     os._exit(1)
 
 
-def _child(make_runner: Callable[..., Any], *, parent: int) -> NoReturn:
+def run_child(make_runner: Callable[..., Any], *, parent: int) -> NoReturn:
     """The child's run, either way it started: events to the parent, exit 0 once its entries are
     committed, 1 on any failure (the parent then computes what is missing itself and reports
     why), without the interpreter's teardown (the run waits for this process's end; 0.2-0.3 s)."""
-    from runner.cli import exit_now
     from runner.notes import one_line_warnings
 
     threading.Thread(target=_exit_when_orphaned, args=(parent,), daemon=True).start()
@@ -176,28 +176,3 @@ def _child(make_runner: Callable[..., Any], *, parent: int) -> NoReturn:
     except Exception:  # noqa: BLE001 - the parent computes the stages again and reports the error
         code = 1
     exit_now(code)
-
-
-def main(argv: list[str] | None = None) -> None:
-    """The child started by :func:`start`: run the pipeline up to the spec's stages against the
-    shared cache, publishing nothing, its events on standard output (:func:`_child`)."""
-    from runner.cache import CacheStore
-    from runner.config import load_pipeline
-    from runner.execute import Options, Runner
-    from runner.registry import Registry
-
-    argument, parent = argv or sys.argv[1:]
-    args: dict[str, Any] = json.loads(argument)
-    if args.get("version") != SPEC_VERSION:
-        sys.exit(2)
-
-    def make_runner(**events: Any) -> Runner:
-        loaded = load_pipeline(Path(args["pipeline"]), Registry.from_entry_points(), overrides=args["overrides"])
-        bound = {name: Path(path) for name, path in args["bound"].items()}
-        return Runner(
-            loaded,
-            bound,
-            Options(cache=CacheStore(Path(args["cache"])), device=args["device"], until=tuple(args["until"]), **events),
-        )
-
-    _child(make_runner, parent=int(parent))

@@ -18,7 +18,7 @@ import importlib.metadata
 from collections.abc import Iterable, Mapping
 
 from runner.bundle import BundleType
-from runner.stage import RUNNER_TYPES, FrameStage, Param, SequenceStage, Stage
+from runner.stage import RUNNER_TYPES, THREADING, FrameStage, Param, SequenceStage, Stage
 
 ENTRY_POINT_GROUP = "expression_mapping.stages"
 PARAM_TYPES = (int, float, str, bool, list)
@@ -122,6 +122,8 @@ def check_stage_class(stage_cls: type[Stage]) -> None:
         and stage_cls.stream_info is FrameStage.stream_info
     ):
         raise RegistryError(f"{where}: a frame stage without a frames input must define stream_info")
+    if stage_cls.threading not in THREADING:
+        raise RegistryError(f"{where}: class attribute 'threading' must be one of {', '.join(map(repr, THREADING))}")
     seen: set[str] = set()
     for param in stage_cls.params:
         if not isinstance(param, Param) or param.type not in PARAM_TYPES:

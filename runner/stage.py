@@ -28,6 +28,24 @@ or a plain string naming an undeclared bundle. Two ports connect only when the o
 name is one the input accepts (an input may accept a tuple of bundle types); the runner checks
 a declared bundle's fields when the stage's output is stored.
 
+Lifecycle and threads
+---------------------
+The runner makes one instance of a stage class per pipeline stage and run (and one in each
+child process of :mod:`runner.offload` that computes the stage). An instance that computes
+anything is opened (:meth:`Stage.open`) before its first ``run`` / ``process`` and closed
+(:meth:`Stage.close`) once the run no longer calls it, in a ``finally`` (also after a failure
+or an interrupt); one served wholly from the cache is neither opened nor closed.
+
+A sequence stage's ``run`` is called once, on the thread visiting it (the main thread, or the
+stage's own thread while it reads a stream being computed). A frame stage's ``process`` is
+called from whichever thread needs its chunk: the main thread, ``--jobs`` worker threads
+resolving its chunks, its producer threads (``os.cpu_count()`` of them, ``--jobs`` or not)
+while other stages read it, the threads of the stages reading it, and a stream's read-ahead
+thread. With ``threading = "reentrant"`` (the default) these calls may overlap; with
+``"single"`` the runner holds a lock of the instance around each, so one runs at a time (not
+always on the same thread). So a reentrant stage keeps no per-call state on ``self``.
+Calls outside a run (tests, scripts) go through :func:`runner.lifecycle.opened`.
+
 What a result depends on
 ------------------------
 A stage's cache key covers its inputs, parameters and version (docs/runner.md, "Cache"). A
@@ -50,6 +68,7 @@ if TYPE_CHECKING:  # annotations only: `runner --help` and `runner cache` start 
     import numpy as np
 
 RUNNER_TYPES = ("video", "file", "dir", "frames", "files")
+THREADING = ("reentrant", "single")  # the values of Stage.threading
 
 
 @dataclass(frozen=True)
@@ -163,6 +182,21 @@ class Stage:
     # its scheduling thread waits for other stages (a stream), so that the stage does not start
     # by importing. Loading a pipeline still imports none of them.
     imports: ClassVar[tuple[str, ...]] = ()
+    # Whether the runner may call ``process`` of one instance from several threads at once
+    # ("reentrant") or must call it one at a time ("single"); see "Lifecycle and threads" above.
+    threading: ClassVar[str] = "reentrant"
+
+    def open(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> None:
+        """Set up what every call of ``run`` / ``process`` of this run shares (a model prepared
+        on ``ctx.device``, a GL context), from the same ``inputs`` and ``params`` they are
+        handed. Called once per instance, before its first ``run`` / ``process``, on the thread
+        about to make that call; never for an instance that computes nothing (served from the
+        cache). ``ctx.files_dir`` is not for writing here. By default nothing."""
+
+    def close(self, ctx: Context) -> None:
+        """Free what :meth:`open` set up (and what ``process`` kept, such as decoders). Called
+        once per opened instance, after its last ``run`` / ``process`` has returned, also when
+        the run failed or was interrupted; on the run's scheduling thread. By default nothing."""
 
 
 class SequenceStage(Stage):

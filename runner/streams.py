@@ -129,6 +129,7 @@ class ComputedStream(ChunkedStream):
         self._queued: int | None = None  # the chunk the read-ahead thread computes next
         self._failed: dict[int, BaseException] = {}  # read-ahead failures, raised to the chunk's reader
         self._ahead: threading.Thread | None = None
+        self._stopped = False  # no more read-ahead (:meth:`stop`)
 
     def chunk(self, index: int, *, mmap: bool = False) -> np.ndarray:
         with waiting(), self._ahead_ready:  # the read-ahead thread's chunk
@@ -159,7 +160,7 @@ class ComputedStream(ChunkedStream):
     def _queue(self, index: int) -> None:
         """Have the read-ahead thread compute chunk ``index`` if it is the next in order."""
         with self._ahead_ready:
-            if index >= len(self.ranges) or index != self._next or self._queued is not None:
+            if self._stopped or index >= len(self.ranges) or index != self._next or self._queued is not None:
                 return
             self._queued = index
             if self._ahead is None:
@@ -172,8 +173,11 @@ class ComputedStream(ChunkedStream):
         last = False
         while not last:
             with self._ahead_ready:
-                while self._queued is None:
+                while self._queued is None and not self._stopped:
                     self._ahead_ready.wait()
+                if self._queued is None:  # stopped
+                    self._ahead = None
+                    return
                 index = self._queued
             last = index == len(self.ranges) - 1
             try:
@@ -189,6 +193,15 @@ class ComputedStream(ChunkedStream):
                     if last:
                         self._ahead = None
                     self._ahead_ready.notify_all()
+
+    def stop(self) -> None:
+        """End the read-ahead: wait for the chunk it computes, if any, and queue no more (the
+        stage is about to be closed, with the decoder that thread uses)."""
+        with self._ahead_ready:
+            self._stopped = True
+            self._ahead_ready.notify_all()
+            while self._queued is not None:
+                self._ahead_ready.wait()
 
     def _kept(self, index: int) -> np.ndarray | None:
         """Chunk ``index`` if it is kept, else None; computes it at once, outside the locks and

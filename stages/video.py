@@ -155,9 +155,9 @@ class VideoDecode(FrameStage):
     """Decode a clip to RGB frames, chunk by chunk (not cached: decoding is cheaper than
     reading raw frames back).
 
-    Thread-safe: each thread that calls :meth:`process` has its own decoder, so stages that
+    Reentrant: each thread that calls :meth:`process` has its own decoder, so stages that
     read the clip concurrently (each in order) each decode sequentially instead of sharing one
-    position.
+    position; :meth:`close` closes them all.
     """
 
     name = "video.decode"
@@ -166,9 +166,10 @@ class VideoDecode(FrameStage):
     inputs = {"video": "video"}
     outputs = {"frames": "frames"}
     cached = False
+    threading = "reentrant"
 
     def __init__(self) -> None:
-        self._local = threading.local()  # .reader: this thread's _Reader
+        self._readers: dict[int, _Reader] = {}  # per thread (threading.get_ident()): its decoder
 
     def stream_info(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> StreamInfo:
         return probe(Path(inputs["video"]))
@@ -178,12 +179,18 @@ class VideoDecode(FrameStage):
     ) -> dict[str, Any]:
         """Frames ``[start, stop)`` as ``(stop - start, H, W, 3)`` uint8 RGB."""
         path = Path(inputs["video"])
-        reader = getattr(self._local, "reader", None)
+        thread = threading.get_ident()
+        reader = self._readers.get(thread)
         if reader is None or reader.path != path:
             if reader is not None:
                 reader.close()
-            reader = self._local.reader = _Reader(path)
+            reader = self._readers[thread] = _Reader(path)
         return {"frames": reader.read(start, stop)}
+
+    def close(self, ctx: Context) -> None:
+        """Close every thread's decoder."""
+        while self._readers:
+            self._readers.popitem()[1].close()
 
 
 class ImageGray(FrameStage):

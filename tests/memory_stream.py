@@ -7,7 +7,8 @@ from typing import Iterator
 
 import numpy as np
 
-from runner.stage import Context, StreamInfo
+from runner.lifecycle import opened
+from runner.stage import Context, FrameStage, StreamInfo
 from runner.streams import ChunkedStream
 
 
@@ -45,3 +46,10 @@ class NpyStream(ChunkedStream):
 def files_context(root: Path) -> Context:
     """A CPU context whose ``files`` ports are folders ``root/<port>``."""
     return Context(device="cpu", files_dir=lambda port: root / port)
+
+
+def process_once(stage: FrameStage, start: int, stop: int, inputs: dict, params: dict, ctx: Context) -> dict:
+    """``stage.process`` of frames ``[start, stop)`` outside a run: the stage opened on
+    ``ctx.device`` first and closed after (:func:`runner.lifecycle.opened`)."""
+    with opened(stage, inputs, params, device=ctx.device):
+        return stage.process(start, stop, inputs, params, ctx)

@@ -33,7 +33,6 @@ coverage x the synthesized face mask), ``head_matte`` the coverage, ``filled`` 0
 
 from __future__ import annotations
 
-import threading
 from typing import Any, Mapping
 
 import numpy as np
@@ -219,13 +218,13 @@ class Render3D(FrameStage):
         Param("compression", str, "zip", "lossless EXR compression", choices=("zip", "zips", "piz", "rle", "none")),
     )
 
+    # One renderer (GL context) for the run, made in open and released in close: a GL context is
+    # current on one thread at a time, so the runner calls process one chunk at a time (from
+    # whichever producer thread), and process makes the context current for each frame.
+    threading = "single"
+
     def __init__(self) -> None:
-        # One renderer (GL context) for the stage, used by one thread at a time and made current
-        # on it for each frame: the runner computes chunks on several producer threads, and a GL
-        # context is current on one thread at a time (a context per thread would never be freed:
-        # moderngl does not release one when it is collected).
-        self._renderer: tuple[tuple[int, int, int], MeshRenderer] | None = None
-        self._gl = threading.Lock()
+        self._renderer: MeshRenderer | None = None
 
     def _size(self, mesh: Mapping[str, np.ndarray], params: Mapping[str, Any]) -> tuple[int, int]:
         W, H = (int(v) for v in mesh["size"])
@@ -237,18 +236,20 @@ class Render3D(FrameStage):
         W, H = self._size(inputs["mesh"], params)
         return StreamInfo(frames=info.frames, fps=info.fps, width=W, height=H)
 
-    def _get_renderer(self, size: tuple[int, int], samples: int) -> MeshRenderer:
-        """The renderer for ``size`` and ``samples``, made on first use (the one of another size
-        released); call with ``self._gl`` held."""
-        key = (*size, samples)
-        if self._renderer is None or self._renderer[0] != key:
-            if self._renderer is not None:
-                self._renderer[1].release()
-            try:
-                self._renderer = (key, MeshRenderer(size, samples=samples))
-            except RuntimeError as exc:
-                raise StageError(f"{self.name}: {exc}") from None
-        return self._renderer[1]
+    def open(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> None:
+        """Make the renderer (a headless GL context) for the output size and ``samples``."""
+        try:
+            self._renderer = MeshRenderer(self._size(inputs["mesh"], params), samples=int(params["samples"]))
+        except RuntimeError as exc:
+            raise StageError(f"{self.name}: {exc}") from None
+        with self._renderer.ctx:  # made current on this thread; leaving it frees it for the thread calling process
+            pass
+
+    def close(self, ctx: Context) -> None:
+        """Release the renderer's GL context (moderngl does not when it is collected)."""
+        if self._renderer is not None:
+            self._renderer.release()
+            self._renderer = None
 
     def process(
         self, start: int, stop: int, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context
@@ -262,7 +263,9 @@ class Render3D(FrameStage):
             port: inputs[port].read(start, stop) for port in ("mask", "head_matte", "filled") if inputs.get(port) is not None
         }
         whole = "head_triangles" in mesh
-        size = self._size(mesh, params)
+        renderer = self._renderer
+        if renderer is None:
+            raise RuntimeError(f"{self.name}: process before open (runner.lifecycle.opened)")
         A = scaled_intrinsics(mesh["camera"], float(params["resolution_scale"]))
         folder = ctx.files_dir("exr")
         folder.mkdir(parents=True, exist_ok=True)
@@ -281,13 +284,11 @@ class Render3D(FrameStage):
                 v = moved if weight is None else weight * moved + (1.0 - weight) * v
                 attrs.update(head_attributes(head, frame))
             mattes = {port: planes[port][i] for port in planes}
-            with self._gl:
-                renderer = self._get_renderer(size, int(params["samples"]))
-                with renderer.ctx:  # current on this thread for this frame
-                    if whole:
-                        rendered = self._render_whole(renderer, v, triangles, uv, rest[:, 2], textures[i], mattes, A)
-                    else:
-                        rendered = self._render_face(renderer, v, triangles, uv, textures[i], mattes.get("mask"), A)
+            with renderer.ctx:  # current on this thread for this frame
+                if whole:
+                    rendered = self._render_whole(renderer, v, triangles, uv, rest[:, 2], textures[i], mattes, A)
+                else:
+                    rendered = self._render_face(renderer, v, triangles, uv, textures[i], mattes.get("mask"), A)
             (rgba, layers), planes_out = rendered
             write_exr(
                 folder / exr_name(frame),

@@ -794,9 +794,12 @@ class Synthesize(FrameStage):
         ),
     )
 
+    # Chunks are synthesized on several threads at once: the synthesizer made in open is shared,
+    # read-only but for its per-thread buffers and its memo's lock (Synthesizer).
+    threading = "reentrant"
+
     def __init__(self) -> None:
-        self._prepared: tuple[Mapping[str, np.ndarray], str, tuple[float, ...], Synthesizer] | None = None
-        self._preparing = threading.Lock()  # chunks are computed on several threads: prepare once
+        self._synth: Synthesizer | None = None
 
     def _output_size(self, model: Mapping[str, np.ndarray], params: Mapping[str, Any]) -> tuple[tuple[int, int], str]:
         """``(W, H)`` of the output and the note on it (:func:`output_size`); StageError for a
@@ -812,29 +815,21 @@ class Synthesize(FrameStage):
         (W, H), _ = self._output_size(inputs["model"], params)
         return StreamInfo(frames=len(xy), fps=fps, width=W, height=H)
 
-    def _synthesizer(self, model: Mapping[str, np.ndarray], device: str, params: Mapping[str, Any]) -> Synthesizer:
-        """The model prepared on ``device``, kept between chunks of the same run."""
-        size, _ = self._output_size(model, params)
-        remedies = (
-            float(params["detail_power"]),
-            float(params["detail_sigma_px"]),
-            float(params["ridge_px"]),
-            float(params["teeth_power"]),
-            *size,
+    def open(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> None:
+        """Prepare the target's model on ``ctx.device`` (:class:`Synthesizer`) for every chunk of the run."""
+        size, _ = self._output_size(inputs["model"], params)
+        self._synth = Synthesizer(
+            inputs["model"],
+            device=ctx.device,
+            detail_power=float(params["detail_power"]),
+            detail_sigma_px=float(params["detail_sigma_px"]),
+            ridge_px=float(params["ridge_px"]),
+            teeth_power=float(params["teeth_power"]),
+            output_size=size,
         )
-        with self._preparing:
-            if self._prepared is None or self._prepared[0] is not model or self._prepared[1:3] != (device, remedies):
-                synth = Synthesizer(
-                    model,
-                    device=device,
-                    detail_power=remedies[0],
-                    detail_sigma_px=remedies[1],
-                    ridge_px=remedies[2],
-                    teeth_power=remedies[3],
-                    output_size=size,
-                )
-                self._prepared = (model, device, remedies, synth)
-            return self._prepared[3]
+
+    def close(self, ctx: Context) -> None:
+        self._synth = None
 
     def _motion(
         self, inputs: Mapping[str, Any], params: Mapping[str, Any], start: int, stop: int
@@ -879,7 +874,9 @@ class Synthesize(FrameStage):
         if note and start == 0:
             ctx.log.warning("%s: %s", self.name, note)
         model = inputs["model"]
-        synth = self._synthesizer(model, ctx.device, params)
+        synth = self._synth
+        if synth is None:
+            raise RuntimeError(f"{self.name}: process before open (runner.lifecycle.opened)")
         coeffs = None
         if params["mode"] != "warp-only":
             import torch

@@ -71,11 +71,12 @@ def synthesize_stage(model, xy: np.ndarray) -> np.ndarray:
     its half-float frames (T, H, W, 3) sRGB."""
     from runner.stage import Context
     from stages.synthesis.synthesize import Synthesize
+    from tests.memory_stream import process_once
 
     stage = Synthesize()
     ctx = Context(device="cpu", files_dir=lambda port: None)
     params = {p.name: p.default for p in stage.params}
-    return stage.process(0, len(xy), {"model": model, "points": {"xy": xy}}, params, ctx)["frames"]
+    return process_once(stage, 0, len(xy), {"model": model, "points": {"xy": xy}}, params, ctx)["frames"]
 
 
 def decode(image: bytes) -> np.ndarray:

@@ -285,7 +285,7 @@ def test_a_swallowed_interrupt_is_not_reported_but_other_unraisables_are(capsys,
     import gc
     import sys
 
-    from runner import cli
+    from runner import signals
 
     class Raises:
         def __init__(self, error: BaseException):
@@ -294,7 +294,7 @@ def test_a_swallowed_interrupt_is_not_reported_but_other_unraisables_are(capsys,
         def __del__(self):
             raise self.error
 
-    monkeypatch.setattr(sys, "unraisablehook", cli._unraisable)
+    monkeypatch.setattr(sys, "unraisablehook", signals.unraisable)
     Raises(KeyboardInterrupt())
     gc.collect()
     assert "Exception ignored" not in capsys.readouterr().err
@@ -309,7 +309,7 @@ def test_exit_now_waits_for_threads_and_flushes(tmp_path):
     without a newline, and the work of a thread still running."""
     marker = tmp_path / "written"
     script = (
-        "import sys, threading, time; from pathlib import Path; from runner.cli import exit_now\n"
+        "import sys, threading, time; from pathlib import Path; from runner.signals import exit_now\n"
         "def late(): time.sleep(0.3); Path(sys.argv[1]).write_text('done')\n"
         "threading.Thread(target=late).start(); print('partial', end=''); exit_now(3)"
     )

@@ -73,6 +73,13 @@ def test_decode_from_several_threads_at_once_is_exact(lossless):
     for thread in threads:
         thread.join()
     assert errors == []
+    readers = list(stage._readers.values())
+    assert len(readers) == 3  # one decoder per thread
+    stage.close(None)
+    assert stage._readers == {}
+    for reader in readers:  # each decoder's file is closed: its container refuses to decode
+        with pytest.raises(AssertionError, match="not open"):
+            next(reader._container.demux())
 
 
 def test_h264_writer_is_browser_friendly_close_and_bit_exact(tmp_path):

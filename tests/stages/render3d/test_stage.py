@@ -10,7 +10,8 @@ from runner.stage import StageError
 from stages.mesh3d.stage import Mesh3DSynthesize
 from stages.render3d.stage import HeadPose3D, Render3D
 from stages.writers.usd import WriteUsd
-from tests.memory_stream import MemoryStream, files_context
+from runner.lifecycle import opened
+from tests.memory_stream import MemoryStream, files_context, process_once
 
 PACK = Path("fixtures/packs/target")
 
@@ -35,7 +36,7 @@ def chain(tmp_path_factory):
     texture = MemoryStream(images.astype(np.float16), fps=25.0, chunk=1)
     inputs = {"texture": texture, "mesh": mesh, "head": head}
     params = {"samples": 4, "resolution_scale": 1.0, "geometry": "synthesized", "compression": "zip"}
-    out = Render3D().process(0, 2, inputs, params, ctx)
+    out = process_once(Render3D(), 0, 2, inputs, params, ctx)
     return root, pack, mesh, head, texture, out, target
 
 
@@ -99,7 +100,7 @@ def test_resolution_scale_renders_the_same_picture_larger(chain, tmp_path):
 
     _, pack, mesh, head, texture, out, _ = chain
     params = {"samples": 4, "resolution_scale": 2.0, "geometry": "synthesized", "compression": "zip"}
-    big = Render3D().process(0, 1, {"texture": texture, "mesh": mesh, "head": head}, params, files_context(tmp_path))
+    big = process_once(Render3D(), 0, 1, {"texture": texture, "mesh": mesh, "head": head}, params, files_context(tmp_path))
     W, H = pack.image_size
     assert big["frames"].shape == (1, 2 * H, 2 * W, 3)
     small = cv2.resize(big["mask"][0].astype(np.float32), (W, H), interpolation=cv2.INTER_AREA)
@@ -119,38 +120,38 @@ def test_missing_egl_is_a_stage_error_naming_the_packages(chain, tmp_path, monke
     monkeypatch.setattr(raster, "gl_context", no_egl)
     params = {"samples": 4, "resolution_scale": 1.5, "geometry": "synthesized", "compression": "zip"}
     with pytest.raises(StageError, match="install-egl"):
-        Render3D().process(0, 1, {"texture": texture, "mesh": mesh, "head": head}, params, files_context(tmp_path))
+        process_once(Render3D(), 0, 1, {"texture": texture, "mesh": mesh, "head": head}, params, files_context(tmp_path))
 
 
 def test_chunks_rendered_on_two_threads_at_once_equal_one_thread(chain, tmp_path):
-    """The runner computes a stage's chunks on several producer threads: the two frames rendered
-    at the same time on two threads (one stage instance) equal those rendered on one."""
+    """The runner computes a stage's chunks on several producer threads, one at a time for this
+    "single" stage (runner.lifecycle): the two frames rendered from two threads at once (one
+    stage instance, its one GL context) equal those rendered on one."""
     import threading
 
     root, _, mesh, head, texture, out, _ = chain
     params = {"samples": 4, "resolution_scale": 1.0, "geometry": "synthesized", "compression": "zip"}
+    inputs = {"texture": texture, "mesh": mesh, "head": head}
     stage, results, errors = Render3D(), {}, []
+    assert stage.threading == "single"
     start = threading.Barrier(2)
 
     def render(frame: int) -> None:
         try:
             start.wait(10)
             for _ in range(3):
-                results[frame] = stage.process(
-                    frame,
-                    frame + 1,
-                    {"texture": texture, "mesh": mesh, "head": head},
-                    params,
-                    files_context(tmp_path / str(frame)),
-                )
+                ctx = files_context(tmp_path / str(frame))
+                results[frame] = life.call(inputs, params, lambda: stage.process(frame, frame + 1, inputs, params, ctx))
         except Exception as exc:  # noqa: BLE001 - reported below
             errors.append(exc)
 
-    threads = [threading.Thread(target=render, args=(frame,)) for frame in (0, 1)]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join()
+    with opened(stage, inputs, params) as life:
+        threads = [threading.Thread(target=render, args=(frame,)) for frame in (0, 1)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+    assert stage._renderer is None  # closed: its GL context released
     assert errors == []
     for frame in (0, 1):
         for port in ("frames", "mask", "depth"):
@@ -179,7 +180,7 @@ def whole(tmp_path_factory):
     image = pack.neutral.image.astype(np.float32) / 255.0
     texture = MemoryStream(np.stack([image, image]).astype(np.float16), fps=25.0, chunk=1)
     params = {"samples": 4, "resolution_scale": 1.0, "geometry": "lifted", "compression": "zip"}
-    out = Render3D().process(0, 2, {"texture": texture, "mesh": mesh, "head": head}, params, ctx)
+    out = process_once(Render3D(), 0, 2, {"texture": texture, "mesh": mesh, "head": head}, params, ctx)
     return root, pack, mesh, head, texture, out
 
 

@@ -10,6 +10,7 @@ from runner.stage import Context
 from stages.synthesis.build import build_synthesis_model
 from stages.synthesis.coherence import coherent_coefficients, window_frames
 from stages.synthesis.synthesize import Synthesize
+from tests.memory_stream import process_once
 from tests.stages.synthesis.synthetic import make_pack
 
 MEMBERS = np.array([[True, True, False], [False, False, True]])  # two subregions over three points
@@ -80,7 +81,7 @@ def test_the_stage_composites_the_coherent_weights(model, tmp_path):
     ctx = Context(device="cpu", files_dir=lambda port: tmp_path)
     stage = Synthesize()
     params = {p.name: p.default for p in stage.params}
-    raw = stage.process(0, 24, inputs, params | {"coherence_frames": 0.0}, ctx)["coeffs"]["coeffs"]
-    smooth = stage.process(0, 24, inputs, params, ctx)["coeffs"]["coeffs"]
+    raw = process_once(stage, 0, 24, inputs, params | {"coherence_frames": 0.0}, ctx)["coeffs"]["coeffs"]
+    smooth = process_once(stage, 0, 24, inputs, params, ctx)["coeffs"]["coeffs"]
     assert np.abs(np.diff(smooth[6:18], axis=0)).max() < 0.5 * np.abs(np.diff(raw[6:18], axis=0)).max()
     np.testing.assert_allclose(smooth.sum(axis=2)[:, :6], 1.0, atol=1e-9)

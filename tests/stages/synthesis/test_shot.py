@@ -167,23 +167,24 @@ def test_teeth_mix_shows_lips_not_squeezed_teeth_in_a_nearly_closed_mouth(pack, 
 def test_output_width_is_a_parameter_and_a_size_the_footage_does_not_hold_is_refused(pack, model):
     from runner.stage import Context, StageError
     from stages.synthesis.synthesize import Synthesize
+    from tests.memory_stream import process_once
 
     W, H = pack.image_size
     points = np.asarray(pack.captured_points[:2], np.float64)
     inputs = {"model": model, "points": {"xy": points, "valid": np.ones(points.shape[:2], bool)}}
     params = {p.name: p.default for p in Synthesize.params}
     ctx = Context(device="cpu", files_dir=lambda port: None)
-    half = Synthesize().process(0, 2, inputs, {**params, "width": W // 2}, ctx)
+    half = process_once(Synthesize(), 0, 2, inputs, {**params, "width": W // 2}, ctx)
     assert half["frames"].shape == (2, H // 2, W // 2, 3) and half["filled"].shape == (2, H // 2, W // 2, 1)
-    full = Synthesize().process(0, 2, inputs, params, ctx)
+    full = process_once(Synthesize(), 0, 2, inputs, params, ctx)
     import cv2
 
     small = cv2.resize(full["frames"][0].astype(np.float32), (W // 2, H // 2), interpolation=cv2.INTER_AREA)
     assert np.abs(small - half["frames"][0].astype(np.float32)).mean() < 0.02  # the same picture, smaller
     with pytest.raises(StageError, match=rf"parameter 'width': a {2 * W}x{2 * H} output enlarges 2.00x what the footage holds"):
-        Synthesize().process(0, 2, inputs, {**params, "width": 2 * W}, ctx)
-    big = Synthesize().process(0, 1, inputs, {**params, "width": 2 * W, "upscale": True}, ctx)
+        process_once(Synthesize(), 0, 2, inputs, {**params, "width": 2 * W}, ctx)
+    big = process_once(Synthesize(), 0, 1, inputs, {**params, "width": 2 * W, "upscale": True}, ctx)
     assert big["frames"].shape == (1, 2 * H, 2 * W, 3)
     scaled = dict(model, source_scale=np.float64(0.5))  # a pack cut at half the footage's resolution
-    twice = Synthesize().process(0, 1, {**inputs, "model": scaled}, {**params, "width": 2 * W}, ctx)
+    twice = process_once(Synthesize(), 0, 1, {**inputs, "model": scaled}, {**params, "width": 2 * W}, ctx)
     assert twice["frames"].shape == (1, 2 * H, 2 * W, 3)

@@ -7,10 +7,12 @@ import numpy as np
 import pytest
 import torch
 
+from runner.lifecycle import opened
 from runner.stage import Context, StageError
 from stages.synthesis.build import build_synthesis_model
 from stages.synthesis.synthesize import Synthesize, Synthesizer, half_float_planes, head_motion_frame, head_motion_points
 from stages.synthesis.warp import Buffers
+from tests.memory_stream import process_once
 from tests.stages.synthesis.synthetic import make_pack
 
 
@@ -111,12 +113,12 @@ def test_stage_process_outputs_and_errors(pack, model):
     params = {p.name: p.default for p in Synthesize.params}
     info = stage.stream_info(inputs, params)
     assert (info.frames, info.width, info.height, info.fps) == (3, 96, 80, 30.0)
-    out = stage.process(1, 3, inputs, params, Context(device="cpu", files_dir=lambda port: None))
+    out = process_once(stage, 1, 3, inputs, params, Context(device="cpu", files_dir=lambda port: None))
     assert out["frames"].shape == (2, 80, 96, 3) and out["frames"].dtype == np.float16
     assert out["mask"].shape == (2, 80, 96, 1) and out["coeffs"]["coeffs"].shape == (2, 7, 4)
     assert 0.0 <= out["frames"].min() and out["frames"].max() <= 1.0
     by_displacement = {"model": model, "displacements": {"d": points - pack.neutral.points, "valid": np.ones((3, 16), bool)}}
-    out2 = stage.process(1, 3, by_displacement, params, Context(device="cpu", files_dir=lambda port: None))
+    out2 = process_once(stage, 1, 3, by_displacement, params, Context(device="cpu", files_dir=lambda port: None))
     np.testing.assert_allclose(out2["frames"], out["frames"], atol=1e-6)
     with pytest.raises(StageError, match=r"\(T, 16, 2\)"):
         stage.stream_info({"model": model, "points": {"xy": points[:, :10]}}, params)
@@ -141,11 +143,11 @@ def test_head_motion_frame_from_the_performer_neutral(pack, model):
         "similarity": {"params": np.array([[1.0, 0.0, 0.0, 0.0], [1.0, 0.0, 2.0, 1.5]]), "valid": np.ones(2, bool)},
         "performer": {"neutral": performer, "names": names},
     }
-    out = stage.process(0, 2, inputs, params, Context(device="cpu", files_dir=lambda port: None))["frames"]
+    out = process_once(stage, 0, 2, inputs, params, Context(device="cpu", files_dir=lambda port: None))["frames"]
     # Half-float frames: spacing 2^-11 below 1, so two roundings differ by at most ~1e-3.
     np.testing.assert_allclose(out[1, 23:73, 24:84], out[0, 20:70, 20:80], atol=1e-3)
     with pytest.raises(StageError, match="'neutral' and 'names'"):
-        stage.process(0, 2, {**inputs, "performer": {"d": xy}}, params, Context(device="cpu", files_dir=lambda port: None))
+        process_once(stage, 0, 2, {**inputs, "performer": {"d": xy}}, params, Context(device="cpu", files_dir=lambda port: None))
 
 
 def test_half_float_planes_match_torch_conversion_for_every_layout():
@@ -231,16 +233,17 @@ def test_single_frame_process_equals_its_frame_in_a_chunk_on_other_threads(pack,
     inputs = {"model": model, "points": {"xy": points, "valid": np.ones(points.shape[:2], bool)}}
     params = {p.name: p.default for p in Synthesize.params}
     ctx = Context(device="cpu", files_dir=lambda port: None)
-    chunk = stage.process(0, 4, inputs, params, ctx)
-    singles: dict[int, dict] = {}
-    threads = [
-        threading.Thread(target=lambda k=k: singles.__setitem__(k, stage.process(k, k + 1, inputs, params, ctx)))
-        for k in range(4)
-    ]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join()
+    with opened(stage, inputs, params):
+        chunk = stage.process(0, 4, inputs, params, ctx)
+        singles: dict[int, dict] = {}
+        threads = [
+            threading.Thread(target=lambda k=k: singles.__setitem__(k, stage.process(k, k + 1, inputs, params, ctx)))
+            for k in range(4)
+        ]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
     for k in range(4):
         for port in ("frames", "mask"):
             np.testing.assert_array_equal(singles[k][port][0], chunk[port][k])
