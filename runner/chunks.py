@@ -13,22 +13,22 @@ reporting and ``--jobs``.
 
 Asking what a key or digest is and computing frames are separate calls: the ``known_*`` and
 :meth:`FrameChunks.stored` methods answer from what is already stored (looking entries up,
-never computing; None while an upstream stage still has to run: the dry run and the scheduler
-ask them), the others (:meth:`FrameChunks.key`, :meth:`FrameChunks.digests`,
-:meth:`FrameChunks.entry`) resolve what they need, computing missing chunks. Both go through
-one description of what a chunk's key reads (:meth:`FrameChunks.reads`).
+never computing; None while an upstream stage still has to run: the scheduler asks them), the
+others (:meth:`FrameChunks.key`, :meth:`FrameChunks.digests`, :meth:`FrameChunks.entry`)
+resolve what they need, computing missing chunks. Both go through one description of what a
+chunk's key reads (:meth:`FrameChunks.reads`), and compute keys and digests with
+:mod:`runner.chunk_keys`, as the planner does.
 """
 
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import threading
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -38,9 +38,10 @@ from runner import notes
 from runner.broadcast import Broadcast
 from runner.bundle import PortType
 from runner.cache import CacheStore, Entry
+from runner.chunk_keys import chunk_key, port_digest, stream_digest, window_chunks
 from runner.config import StageNode
 from runner.depends import recording
-from runner.digest import array_digest, cache_key, combine
+from runner.digest import array_digest
 from runner.errors import stage_errors
 from runner.inputs import Inputs
 from runner.keys import Keys
@@ -76,7 +77,7 @@ class Value:
 
     Outputs of frame stages name their producer's :class:`FrameChunks` (``chunks``, ``port``),
     which gives digests per chunk as they are resolved, and the stream shape (``info``); other
-    values carry their ``digest``, None in a dry run when the producer has not run yet.
+    values carry their ``digest``.
     """
 
     type: PortType
@@ -96,7 +97,7 @@ class Value:
 
     def resolved_digest(self) -> str | None:
         """The value's digest; for a frame stage's output, the digest of all its chunks, which
-        resolves them (computing the missing ones). None only for a value a dry run cannot know."""
+        resolves them (computing the missing ones)."""
         if self.chunks is None:
             return self.digest
         return self.chunks.digest(self.port)
@@ -197,35 +198,21 @@ class FrameChunks:
 
     def reads(self, i: int) -> list[Read]:
         """What chunk ``i``'s key reads upstream: every input that is not a frame stream whole;
-        of each frame stream, the chunks that frames ``[start - window, stop + window)`` touch
-        (clamped to the clip): output frame t is computed from input frames t ± window, whatever
-        size the stage gives its frames (the runner checks that the frame counts agree)."""
-        start, stop = self.ranges[i]
-        size, window = self.run.keys.chunk_frames, self.node.cls.window
+        of each frame stream, the chunks its window touches (:func:`runner.chunk_keys.window_chunks`)."""
+        window, size = self.node.cls.window, self.run.keys.chunk_frames
         plain = [Read(port, v) for port, v in self.inputs.items() if v.type != "frames"]
         streams = [
-            Read(port, v, (max(0, start - window) // size, (min(v.info.frames, stop + window) - 1) // size))
+            Read(port, v, window_chunks(self.ranges[i], window=window, frames=v.info.frames, chunk_frames=size))
             for port, v in self.inputs.items()
             if v.type == "frames"
         ]
         return plain + streams
 
     def _key_of(self, i: int, reads: list[Read], digests: list[str | list[str]]) -> str:
-        """Cache key of chunk ``i`` given the digests of what it reads."""
-        plain, used = {}, {}
-        for read, digest in zip(reads, digests):
-            if read.value.type != "frames":
-                plain[read.port] = digest
-            else:
-                used[read.port] = {"info": asdict(read.value.info), "stream" if read.chunks is None else "chunks": digest}
-        return cache_key(
-            {
-                **self.run.keys.material(self.node, plain),
-                "chunk": list(self.ranges[i]),
-                "info": asdict(self.info),
-                "chunk_inputs": used,
-            }
-        )
+        """Cache key of chunk ``i`` given the digests of what it reads (:func:`runner.chunk_keys.chunk_key`)."""
+        plain = {read.port: digest for read, digest in zip(reads, digests) if read.chunks is None}
+        streams = {read.port: (read.value.info, digest) for read, digest in zip(reads, digests) if read.chunks is not None}
+        return chunk_key(self.run.keys.material(self.node, plain), self.ranges[i], self.info, streams)
 
     def key(self, i: int) -> str:
         """Cache key of chunk ``i``, resolving the upstream chunks it reads."""
@@ -246,17 +233,10 @@ class FrameChunks:
             self.keys[i] = self._key_of(i, reads, digests)
         return self.keys[i]
 
-    def _port_digest(self, port: str, chunk: Entry | str) -> str:
-        """Digest of output ``port`` in one chunk, from its entry (cached stage) or its key (an
-        uncached stage's chunks are identified by their key)."""
-        if isinstance(chunk, str):
-            return cache_key({"computed": chunk, "port": port})
-        return chunk.record["outputs"][port]["digest"]
-
     def digests(self, port: str, lo: int, hi: int) -> list[str]:
         """Digests of output ``port`` in chunks ``lo..hi`` (inclusive), resolving them."""
         cached = self.node.cls.cached
-        return [self._port_digest(port, self.entry(i) if cached else self.key(i)) for i in range(lo, hi + 1)]
+        return [port_digest(port, self.entry(i) if cached else self.key(i)) for i in range(lo, hi + 1)]
 
     def known_digests(self, port: str, lo: int, hi: int) -> list[str] | None:
         """Digests of output ``port`` in chunks ``lo..hi`` if each is stored (or, uncached, its
@@ -266,21 +246,18 @@ class FrameChunks:
             chunk = self.stored(i) if self.node.cls.cached else self.known_key(i)
             if chunk is None:
                 return None
-            out.append(self._port_digest(port, chunk))
+            out.append(port_digest(port, chunk))
         return out
 
     def digest(self, port: str) -> str:
         """Digest of the whole output ``port`` (its chunk digests and the stream shape), resolving
         every chunk."""
-        return self._combine(self.digests(port, 0, len(self.ranges) - 1))
+        return stream_digest(self.digests(port, 0, len(self.ranges) - 1), self.info)
 
     def known_digest(self, port: str) -> str | None:
         """Digest of the whole output ``port`` if every chunk is stored, else None."""
         digests = self.known_digests(port, 0, len(self.ranges) - 1)
-        return None if digests is None else self._combine(digests)
-
-    def _combine(self, digests: list[str]) -> str:
-        return combine([*digests, json.dumps(asdict(self.info))])
+        return None if digests is None else stream_digest(digests, self.info)
 
     # -- resolving -------------------------------------------------------------------------
 
@@ -302,14 +279,12 @@ class FrameChunks:
         (:meth:`runner.broadcast.Broadcast.wait_room`)."""
         self._passing(i)
         if self.entries[i] is None:
-            if not self.run.keys.dry_run and self.stored(i) is None:
+            if self.stored(i) is None:
                 self.broadcast.wait_turn(i, lambda: self.entries[i] is not None)  # the producer's
                 if self.entries[i] is None:
                     self.broadcast.wait_room(i)  # before taking a lock that a slower reader may need
             with _holding(self._locks[i]):
                 if self.entries[i] is None:
-                    if self.run.keys.dry_run:
-                        raise RuntimeError(f"a dry run computes nothing, yet chunk {i} of {self.node.name} was needed")
                     key = self.key(i)
                     found = None if self.forced else self.run.keys.lookup(self.node, key)
                     ran = found is None
@@ -443,8 +418,6 @@ class FrameChunks:
             self.entries[i] = entry
             self._cached[i] = not ran
             self.report.chunks_cached += not ran
-            if self.run.keys.dry_run:
-                return
             start, stop = self.ranges[i]
             progress.log(
                 {"event": "chunk", "stage": self.node.name, "start": start, "stop": stop, "status": "ran" if ran else "cached"}
@@ -630,11 +603,6 @@ def is_source(cls: type) -> bool:
     """True for an uncached frame stage that reads no frames (``video.decode``): its chunks are
     computed as read and depend on nothing another thread drives (read-ahead, runner.offload)."""
     return issubclass(cls, FrameStage) and not cls.cached and "frames" not in cls.inputs.values()
-
-
-def defines_stream_info(cls: type[FrameStage]) -> bool:
-    """True if the stage computes its own output shape instead of taking its frames input's."""
-    return cls.stream_info is not FrameStage.stream_info
 
 
 def map_ordered(fn: Callable[[int], Any], items: list[int], *, jobs: int) -> Iterator[tuple[int, Any]]:

@@ -9,8 +9,10 @@ import contextlib
 import json
 import sys
 import time
+from collections.abc import Callable
+from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -24,6 +26,9 @@ from runner.notes import one_line_warnings
 from runner.registry import Registry, RegistryError
 from runner.signals import EXIT_INTERRUPTED, EXIT_OK, EXIT_STAGE, EXIT_USAGE, INTERRUPTED, exit_now
 from runner.stage import FrameStage
+
+if TYPE_CHECKING:
+    from runner.plan import Task
 
 cache_dir_option = click.option(
     "--cache-dir",
@@ -52,7 +57,11 @@ def cli() -> None:
     show_default=True,
     help="Where `files` outputs are published, one folder per stage.",
 )
-@click.option("--dry-run", is_flag=True, help="Say, per stage, whether it is cached or will run and why; run nothing.")
+@click.option(
+    "--dry-run",
+    is_flag=True,
+    help="Print the plan: per stage, cached / will run / may run / on demand, and why; compute nothing.",
+)
 @click.option("--force", multiple=True, metavar="STAGE", help="Recompute STAGE even if cached (repeatable).")
 @click.option("--until", metavar="STAGE", multiple=True, help="Run only STAGE and the stages it depends on (repeatable).")
 @click.option(
@@ -94,6 +103,7 @@ def run(
 ) -> int:
     """Run PIPELINE (a pipeline.yaml)."""
     from runner.execute import Options, Runner, resolve_device  # here: `dag`, `stages` start faster without it
+    from runner.plan import make_plan
 
     loaded = load_pipeline(pipeline, Registry.from_entry_points(), overrides=list(overrides))
     unknown = [
@@ -121,23 +131,30 @@ def run(
         if INTERRUPTED.is_set() and event.get("event") != "run_end":
             raise KeyboardInterrupt  # the signal's own exception was lost (see runner.signals.interrupt)
 
+    store = CacheStore(cache_dir or default_cache_dir())
+    if dry_run:
+        try:
+            _print_plan(
+                pipeline, make_plan(loaded, bound, cache=store, device=resolved, force=frozenset(force), until=until), log
+            )
+        finally:
+            if log_file is not None:
+                log_file.close()
+        return EXIT_OK
     options = Options(
-        cache=CacheStore(cache_dir or default_cache_dir()),
+        cache=store,
         device=resolved,
         jobs=jobs,
         force=frozenset(force),
         until=until,
-        dry_run=dry_run,
         out=out,
-        offload=not dry_run,
+        offload=True,
         overrides=tuple(overrides),
         progress=sys.stderr.isatty(),
         log=log,
         echo=click.echo,
         warn=lambda line: click.echo(line, err=True),
     )
-    if dry_run:
-        click.echo(f"dry run of {pipeline}: nothing is run")
     started = time.perf_counter()
     try:
         Runner(loaded, bound, options).run()
@@ -160,9 +177,19 @@ def run(
     finally:
         if log_file is not None:
             log_file.close()
-    if not dry_run:
-        click.echo(f"done in {seconds:.2f} s; outputs in {out}/")
+    click.echo(f"done in {seconds:.2f} s; outputs in {out}/")
     return EXIT_OK
+
+
+def _print_plan(pipeline: Path, tasks: list[Task], log: Callable[[dict[str, Any]], None]) -> None:
+    """``--dry-run``: one line per task (cached / will run / may run / on demand, and why), each
+    also logged as a ``stage`` event."""
+    click.echo(f"dry run of {pipeline}: nothing is run")
+    for task in tasks:
+        report = task.report()
+        log({"event": "stage", **asdict(report)})
+        click.echo(report.line())
+    log({"event": "run_end", "status": "ok", "exit_code": EXIT_OK, "seconds": 0.0})
 
 
 @cli.command()

@@ -1,4 +1,4 @@
-"""Scheduling: run (or, for ``--dry-run``, plan) a validated pipeline against the cache.
+"""Scheduling: run a validated pipeline against the cache (:mod:`runner.plan` says what a run would do).
 
 Stages are visited in topological order, each once the stages it reads have had their turn. A
 sequence stage is one cache entry. A frame stage is one entry per chunk of ``chunk_frames``
@@ -31,7 +31,7 @@ its entry committed, the first commit winning), or, when the first chunk compute
 what it read in its last completed run (the upstream's bytes are probably unchanged), waits for
 the whole stream and looks its entry up first. See :meth:`Runner._read_while_computed`.
 
-The pieces: keys and dry-run reasons in :mod:`runner.keys`, chunk resolution in
+The pieces: keys in :mod:`runner.keys` and :mod:`runner.chunk_keys`, chunk resolution in
 :mod:`runner.chunks`, storing and verified reading of entries in :mod:`runner.outputs`,
 publishing in :mod:`runner.publish`, reports and timing in :mod:`runner.progress`.
 """
@@ -55,7 +55,8 @@ from typing import Any
 from runner import notes
 from runner.broadcast import unbounded
 from runner.cache import CacheStore, Entry
-from runner.chunks import FrameChunks, RunServices, Value, defines_stream_info, input_digests, is_source
+from runner.chunk_keys import stream_info_key
+from runner.chunks import FrameChunks, RunServices, Value, input_digests, is_source
 from runner.config import ConfigError, Issue, Pipeline, StageNode, Where
 from runner.depends import recording
 from runner.digest import cache_key
@@ -67,10 +68,11 @@ from runner.offload import Forked
 from runner.offload import fork as offload_fork
 from runner.offload import spec as offload_spec
 from runner.offload import start as offload_start
+from runner.plan import selected
 from runner.outputs import entry_context, load_bundle, read_or_redo, save_outputs, verify_files
 from runner.progress import Progress, Report
 from runner.publish import Published, conflicts, publish, remove_leftovers, unwritable
-from runner.stage import FrameStage, StageError, StreamInfo
+from runner.stage import FrameStage, StageError, StreamInfo, defines_stream_info
 from runner.timing import own_time
 
 __all__ = ["Options", "Report", "Runner", "StageFailed", "resolve_device"]
@@ -87,7 +89,6 @@ class Options:
     producers: int | None = None  # threads computing a streamed lazy stage's chunks; None: os.cpu_count()
     force: frozenset[str] = frozenset()
     until: tuple[str, ...] = ()  # run only these stages and those they depend on; empty: every stage
-    dry_run: bool = False
     out: Path | None = None
     progress: bool = False
     log: Callable[[dict[str, Any]], None] = lambda event: None
@@ -126,9 +127,7 @@ class Runner:
             self.values[(None, name)] = Value(pipeline.inputs[name].type, self.inputs.digest(name), load=lambda p=path: Path(p))
         self.entries: dict[str, list[Entry]] = {}  # per stage, its entries (one per chunk of a frame stage)
         self.redo: dict[str, Callable[[int], Entry]] = {}  # per stage, recompute its entry i (found damaged)
-        self.keys = Keys(
-            self.store, pipeline.path, device=options.device, chunk_frames=pipeline.chunk_frames, dry_run=options.dry_run
-        )
+        self.keys = Keys(self.store, pipeline.path, device=options.device, chunk_frames=pipeline.chunk_frames)
         lock = threading.Lock()  # stages on several threads log events
         self._stopping = threading.Event()
         self._scheduler = threading.current_thread()
@@ -153,15 +152,10 @@ class Runner:
         self._imported: set[str] = set()  # modules imported ahead (_import_ahead)
 
     def selected(self) -> list[StageNode]:
-        names = (
-            set().union(*(self.pipeline.ancestors(name) for name in self.opts.until))
-            if self.opts.until
-            else set(self.pipeline.stages)
-        )
-        return [node for name, node in self.pipeline.stages.items() if name in names]
+        return selected(self.pipeline, self.opts.until)
 
     def run(self) -> list[Report]:
-        """Run (or plan) every selected stage, then publish.
+        """Run every selected stage, then publish.
 
         Raises
         ------
@@ -180,7 +174,7 @@ class Runner:
 
     def _run(self) -> list[Report]:
         publishing = [node for node in self.selected() if "files" in node.cls.outputs.values()]
-        if not self.opts.dry_run and self.opts.out is not None and publishing:
+        if self.opts.out is not None and publishing:
             problem = unwritable(self.opts.out)
             problems = [problem] if problem else conflicts(self.opts.out, [node.name for node in publishing])
             if problems:
@@ -204,7 +198,7 @@ class Runner:
                 chunks.stop_producing()
             for chunks in self._lazy:
                 chunks.close()
-        if not self.opts.dry_run and self.opts.out is not None:
+        if self.opts.out is not None:
             for node in publishing:
                 ports = [p for p, kind in node.cls.outputs.items() if kind == "files"]
                 if self.entries.get(node.name):
@@ -216,8 +210,7 @@ class Runner:
                             records=self.store.published_dir,
                             on_damaged=lambda exc, n=node: self.progress.damaged(n, exc),
                         )
-        if not self.opts.dry_run:
-            self.store.break_stale_locks()
+        self.store.break_stale_locks()
         return reports
 
     def _close_frame_stages(self) -> None:
@@ -380,8 +373,8 @@ class Runner:
 
     def _sets_up_only(self, node: StageNode) -> bool:
         """True for a frame stage whose turn computes nothing: uncached, or lazy (read by a
-        selected stage), outside a dry run."""
-        return issubclass(node.cls, FrameStage) and not self.opts.dry_run and (not node.cls.cached or self._is_read(node))
+        selected stage)."""
+        return issubclass(node.cls, FrameStage) and (not node.cls.cached or self._is_read(node))
 
     def _leave(self, node: StageNode) -> None:
         """Unregister the readers ``node`` registered (it reads no more streams as computed)."""
@@ -389,7 +382,7 @@ class Runner:
             chunks.broadcast.leave(reader, thread)
 
     def _visit(self, node: StageNode) -> Report | None:
-        """Run (or plan) one stage; its report, or None for a lazy frame stage (reported once
+        """Run one stage; its report, or None for a lazy frame stage (reported once
         its chunks are resolved)."""
         self.progress.current = node.name
         self.log({"event": "stage_start", "stage": node.name, "uses": node.uses})
@@ -486,7 +479,7 @@ class Runner:
         """Whether ``node`` may run in a child process (:mod:`runner.offload`): a sequence stage,
         not forced, reading the frames of a source that is set up (an uncached frame stage that
         reads no frames: decoding, ``done``), whose entry is not known to be stored."""
-        if not self._child_may_run(node) or self.opts.dry_run:
+        if not self._child_may_run(node):
             return False
         if not any(ref.stage in done and is_source(self.pipeline.stages[ref.stage].cls) for ref in node.inputs.values()):
             return False
@@ -530,7 +523,7 @@ class Runner:
                         joins.append((producer, reader))
                 walk(producer.node, producer.node.name)  # computed while read: it reads its inputs then
 
-        if self.opts.dry_run or self._sets_up_only(node):
+        if self._sets_up_only(node):
             return False, []
         walk(node, node.name)
         return threaded, joins
@@ -546,27 +539,11 @@ class Runner:
     def _inputs(self, node: StageNode) -> dict[str, Value]:
         return {port: self.values[(ref.stage, ref.port)] for port, ref in node.inputs.items()}
 
-    def _unknown(self, node: StageNode) -> list[str | None]:
-        """Dry run: the upstream stages whose outputs are not known (they will run)."""
-        return [ref.stage for ref in node.inputs.values() if self.values[(ref.stage, ref.port)].known_digest() is None]
-
     # -- sequence stages -------------------------------------------------------------------
 
     def _sequence_stage(self, node: StageNode) -> Report:
         inputs = self._inputs(node)
         forced = node.name in self.opts.force
-        if self.opts.dry_run:
-            unknown = self._unknown(node)
-            if unknown:
-                self._set_unknown(node)
-                return Report(node.name, node.uses, "may run", _after(unknown))
-            material = self.keys.material(node, input_digests(inputs))
-            entry = None if forced else self.keys.lookup(node, cache_key(material))
-            if entry is None:
-                self._set_unknown(node)
-                return Report(node.name, node.uses, "will run", "forced (--force)" if forced else self.keys.why(node, material))
-            self._set_outputs(node, entry, inputs)
-            return Report(node.name, node.uses, "cached", "cache hit")
         report = Report(node.name, node.uses, "cached")
         pending = {port: v for port, v in inputs.items() if v.known_digest() is None}
         streaming = bool(pending) and (forced or self._read_while_computed(node, pending))
@@ -659,10 +636,6 @@ class Runner:
     def _frame_stage(self, node: StageNode) -> Report | None:
         inputs = self._inputs(node)
         forced = node.name in self.opts.force
-        unknown = self._unknown(node) if self.opts.dry_run else []
-        if unknown:
-            self._set_unknown(node)
-            return Report(node.name, node.uses, "may run", _after(unknown))
         stage = node.cls()
         info = self._stream_info(node, stage, inputs)
         counts = {port: v.info.frames for port, v in inputs.items() if v.type == "frames" and v.info is not None}
@@ -672,7 +645,7 @@ class Runner:
                     f"its output stream has {info.frames} frames, its frames inputs {counts}: a frame "
                     f"stage computes output frame t from input frames t ± window (its size may differ)"
                 )
-        lazy = node.cls.cached and not self.opts.dry_run and self._is_read(node)
+        lazy = node.cls.cached and self._is_read(node)
         chunks = FrameChunks(self.services, node, stage, inputs, info, forced=forced, lazy=lazy, keep=self._keep(node))
         self._frame_stages.append(chunks)
         self.entries[node.name], self.redo[node.name] = chunks.entries, chunks.redo
@@ -681,21 +654,6 @@ class Runner:
             self.values[(node.name, port)] = Value(kind, load=load, chunks=chunks, port=port, info=info)
         if not node.cls.cached:
             return Report(node.name, node.uses, "on demand", "computed while downstream stages read it", frames=info.frames)
-        if self.opts.dry_run:
-            report = chunks.report
-            count = len(chunks.ranges)
-            if sum(chunks.stored(i) is not None for i in range(count)) == count:
-                report.reason = "cache hit"
-                return report
-            self._set_unknown(node)
-            report.status = "will run"
-            if forced:
-                report.reason = "forced (--force)"
-            elif report.chunks_cached:
-                report.reason = f"{count - report.chunks_cached} of {count} chunks missing (earlier run incomplete)"
-            else:
-                report.reason = self.keys.why(node, self.keys.material(node, input_digests(inputs)))
-            return report
         if lazy:
             self._lazy.append(chunks)
             return None
@@ -722,34 +680,28 @@ class Runner:
 
     def _stream_info(self, node: StageNode, stage: FrameStage, inputs: dict[str, Value]) -> StreamInfo:
         """The stage's output stream shape: taken from the frames input, unless the stage
-        computes it itself: then from its inputs, cached when it reads no frame stream (probing
-        a video); with a frame stream, from the streams' shapes (their digests, which would
-        resolve every chunk before anything reads them, are not needed)."""
+        computes it itself: then stored in the cache (:func:`runner.chunk_keys.stream_info_key`:
+        keyed on its frame inputs' shapes, whose digests would resolve every chunk before
+        anything reads them) so that it is computed once, and the planner finds it."""
         if not defines_stream_info(node.cls):
-            return next(v.info for port, v in inputs.items() if node.cls.inputs[port] == "frames")
-        if any(v.type == "frames" and v.chunks is not None for v in inputs.values()):
-            return stage.stream_info({port: v.get() for port, v in inputs.items()}, dict(node.params))
-        key = cache_key({**self.keys.material(node, input_digests(inputs)), "stream_info": True})
+            return next(v.info for port, v in inputs.items() if node.cls.inputs[port] == "frames" and v.info is not None)
+        streams = {port: v.info for port, v in inputs.items() if v.type == "frames" and v.info is not None}
+        plain = {port: v.resolved_digest() for port, v in inputs.items() if port not in streams}
+        key = stream_info_key(self.keys.material(node, plain), streams)
         entry = self.store.lookup(key)
         if entry is None:
             with notes.recording() as warned:
                 info = stage.stream_info({port: v.get() for port, v in inputs.items()}, dict(node.params))
-            if self.opts.dry_run:
-                return info
             self.inputs.check(node.name)
             with self.store.writing(key) as tmp:
                 entry = self.store.commit(
                     key, tmp, {"stage": node.name, "uses": node.uses, "info": asdict(info), "warnings": warned}
                 )
-        elif not self.opts.dry_run:
+        else:
             self.progress.replay(node.name, entry.record)
         return StreamInfo(**entry.record["info"])
 
     # -- outputs ---------------------------------------------------------------------------
-
-    def _set_unknown(self, node: StageNode) -> None:
-        for port, kind in node.cls.outputs.items():
-            self.values[(node.name, port)] = Value(kind, None)
 
     def _set_outputs(self, node: StageNode, entry: Entry, inputs: dict[str, Value]) -> None:
         """Hand a sequence stage's stored outputs to downstream stages (read, verified, when
@@ -777,8 +729,3 @@ class Runner:
             redo=lambda: self.redo[node.name](0),
             on_damaged=lambda exc: self.progress.damaged(node, exc),
         )
-
-
-def _after(stages: list[str | None]) -> str:
-    names = ", ".join(dict.fromkeys(s for s in stages if s))
-    return f"after {names}, which will run; cached if its output is unchanged"

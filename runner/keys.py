@@ -38,15 +38,15 @@ class Keys:
         The pipeline file (with the stage name, it identifies a stage across runs).
     device, chunk_frames
         The resolved device and the pipeline's chunk size, part of every key.
-    dry_run
-        In a dry run a stale entry is reported but not removed.
+    discard_stale
+        Whether :meth:`lookup` removes a stale entry (the planner only reports it).
     """
 
-    def __init__(self, store: CacheStore, pipeline: Path, *, device: str, chunk_frames: int, dry_run: bool):
+    def __init__(self, store: CacheStore, pipeline: Path, *, device: str, chunk_frames: int, discard_stale: bool = True):
         self.store = store
         self.memo_dir = store.root / "runs"
         self.pipeline = Path(pipeline).resolve()
-        self.device, self.chunk_frames, self.dry_run = device, chunk_frames, dry_run
+        self.device, self.chunk_frames, self.discard_stale = device, chunk_frames, discard_stale
         self._file_digests: dict[Path, str | None] = {}  # files recorded by runner.depends, hashed once
         self._stale: dict[str, str] = {}  # per stage, why a stored entry was stale
 
@@ -77,7 +77,7 @@ class Keys:
 
     def lookup(self, node: StageNode, key: str) -> Entry | None:
         """The complete entry for ``key`` if the files it recorded (:mod:`runner.depends`)
-        are unchanged; a stale entry is removed (kept in a dry run) and None returned."""
+        are unchanged; a stale entry is removed (unless ``discard_stale`` is false) and None returned."""
         entry = self.store.lookup(key)
         if entry is None:
             return None
@@ -86,7 +86,7 @@ class Keys:
         if not changed:
             return entry
         self._stale[node.name] = f"file {changed[0]} changed"
-        if not self.dry_run:
+        if self.discard_stale:
             self.store.discard(entry)
         return None
 

@@ -249,3 +249,8 @@ class FrameStage(Stage):
         ``stop - start`` (the runner concatenates chunks); for ``files`` ``None`` after writing
         under ``ctx.files_dir(port)``. Bundle inputs arrive whole: slice ``[start:stop]``."""
         raise NotImplementedError
+
+
+def defines_stream_info(cls: type[FrameStage]) -> bool:
+    """True if the stage computes its own output shape instead of taking its frames input's."""
+    return cls.stream_info is not FrameStage.stream_info

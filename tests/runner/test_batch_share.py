@@ -54,7 +54,7 @@ def test_job_options_are_runner_runs_on_its_cpus(tmp_path: Path, cpus, producers
     assert (options.producers, options.offload, options.jobs) == (producers, offload, 1)
     assert options.overrides == ("synthesize.mode=full",)  # the offloaded child loads the pipeline with them
     assert options.out == tmp_path / "out" and options.cache.root == tmp_path / "cache" and options.device == "cpu"
-    assert (options.until, options.force, options.dry_run) in ((None, frozenset(), False), ((), frozenset(), False))
+    assert (options.until, options.force) in ((None, frozenset()), ((), frozenset()))
     options.log({"event": "x"})
     options.warn("w")
     assert events == [{"event": "x"}] and warnings == ["w"]

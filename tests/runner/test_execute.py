@@ -14,6 +14,7 @@ import pytest
 from runner.cache import CacheStore
 from runner.config import load_pipeline
 from runner.execute import Options, Runner, StageFailed
+from runner.plan import make_plan
 from runner.registry import Registry
 from runner.stage import FrameStage, Param, SequenceStage, StageError, StreamInfo
 
@@ -151,16 +152,17 @@ def test_file_params_key_on_content_and_out_of_key_params_reuse_the_entry(tmp_pa
     )
     registry = Registry(classes=[Ramp, Lookup])
 
-    def statuses(*overrides: str, dry_run: bool = False) -> dict[str, tuple[str, str]]:
+    def statuses(*overrides: str) -> dict[str, tuple[str, str]]:
         pipeline = load_pipeline(path, registry, overrides=list(overrides))
-        options = Options(cache=CacheStore(tmp_path / "cache"), dry_run=dry_run)
+        options = Options(cache=CacheStore(tmp_path / "cache"))
         return {r.stage: (r.status, r.reason) for r in Runner(pipeline, {}, options).run()}
 
     assert statuses()["lookup"][0] == "ran"
     assert statuses("lookup.threads=4")["lookup"][0] == "cached"
     Path("table.yaml").write_text("[1, 2, 4]\n")
-    status, reason = statuses(dry_run=True)["lookup"]
-    assert status == "will run" and "file of param table changed" in reason
+    planned = make_plan(load_pipeline(path, registry), {}, cache=CacheStore(tmp_path / "cache"), device="cpu")
+    lookup = next(task for task in planned if task.stage == "lookup")
+    assert lookup.status == "to compute" and "file of param table changed" in lookup.reason
     assert statuses()["lookup"][0] == "ran"
 
 
