@@ -60,8 +60,9 @@ if TYPE_CHECKING:
 class RunServices:
     """What frame chunks use of the run: its keys, the cache store, progress reporting, how
     many chunks are computed at once where a stage resolves its own chunks (``jobs``), the
-    pipeline inputs (checked unchanged before an entry is committed), and by how many producer
-    threads for a stage whose readers stream it (``producers``)."""
+    pipeline inputs (checked unchanged before an entry is committed), by how many producer
+    threads for a stage whose readers stream it (``producers``), and whether a source's stream
+    decodes its next chunk ahead on a thread of its own (``read_ahead``)."""
 
     keys: Keys
     store: CacheStore
@@ -69,6 +70,7 @@ class RunServices:
     jobs: int
     inputs: Inputs
     producers: int = 1
+    read_ahead: bool = True
 
 
 @dataclass
@@ -511,7 +513,7 @@ class FrameChunks:
                     self.ranges,
                     lambda i, p=port: self._process(*self.ranges[i])[p],
                     keep=self.run.jobs + 2,
-                    read_ahead=is_source(self.node.cls),
+                    read_ahead=self.run.read_ahead and is_source(self.node.cls),
                 )
             return self._streams[port]
 

@@ -82,6 +82,14 @@ def cli() -> None:
     "--jobs", type=click.IntRange(min=1), default=1, show_default=True, help="Chunks of a frame stage computed at once (threads)."
 )
 @click.option(
+    "--executor",
+    type=click.Choice(["streaming", "serial"]),
+    default="streaming",
+    show_default=True,
+    help="streaming: stages read streams as they are computed, on threads (and a child process); "
+    "serial: one stage at a time, chunks in order, the reference (same outputs and cache entries).",
+)
+@click.option(
     "--log-json",
     type=click.Path(dir_okay=False, path_type=Path),
     help="Write one JSON event per line (stages, chunks, outcome) to this file.",
@@ -98,12 +106,14 @@ def run(
     overrides: tuple[str, ...],
     device: str,
     jobs: int,
+    executor: str,
     log_json: Path | None,
     cache_dir: Path | None,
 ) -> int:
     """Run PIPELINE (a pipeline.yaml)."""
     from runner.execute import Options, Runner, resolve_device  # here: `dag`, `stages` start faster without it
     from runner.plan import make_plan
+    from runner.serial import SerialExecutor
 
     loaded = load_pipeline(pipeline, Registry.from_entry_points(), overrides=list(overrides))
     unknown = [
@@ -157,7 +167,7 @@ def run(
     )
     started = time.perf_counter()
     try:
-        Runner(loaded, bound, options).run()
+        (SerialExecutor if executor == "serial" else Runner)(loaded, bound, options).run()
         seconds = time.perf_counter() - started
         log({"event": "run_end", "status": "ok", "exit_code": EXIT_OK, "seconds": seconds})
     except StageFailed as exc:

@@ -50,7 +50,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from runner import notes
 from runner.broadcast import unbounded
@@ -115,7 +115,11 @@ def resolve_device(requested: str) -> str:
 
 
 class Runner:
-    """Runs one pipeline with bound inputs; :meth:`run` returns one :class:`Report` per stage."""
+    """The streaming executor: runs one pipeline with bound inputs; :meth:`run` returns one
+    :class:`Report` per stage. :class:`runner.serial.SerialExecutor` is the same run without
+    streaming (``streaming`` false): the reference its outputs and entries are tested against."""
+
+    streaming: ClassVar[bool] = True  # lazy frame stages, stages on threads, producers, read-ahead, offload
 
     def __init__(self, pipeline: Pipeline, bound: dict[str, Path], options: Options):
         self.pipeline = pipeline
@@ -141,7 +145,13 @@ class Runner:
         self.log = log
         self.progress = Progress(log=log, warn=options.warn, bars=options.progress)
         self.services = RunServices(
-            self.keys, self.store, self.progress, options.jobs, self.inputs, producers=options.producers or os.cpu_count() or 1
+            self.keys,
+            self.store,
+            self.progress,
+            options.jobs if self.streaming else 1,
+            self.inputs,
+            producers=options.producers or os.cpu_count() or 1,
+            read_ahead=self.streaming,
         )
         self._lazy: list[FrameChunks] = []  # lazy frame stages not reported yet
         self._frame_stages: list[FrameChunks] = []  # every frame stage set up, closed at the run's end
@@ -645,7 +655,7 @@ class Runner:
                     f"its output stream has {info.frames} frames, its frames inputs {counts}: a frame "
                     f"stage computes output frame t from input frames t ± window (its size may differ)"
                 )
-        lazy = node.cls.cached and self._is_read(node)
+        lazy = self.streaming and node.cls.cached and self._is_read(node)
         chunks = FrameChunks(self.services, node, stage, inputs, info, forced=forced, lazy=lazy, keep=self._keep(node))
         self._frame_stages.append(chunks)
         self.entries[node.name], self.redo[node.name] = chunks.entries, chunks.redo

@@ -23,6 +23,7 @@ from runner.cache import CacheStore, Entry
 from runner.chunk_keys import chunk_key, port_digest, stream_digest, stream_info_key, window_chunks
 from runner.config import Pipeline, StageNode
 from runner.digest import cache_key
+from runner.errors import stage_errors
 from runner.inputs import Inputs
 from runner.keys import Keys
 from runner.progress import Report
@@ -46,7 +47,7 @@ class Task:
 
     ``status``: ``cached`` (every entry stored), ``to compute`` (an entry missing), ``forced``
     (``--force``), ``unknown`` (a key reads the output of the stages ``after``, which would run
-    first), ``on demand`` (an uncached frame stage: computed as read, stores nothing).
+    first, or the stage's stream shape is not stored yet), ``on demand`` (an uncached frame stage: computed as read, stores nothing).
     ``keys`` are its entry keys (per chunk of a frame stage; empty while unknown), ``stored``
     whether each is in the cache, ``chunks`` its chunk ranges ``(start, stop)`` in frames (a frame
     stage whose stream shape is known) and ``frames`` its frame count.
@@ -96,6 +97,18 @@ def selected(pipeline: Pipeline, until: tuple[str, ...]) -> list[StageNode]:
     return [node for name, node in pipeline.stages.items() if name in names]
 
 
+def visit_order(nodes: list[StageNode]) -> list[StageNode]:
+    """``nodes`` (a pipeline's stages, each with the stages it reads) in the order a run on one
+    thread visits them: each once the stages it reads are visited, the first such stage first."""
+    waiting, done, order = list(nodes), set(), []
+    while waiting:
+        node = next(n for n in waiting if all(ref.stage is None or ref.stage in done for ref in n.inputs.values()))
+        waiting.remove(node)
+        done.add(node.name)
+        order.append(node)
+    return order
+
+
 def make_plan(
     pipeline: Pipeline,
     bound: dict[str, Path],
@@ -119,12 +132,8 @@ class _Planner:
         self.known: dict[tuple[str | None, str], _Known] = {(None, name): _Known(inputs.digest(name)) for name in bound}
 
     def plan(self, nodes: list[StageNode]) -> list[Task]:
-        """Each stage once the stages it reads are planned, the first such stage first."""
-        waiting, done, tasks = list(nodes), set(), []
-        while waiting:
-            node = next(n for n in waiting if all(ref.stage is None or ref.stage in done for ref in n.inputs.values()))
-            waiting.remove(node)
-            done.add(node.name)
+        tasks = []
+        for node in visit_order(nodes):
             cls = node.cls
             tasks.append(self._frame_stage(node, cls) if issubclass(cls, FrameStage) else self._sequence_stage(node))
         return tasks
@@ -174,7 +183,7 @@ class _Planner:
         info = self._stream_info(node, cls, inputs)
         if info is None:
             self._set_unknown(node)
-            return Task(node.name, node.uses, "unknown", "its stream shape is known once it runs", after=(node.name,))
+            return Task(node.name, node.uses, "unknown", "its stream shape is known once it runs")
         ranges = chunk_ranges(info.frames, self.pipeline.chunk_frames)
         plain = _digests({port: v for port, v in inputs.items() if v.chunks is None})
         material = self.keys.material(node, plain)
@@ -231,7 +240,8 @@ class _Planner:
             return StreamInfo(**entry.record["info"])
         if any(ref.stage is not None for ref in node.inputs.values()):
             return None
-        return cls().stream_info({port: self.bound[ref.port] for port, ref in node.inputs.items()}, dict(node.params))
+        with stage_errors(node):  # a clip that cannot be read: one line, as in a run
+            return cls().stream_info({port: self.bound[ref.port] for port, ref in node.inputs.items()}, dict(node.params))
 
 
 def _digests(inputs: dict[str, _Known]) -> dict[str, str]:

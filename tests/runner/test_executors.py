@@ -1,0 +1,88 @@
+"""The streaming executor (producers, broadcast, stages on threads, a child process) against the
+serial one, the reference: on every bundled pipeline both publish the same bytes and store the
+same cache entries, and the plan of the finished cache is every entry stored."""
+
+from __future__ import annotations
+
+import hashlib
+import subprocess
+import sys
+from pathlib import Path
+
+import av
+import cv2
+import pytest
+
+from runner.cache import CacheStore
+from runner.config import bind_inputs, load_pipeline
+from runner.plan import make_plan
+from runner.registry import Registry
+from tests.runner.helpers import REPO
+
+pytestmark = pytest.mark.subprocess
+
+ASTRO = REPO / "fixtures" / "realface" / "astro.mp4"
+PHOTOS = 4  # frames of astro.mp4 written as PNG photos
+
+
+def _photos(folder: Path) -> Path:
+    """A folder of the first ``PHOTOS`` frames of astro.mp4 as PNG files."""
+    folder.mkdir()
+    with av.open(str(ASTRO)) as container:
+        for index, frame in enumerate(container.decode(video=0)):
+            if index == PHOTOS:
+                break
+            cv2.imwrite(str(folder / f"photo_{index}.png"), frame.to_ndarray(format="bgr24"))
+    return folder
+
+
+# pipeline, its arguments (a callable of tmp_path for those it makes), whether above ~5 s a run
+PIPELINES = [
+    ("pipeline.yaml", lambda tmp: [], True),
+    ("pipeline_3d.yaml", lambda tmp: [], True),
+    ("pipeline_paper.yaml", lambda tmp: [], True),
+    ("pipeline_eigen.yaml", lambda tmp: [], True),
+    ("pipeline_eigen_real.yaml", lambda tmp: ["--input", f"performer_pack={REPO / 'fixtures' / 'packs' / 'performer'}"], True),
+    ("pack_build.yaml", lambda tmp: ["--in", str(ASTRO)], False),
+    ("pack_build_photos.yaml", lambda tmp: ["--in", str(_photos(tmp / "photos"))], False),
+]
+
+
+def _run(pipeline: str, args: list[str], executor: str, work: Path) -> None:
+    done = subprocess.run(
+        [sys.executable, "-m", "runner.cli", "run", pipeline, *args, "--executor", executor]
+        + ["--out", str(work / "out"), "--cache-dir", str(work / "cache")],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert done.returncode == 0, done.stderr
+
+
+def _published(out: Path) -> dict[str, str]:
+    return {str(p.relative_to(out)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(out.rglob("*")) if p.is_file()}
+
+
+def _entries(cache: Path) -> set[str]:
+    return {entry.key for entry in CacheStore(cache).iter_entries()}
+
+
+@pytest.mark.parametrize(
+    ("pipeline", "arguments"),
+    [pytest.param(name, args, marks=[pytest.mark.slow] if slow else [], id=name) for name, args, slow in PIPELINES],
+)
+def test_streaming_and_serial_publish_the_same_bytes_and_entries(pipeline, arguments, tmp_path):
+    args = arguments(tmp_path)
+    _run(pipeline, args, "serial", tmp_path / "serial")
+    _run(pipeline, args, "streaming", tmp_path / "streaming")
+    serial, streaming = _published(tmp_path / "serial" / "out"), _published(tmp_path / "streaming" / "out")
+    assert serial and streaming == serial
+    assert _entries(tmp_path / "streaming" / "cache") == _entries(tmp_path / "serial" / "cache")
+    loaded = load_pipeline(REPO / pipeline, Registry.from_entry_points())
+    named = [a for flag, a in zip(args, args[1:]) if flag == "--input"]
+    clip = next((Path(a) for flag, a in zip(args, args[1:]) if flag == "--in"), None)
+    tasks = make_plan(
+        loaded, bind_inputs(loaded, clip=clip, named=named), cache=CacheStore(tmp_path / "serial" / "cache"), device="cpu"
+    )
+    assert {task.status for task in tasks} <= {"cached", "on demand"}
