@@ -7,6 +7,7 @@ from __future__ import annotations
 import hashlib
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import av
@@ -15,11 +16,11 @@ import pytest
 
 from runner.cache import CacheStore
 from runner.config import bind_inputs, load_pipeline
+from runner.execute import Options, Runner
 from runner.plan import make_plan
 from runner.registry import Registry
-from tests.runner.helpers import REPO
-
-pytestmark = pytest.mark.subprocess
+from runner.serial import SerialExecutor
+from tests.runner.helpers import DATA, ENTRY_POINTS, REPO, AddFrames
 
 ASTRO = REPO / "fixtures" / "realface" / "astro.mp4"
 PHOTOS = 4  # frames of astro.mp4 written as PNG photos
@@ -68,6 +69,30 @@ def _entries(cache: Path) -> set[str]:
     return {entry.key for entry in CacheStore(cache).iter_entries()}
 
 
+def test_serial_computes_on_the_calling_thread_and_stores_what_streaming_stores(tmp_path, monkeypatch):
+    threads: dict[str, set[str]] = {"serial": set(), "streaming": set()}
+    executor = ["serial"]
+    process = AddFrames.process
+
+    def recording(self, start, stop, inputs, params, ctx):
+        threads[executor[0]].add(threading.current_thread().name)
+        return process(self, start, stop, inputs, params, ctx)
+
+    monkeypatch.setattr(AddFrames, "process", recording)
+    pipeline = load_pipeline(DATA / "graph.yaml", Registry(entry_points=ENTRY_POINTS))
+    bound = bind_inputs(pipeline, clip=None, named=[])
+    for name, cls in (("serial", SerialExecutor), ("streaming", Runner)):
+        executor[0] = name
+        work = tmp_path / name
+        reports = cls(pipeline, bound, Options(cache=CacheStore(work / "cache"), out=work / "out", producers=2, jobs=2)).run()
+        assert {r.stage: r.status for r in reports}["add"] == "ran"
+    assert threads["serial"] == {threading.current_thread().name}
+    assert threads["streaming"] - threads["serial"]  # its producer threads: the two runs differ in how they compute
+    assert _published(tmp_path / "streaming" / "out") == _published(tmp_path / "serial" / "out") != {}
+    assert _entries(tmp_path / "streaming" / "cache") == _entries(tmp_path / "serial" / "cache")
+
+
+@pytest.mark.subprocess
 @pytest.mark.parametrize(
     ("pipeline", "arguments"),
     [pytest.param(name, args, marks=[pytest.mark.slow] if slow else [], id=name) for name, args, slow in PIPELINES],
