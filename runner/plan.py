@@ -10,7 +10,10 @@ names those stages. ``runner run --dry-run`` prints the plan.
 A frame stage's chunks are those of its output stream. Its shape is that of its frames input,
 or, for a stage computing its own (``stream_info``), the shape a run stored; a stage reading only
 pipeline inputs (decoding: a probe of the clip's header) is asked for it, which reads inputs and
-runs no stage computation. A shape neither stored nor read so is not known until the stage runs.
+runs no stage computation. A shape neither stored nor read so means the stage has not run with
+these inputs and parameters (a run stores the shape before any chunk): it would run, its keys
+known once it runs (they read the shape), its chunks those of its frames inputs (a frame stage
+keeps their frame count, :class:`runner.stage.FrameStage`), if it has any.
 """
 
 from __future__ import annotations
@@ -47,9 +50,9 @@ class Task:
 
     ``status``: ``cached`` (every entry stored), ``to compute`` (an entry missing), ``forced``
     (``--force``), ``unknown`` (a key reads the output of the stages ``after``, which would run
-    first, or the stage's stream shape is not stored yet), ``on demand`` (an uncached frame stage: computed as read, stores nothing).
-    ``keys`` are its entry keys (per chunk of a frame stage; empty while unknown), ``stored``
-    whether each is in the cache, ``chunks`` its chunk ranges ``(start, stop)`` in frames (a frame
+    first), ``on demand`` (an uncached frame stage: computed as read, stores nothing).
+    ``keys`` are its entry keys (per chunk of a frame stage; empty while a key reads what is
+    known only once a stage runs), ``stored`` whether each is in the cache, ``chunks`` its chunk ranges ``(start, stop)`` in frames (a frame
     stage whose stream shape is known) and ``frames`` its frame count.
     """
 
@@ -71,7 +74,7 @@ class Task:
             self.uses,
             _REPORTED[self.status],
             self.reason,
-            chunks=len(self.keys) if counted else None,
+            chunks=len(self.chunks) if counted and self.chunks is not None else None,
             chunks_cached=sum(self.stored),
             frames=self.frames,
         )
@@ -182,8 +185,7 @@ class _Planner:
         inputs = self._inputs(node)
         info = self._stream_info(node, cls, inputs)
         if info is None:
-            self._set_unknown(node)
-            return Task(node.name, node.uses, "unknown", "its stream shape is known once it runs")
+            return self._shape_unknown(node, cls, inputs)
         ranges = chunk_ranges(info.frames, self.pipeline.chunk_frames)
         plain = _digests({port: v for port, v in inputs.items() if v.chunks is None})
         material = self.keys.material(node, plain)
@@ -210,6 +212,23 @@ class _Planner:
         else:
             reason = self.keys.why(node, self.keys.material(node, _digests(inputs)))
         return task("to compute", reason, stored)
+
+    def _shape_unknown(self, node: StageNode, cls: type[FrameStage], inputs: dict[str, _Known]) -> Task:
+        """The task of a frame stage whose stream shape is not stored: it has not run with these
+        inputs and parameters (a run stores the shape first), so it would run; its keys read the
+        shape, known once it runs; its chunks are those of its frames inputs, if any (a frame
+        stage keeps their frame count)."""
+        self._set_unknown(node)
+        frames = next((v.info.frames for v in inputs.values() if v.info is not None), None)
+        chunks = None if frames is None else tuple(chunk_ranges(frames, self.pipeline.chunk_frames))
+        if not cls.cached:
+            return Task(
+                node.name, node.uses, "on demand", "computed while downstream stages read it", chunks=chunks, frames=frames
+            )
+        if node.name in self.force:
+            return Task(node.name, node.uses, "forced", "forced (--force)", chunks=chunks, frames=frames)
+        reason = self.keys.why(node, self.keys.material(node, _digests(inputs)))
+        return Task(node.name, node.uses, "to compute", reason, chunks=chunks, frames=frames)
 
     def _set_chunks(self, node: StageNode, chunks: list[Entry] | list[str], info: StreamInfo) -> None:
         """Make a frame stage's outputs known from its chunks' entries (or keys, uncached)."""
