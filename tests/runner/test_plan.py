@@ -13,7 +13,7 @@ from runner.config import bind_inputs, load_pipeline
 from runner.execute import Options, Runner
 from runner.plan import Task, make_plan
 from runner.registry import Registry
-from tests.runner.helpers import DATA, ENTRY_POINTS
+from tests.runner.helpers import DATA, ENTRY_POINTS, TINY, HalfSize
 
 GRAPH = DATA / "graph.yaml"
 CACHED_STAGES = {"add", "gray", "write", "mean", "table"}  # decode is uncached
@@ -100,3 +100,33 @@ def test_an_edited_parameter(full, tmp_path):
     shutil.copytree(full, cache)
     _run(cache, tmp_path / "out", "add.value=3")  # the run with the edit stores the planned keys
     assert set(add.keys) == _stored(cache)["add"] - _stored(full)["add"]
+
+
+def test_a_stage_computing_its_own_shape_is_planned_from_the_shape_a_run_stored(tmp_path, monkeypatch):
+    path = tmp_path / "resized.yaml"
+    path.write_text(
+        f"chunk_frames: 8\ninputs:\n  clip: {{type: video, default: {TINY}}}\nstages:\n"
+        "  decode: {uses: video.decode, inputs: {video: clip}}\n"
+        "  half: {uses: test.half_size, inputs: {frames: decode.frames}}\n"
+        "  quarter: {uses: test.half_size_on_demand, inputs: {frames: half.frames}}\n"
+        "  mean: {uses: test.mean, inputs: {frames: quarter.frames}}\n"
+    )
+    pipeline = load_pipeline(path, Registry(entry_points=ENTRY_POINTS))
+    bound, cache = bind_inputs(pipeline, clip=None, named=[]), tmp_path / "cache"
+
+    def plan() -> dict[str, Task]:
+        return {task.stage: task for task in make_plan(pipeline, bound, cache=CacheStore(cache), device="cpu")}
+
+    fresh = plan()  # the shape of `half` is not stored: to compute, with decode's 6 chunks
+    assert (fresh["half"].status, fresh["half"].keys, fresh["half"].report().chunks) == ("to compute", (), 6)
+    assert fresh["quarter"].after == ("half",) and fresh["mean"].after == ("quarter",)
+    Runner(pipeline, bound, Options(cache=CacheStore(cache))).run()
+    monkeypatch.setattr(HalfSize, "stream_info", lambda self, inputs, params: pytest.fail("the planner ran stream_info"))
+    tasks = plan()
+    assert {name: task.status for name, task in tasks.items()} == {
+        "decode": "on demand",
+        "half": "cached",
+        "quarter": "on demand",
+        "mean": "cached",
+    }
+    assert {name: set(tasks[name].keys) for name in ("half", "mean")} == _stored(cache)
