@@ -68,8 +68,8 @@ from runner.offload import Forked
 from runner.offload import fork as offload_fork
 from runner.offload import spec as offload_spec
 from runner.offload import start as offload_start
-from runner.plan import selected
 from runner.outputs import entry_context, load_bundle, read_or_redo, save_outputs, verify_files
+from runner.plan import selected
 from runner.progress import Progress, Report
 from runner.publish import Published, conflicts, publish, remove_leftovers, unwritable
 from runner.stage import FrameStage, StageError, StreamInfo, defines_stream_info
