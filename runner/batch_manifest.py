@@ -33,8 +33,7 @@ from typing import Any
 
 import yaml
 
-from runner import safe_yaml
-from runner.config import NAME_RE, ConfigError, Issue, Pipeline, Where, _Reader, bind_inputs, clip_inputs, load_pipeline
+from runner.config import NAME_RE, ConfigError, Pipeline, _Reader, bind_inputs, clip_inputs, load_pipeline, read_yaml_file
 from runner.publish import conflicts
 from runner.registry import Registry
 
@@ -88,17 +87,7 @@ def load_manifest(path: Path, registry: Registry) -> list[Job]:
         the problem is there).
     """
     path = Path(path)
-    shown = str(path)
-    try:
-        root = safe_yaml.compose(safe_yaml.read_text(path), name=shown)
-    except OSError as exc:
-        raise ConfigError([Issue(Where(shown), "file", f"cannot read: {exc.strerror}")]) from None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
-        where = Where(shown, mark.line + 1, mark.column + 1) if mark else Where(shown)
-        raise ConfigError([Issue(where, "yaml", safe_yaml.error_message(exc))]) from None
-    if root is None:
-        raise ConfigError([Issue(Where(shown), "jobs", "empty manifest")])
+    root = read_yaml_file(path, empty=("jobs", "empty manifest"))
     r = _Reader()
     top = {name: vnode for name, _, vnode in r.mapping(root, "", TOP_KEYS)}
     base = path.resolve().parent

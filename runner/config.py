@@ -196,7 +196,7 @@ def load_pipeline(path: Path, registry: Registry, *, overrides: Sequence[str] = 
     """
     path = Path(path)
     r = _Reader()
-    root = _resolve_extends(r, _read_file(path, None), path, [path.resolve()])
+    root = _resolve_extends(r, read_yaml_file(path), path, [path.resolve()])
     top = {name: (knode, vnode) for name, knode, vnode in r.mapping(root, "", TOP_KEYS)}
 
     chunk_frames = DEFAULT_CHUNK_FRAMES
@@ -262,11 +262,15 @@ def _read_inputs(r: _Reader, node: yaml.Node | None) -> dict[str, PipelineInput]
     return inputs
 
 
-def _read_file(path: Path, extended_at: yaml.Node | None) -> yaml.Node:
-    """The node tree of the pipeline file ``path`` (its marks named ``str(path)``).
+def read_yaml_file(
+    path: Path, *, extended_at: yaml.Node | None = None, empty: tuple[str, str] = ("stages", "empty pipeline file")
+) -> yaml.Node:
+    """The node tree of the YAML file ``path`` (a pipeline or a batch manifest; its marks named
+    ``str(path)``).
 
-    Raises :class:`ConfigError` if it cannot be read, is not YAML or is empty; positioned at
-    ``extended_at`` (the ``extends:`` value naming it) when it is a base file that cannot be read."""
+    Raises :class:`ConfigError` if it cannot be read, is not YAML or is empty (``empty``: the key
+    and message of that error); positioned at ``extended_at`` (the ``extends:`` value naming it)
+    when it is a base file that cannot be read."""
     shown = str(path)
     try:
         root = safe_yaml.compose(safe_yaml.read_text(path), name=shown)
@@ -279,7 +283,7 @@ def _read_file(path: Path, extended_at: yaml.Node | None) -> yaml.Node:
         where = Where(shown, mark.line + 1, mark.column + 1) if mark else Where(shown)
         raise ConfigError([Issue(where, "yaml", safe_yaml.error_message(exc))]) from None
     if root is None:
-        raise ConfigError([Issue(Where(shown), "stages", "empty pipeline file")])
+        raise ConfigError([Issue(Where(shown), *empty)])
     return root
 
 
@@ -303,7 +307,7 @@ def _resolve_extends(r: _Reader, root: yaml.Node, path: Path, chain: list[Path])
         cycle = " -> ".join(str(p) for p in [*chain, base_path.resolve()])
         r.error(vnode, "extends", f"cycle of extends: {cycle}")
         raise ConfigError(r.issues)
-    base = _read_file(base_path, vnode)
+    base = read_yaml_file(base_path, extended_at=vnode)
     if not isinstance(base, yaml.MappingNode):
         r.error(vnode, "extends", f"{base_path} is not a pipeline (expected a mapping)")
         raise ConfigError(r.issues)
