@@ -14,7 +14,7 @@ When a chunk is resolved depends on who reads the stage:
   (:meth:`FrameChunks.produce`), else each chunk is computed when a reader first needs it; each
   is handed to every registered reader (:class:`runner.broadcast.Broadcast`); the stages
   reading it while it is not resolved run on threads of their own at the same time
-  (:meth:`Runner._schedule`), so that decode -> gray ->
+  (:mod:`runner.schedule`), so that decode -> gray ->
   write.video streams chunk by chunk and synthesize feeds its three writers at once; a reader
   that asks after the others passed a chunk gets it computed again;
 - any other cached frame stage (no reader) resolves all its chunks at its turn, with
@@ -41,12 +41,8 @@ from __future__ import annotations
 import contextlib
 import importlib
 import importlib.metadata
-import json
-import logging
 import os
-import queue
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -56,7 +52,7 @@ from runner import notes
 from runner.broadcast import unbounded
 from runner.cache import CacheStore, Entry
 from runner.chunk_keys import stream_info_key
-from runner.chunks import FrameChunks, RunServices, Value, input_digests, is_source
+from runner.chunks import FrameChunks, RunServices, Value, input_digests
 from runner.config import ConfigError, Issue, Pipeline, StageNode, Where
 from runner.depends import recording
 from runner.digest import cache_key
@@ -64,21 +60,15 @@ from runner.errors import StageFailed, stage_errors
 from runner.inputs import Inputs
 from runner.keys import Keys
 from runner.lifecycle import Lifecycle
-from runner.offload import Forked
-from runner.offload import fork as offload_fork
-from runner.offload import spec as offload_spec
-from runner.offload import start as offload_start
 from runner.outputs import entry_context, load_bundle, read_or_redo, save_outputs, verify_files
 from runner.plan import selected
 from runner.progress import Progress, Report
 from runner.publish import Published, conflicts, publish, remove_leftovers, unwritable
+from runner.schedule import StreamingSchedule
 from runner.stage import FrameStage, StageError, StreamInfo, defines_stream_info
 from runner.timing import own_time
 
 __all__ = ["Options", "Report", "Runner", "StageFailed", "resolve_device"]
-
-
-IMPORT_POLL_S = 0.05  # how often the scheduling thread looks whether a stream computes (imports ahead)
 
 
 @dataclass
@@ -159,7 +149,6 @@ class Runner:
         self._producers: dict[FrameChunks, None] = {}  # lazy frame stages given a producer thread (ordered set)
         self._bound = bound
         self._in_child: dict[str, tuple[float, float]] = {}  # stages a child process ran: (seconds, CPU seconds)
-        self._imported: set[str] = set()  # modules imported ahead (_import_ahead)
 
     def selected(self) -> list[StageNode]:
         return selected(self.pipeline, self.opts.until)
@@ -236,150 +225,18 @@ class Runner:
             chunks.close_stage()
 
     def _schedule(self, emit: Callable[[Report], None]) -> None:
-        """Visit every selected stage once the stages it reads have had their turn: in
-        topological order on this thread, except a stage that reads a stream being computed
-        (:meth:`_stream_reads`), which runs on a thread of its own, at the same time as the
-        other readers of that stream, so that each chunk is computed once and handed to all.
-        The first failure stops new stages; it is raised once the running ones have ended."""
+        """Visit every selected stage (:class:`runner.schedule.StreamingSchedule`)."""
         self._scheduler = threading.current_thread()
-        waiting = self.selected()
-        done: set[str] = set()
-        running: dict[str, threading.Thread] = {}
-        ended: queue.Queue[tuple[StageNode, Report | None, BaseException | None]] = queue.Queue()
-        failure: BaseException | None = None
+        StreamingSchedule(self, emit).schedule()
 
-        def visit(node: StageNode) -> tuple[StageNode, Report | None, BaseException | None]:
-            try:
-                return node, self._visit(node), None
-            except BaseException as exc:  # noqa: BLE001 - re-raised on the scheduling thread
-                return node, None, exc
-            finally:
-                self._leave(node)
-
-        def launch(ready: list[StageNode]) -> bool:
-            """Start every ready stage that reads a stream being computed, each registered with
-            the broadcasts it reads before any starts (so none finds a chunk dropped)."""
-            started = []
-            for node in ready:
-                threaded, joins = self._stream_reads(node)
-                if threaded:
-                    thread = threading.Thread(target=lambda n=node: ended.put(visit(n)), name=f"stage-{node.name}", daemon=True)
-                    for chunks, reader in joins:
-                        chunks.broadcast.join(reader, thread)
-                    self._joined[node.name] = [(chunks, reader, thread) for chunks, reader in joins]
-                    running[node.name] = thread
-                    waiting.remove(node)
-                    started.append(thread)
-            producers = list(dict.fromkeys(chunks for name in self._joined for chunks, _, _ in self._joined[name]))
-            for chunks in producers:
-                chunks.produce()
-            self._producers.update(dict.fromkeys(producers))
-            for thread in started:
-                thread.start()
-            return bool(started)
-
-        children: dict[str, Any] = {}  # stage -> the child process computing it (runner.offload)
-        offered: set[str] = set()  # stages given to a child process
-        in_child = object()  # put on `ended` when a child process ends
-
-        def offload(ready: list[StageNode]) -> bool:
-            """Start a child process for a stage that reads a source's frames, the sequence
-            stages it waits for, and the sequence stages after it that read nothing else still to
-            compute, when a ready stage outside them keeps this thread busy meanwhile (at most one
-            child per spare core)."""
-            if not self.opts.offload or len(set(children.values())) >= self.services.producers - 1:
-                return False
-            choices = (
-                (n, self._offload_stages(n, waiting, done)) for n in waiting if n.name not in offered and n.name not in children
-            )
-            node, stages = next(((n, s) for n, s in choices if s and any(r.name not in s for r in ready)), (None, []))
-            if node is None:
-                return False
-            offered.update(stages)  # once: after a failed child, the run computes them
-            child = offload_fork(
-                lambda **events: Runner(
-                    self.pipeline,
-                    self._bound,
-                    Options(cache=CacheStore(self.store.root), device=self.opts.device, until=tuple(stages), **events),
-                )
-            )
-            if child is None:
-                child = offload_start(
-                    offload_spec(
-                        pipeline=self.pipeline.path,
-                        overrides=list(self.opts.overrides),
-                        bound=self._bound,
-                        cache=self.store.root,
-                        device=self.opts.device,
-                        stages=stages,
-                    )
-                )
-            children.update(dict.fromkeys(stages, child))
-
-            def relay() -> None:
-                try:
-                    self._relay(child)
-                finally:
-                    child.wait()
-                    ended.put((node, in_child, None))
-
-            threading.Thread(target=relay, daemon=True, name=f"child-{node.name}").start()
-            self.log(
-                {
-                    "event": "offload",
-                    "stage": node.name,
-                    "stages": stages,
-                    "pid": child.pid,
-                    "started": "fork" if isinstance(child, Forked) else "interpreter",
-                }
-            )
-            return True
-
-        try:
-            while waiting or running or children:
-                ready = (
-                    []
-                    if failure is not None
-                    else [
-                        node
-                        for node in waiting
-                        if node.name not in children
-                        and all(ref.stage is None or ref.stage in done for ref in node.inputs.values())
-                    ]
-                )
-                setups = [node for node in ready if self._sets_up_only(node)]
-                if ready and not setups and (launch(ready) or offload(ready)):
-                    continue
-                if ready:
-                    waiting.remove((setups or ready)[0])
-                    node, report, error = visit((setups or ready)[0])
-                elif running or children:
-                    self._import_ahead(waiting, ended)
-                    node, report, error = ended.get()
-                    if report is in_child:  # its stages are visited next: their entries are in the cache
-                        child = children[node.name]
-                        for name in [name for name, c in children.items() if c is child]:
-                            children.pop(name)
-                        continue
-                    running.pop(node.name)
-                else:
-                    break
-                done.add(node.name)
-                failure = failure or error
-                for finished in self._finished_lazy():
-                    emit(finished)
-                if report is not None:  # None: a lazy frame stage, reported once resolved
-                    emit(report)
-        except BaseException:  # interrupted: the stages on threads stop at their next event
-            self._stopping.set()
-            for child in set(children.values()):
-                child.terminate()
-                child.wait()
-            for thread in running.values():
-                thread.join()
-            raise
-        if failure is not None:
-            raise failure
+    def child_runner(self, stages: list[str], **events: Any) -> Runner:
+        """The run a forked child process makes of ``stages`` (:mod:`runner.offload`), on this
+        run's cache folder; ``events`` are its event callbacks (``log``, ``echo``, ``warn``)."""
+        return Runner(
+            self.pipeline,
+            self._bound,
+            Options(cache=CacheStore(self.store.root), device=self.opts.device, until=tuple(stages), **events),
+        )
 
     def _sets_up_only(self, node: StageNode) -> bool:
         """True for a frame stage whose turn computes nothing: uncached, or lazy (read by a
@@ -410,104 +267,6 @@ class Runner:
                 report.status, report.reason = "ran", "in a child process beside the run"
                 report.seconds, report.cpu_seconds = self._in_child[node.name]
         return report
-
-    def _import_ahead(self, waiting: list[StageNode], ended: queue.Queue[Any]) -> None:
-        """Import the modules the ``waiting`` stages declare (:attr:`runner.stage.Stage.imports`),
-        once each, while this thread would only wait for a streamed section that computes: once
-        a streamed stage has computed a chunk in this run (a cached run, whose streams are only
-        looked up, would be held up by imports its cached stages never use). Returns when they
-        are imported, the streams are all resolved, or a stage has ended (``ended`` not empty).
-        A module that fails to import is left to the stage, which reports it when it runs."""
-        modules = [m for node in waiting for m in node.cls.imports if m not in self._imported]
-        streams = list(self._producers)
-        while modules and streams and ended.empty():
-            if any(chunks.computed(i) for chunks in streams for i in range(len(chunks.ranges))):
-                for module in dict.fromkeys(modules):
-                    self._imported.add(module)
-                    with contextlib.suppress(Exception):
-                        importlib.import_module(module)
-                return
-            if all(chunks.complete() for chunks in streams):
-                return
-            time.sleep(IMPORT_POLL_S)
-
-    def _offload_stages(self, node: StageNode, waiting: list[StageNode], done: set[str]) -> list[str]:
-        """What a child process computes for ``node`` (:meth:`_offloadable`), in order: the
-        stages ``node`` still waits for (sequence stages, not forced: e.g. the performer's pack),
-        ``node``, and the waiting sequence stages after it (not forced) that read it or each other
-        and otherwise only pipeline inputs and stages ``done`` (the performer's branch; the run
-        keeps the rest). Empty when ``node`` is not for a child, waits for a frame stage, or waits
-        for a stage whose entry is stored (a cached run visits it at once, then looks ``node`` up)."""
-        if not self._offloadable(node, done):
-            return []
-        waiting_names = {other.name for other in waiting}
-        before = self.pipeline.ancestors(node.name) & waiting_names - {node.name}
-        if any(
-            not self._child_may_run(self.pipeline.stages[name]) or self._stored(self.pipeline.stages[name], done)
-            for name in before
-        ):
-            return []  # e.g. a stage it waits for is found in the cache: decide once it is visited
-        stages = [other.name for other in waiting if other.name in before] + [node.name]
-        grown = True
-        while grown:
-            grown = False
-            for other in waiting:
-                if (
-                    other.name not in stages
-                    and self._child_may_run(other)
-                    and any(ref.stage in stages for ref in other.inputs.values())
-                    and all(ref.stage is None or ref.stage in done or ref.stage in stages for ref in other.inputs.values())
-                ):
-                    stages.append(other.name)
-                    grown = True
-        return stages
-
-    def _relay(self, child: Any) -> None:
-        """Read a child process's events (one JSON object a line on its standard output, text)
-        until it ends: each is logged as a ``child`` event, a warning is shown, a stage's log
-        record is logged again on its logger, and the seconds of a stage it ran are kept for that
-        stage's report."""
-        for line in child.stdout:
-            try:
-                event = json.loads(line)
-            except ValueError:
-                continue
-            if event.get("event") == "warning":
-                self.opts.warn(event.get("line", ""))
-            if event.get("event") == "log":
-                logging.getLogger(event.get("logger", "runner.stage")).log(
-                    event.get("level", logging.WARNING), "%s", event.get("message", "")
-                )
-            if event.get("event") == "stage" and event.get("status") == "ran":
-                self._in_child[event["stage"]] = (event.get("seconds", 0.0), event.get("cpu_seconds", 0.0))
-            try:
-                self.log({"event": "child", "pid": child.pid, "child": event})
-            except KeyboardInterrupt:  # the run is stopping: it terminates the child
-                break
-
-    def _offloadable(self, node: StageNode, done: set[str]) -> bool:
-        """Whether ``node`` may run in a child process (:mod:`runner.offload`): a sequence stage,
-        not forced, reading the frames of a source that is set up (an uncached frame stage that
-        reads no frames: decoding, ``done``), whose entry is not known to be stored."""
-        if not self._child_may_run(node):
-            return False
-        if not any(ref.stage in done and is_source(self.pipeline.stages[ref.stage].cls) for ref in node.inputs.values()):
-            return False
-        return not self._stored(node, done)
-
-    def _child_may_run(self, node: StageNode) -> bool:
-        """A sequence stage, not forced: one a child process may compute."""
-        return not issubclass(node.cls, FrameStage) and node.name not in self.opts.force
-
-    def _stored(self, node: StageNode, done: set[str]) -> bool | None:
-        """Whether ``node``'s entry is in the cache; None while its inputs are not all computed
-        (stages not ``done``, or digests known only once computed)."""
-        if any(ref.stage is not None and ref.stage not in done for ref in node.inputs.values()):
-            return None
-        inputs = self._inputs(node)
-        if any(v.known_digest() is None for v in inputs.values()):
-            return None
-        return self.keys.lookup(node, cache_key(self.keys.material(node, input_digests(inputs)))) is not None
 
     def _stream_reads(self, node: StageNode) -> tuple[bool, list[tuple[FrameChunks, str]]]:
         """Whether ``node`` runs on a thread of its own (it is a sequence stage or an eager
@@ -588,9 +347,8 @@ class Runner:
         first missing chunk of each pending stream now and compare it with the same chunk in
         the stage's last completed run (or the first one the stream's producer thread computed
         already); run while computed if one differs (the key changes), else resolve everything
-        first and look the entry up. The stream of an uncached stage that gives its frames
-        another size (``preview.side_by_side``) is read while computed without that probe: with
-        it the end-to-end demo run measured 1-2 s slower (docs/runner.md, "Scheduling").
+        first and look the entry up. With no last completed run reading that stream there is
+        nothing to compare with: run while computed, without computing that chunk first.
         """
         read = (self.keys.memo(node) or {}).get("input_chunks", {})
         for port, v in pending.items():
@@ -600,8 +358,8 @@ class Runner:
             first = next((i for i in range(count) if v.chunks.computed(i) or v.chunks.known_digests(v.port, i, i) is None), None)
             if first is None:
                 continue
-            if not v.chunks.node.cls.cached and defines_stream_info(v.chunks.node.cls):
-                return True  # preview.side_by_side: no probe (measured: the e2e run 1-2 s slower with it)
+            if port not in read:
+                return True
             # Not waiting for the other readers: they may be waiting for this one, registered at
             # chunk 0; the chunks they computed before (at most the broadcast's keep) are held.
             with unbounded():

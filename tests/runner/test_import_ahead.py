@@ -1,5 +1,5 @@
 """A stage's declared ``imports`` are imported by the scheduling thread while it waits for a
-stream, before the stage runs (runner.execute.Runner._import_ahead)."""
+stream, before the stage runs (runner.schedule.StreamingSchedule.import_ahead)."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from runner.cache import CacheStore
 from runner.config import load_pipeline
 from runner.execute import Options, Runner
 from runner.registry import Registry
+from runner.schedule import StreamingSchedule
 from runner.stage import SequenceStage
 from tests.runner.test_streaming import N, Double, Reader, Source
 
@@ -59,15 +60,15 @@ def test_declared_modules_are_imported_while_the_stream_runs(tmp_path: Path, mon
     registry = Registry(classes=[HeldSource, Double, Reader, After])
     IMPORTED.clear()
     importer = []
-    original = Runner._import_ahead
+    original = StreamingSchedule.import_ahead
 
-    def spy(self, waiting, ended):
+    def spy(self):
         importer.append(threading.current_thread())
-        original(self, waiting, ended)
+        original(self)
         if MODULE in sys.modules:
             IMPORTED.set()
 
-    monkeypatch.setattr(Runner, "_import_ahead", spy)
+    monkeypatch.setattr(StreamingSchedule, "import_ahead", spy)
     reports = Runner(load_pipeline(pipeline, registry), {}, Options(cache=CacheStore(tmp_path / "cache"))).run()
     assert {r.stage: r.status for r in reports}["after"] == "ran"  # a module that cannot import is left alone
     assert SEEN["imported_before_run"] and importer and importer[0] is threading.main_thread()

@@ -14,11 +14,12 @@ from pathlib import Path
 
 import pytest
 
-from runner import execute, offload
+from runner import offload, schedule
 from runner.cache import CacheStore
 from runner.config import bind_inputs, load_pipeline
 from runner.execute import Options, Runner
 from runner.registry import Registry
+from runner.schedule import StreamingSchedule
 from tests.runner.helpers import TINY, read_log, run_cli, stage_status
 
 pytestmark = [pytest.mark.subprocess]
@@ -47,7 +48,7 @@ def test_stage_in_a_child_gives_the_same_outputs(tmp_path, pipeline, plugin_site
     monkeypatch.syspath_prepend(str(plugin_site))
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join(filter(None, [str(plugin_site), os.environ.get("PYTHONPATH")])))
     if way == "interpreter":  # as where a fork is not safe (threads running) or not possible
-        monkeypatch.setattr(execute, "offload_fork", lambda make_runner: None)
+        monkeypatch.setattr(schedule, "offload_fork", lambda make_runner: None)
     loaded = load_pipeline(pipeline, Registry.from_entry_points())
     events: list[dict] = []
     out = tmp_path / "out"
@@ -98,8 +99,8 @@ def test_a_failed_child_leaves_the_stage_to_the_run(tmp_path, pipeline, plugin_s
         started.extend(json.loads(argument)["until"])
         return subprocess.Popen([sys.executable, "-c", "raise SystemExit(1)"], stdout=subprocess.PIPE, text=True)
 
-    monkeypatch.setattr(execute, "offload_start", failing)
-    monkeypatch.setattr(execute, "offload_fork", lambda make_runner: None)  # the new-interpreter way
+    monkeypatch.setattr(schedule, "offload_start", failing)
+    monkeypatch.setattr(schedule, "offload_fork", lambda make_runner: None)  # the new-interpreter way
     events = []
     options = Options(cache=CacheStore(tmp_path / "cache"), out=tmp_path / "out", offload=True, log=events.append)
     reports = {r.stage: r for r in Runner(load_pipeline(pipeline, Registry.from_entry_points()), {"clip": TINY}, options).run()}
@@ -119,10 +120,16 @@ def test_the_child_takes_the_performers_branch(tmp_path):
     bound = bind_inputs(loaded, clip=None, named=[])
     runner = Runner(loaded, bound, Options(cache=CacheStore(tmp_path / "cache"), offload=True))
     waiting = [node for name, node in loaded.stages.items() if name != "decode"]
-    stages = runner._offload_stages(loaded.stages["track"], waiting, {"decode"})
+
+    def offloaded(stage: str, done: set[str]) -> list[str]:
+        scheduled = StreamingSchedule(runner, emit=lambda report: None)
+        scheduled.waiting, scheduled.done = list(waiting), done
+        return scheduled._offload_stages(loaded.stages[stage])
+
+    stages = offloaded("track", {"decode"})
     assert stages == ["performer_pack", "track", "smooth", "compensate", "pose", "compensate3d"]
-    assert runner._offload_stages(loaded.stages["track"], waiting, set()) == []  # the clip is not set up yet
-    assert runner._offload_stages(loaded.stages["build"], waiting, {"decode"}) == []  # reads no clip
+    assert offloaded("track", set()) == []  # the clip is not set up yet
+    assert offloaded("build", {"decode"}) == []  # reads no clip
     # a cached run: the performer's pack is stored, so the run visits it first and looks the tracker up
     Runner(loaded, bound, Options(cache=CacheStore(tmp_path / "cache"), until=("performer_pack",))).run()
-    assert runner._offload_stages(loaded.stages["track"], waiting, {"decode"}) == []
+    assert offloaded("track", {"decode"}) == []
