@@ -438,6 +438,21 @@ def build_pack(clip: Path, work: Path, cache: Path) -> Path:
 
 
 WORST = {"recall": min, "precision": min, "_r": min, "amp_ratio": min, "frames": max, "frac": max}
+# state measures whose clip row (``real_<key>_<stem>``) is :func:`follow_rows`' on the bundled run:
+# their worst over the targets is not a row (each target's is, ``..._onto_<target>``)
+NAMED_BY_FOLLOW_ROWS = ("mouth_follow_r", "mouth_amp_ratio")
+
+
+def worst_over_targets(measured: dict[str, dict[str, float]]) -> dict[str, float]:
+    """A clip's state measures (per target: key -> value) reduced to the worst over its targets
+    (:data:`WORST` by the key's ending; NaN left out), but for :data:`NAMED_BY_FOLLOW_ROWS`."""
+    worst: dict[str, float] = {}
+    for key in set().union(*measured.values()) - set(NAMED_BY_FOLLOW_ROWS):
+        values = [m[key] for m in measured.values() if key in m and np.isfinite(m[key])]
+        pick = next((f for ending, f in WORST.items() if key.endswith(ending)), None)
+        if values and pick is not None:
+            worst[key] = pick(values)
+    return worst
 
 
 def states_rows(clips: list[Path], work: Path, pack_clips: list[Path]) -> list[dict[str, Any]]:
@@ -470,12 +485,7 @@ def states_rows(clips: list[Path], work: Path, pack_clips: list[Path]) -> list[d
                 if np.isfinite(value)
             ]
             amp_onto.setdefault(name, {})[stem] = measured[name]["mouth_amp_ratio"]
-        worst: dict[str, float] = {}
-        for key in set().union(*measured.values()):
-            values = [m[key] for m in measured.values() if key in m and np.isfinite(m[key])]
-            pick = next((f for ending, f in WORST.items() if key.endswith(ending)), None)
-            if values and pick is not None:
-                worst[key] = pick(values)
+        worst = worst_over_targets(measured)
         pops: dict[str, dict[str, float]] = {}
         for name in targets:
             if name in ("bundled", stem):

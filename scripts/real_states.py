@@ -32,7 +32,8 @@ eye-line frame:
   frames both runs share, the largest absolute difference (``real_cutstart_expr_diff``).
 
 Each row is per clip and target (``..._<stem>_onto_<target>``); the clip's row
-(``..._<stem>``) is the worst over its targets. A clip where the performer never does a state
+(``..._<stem>``) is the worst over its targets, except for ``mouth_follow_r`` and
+``mouth_amp_ratio``, whose clip rows are those of the bundled run (``scripts/bench_real.py``). A clip where the performer never does a state
 (fewer than :data:`MIN_FRAMES` frames) gives no row for it and is left out of that aggregate.
 """
 

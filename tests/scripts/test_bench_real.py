@@ -1,10 +1,12 @@
-"""The cross-identity sheet of ``bench.py real --target`` (scripts/bench_real.py): the performer is
-drawn as its layout's lines, never as frame pixels; the drawing lands where the points are."""
+"""``bench.py real`` (scripts/bench_real.py): the cross-identity sheet draws the performer as its
+layout's lines, never as frame pixels, where the points are; a clip's state rows are the worst
+over its targets and no name is given two meanings."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from scripts import bench_real
 from scripts.bench_real import frontal_points, layout_polylines, points_panel
 from stages.layout import load_layout
 
@@ -54,3 +56,11 @@ def test_frontal_points_take_the_head_rotation_out():
     frontal = frontal_points(seen[..., :2], seen[..., 2], 2.0 * R, reference=1)  # a scaled matrix, as MediaPipe's
     expected = ((face - face.mean(axis=0)) @ R[1].T)[:, :2]
     np.testing.assert_allclose(frontal, np.broadcast_to(expected, frontal.shape), atol=1e-9)
+
+
+def test_a_clips_worst_state_is_the_worst_over_its_targets_and_never_a_follow_rows_name():
+    measured = {
+        "bundled": {"eyes_shut_recall": 0.9, "eyes_shut_frames": 10.0, "mouth_follow_r": 0.8, "mouth_amp_ratio": 1.1},
+        "LP_d18": {"eyes_shut_recall": 0.7, "eyes_shut_frames": 12.0, "mouth_follow_r": 0.6, "lid_follow_r": float("nan")},
+    }
+    assert bench_real.worst_over_targets(measured) == {"eyes_shut_recall": 0.7, "eyes_shut_frames": 12.0}
