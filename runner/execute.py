@@ -466,6 +466,7 @@ class Runner:
                     key, tmp, {"stage": node.name, "uses": node.uses, "info": asdict(info), "warnings": warned}
                 )
         else:
+            self.store.touch(entry)  # used: kept by `gc --older-than` as long as its chunks
             self.progress.replay(node.name, entry.record)
         return StreamInfo(**entry.record["info"])
 

@@ -50,7 +50,7 @@ class Task:
 
     ``status``: ``cached`` (every entry stored), ``to compute`` (an entry missing), ``forced``
     (``--force``), ``unknown`` (a key reads the output of the stages ``after``, which would run
-    first), ``on demand`` (an uncached frame stage: computed as read, stores nothing).
+    first), ``on demand`` (an uncached frame stage: computed as read, stores no chunk).
     ``keys`` are its entry keys (per chunk of a frame stage; empty while a key reads what is
     known only once a stage runs), ``stored`` whether each is in the cache, ``chunks`` its chunk ranges ``(start, stop)`` in frames (a frame
     stage whose stream shape is known) and ``frames`` its frame count.
@@ -133,12 +133,15 @@ class _Planner:
         self.keys = Keys(cache, pipeline.path, device=device, chunk_frames=pipeline.chunk_frames, discard_stale=False)
         inputs = Inputs(pipeline, bound)
         self.known: dict[tuple[str | None, str], _Known] = {(None, name): _Known(inputs.digest(name)) for name in bound}
+        self.status: dict[str, Status] = {}  # per stage planned, its task's status
 
     def plan(self, nodes: list[StageNode]) -> list[Task]:
         tasks = []
         for node in visit_order(nodes):
             cls = node.cls
-            tasks.append(self._frame_stage(node, cls) if issubclass(cls, FrameStage) else self._sequence_stage(node))
+            task = self._frame_stage(node, cls) if issubclass(cls, FrameStage) else self._sequence_stage(node)
+            self.status[node.name] = task.status
+            tasks.append(task)
         return tasks
 
     def _inputs(self, node: StageNode) -> dict[str, _Known]:
@@ -154,7 +157,8 @@ class _Planner:
         if not after:
             return None
         self._set_unknown(node)
-        reason = f"after {', '.join(after)}, which will run; cached if its output is unchanged"
+        waits = ", ".join(f"{name} ({_REPORTED[self.status[name]]})" for name in after)
+        reason = f"after {waits}; cached if what it reads is unchanged"
         return Task(node.name, node.uses, "unknown", reason, after=after)
 
     def _set_unknown(self, node: StageNode) -> None:

@@ -1,6 +1,7 @@
 """The streaming executor (producers, broadcast, stages on threads, a child process) against the
 serial one, the reference: on every bundled pipeline both publish the same bytes and store the
-same cache entries, and the plan of the finished cache is every entry stored.
+same cache entries (keys and the digests of their outputs), and the plan of the finished cache is
+every entry stored.
 
 The eigenfeature training (``train.eigenfeatures``, a sequence stage: half a minute, computed by
 the same code under both executors, on no stream) is computed by the serial run only; its
@@ -57,7 +58,7 @@ PIPELINES = [
 def _run(pipeline: str, args: list[str], executor: str, work: Path) -> None:
     done = subprocess.run(
         [sys.executable, "-m", "runner.cli", "run", pipeline, *args, "--executor", executor]
-        + ["--out", str(work / "out"), "--cache-dir", str(work / "cache")],
+        + ["--device", "cpu", "--out", str(work / "out"), "--cache-dir", str(work / "cache")],
         cwd=REPO,
         capture_output=True,
         text=True,
@@ -77,8 +78,12 @@ def _seed_training(serial: Path, streaming: Path) -> None:
             shutil.copytree(entry.path, streaming / entry.path.relative_to(serial))
 
 
-def _entries(cache: Path) -> set[str]:
-    return {entry.key for entry in CacheStore(cache).iter_entries()}
+def _entries(cache: Path) -> dict[str, dict[str, str]]:
+    """Per stored entry key, the digest of each output it recorded (none for a stream shape)."""
+    return {
+        entry.key: {port: output["digest"] for port, output in entry.record.get("outputs", {}).items()}
+        for entry in CacheStore(cache).iter_entries()
+    }
 
 
 def test_serial_computes_on_the_calling_thread_and_stores_what_streaming_stores(tmp_path, monkeypatch):

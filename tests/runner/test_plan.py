@@ -3,6 +3,7 @@ stores (the executor computes the keys itself, chunk by chunk)."""
 
 from __future__ import annotations
 
+import os
 import shutil
 from pathlib import Path
 
@@ -84,6 +85,8 @@ def test_a_forced_stage_and_its_readers(full):
     assert set(tasks["add"].keys) == _stored(full)["add"]  # the keys it recomputes
     assert (tasks["gray"].status, tasks["gray"].after) == ("unknown", ("add",))
     assert tasks["write"].status == "unknown" and tasks["mean"].status == "cached"
+    assert tasks["gray"].reason.startswith("after add (will run);")  # each stage waited for, with its status
+    assert tasks["write"].reason.startswith("after gray (may run);")
 
 
 def test_until_plans_only_those_stages_and_their_upstream(full):
@@ -130,3 +133,23 @@ def test_a_stage_computing_its_own_shape_is_planned_from_the_shape_a_run_stored(
         "mean": "cached",
     }
     assert {name: set(tasks[name].keys) for name in ("half", "mean")} == _stored(cache)
+
+
+def test_a_run_marks_the_stored_shape_used_so_gc_keeps_it_with_the_chunks(tmp_path):
+    """`gc --older-than` removes entries not used for that long: a cached run uses the stream
+    shape of a stage computing its own as it uses its chunks, so the planner still finds it."""
+    path = tmp_path / "resized.yaml"
+    path.write_text(
+        f"chunk_frames: 8\ninputs:\n  clip: {{type: video, default: {TINY}}}\nstages:\n"
+        "  decode: {uses: video.decode, inputs: {video: clip}}\n"
+        "  half: {uses: test.half_size, inputs: {frames: decode.frames}}\n"
+    )
+    pipeline = load_pipeline(path, Registry(entry_points=ENTRY_POINTS))
+    bound, store = bind_inputs(pipeline, clip=None, named=[]), CacheStore(tmp_path / "cache")
+    Runner(pipeline, bound, Options(cache=store)).run()
+    day = 24 * 3600
+    for entry in store.iter_entries():
+        os.utime(entry.path, (entry.path.stat().st_atime - 30 * day,) * 2)
+    Runner(pipeline, bound, Options(cache=store)).run()  # all cached
+    store.gc(older_than_s=day)
+    assert [task.status for task in make_plan(pipeline, bound, cache=store, device="cpu")] == ["on demand", "cached"]
