@@ -34,7 +34,7 @@ lint: $(VENV_STAMP)
 
 # The benchmark areas of scripts/bench.py, each recorded to benchmarks/results/AREA.jsonl, then
 # docs/benchmarks.md rendered from the records. The default leaves out the areas that run for a
-# long time (real, reenact, batch, shot): `make bench AREAS="real shot"` records those.
+# long time or need the dev clips (real, reenact, batch, shot, seen): `make bench AREAS="real shot"` records those.
 AREAS ?= runner geometry propagation synthesis writers e2e landmarks smoothing editor eigen render3d photo_identity
 
 bench: $(VENV_STAMP) browser egl

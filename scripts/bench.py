@@ -40,6 +40,7 @@ AREAS = (
     "batch",
     "photo_identity",
     "shot",
+    "seen",
 )
 
 

@@ -31,6 +31,7 @@ CODE = ("runner", "stages", "lab", "pipeline.yaml", "pack_build.yaml")  # what e
 DEPENDS = {
     "real": CODE + ("scripts/bench_real.py", "scripts/real_states.py", "scripts/occluder.py"),
     "shot": CODE + ("scripts/bench_shot.py", "pipeline_3d.yaml"),
+    "seen": CODE + ("scripts/bench_seen.py", "scripts/bench_real.py", "scripts/real_states.py"),
     "e2e": CODE + ("scripts/bench_e2e.py", "scripts/make_fixtures.py"),
 }
 
