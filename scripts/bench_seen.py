@@ -34,7 +34,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from scripts.bench_real import DEV_CLIPS, PACK_CLIPS, build_pack, read_frames, run_pipeline
-from scripts.real_states import MIN_FRAMES, pearson
+from scripts.real_states import MIN_FRAMES, pearson, unit_of
 from stages.landmarks.landmarker import BLENDSHAPE_NAMES, Landmarker
 
 BENCH = "seen"
@@ -76,11 +76,12 @@ def seen_measures(performer: np.ndarray, result: np.ndarray, valid: np.ndarray) 
         Frames where both show a face.
     """
     valid = np.asarray(valid, bool)
+    performer = np.asarray(performer, np.float64)[valid]
+    result = np.asarray(result, np.float64)[valid]
     out: dict[str, float] = {}
     for state, categories in SEEN_STATES.items():
         columns = [BLENDSHAPE_NAMES.index(c) for c in categories]
-        p = np.asarray(performer, np.float64)[valid][:, columns]
-        t = np.asarray(result, np.float64)[valid][:, columns]
+        p, t = performer[:, columns], result[:, columns]
         peak = (p >= PEAK).ravel()
         out[f"{state}_r"] = pearson(p.ravel(), t.ravel())
         out[f"{state}_peak_frames"] = float(peak.sum())
@@ -93,13 +94,6 @@ def seen_measures(performer: np.ndarray, result: np.ndarray, valid: np.ndarray) 
     return out
 
 
-UNITS = {"r": "r", "peak_ratio": "ratio", "peak_frames": "frames"}
-
-
-def unit_of(key: str) -> str:
-    return next(unit for ending, unit in UNITS.items() if key.endswith(ending))
-
-
 def aggregate(measured: Mapping[str, Mapping[str, float]]) -> list[dict[str, Any]]:
     """``seen_<state>_peak_ratio_min`` / ``_median`` and ``seen_<state>_r_median`` over the runs
     ``{run name: seen_measures}`` (NaN left out; no row where no run defines it)."""
@@ -107,7 +101,9 @@ def aggregate(measured: Mapping[str, Mapping[str, float]]) -> list[dict[str, Any
     for state in SEEN_STATES:
         for key, reducers in ((f"{state}_peak_ratio", ("min", "median")), (f"{state}_r", ("median",))):
             values = [m[key] for m in measured.values() if np.isfinite(m.get(key, np.nan))]
-            for how in reducers if values else ():
+            if not values:
+                continue
+            for how in reducers:
                 rows.append(row(f"seen_{key}_{how}", float(getattr(np, how)(values)), unit_of(key)))
     return rows
 
