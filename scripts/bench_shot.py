@@ -1,10 +1,10 @@
 """A usable shot on a real target (`python scripts/bench.py shot`).
 
     python scripts/bench.py shot [--json] [--work DIR] [--clip PATH ...] [--target-clip PATH ...]
-                                 [--no-turn] [--no-invented] [--no-speed] [--sheets]
+                                 [--no-turn] [--no-pose] [--no-invented] [--no-speed] [--sheets]
                                  [--speed-clip PATH] [--wide-clip PATH] [--wide-width 1024]
 
-Four parts, each run by the CLI (``runner run``) as a user runs it:
+Five parts, each run by the runner as a user runs it:
 
 **Head turns against truth** (``--no-turn`` skips). The real-texture generator
 (``lab/realface``, with its backdrop: the head of face, hair, ears and neck in front of a static
@@ -27,6 +27,18 @@ of the 2D result's turned frames, filled again from its real pixels by the pipel
 and by ``cv2.inpaint`` (Telea), against the truth: ``shot_fill_psnr_db_pushpull`` / ``_telea``, and
 their CPU ms per frame ``shot_fill_ms_*`` (``shot_fill_frames``: the frames with any). A sheet (truth | 2D | 2D similarity |
 3D at the largest yaw and pitch) goes to ``<work>/shot/turn/sheet.png``.
+
+**Head pose slopes** (``--no-pose`` skips). How large the head rotation the pipeline applies
+(``compensate.pose``, ``ypr_deg``) is against the rotation the performer made, per axis: the slope
+of a least-squares line of ours against the reference over the frames with a face (1: every turn as
+large as made). Against exact truth: a real-texture clip of the astronaut's head (no expression) at
+known poses (:func:`turn_motion` continued by sweeps of yaw +-35, pitch +-20 and roll +-25 deg),
+relative to frame 0, ``shot_pose_slope_{yaw,pitch,roll}``. Against MediaPipe's facial
+transformation matrix (relative to the same head frame) on every ``--clip``:
+``shot_pose_slope_<axis>_mp_<clip>``, and ``shot_pose_slope_<axis>_mp`` the one farthest from 1
+over the clips. The same rows with ``_points`` appended measure ``compensate.pose_rotation=points``
+(the weak-perspective fit of the rigid points) in the same run. Runs ``pipeline.yaml`` up to
+``compensate`` through the runner's Python API (the same stages and cache as the CLI).
 
 **Invented pixels** (``--no-invented`` skips). Packs from ``--target-clip`` (default ``LP_d18`` and
 ``WDA_AlexandriaOcasioCortez_000``) by ``pack_build.yaml``; every ``--clip`` (default every dev
@@ -325,6 +337,83 @@ def fill_scores(channels: dict[str, np.ndarray], true: np.ndarray, fills: dict[s
     fills["telea"].append(psnr(telea.astype(np.float32) / 255.0, true, missing))
 
 
+# -- head pose slopes ------------------------------------------------------------------------------
+
+AXES = ("yaw", "pitch", "roll")
+
+
+def pose_motion(frames_sweep: int = 32) -> np.ndarray:
+    """``(T, 3)`` yaw, pitch, roll (deg): :func:`turn_motion`, then sweeps of yaw +-35, pitch +-20
+    and roll +-25 deg, each alone."""
+    s = np.sin(2 * np.pi * np.arange(frames_sweep) / frames_sweep)
+    zero = 0 * s
+    wide = [np.column_stack([35 * s, zero, zero]), np.column_stack([zero, 20 * s, zero]), np.column_stack([zero, zero, 25 * s])]
+    return np.concatenate([turn_motion(), *wide])
+
+
+def compensated_pose(clip: Path, cache: Path, *overrides: str) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """``pipeline.yaml`` on ``clip`` up to ``compensate``; its ``pose`` bundle and the landmarker's
+    facial transformation matrices ``(T, 4, 4)``."""
+    from runner.cache import CacheStore
+    from runner.config import bind_inputs, load_pipeline
+    from runner.execute import Options, Runner
+    from runner.registry import Registry
+
+    pipeline = load_pipeline(
+        REPO / "pipeline.yaml", Registry.from_entry_points(), overrides=[f"compensate.{o}" for o in overrides]
+    )
+    executor = Runner(
+        pipeline, bind_inputs(pipeline, clip=clip, named=[]), Options(cache=CacheStore(cache), until=("compensate",))
+    )
+    executor.run()
+    pose = executor.values[("compensate", "pose")].load()
+    marks = executor.values[("landmarks", "landmarks")].load()
+    return {k: np.asarray(v) for k, v in pose.items()}, np.asarray(marks["matrix"])
+
+
+def slopes(ours: np.ndarray, reference: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """``(3,)``: per axis, the slope of the least-squares line of ``ours`` on ``reference`` (both
+    ``(T, 3)`` deg) over the ``valid`` frames."""
+    return np.array([np.polyfit(reference[valid, k], ours[valid, k], 1)[0] for k in range(3)])
+
+
+def relative_ypr(R: np.ndarray, reference: int) -> np.ndarray:
+    """``(T, 3)`` yaw, pitch, roll (deg, ``R = Ry Rx Rz``) of rotations ``R (T, 3, 3)`` relative to frame ``reference``."""
+    from stages.geometry.rotation import ypr_yxz
+
+    return ypr_yxz(R @ R[reference].T)
+
+
+def pose_rows(work: Path, clips: list[Path]) -> list[dict[str, Any]]:
+    """The head pose part (module docstring)."""
+    from lab.realface.clip import fit_real_face
+    from stages.eigen.facegen.render import rotation
+    from stages.geometry.rotation import landmarker_rotation
+
+    work.mkdir(parents=True, exist_ok=True)
+    face = fit_real_face(512, backdrop=True)
+    angles = pose_motion()
+    render_clip(face, work / "pose.mp4", np.zeros((len(angles), 3)), angles)
+    truth_R = np.stack([rotation(*a) for a in angles])
+    rows = []
+    for mode, suffix in (("landmarker", ""), ("points", "_points")):
+        pose, _ = compensated_pose(work / "pose.mp4", work / "cache", "neutral_frame=0", f"pose_rotation={mode}")
+        truth = relative_ypr(truth_R, int(pose["neutral_frame"]))
+        rows += [
+            row(f"shot_pose_slope_{axis}{suffix}", v, "ratio")
+            for axis, v in zip(AXES, slopes(pose["ypr_deg"], truth, pose["valid"]))
+        ]
+        worst = {axis: 1.0 for axis in AXES}
+        for clip in clips:
+            pose, matrix = compensated_pose(clip, work / "cache", f"pose_rotation={mode}")
+            landmarker = relative_ypr(landmarker_rotation(matrix), int(pose["neutral_frame"]))
+            for axis, v in zip(AXES, slopes(pose["ypr_deg"], landmarker, pose["valid"])):
+                rows.append(row(f"shot_pose_slope_{axis}_mp_{clip.stem}{suffix}", v, "ratio"))
+                worst[axis] = v if abs(v - 1) > abs(worst[axis] - 1) else worst[axis]
+        rows += [row(f"shot_pose_slope_{axis}_mp{suffix}", worst[axis], "ratio") for axis in AXES]
+    return rows
+
+
 # -- invented pixels -------------------------------------------------------------------------------
 
 
@@ -481,6 +570,7 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     parser.add_argument("--clip", type=Path, action="append", help="performer clip (repeatable; default every dev clip)")
     parser.add_argument("--target-clip", type=Path, action="append", help="footage to build a pack from (repeatable)")
     parser.add_argument("--no-turn", action="store_true")
+    parser.add_argument("--no-pose", action="store_true")
     parser.add_argument("--no-invented", action="store_true")
     parser.add_argument("--no-speed", action="store_true")
     parser.add_argument("--sheets", action="store_true")
@@ -494,6 +584,8 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     rows: list[dict[str, Any]] = []
     if not options.no_turn:
         rows += turn_rows(work / "turn")
+    if not options.no_pose:
+        rows += pose_rows(work / "pose", clips)
     if not options.no_invented:
         rows += invented_rows(work / "invented", clips, targets)
     if not options.no_speed:

@@ -24,6 +24,15 @@ with the lips slightly apart does not cost the target that much of its mouth ope
 occluder hides (an ``occlusion`` bundle) are held from the frames around them
 (:func:`hold_occluded`) and never enter the neutral.
 
+The head pose reported (``pose``, the head motion carried onto the target) takes its rotation from
+the landmarker's facial transformation matrix relative to the head frame,
+``R(t) = L(t) L(r)^T`` (:func:`landmarker_head_motion`), by default: MediaPipe solves it under
+full perspective against its metric canonical face, where the weak-perspective fit above reads
+every turn larger (a head turning about its centre, some 10 cm behind the face, also shifts the
+face sideways, and perspective makes the nearer points shift more: the fit takes that parallax
+for rotation). Measured by ``bench.py shot`` (``shot_pose_slope_*``). The displacements always
+come from the fit, which removes the motion the points show, whatever its cause.
+
 Coordinates: x right, y down (px, origin at the centre of the top-left pixel), z away from the
 camera (px): a right-handed camera frame as OpenCV's. Angles: ``R = Ry(yaw) Rx(pitch) Rz(roll)``,
 degrees; yaw about the image's vertical axis, pitch about its horizontal axis, roll in the image
@@ -42,7 +51,7 @@ from stages.landmarks.bundles import LANDMARKS
 from stages.occlusion.bundles import OCCLUSION
 from stages.geometry.compensate import compensate as similarity_2d
 from stages.geometry.neutral import REST, NeutralEstimate, estimate_neutral
-from stages.geometry.rotation import rodrigues_vector, ypr_yxz
+from stages.geometry.rotation import landmarker_rotation, rodrigues_vector, ypr_yxz
 from stages.geometry.signals import expression_signals
 from stages.geometry.subset import named_columns
 
@@ -159,6 +168,37 @@ def compensate_rigid3d(
     back = np.einsum("tnk,tkj->tnj", xyz - t[:, None], R) / s[:, None, None]
     d = back[..., :2] - ref[None, :, :2]
     return {"d": d, "R": R, "s": s, "t": t, "residual_px": residual, "frame_valid": solved}
+
+
+def landmarker_head_motion(
+    matrix: np.ndarray, reference: int, R: np.ndarray, s: np.ndarray, t: np.ndarray, centre: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The head motion with the landmarker's rotation: ``R'(t) = L(t) L(r)^T`` from the facial
+    transformation matrices (:func:`stages.geometry.rotation.landmarker_rotation`), and the
+    translation that moves the rigid points' ``centre`` where the fit moves it,
+    ``t' = t + s (R - R') c``.
+
+    Parameters
+    ----------
+    matrix : (T, 4, 4) float
+        The landmarker's facial transformation matrix per frame.
+    reference : int
+        The head frame.
+    R, s, t : (T, 3, 3), (T,), (T, 3) px
+        The fitted similarity, reference -> frame (:func:`compensate_rigid3d`).
+    centre : (3,) float
+        The rigid points' centroid in the reference frame, px.
+
+    Returns
+    -------
+    R_pose : (T, 3, 3) float64
+    t_pose : (T, 3) float64, px
+    """
+    L = landmarker_rotation(matrix)
+    R_pose = L @ L[reference].T
+    c = np.asarray(centre, np.float64)
+    t_pose = np.asarray(t, np.float64) + np.asarray(s, np.float64)[:, None] * np.einsum("tij,j->ti", R - R_pose, c)
+    return R_pose, t_pose
 
 
 def close_reference_lips(neutral: np.ndarray, d: np.ndarray, names: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -351,7 +391,7 @@ class CompensateRigid3D(SequenceStage):
     extension of Sec. 12 for real footage)."""
 
     name = "compensate.rigid3d"
-    version = "5"
+    version = "6"
     doc = (
         "neutral estimated from the whole clip (or a named frame); 3D similarity of the rigid points; "
         "displacements, pose, 2D similarity; occluded regions held"
@@ -387,6 +427,14 @@ class CompensateRigid3D(SequenceStage):
         ),
         Param("rigid_points", list, list(RIGID_POINTS), "layout points aligned in 3D (they move with the skull)"),
         Param("huber_px", float, 2.0, "Huber threshold of the robust 3D fit, px", min=0.01, max=100.0),
+        Param(
+            "pose_rotation",
+            str,
+            "landmarker",
+            "the head pose's rotation: the landmarker's facial transformation matrix relative to the head "
+            "frame (perspective), or the weak-perspective fit of the rigid points",
+            choices=("landmarker", "points"),
+        ),
         Param("warn_angle_deg", float, 12.0, "warn when the head frame is turned more than this", min=0.0, max=90.0),
         Param(
             "warn_expression",
@@ -525,14 +573,21 @@ class CompensateRigid3D(SequenceStage):
         planar = similarity_2d(xy, valid, rest, rigid)
         similarity = {"params": planar["params"], "residual_px": planar["residual_px"], "valid": planar["frame_valid"] & frame_ok}
 
+        R_pose, t_pose = fit["R"], fit["t"]
+        if params["pose_rotation"] == "landmarker":
+            shown = rigid[valid[reference, rigid]]
+            centre = xyz[reference, shown].mean(axis=0)
+            R_pose, t_pose = landmarker_head_motion(
+                np.asarray(marks["matrix"])[held], reference, R_pose, fit["s"], t_pose, centre
+            )
         pose = {
-            "R": fit["R"],
-            "rvec": rodrigues_vector(fit["R"]),
-            "tvec": fit["t"],
+            "R": R_pose,
+            "rvec": rodrigues_vector(R_pose),
+            "tvec": t_pose,
             "scale": fit["s"],
             "reproj_err_px": fit["residual_px"],
             "valid": frame_valid,
-            "ypr_deg": ypr_yxz(fit["R"]),
+            "ypr_deg": ypr_yxz(R_pose),
             "neutral_frame": np.array(reference),
         }
         return {"displacements": displacements, "similarity": similarity, "pose": pose}

@@ -8,7 +8,9 @@ Angles of a rotation vector are radians; yaw, pitch and roll are degrees, column
 - ``R = Rz(roll) Ry(yaw) Rx(pitch)`` (scipy's intrinsic ``"ZYX"``; the face generator's and the
   fixtures' convention, the eigenfeature training renders'): :func:`rotation_zyx`, :func:`ypr_zyx`;
 - ``R = Ry(yaw) Rx(pitch) Rz(roll)`` (scipy's intrinsic ``"YXZ"``; the head pose the stages
-  report, ``ypr_deg``): :func:`ypr_yxz`.
+  report, ``ypr_deg``): :func:`ypr_yxz`;
+- MediaPipe's facial transformation matrices (y up, z towards the viewer) in these axes:
+  :func:`landmarker_rotation`.
 
 The two angle conventions agree while roll is 0 and differ when roll combines with yaw or pitch.
 """
@@ -110,3 +112,18 @@ def ypr_yxz(R: np.ndarray) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
     return Rotation.from_matrix(R).as_euler("YXZ", degrees=True)
+
+
+def landmarker_rotation(matrix: np.ndarray) -> np.ndarray:
+    """The face landmarker's head rotations in the pipeline's camera axes, ``(..., 3, 3)``.
+
+    MediaPipe's facial transformation matrix ``(..., 4, 4)`` maps its canonical face (y up, z
+    towards the camera) into its camera frame (y up, z towards the viewer); both frames are turned
+    by pi about x into ours (y down, z away): ``F R F`` with ``F = diag(1, -1, -1)``. The scaled
+    rotation is made orthonormal (polar decomposition, det +1). A frontal face gives the identity.
+    """
+    F = np.diag([1.0, -1.0, -1.0])
+    u, _, vt = np.linalg.svd(np.asarray(matrix, np.float64)[..., :3, :3])
+    flip = np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)
+    u = np.concatenate([u[..., :2], u[..., 2:] * flip[..., None, None]], axis=-1)
+    return F @ (u @ vt) @ F

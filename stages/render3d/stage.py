@@ -43,7 +43,7 @@ from stages.landmarks.bundles import LANDMARKS
 from stages.mesh3d.bundles import MESH3D
 from stages.pack.bundle_types import CAMERA, PACK_GEOMETRY, PACK_MODEL3D
 from stages.render3d.bundles import HEAD3D
-from stages.geometry.rotation import ypr_yxz
+from stages.geometry.rotation import landmarker_rotation, ypr_yxz
 from stages.mesh3d.model import target_depth
 from stages.mesh3d.stage import GEOMETRY, mesh_vertices
 from stages.pack.bundles import camera_from_bundle, geometry_from_bundle, model3d_from_bundle
@@ -59,22 +59,6 @@ def _field(bundle: Mapping[str, np.ndarray], key: str, stage: str, port: str) ->
     if key not in bundle:
         raise StageError(f"{stage}: input '{port}' has no field '{key}'")
     return np.asarray(bundle[key])
-
-
-def reference_rotation(matrix: np.ndarray) -> np.ndarray:
-    """The landmarker's head rotation of one frame in the pipeline's camera axes, ``(3, 3)``.
-
-    MediaPipe's facial transformation matrix ``(4, 4)`` maps its canonical face (y up, z towards
-    the camera) into its camera frame (y up, z towards the viewer); both frames are turned by pi
-    about x into ours (y down, z away): ``F R F`` with ``F = diag(1, -1, -1)``. The scaled
-    rotation is made orthonormal (polar decomposition). A frontal face gives the identity.
-    """
-    F = np.diag([1.0, -1.0, -1.0])
-    u, _, vt = np.linalg.svd(np.asarray(matrix, np.float64)[:3, :3])
-    R = u @ vt
-    if np.linalg.det(R) < 0:
-        R = u @ np.diag([1.0, 1.0, -1.0]) @ vt
-    return F @ R @ F
 
 
 def behind_the_lips(vertices: np.ndarray, names: np.ndarray) -> np.ndarray:
@@ -151,7 +135,7 @@ class HeadPose3D(SequenceStage):
                 raise StageError(
                     f"{self.name}: the pose's neutral_frame {frame} is outside the {len(matrix)} frames of 'landmarks'"
                 )
-            reference = reference_rotation(matrix[frame])
+            reference = landmarker_rotation(matrix[frame])
         target_2d = geometry.neutral  # the lifted neutral reprojects onto it exactly
         performer = inputs.get("performer")
         if performer is not None:

@@ -88,9 +88,19 @@ def _lower(ref, names):
     return (ref[:, 1] > 200) & ~np.isin(names, RIGID_POINTS)
 
 
-def _bundles(n_frames=6):
+def _mediapipe_matrix(R, scale=1.7):
+    """A facial transformation matrix ``(4, 4)`` in MediaPipe's axes (y up, z towards the viewer)
+    of a head rotation ``R`` in the pipeline's (y down, z away), scaled as MediaPipe's are."""
+    F = np.diag([1.0, -1.0, -1.0])
+    M = np.eye(4)
+    M[:3, :3] = scale * F @ R @ F
+    return M
+
+
+def _bundles(n_frames=6, landmarker_yaw_per_frame=3.0):
     """Points and landmarks bundles of a known head: frame k turned by 3k degrees of yaw; the
-    non-rigid points below y = 200 moved down by 2k px; frame 4 has no face."""
+    non-rigid points below y = 200 moved down by 2k px; frame 4 has no face. The landmarker's
+    matrices turn by ``landmarker_yaw_per_frame`` degrees a frame."""
     from stages.layout import load_layout
 
     names = np.array(load_layout("zhang134").point_names)
@@ -113,19 +123,26 @@ def _bundles(n_frames=6):
         "valid": face,
         "blendshapes": shapes,
         "blendshape_names": np.array(["_neutral", "jawOpen", "browInnerUp"]),
-        "matrix": np.repeat(np.eye(4)[None], n_frames, axis=0),
+        "matrix": np.stack(
+            [
+                _mediapipe_matrix(Rotation.from_euler("Y", landmarker_yaw_per_frame * k, degrees=True).as_matrix())
+                for k in range(n_frames)
+            ]
+        ),
     }
+    marks["matrix"][4] = np.eye(4)  # no face
     return points, marks, ref, names
 
 
-def test_stage_holds_frames_without_a_face_and_reports_the_reference():
+@pytest.mark.parametrize("pose_rotation", ["landmarker", "points"])
+def test_stage_holds_frames_without_a_face_and_reports_the_reference(pose_rotation):
     from runner.stage import Context
     from stages.geometry.rigid3d import CompensateRigid3D
 
     points, marks, ref, names = _bundles()
     stage = CompensateRigid3D()
     # random points, not a face: their "lips" are not closed (test_close_reference_lips_* below)
-    params = {p.name: p.default for p in stage.params} | {"neutral_frame": 0, "close_lips": False}
+    params = {p.name: p.default for p in stage.params} | {"neutral_frame": 0, "close_lips": False, "pose_rotation": pose_rotation}
     out = stage.run({"points": points, "landmarks": marks}, params, Context(device="cpu", files_dir=None))
     d = out["displacements"]
     assert int(d["neutral_frame"]) == 0 and d["held"].tolist() == [False] * 4 + [True, False]
@@ -134,6 +151,32 @@ def test_stage_holds_frames_without_a_face_and_reports_the_reference():
     lower = _lower(ref, names)
     np.testing.assert_allclose(d["d"][5][lower, 1], 10.0, atol=1e-6)
     np.testing.assert_allclose(out["pose"]["ypr_deg"][5], [15, 0, 0], atol=1e-6)
+
+
+def test_the_pose_takes_the_landmarkers_rotation_and_keeps_the_fitted_path_of_the_face():
+    """The landmarker reads half the turn the points show: the pose reports the landmarker's
+    rotation, the rigid points' centroid still goes where the points put it, and the
+    displacements (the expression) are those of the fit, whichever rotation the pose takes."""
+    from runner.stage import Context
+    from stages.geometry.rigid3d import RIGID_POINTS, CompensateRigid3D
+
+    points, marks, ref, names = _bundles(landmarker_yaw_per_frame=1.5)
+    stage = CompensateRigid3D()
+    base = {p.name: p.default for p in stage.params} | {"neutral_frame": 0, "close_lips": False}
+    ours = stage.run({"points": points, "landmarks": marks}, base, Context(device="cpu", files_dir=None))
+    fitted = stage.run(
+        {"points": points, "landmarks": marks}, base | {"pose_rotation": "points"}, Context(device="cpu", files_dir=None)
+    )
+    np.testing.assert_allclose(ours["pose"]["ypr_deg"][5], [7.5, 0, 0], atol=1e-6)
+    np.testing.assert_allclose(fitted["pose"]["ypr_deg"][5], [15, 0, 0], atol=1e-6)
+    rigid = np.isin(names, RIGID_POINTS)
+    centre = np.c_[points["xy"][0], points["z"][0]][rigid].mean(axis=0)
+    for out in (ours, fitted):
+        pose = out["pose"]
+        moved = pose["scale"][:, None] * np.einsum("tij,j->ti", pose["R"], centre) + pose["tvec"]
+        truth = np.c_[points["xy"][5], points["z"][5]][rigid].mean(axis=0)  # frame 5: a rigid turn of frame 0
+        np.testing.assert_allclose(moved[5], truth, atol=1e-6)
+    np.testing.assert_allclose(ours["displacements"]["d"], fitted["displacements"]["d"])
 
 
 def test_stage_refuses_points_without_depth():

@@ -7,7 +7,15 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from stages.geometry.rotation import rodrigues_vector, rotation_rodrigues, rotation_zyx, skew, ypr_yxz, ypr_zyx
+from stages.geometry.rotation import (
+    landmarker_rotation,
+    rodrigues_vector,
+    rotation_rodrigues,
+    rotation_zyx,
+    skew,
+    ypr_yxz,
+    ypr_zyx,
+)
 
 RNG = np.random.default_rng(11)
 
@@ -87,3 +95,23 @@ def test_ypr_yxz_is_the_angles_of_ry_yaw_rx_pitch_rz_roll():
 def test_the_two_angle_conventions_differ_once_pitch_and_roll_turn():
     ypr = np.array([0.0, 15.0, 20.0])  # Rz Rx (zyx) against Rx Rz (yxz)
     assert np.abs(ypr_yxz(rotation_zyx(ypr)[None])[0] - ypr).max() > 1.0
+
+
+def test_mediapipe_matrix_of_a_frontal_face_is_the_identity_and_a_turn_keeps_its_direction():
+    np.testing.assert_allclose(landmarker_rotation(np.diag([2.0, 2.0, 2.0, 1.0])), np.eye(3), atol=1e-12)
+    M = np.eye(4)
+    M[:3, :3] = Rotation.from_euler("y", 20, degrees=True).as_matrix()  # about the vertical axis in MediaPipe's y-up frame
+    nose_mp = M[:3, :3] @ np.array([0.0, 0.0, 1.0])  # MediaPipe: the nose points towards the camera (+z)
+    nose = landmarker_rotation(M) @ np.array([0.0, 0.0, -1.0])  # ours: towards the camera is -z
+    np.testing.assert_allclose(nose, nose_mp * np.array([1.0, -1.0, -1.0]), atol=1e-12)  # same image-x, flipped y/z axes
+    assert nose[0] > 0.3
+
+
+def test_landmarker_rotations_of_scaled_matrices_are_the_flipped_rotations_batched():
+    R = Rotation.from_euler("yxz", RNG.uniform(-40, 40, (6, 3)), degrees=True).as_matrix()
+    M = np.tile(np.eye(4), (6, 1, 1))
+    M[:, :3, :3] = RNG.uniform(0.5, 3.0, (6, 1, 1)) * R  # MediaPipe's matrices carry the face's scale
+    F = np.diag([1.0, -1.0, -1.0])
+    out = landmarker_rotation(M)
+    np.testing.assert_allclose(out, F @ R @ F, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(out), 1.0, atol=1e-12)

@@ -76,15 +76,3 @@ def test_reference_rotation_turns_the_mesh_but_not_the_pivot_path():
     np.testing.assert_allclose(R[0], Rref)
     moved = apply_head(PIVOT[None], R[0], t[0])[0]
     np.testing.assert_allclose(project(moved) - project(PIVOT), [6.0, 0.0], atol=1e-9)
-
-
-def test_mediapipe_matrix_of_a_frontal_face_is_the_identity_and_a_turn_keeps_its_direction():
-    from stages.render3d.stage import reference_rotation
-
-    np.testing.assert_allclose(reference_rotation(np.diag([2.0, 2.0, 2.0, 1.0])), np.eye(3), atol=1e-12)
-    M = np.eye(4)
-    M[:3, :3] = Rotation.from_euler("y", 20, degrees=True).as_matrix()  # about the vertical axis in MediaPipe's y-up frame
-    nose_mp = M[:3, :3] @ np.array([0.0, 0.0, 1.0])  # MediaPipe: the nose points towards the camera (+z)
-    nose = reference_rotation(M) @ np.array([0.0, 0.0, -1.0])  # ours: towards the camera is -z
-    np.testing.assert_allclose(nose, nose_mp * np.array([1.0, -1.0, -1.0]), atol=1e-12)  # same image-x, flipped y/z axes
-    assert nose[0] > 0.3
