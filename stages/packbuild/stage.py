@@ -171,6 +171,14 @@ class PackSelect(SequenceStage):
         Param("min_teeth_fraction", float, 0.1, "least share of light, grey pixels inside the inner lips", min=0.0, max=1.0),
         Param("compare_3d", bool, False, "compare expressions with the head rotation removed in 3D (the points' z)"),
         Param("layout", str, "zhang134", "layout name or YAML path", file=True),
+        Param(
+            "warn_turn_deg",
+            float,
+            10.0,
+            "warn when the neutral's head is turned (yaw or pitch) more than this, degrees",
+            min=0.0,
+            max=90.0,
+        ),
     )
 
     def _depth(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> np.ndarray | None:
@@ -215,12 +223,17 @@ class PackSelect(SequenceStage):
         for line in chosen.warnings:
             ctx.log.warning("%s: %s", self.name, line)
         shown = ", ".join(f"{state.replace('_', ' ')} f{frame}" for state, frame in chosen.states.items())
+        yaw, pitch, roll = _field(filt, "angles", stage=self.name, port="filter")[chosen.neutral]
         ctx.log.log(
             SUMMARY,
-            "%s: neutral frame %d, standard %d; %d examples (coverage radius %.2f px) seeded by the "
-            "states the footage shows: %s; %d teeth, %d captured (radius %.2f px)",
+            "%s: neutral frame %d (head yaw %+.0f, pitch %+.0f, roll %+.0f deg), standard %d; %d examples "
+            "(coverage radius %.2f px) seeded by the states the footage shows: %s; %d teeth, %d captured "
+            "(radius %.2f px)",
             self.name,
             chosen.neutral,
+            yaw,
+            pitch,
+            roll,
             chosen.standard,
             len(chosen.examples),
             chosen.example_radius_px,
@@ -229,6 +242,16 @@ class PackSelect(SequenceStage):
             len(chosen.captured),
             chosen.captured_radius_px,
         )
+        if max(abs(yaw), abs(pitch)) > params["warn_turn_deg"]:
+            ctx.log.warning(
+                "%s: the pack is built at a turned pose (yaw %+.0f, pitch %+.0f deg at the neutral frame %d): "
+                "its examples show the face turned, and a frontal performer's expressions are drawn on it "
+                "as it is turned",
+                self.name,
+                yaw,
+                pitch,
+                chosen.neutral,
+            )
         missing = [name for name in ("eye_l_shut", "eye_r_shut") if name not in chosen.states]
         if not (chosen.mouth_open[keep] < SEALED_GAP).any():
             missing.append("lips_sealed")

@@ -159,6 +159,31 @@ def test_pack_records_each_images_matte_frame_and_cut(built):
     assert load_pack(folder).neutral.matte is not None
 
 
+@pytest.mark.parametrize("turn", [0.0, 25.0])
+def test_the_summary_gives_the_neutrals_head_pose_and_a_turned_pack_is_warned(built, caplog, turn):
+    """The footage turned ``turn`` degrees more than the clip is: the same frames are chosen (they
+    are chosen relative to the neutral's pose), the summary names the neutral's angles as the
+    filter measured them, and a neutral turned beyond ``warn_turn_deg`` is warned."""
+    _, runner = built
+    filt = dict(runner.values[("filter", "filter")].get())
+    filt["angles"] = filt["angles"] + [turn, 0.0, 0.0]
+    inputs = {
+        "points": runner.values[("points", "points")].get(),
+        "landmarks": runner.values[("landmarks", "landmarks")].get(),
+        "filter": filt,
+    }
+    ctx = Context(device="cpu", files_dir=lambda port: None, log=logging.getLogger("test"))
+    with caplog.at_level(logging.INFO, logger="test"):
+        chosen = PackSelect().run(inputs, {"pose_deg": 30.0}, ctx)["selection"]
+    neutral = int(chosen["neutral"])
+    assert neutral == int(runner.values[("select", "selection")].get()["neutral"])
+    yaw, pitch, roll = filt["angles"][neutral]
+    assert f"neutral frame {neutral} (head yaw {yaw:+.0f}, pitch {pitch:+.0f}, roll {roll:+.0f} deg)" in caplog.text
+    turned = [r.getMessage() for r in caplog.records if "built at a turned pose" in r.getMessage()]
+    assert len(turned) == (1 if max(abs(yaw), abs(pitch)) > 10.0 else 0)
+    assert turn == 0.0 or turned  # 25 degrees beyond the clip's own turn is always warned
+
+
 def _write(built, tmp_path, caplog, **params):
     _, runner = built
     inputs = {
