@@ -41,6 +41,8 @@ from runner.stage import StageError
 MANIFEST = "manifest.json"
 MARKER = ".runner-publish.json"  # in a temporary or replaced folder: the run of this tool that made it
 TOOL = "expression-mapping runner"
+# The project's own folders (beside ``runner/``): an --out there would mix outputs with its files.
+PROJECT_FOLDERS = ("runner", "stages", "editor", "lab", "scripts", "tests", "fixtures", "docs", "benchmarks")
 _LEFTOVER = re.compile(r"^\.(?P<stage>[A-Za-z0-9_-]+)\.(?P<pid>\d+)\.(tmp|old)$")
 
 
@@ -73,6 +75,25 @@ def conflicts(out: Path, stages: Iterable[str]) -> list[str]:
                 "(move it away or choose another --out)"
             )
     return problems
+
+
+def refused(out: Path) -> str | None:
+    """Why ``out`` may not be an ``--out`` at all, or None: a filesystem root, the home folder,
+    the project's folder or one of its own folders (:data:`PROJECT_FOLDERS`, and anything in
+    them), where the stage folders would land among the system's or the project's files."""
+    where = Path(out).expanduser().resolve()
+    project = Path(__file__).resolve().parents[1]
+    if where == Path(where.anchor):
+        what = "the filesystem root"
+    elif where == Path.home().resolve():
+        what = "the home folder"
+    elif where == project:
+        what = "the project's folder"
+    elif any(where.is_relative_to(project / name) for name in PROJECT_FOLDERS):
+        what = "inside the project's own folders"
+    else:
+        return None
+    return f"is {what}: a run writes one folder per stage there (choose a folder of its own)"
 
 
 def unwritable(out: Path) -> str | None:

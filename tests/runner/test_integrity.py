@@ -428,6 +428,29 @@ def test_out_that_cannot_be_written_is_refused_before_anything_runs(tmp_path):
     assert list(CacheStore(tmp_path / "cache").iter_entries()) == []
 
 
+@pytest.mark.parametrize("where", ["root", "home", "project", "project folder"])
+def test_out_at_a_root_the_home_folder_or_the_project_is_refused(tmp_path, monkeypatch, where):
+    """--out /, the home folder itself and the project's own folders are refused before
+    anything runs, and nothing is written there."""
+    home = tmp_path / "home"
+    home.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    repo = Path(publish.__file__).resolve().parents[1]
+    out = {"root": Path("/"), "home": home, "project": repo, "project folder": repo / "fixtures" / "x"}[where]
+    before = sorted(p.name for p in out.iterdir()) if out.exists() else None
+    with pytest.raises(ConfigError) as info:
+        run(tmp_path, out=out)
+    [issue] = info.value.issues
+    assert str(issue).startswith(f"--out: {out}: is ") and "choose a folder of its own" in str(issue)
+    assert (sorted(p.name for p in out.iterdir()) if out.exists() else None) == before
+    assert list(CacheStore(tmp_path / "cache").iter_entries()) == []
+
+
+def test_out_beside_the_project_folders_is_accepted(tmp_path):
+    assert publish.refused(tmp_path / "out") is None
+    assert publish.refused(Path(publish.__file__).resolve().parents[1] / "out") is None
+
+
 def test_disk_full_while_publishing_names_the_destination_and_cleans_up(tmp_path, monkeypatch):
     """A full --out disk while a file is copied: the error names the file written under --out,
     and no temporary folder is left there."""
