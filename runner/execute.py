@@ -166,6 +166,7 @@ class Runner:
             A stage failed, or writing the cache or ``--out`` failed (disk full: the message
             names the stage and the file).
         """
+        self.store.keep_library_files()
         with notes.showing():  # each distinct warning line once on stderr
             try:
                 return self._run()

@@ -402,3 +402,17 @@ def test_warnings_are_one_line_each_once_and_given_again_by_a_cached_run(env, tm
         events = read_log(tmp_path / f"{run}.jsonl")
         assert stage_status(events)["mean"] == ("ran" if run == "first" else "cached")
         assert [e["stage"] for e in events if e["event"] == "offload"] == (["mean"] if run == "first" else [])
+
+
+@pytest.mark.subprocess
+def test_a_run_writes_nothing_under_the_home_folder(env, tmp_path):
+    """matplotlib keeps its font cache and configuration in the tool's cache, not under $HOME."""
+    home = tmp_path / "home"
+    home.mkdir()
+    env = {k: v for k, v in env.items() if k not in ("MPLCONFIGDIR", "XDG_CACHE_HOME", "XDG_CONFIG_HOME")} | {"HOME": str(home)}
+    (tmp_path / "plot.yaml").write_text("stages:\n  plot: {uses: test.plot}\n")
+    result = run_cli("run", tmp_path / "plot.yaml", "--out", tmp_path / "out", env=env, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert (tmp_path / "out" / "plot" / "plot.png").stat().st_size > 0
+    assert list(home.iterdir()) == []
+    assert any((tmp_path / "cache" / "libraries" / "matplotlib").glob("fontlist-*.json"))
