@@ -292,7 +292,7 @@ def stages() -> int:
             allowed = f" one of {', '.join(map(repr, p.choices))};" if p.choices else ""
             if p.min is not None or p.max is not None:
                 allowed += f" {'' if p.min is None else f'{p.min} <= '}{p.name}{'' if p.max is None else f' <= {p.max}'};"
-            click.echo(f"    param {p.name}: {p.type.__name__} = {p.default!r} —{allowed} {p.help}")
+            click.echo(f"    param {p.name}: {p.type_name} = {p.default!r} —{allowed} {p.help}")
     return EXIT_OK
 
 

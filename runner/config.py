@@ -40,8 +40,8 @@ import yaml
 from runner import safe_yaml
 from runner.bundle import PortType, accepts, describe
 from runner.dag import CycleError, topological_order
-from runner.registry import Registry, RegistryError, value_has_type
-from runner.stage import FrameStage, Param, Stage
+from runner.registry import Registry, RegistryError
+from runner.stage import FrameStage, Param, Stage, value_has_type
 
 DEFAULT_CHUNK_FRAMES = 16
 INPUT_TYPES = ("video", "file", "dir")

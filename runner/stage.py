@@ -56,6 +56,7 @@ records the file's digest with the entry and recomputes the entry when the file 
 
 from __future__ import annotations
 
+import builtins
 import logging
 import math
 from dataclasses import dataclass, field
@@ -71,12 +72,23 @@ RUNNER_TYPES = ("video", "file", "dir", "frames", "files")
 THREADING = ("reentrant", "single")  # the values of Stage.threading
 
 
+def value_has_type(value: object, expected: type) -> bool:
+    """True if ``value`` is acceptable for a parameter of type ``expected`` (ints pass as floats;
+    bools never pass as numbers)."""
+    if isinstance(value, bool):
+        return expected is bool
+    if expected is float:
+        return isinstance(value, (int, float))
+    return isinstance(value, expected)
+
+
 @dataclass(frozen=True)
 class Param:
     """One declared parameter: name, Python type (int, float, str, bool, list), default, help.
 
-    Allowed values: ``choices`` (the value must be one of them) and, for ``int`` and ``float``,
-    the closed range ``[min, max]`` (either bound may be None). The pipeline loader checks them
+    Allowed values: ``choices`` (the value must be one of them), for ``int`` and ``float`` the
+    closed range ``[min, max]`` (either bound may be None), and for a ``list`` of names
+    ``items``: the type every item must have, each item given once. The pipeline loader checks them
     (and ``--set`` values) when the graph is loaded, so ``run``/``process`` never see a value
     outside them.
 
@@ -95,9 +107,17 @@ class Param:
     in_key: bool = True
     min: float | None = None
     max: float | None = None
+    items: builtins.type | None = None
+
+    @property
+    def type_name(self) -> str:
+        """The declared type as ``runner stages`` shows it: ``float``, ``list of str``."""
+        return self.type.__name__ + ("" if self.items is None else f" of {self.items.__name__}")
 
     def problem(self, value: Any) -> str | None:
         """Why ``value`` (already of the declared type) is not allowed, or None."""
+        if isinstance(value, list) and self.items is not None:
+            return self._items_problem(value, self.items)
         if self.choices is not None and value not in self.choices:
             return f"wrong value: expected one of {', '.join(map(repr, self.choices))}, got {value!r}"
         if isinstance(value, float) and not math.isfinite(value):
@@ -107,6 +127,15 @@ class Param:
             low = "" if self.min is None else f"{self.min!r} <= "
             high = "" if self.max is None else f" <= {self.max!r}"
             return f"out of range: expected {low}{self.name}{high}, got {value!r}"
+        return None
+
+    def _items_problem(self, value: list[Any], kind: builtins.type) -> str | None:
+        """Why list ``value`` has an item that is not of type ``kind``, or one given twice."""
+        for index, item in enumerate(value):
+            if not value_has_type(item, kind):
+                return f"wrong type: expected a list of {kind.__name__}, got item {index} {item!r}"
+            if item in value[:index]:
+                return f"wrong value: {item!r} is given twice"
         return None
 
 

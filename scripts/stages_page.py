@@ -86,7 +86,7 @@ def entry(cls: type[Stage], used_by: list[str]) -> list[str]:
         lines += ["| port | name | type |", "|---|---|---|"] + [f"| {d} | `{n}` | {k} |" for d, n, k in ports] + [""]
     if cls.params:
         lines += ["| parameter | type | default | allowed | what |", "|---|---|---|---|---|"]
-        lines += [f"| `{p.name}` | {p.type.__name__} | `{p.default!r}` | {allowed(p)} | {cell(p.help)} |" for p in cls.params]
+        lines += [f"| `{p.name}` | {p.type_name} | `{p.default!r}` | {allowed(p)} | {cell(p.help)} |" for p in cls.params]
         lines.append("")
     return lines
 

@@ -4,10 +4,13 @@ the graph is loaded, exit 2, before anything runs."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from runner.config import ConfigError, load_pipeline
 from runner.registry import Registry
+from runner.stage import StageError
+from stages.geometry.subset import param_columns
 from tests.runner.helpers import REPO, run_cli
 
 REGISTRY = Registry.from_entry_points()
@@ -42,6 +45,34 @@ def test_a_size_beyond_its_maximum_is_refused_before_anything_runs(pipeline, ove
     with pytest.raises(ConfigError) as info:
         load_pipeline(REPO / pipeline, REGISTRY, overrides=[override])
     assert [str(issue) for issue in info.value.issues] == [f"--set: {override.split('=')[0]}: {message}"]
+
+
+def test_every_list_parameter_declares_its_item_type():
+    lists = [(stage, p) for stage in REGISTRY.names() for p in REGISTRY.get(stage).params if p.type is list]
+    assert len(lists) >= 2 and [f"{stage}.{p.name}" for stage, p in lists if p.items is None] == []
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("compensate.rigid_points=[[a]]", "wrong type: expected a list of str, got item 0 ['a']"),
+        ("compensate.rigid_points=[{a: 1}]", "wrong type: expected a list of str, got item 0 {'a': 1}"),
+        ("compensate.rigid_points=[eye_l_0, 3]", "wrong type: expected a list of str, got item 1 3"),
+        ("compensate.rigid_points=[eye_l_0, eye_l_0, eye_l_0]", "wrong value: 'eye_l_0' is given twice"),
+    ],
+)
+def test_list_items_of_the_wrong_type_or_given_twice_are_refused_at_load(override, message):
+    with pytest.raises(ConfigError) as info:
+        load_pipeline(REPO / "pipeline.yaml", REGISTRY, overrides=[override])
+    assert [str(issue) for issue in info.value.issues] == [f"--set: {override.split('=')[0]}: {message}"]
+
+
+def test_a_point_name_the_layout_does_not_have_fails_naming_the_parameter():
+    names = np.array(["eye_l_0", "eye_r_0", "nose_tip"])
+    assert param_columns(names, ["nose_tip", "eye_l_0"], stage="compensate", param="rigid_points").tolist() == [2, 0]
+    with pytest.raises(StageError) as info:
+        param_columns(names, ["eye_l_0", "nose"], stage="compensate", param="rigid_points")
+    assert str(info.value) == "compensate: parameter rigid_points names ['nose'] that are not tracked points of the layout"
 
 
 @pytest.mark.subprocess
