@@ -29,6 +29,7 @@ position in the file that wrote it (:func:`_overlay`; docs/runner.md, "extends:"
 
 from __future__ import annotations
 
+import os
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -40,6 +41,7 @@ import yaml
 from runner import safe_yaml
 from runner.bundle import PortType, accepts, describe
 from runner.dag import CycleError, topological_order
+from runner.files import kind_problem
 from runner.registry import Registry, RegistryError
 from runner.stage import FrameStage, Param, Stage, value_has_type
 
@@ -405,8 +407,14 @@ def _read_stages(r: _Reader, node: yaml.Node, registry: Registry, inputs: dict[s
 
 
 def _param_problem(param: Param, value: Any) -> str | None:
+    """Why ``value`` is not allowed for ``param``: its type, its declared values, or, for a
+    ``file=True`` parameter naming an existing path, that path not being a regular file."""
     if not value_has_type(value, param.type):
         return f"wrong type: expected {param.type.__name__}, got {type(value).__name__} {value!r}"
+    if param.file and isinstance(value, str) and os.path.lexists(value):
+        problem = kind_problem(value)
+        if problem:
+            return f"wrong value: {value}: {problem}"
     return param.problem(value)
 
 
@@ -503,6 +511,22 @@ def clip_inputs(pipeline: Pipeline) -> list[str]:
     return []
 
 
+def _input_problem(kind: PortType, path: Path) -> tuple[str, str] | None:
+    """Why ``path`` cannot be a pipeline input of type ``kind`` (``video`` and ``file``: a
+    regular file; ``dir``: a folder), as ``(what, why)``: ``("missing input", "no such
+    file")``, ``("wrong input", "a FIFO (named pipe), not a regular file")``; None if it can."""
+    if kind == "dir":
+        if path.is_dir():
+            return None
+        if not path.exists():
+            return "missing input", "no such folder"
+        return "wrong input", "a file, not a folder" if path.is_file() else (kind_problem(path) or "not a folder")
+    problem = kind_problem(path)
+    if problem is None:
+        return None
+    return ("missing input" if problem == "no such file" else "wrong input"), problem
+
+
 def bind_inputs(pipeline: Pipeline, *, clip: Path | None, named: list[str]) -> dict[str, Path]:
     """Paths for every pipeline input: ``--in`` for the clip input (:func:`clip_inputs`),
     ``--input NAME=PATH`` for any, else the declared default. Raises :class:`ConfigError` naming
@@ -539,11 +563,10 @@ def bind_inputs(pipeline: Pipeline, *, clip: Path | None, named: list[str]) -> d
         flag = "--in" if clip_names == [decl.name] else f"--input {decl.name}=PATH"
         if path is None:
             issues.append(Issue(decl.where, f"inputs.{decl.name}", f"missing input: no value given (use {flag})"))
-        elif decl.type in ("video", "file") and not path.is_file():
-            found = "a folder, not a file" if path.is_dir() else "no such file"
-            issues.append(Issue(decl.where, f"inputs.{decl.name}", f"missing input: {path}: {found}"))
-        elif decl.type == "dir" and not path.is_dir():
-            issues.append(Issue(decl.where, f"inputs.{decl.name}", f"missing input: {path}: no such folder"))
+        else:
+            problem = _input_problem(decl.type, path)
+            if problem:
+                issues.append(Issue(decl.where, f"inputs.{decl.name}", f"{problem[0]}: {path}: {problem[1]}"))
     if issues:
         raise ConfigError(issues)
     return cast("dict[str, Path]", values)  # a missing value is an issue above

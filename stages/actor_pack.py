@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from runner.files import kind_problem
 from runner.stage import StageError
 from stages.image_header import ImageTooLarge, image_size
 from stages.layout import Layout, load_layout, read_yaml
@@ -48,6 +49,7 @@ MAX_PACK_PIXELS = 4096 * 4096  # image_size W x H (a pack holds ~20 images of th
 MAX_EXAMPLES = 64  # example expressions (the paper: 10-15)
 MAX_TEETH_EXAMPLES = 16
 MAX_CAPTURED = 256  # captured geometries (the paper: 30-40)
+MAX_FILE_BYTES = 256 << 20  # any one file of a pack (a 4096x4096 RGB PNG is under 50 MB)
 
 
 class PackError(StageError):
@@ -132,8 +134,13 @@ class _PackReader:
         path = self.root / value
         if Path(value).is_absolute() or not path.resolve().is_relative_to(self.root.resolve()):
             raise self.fail(self.manifest, field, f"{value!r} is outside the pack folder {self.root}")
-        if not path.is_file():
+        problem = kind_problem(path)
+        if problem == "no such file":
             raise self.fail(self.manifest, field, f"file not found: {path}")
+        if problem:
+            raise self.fail(self.manifest, field, f"{path}: {problem}")
+        if path.stat().st_size > MAX_FILE_BYTES:
+            raise self.fail(self.manifest, field, f"{path}: larger than the {MAX_FILE_BYTES} bytes a pack file may have")
         return path
 
     def read(self) -> ActorPack:

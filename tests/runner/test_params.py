@@ -89,3 +89,11 @@ def test_the_command_exits_2_on_select_width_20000(tmp_path, env):
         cwd=tmp_path,
     )
     assert done.returncode == 2 and "select.width: out of range" in done.stderr and "select.height" in done.stderr
+
+
+def test_a_file_parameter_naming_a_device_is_refused_at_load():
+    with pytest.raises(ConfigError) as info:
+        load_pipeline(REPO / "pipeline.yaml", REGISTRY, overrides=["points.layout=/dev/zero"])
+    assert [str(i) for i in info.value.issues] == [
+        "--set: points.layout: wrong value: /dev/zero: a character device, not a regular file"
+    ]
