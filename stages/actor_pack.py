@@ -304,19 +304,25 @@ class _PackReader:
             x, y = flat[k]
             raise self.fail(path, field, f"point {name!r} at ({x:.1f}, {y:.1f}) is outside the {w}x{h} image")
 
-    def image(self, path: Path, field: str) -> np.ndarray:
-        import cv2
-
+    def check_header(self, path: Path, field: str, what: str) -> None:
+        """Refuse image file ``path`` unless its header declares the manifest's ``image_size``
+        (at most :data:`MAX_PACK_PIXELS`) and its PNG chunks are whole: checked before it is
+        decoded, as decoding allocates whatever size the header declares."""
         try:
             header = image_size(path, max_pixels=MAX_PACK_PIXELS, verify=True)
         except ImageTooLarge as exc:
-            raise self.fail(path, field, f"image is {exc}") from None
+            raise self.fail(path, field, f"{what} is {exc}") from None
         if header is None:
             raise self.fail(path, field, "cannot read image (not a PNG, JPEG, TIFF or WebP file)")
         if header != self.size:
             raise self.fail(
-                path, field, f"image is {header[0]}x{header[1]}, the manifest's image_size is {self.size[0]}x{self.size[1]}"
+                path, field, f"{what} is {header[0]}x{header[1]}, the manifest's image_size is {self.size[0]}x{self.size[1]}"
             )
+
+    def image(self, path: Path, field: str) -> np.ndarray:
+        import cv2
+
+        self.check_header(path, field, "image")
         img = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if img is None:
             raise self.fail(path, field, "cannot read image")
@@ -340,6 +346,7 @@ class _PackReader:
     def matte(self, path: Path, field: str) -> np.ndarray:
         import cv2
 
+        self.check_header(path, field, "matte")
         matte = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if matte is None:
             raise self.fail(path, field, "cannot read image")
