@@ -43,7 +43,7 @@ from runner.bundle import PortType, accepts, describe
 from runner.dag import CycleError, topological_order
 from runner.files import kind_problem
 from runner.registry import Registry, RegistryError
-from runner.stage import FrameStage, Param, Stage, value_has_type
+from runner.stage import FrameStage, Param, Stage, shown, value_has_type
 
 DEFAULT_CHUNK_FRAMES = 16
 INPUT_TYPES = ("video", "file", "dir")
@@ -206,7 +206,7 @@ def load_pipeline(path: Path, registry: Registry, *, overrides: Sequence[str] = 
         node = top["chunk_frames"][1]
         value = r.value(node)
         if not (value_has_type(value, int) and value > 0):
-            r.error(node, "chunk_frames", f"wrong type: expected a positive int, got {value!r}")
+            r.error(node, "chunk_frames", f"wrong type: expected a positive int, got {shown(value)}")
         else:
             chunk_frames = value
 
@@ -255,7 +255,7 @@ def _read_inputs(r: _Reader, node: yaml.Node | None) -> dict[str, PipelineInput]
         if "default" in fields:
             value = r.value(fields["default"][1])
             if not isinstance(value, str):
-                r.error(fields["default"][1], f"{key}.default", f"wrong type: expected a path string, got {value!r}")
+                r.error(fields["default"][1], f"{key}.default", f"wrong type: expected a path string, got {shown(value)}")
                 continue
             base = Path(fields["default"][1].start_mark.name).parent  # the folder of the file that wrote it
             default = (base / value) if not Path(value).is_absolute() else Path(value)
@@ -302,7 +302,7 @@ def _resolve_extends(r: _Reader, root: yaml.Node, path: Path, chain: list[Path])
     rest = yaml.MappingNode(root.tag, [e for e in root.value if e is not named[0]], start_mark=root.start_mark)
     value = r.value(vnode)
     if not isinstance(value, str) or not value:
-        r.error(vnode, "extends", f"wrong type: expected the path of a pipeline file, got {value!r}")
+        r.error(vnode, "extends", f"wrong type: expected the path of a pipeline file, got {shown(value)}")
         raise ConfigError(r.issues)
     base_path = Path(value) if Path(value).is_absolute() else path.parent / value
     if base_path.resolve() in chain:
@@ -410,11 +410,11 @@ def _param_problem(param: Param, value: Any) -> str | None:
     """Why ``value`` is not allowed for ``param``: its type, its declared values, or, for a
     ``file=True`` parameter naming an existing path, that path not being a regular file."""
     if not value_has_type(value, param.type):
-        return f"wrong type: expected {param.type.__name__}, got {type(value).__name__} {value!r}"
+        return f"wrong type: expected {param.type.__name__}, got {type(value).__name__} {shown(value)}"
     if param.file and isinstance(value, str) and os.path.lexists(value):
         problem = kind_problem(value)
         if problem:
-            return f"wrong value: {value}: {problem}"
+            return f"wrong value: {shown(value)}: {problem}"
     return param.problem(value)
 
 
@@ -454,7 +454,7 @@ def _apply_overrides(r: _Reader, stages: dict[str, StageNode], overrides: Sequen
         try:
             value = _parse_typed(raw, schema[pname].type)
         except (ValueError, yaml.YAMLError):
-            r.error(where, target, f"wrong type: expected {schema[pname].type.__name__}, got {raw!r}")
+            r.error(where, target, f"wrong type: expected {schema[pname].type.__name__}, got {shown(raw)}")
             continue
         problem = _param_problem(schema[pname], value)
         if problem:

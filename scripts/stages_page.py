@@ -59,6 +59,8 @@ def allowed(p: Param) -> str:
     """The values ``p`` takes beyond its type: its choices or its range."""
     if p.choices:
         return "one of " + ", ".join(f"`{c!r}`" for c in p.choices)
+    if p.pattern:
+        return f"matching `{p.pattern}`"
     if p.min is not None or p.max is not None:
         low = "" if p.min is None else f"{p.min!r} ≤ "
         high = "" if p.max is None else f" ≤ {p.max!r}"

@@ -49,7 +49,7 @@ def test_every_numeric_parameter_has_a_minimum_and_a_maximum():
         ("pipeline.yaml", "compensate.rigid_points=[{a: 1}]", "wrong type: expected a list of str, got item 0 {'a': 1}"),
         ("pipeline.yaml", "compensate.rigid_points=[eye_l_0, 3]", "wrong type: expected a list of str, got item 1 3"),
         ("pipeline.yaml", "compensate.rigid_points=[eye_l_0, eye_l_0, eye_l_0]", "wrong value: 'eye_l_0' is given twice"),
-        ("pipeline.yaml", "points.layout=/dev/zero", "wrong value: /dev/zero: a character device, not a regular file"),
+        ("pipeline.yaml", "points.layout=/dev/zero", "wrong value: '/dev/zero': a character device, not a regular file"),
     ],
 )
 def test_a_value_outside_what_a_parameter_declares_is_refused_before_anything_runs(pipeline, override, message):
