@@ -155,7 +155,15 @@ class CacheStore:
         self.tmp_dir = self.root / "tmp"
         self.locks_dir = self.root / "locks"
         self.published_dir = self.root / "published"  # stat records of files published to --out (runner.publish)
+        self.libraries_dir = self.root / "libraries"  # files the libraries the stages call keep (keep_library_files)
         self._me = {"pid": os.getpid(), "host": socket.gethostname(), "started": _process_start(os.getpid())}
+
+    def keep_library_files(self) -> None:
+        """Point the libraries that keep files of their own under ``$HOME`` at
+        :attr:`libraries_dir`, so that a run writes only under ``--out`` and its cache:
+        matplotlib's font cache and configuration (``MPLCONFIGDIR``, read when matplotlib is
+        first imported). A folder the user set is kept."""
+        os.environ.setdefault("MPLCONFIGDIR", str((self.libraries_dir / "matplotlib").resolve()))
 
     # -- entries ---------------------------------------------------------------------------
 

@@ -22,7 +22,7 @@ from runner.cache import DEFAULT_DIR, ENV_VAR, CacheStore, default_cache_dir, ho
 from runner.config import ConfigError, Issue, Where, bind_inputs, load_pipeline
 from runner.dag import to_dot, to_mermaid
 from runner.errors import StageFailed
-from runner.notes import one_line_warnings
+from runner.notes import bounded, one_line_warnings
 from runner.registry import Registry, RegistryError
 from runner.signals import EXIT_INTERRUPTED, EXIT_OK, EXIT_STAGE, EXIT_USAGE, INTERRUPTED, exit_now
 from runner.stage import FrameStage
@@ -290,9 +290,10 @@ def stages() -> int:
             click.echo(f"    out  {port}: {kind}")
         for p in cls.params:
             allowed = f" one of {', '.join(map(repr, p.choices))};" if p.choices else ""
+            allowed += f" matching {p.pattern};" if p.pattern else ""
             if p.min is not None or p.max is not None:
                 allowed += f" {'' if p.min is None else f'{p.min} <= '}{p.name}{'' if p.max is None else f' <= {p.max}'};"
-            click.echo(f"    param {p.name}: {p.type.__name__} = {p.default!r} —{allowed} {p.help}")
+            click.echo(f"    param {p.name}: {p.type_name} = {p.default!r} —{allowed} {p.help}")
     return EXIT_OK
 
 
@@ -379,13 +380,13 @@ def main(argv: list[str] | None = None) -> None:
         code = exc.exit_code
     except ConfigError as exc:
         for issue in exc.issues:
-            click.echo(f"error: {issue}", err=True)
+            click.echo(f"error: {bounded(str(issue))}", err=True)
         code = EXIT_USAGE
     except RegistryError as exc:
-        click.echo(f"error: {exc}", err=True)
+        click.echo(f"error: {bounded(str(exc))}", err=True)
         code = EXIT_USAGE
     except StageFailed as exc:
-        click.echo(f"error: {exc}", err=True)
+        click.echo(f"error: {bounded(str(exc))}", err=True)
         code = EXIT_STAGE
     except (KeyboardInterrupt, click.Abort) as exc:
         if isinstance(exc.__cause__, EOFError) and not INTERRUPTED.is_set():
@@ -394,7 +395,7 @@ def main(argv: list[str] | None = None) -> None:
         code = EXIT_INTERRUPTED
     except OSError as exc:  # an unusable --cache-dir, --out or --log-json path
         where = f"{exc.filename}: " if exc.filename else ""
-        click.echo(f"error: {where}{exc.strerror or exc}", err=True)
+        click.echo(f"error: {bounded(f'{where}{exc.strerror or exc}')}", err=True)
         code = EXIT_USAGE
     if argv is None:
         exit_now(code or 0)

@@ -29,6 +29,7 @@ position in the file that wrote it (:func:`_overlay`; docs/runner.md, "extends:"
 
 from __future__ import annotations
 
+import os
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -40,8 +41,9 @@ import yaml
 from runner import safe_yaml
 from runner.bundle import PortType, accepts, describe
 from runner.dag import CycleError, topological_order
-from runner.registry import Registry, RegistryError, value_has_type
-from runner.stage import FrameStage, Param, Stage
+from runner.files import kind_problem
+from runner.registry import Registry, RegistryError
+from runner.stage import FrameStage, Param, Stage, shown, value_has_type
 
 DEFAULT_CHUNK_FRAMES = 16
 INPUT_TYPES = ("video", "file", "dir")
@@ -204,7 +206,7 @@ def load_pipeline(path: Path, registry: Registry, *, overrides: Sequence[str] = 
         node = top["chunk_frames"][1]
         value = r.value(node)
         if not (value_has_type(value, int) and value > 0):
-            r.error(node, "chunk_frames", f"wrong type: expected a positive int, got {value!r}")
+            r.error(node, "chunk_frames", f"wrong type: expected a positive int, got {shown(value)}")
         else:
             chunk_frames = value
 
@@ -253,7 +255,7 @@ def _read_inputs(r: _Reader, node: yaml.Node | None) -> dict[str, PipelineInput]
         if "default" in fields:
             value = r.value(fields["default"][1])
             if not isinstance(value, str):
-                r.error(fields["default"][1], f"{key}.default", f"wrong type: expected a path string, got {value!r}")
+                r.error(fields["default"][1], f"{key}.default", f"wrong type: expected a path string, got {shown(value)}")
                 continue
             base = Path(fields["default"][1].start_mark.name).parent  # the folder of the file that wrote it
             default = (base / value) if not Path(value).is_absolute() else Path(value)
@@ -300,7 +302,7 @@ def _resolve_extends(r: _Reader, root: yaml.Node, path: Path, chain: list[Path])
     rest = yaml.MappingNode(root.tag, [e for e in root.value if e is not named[0]], start_mark=root.start_mark)
     value = r.value(vnode)
     if not isinstance(value, str) or not value:
-        r.error(vnode, "extends", f"wrong type: expected the path of a pipeline file, got {value!r}")
+        r.error(vnode, "extends", f"wrong type: expected the path of a pipeline file, got {shown(value)}")
         raise ConfigError(r.issues)
     base_path = Path(value) if Path(value).is_absolute() else path.parent / value
     if base_path.resolve() in chain:
@@ -405,8 +407,14 @@ def _read_stages(r: _Reader, node: yaml.Node, registry: Registry, inputs: dict[s
 
 
 def _param_problem(param: Param, value: Any) -> str | None:
+    """Why ``value`` is not allowed for ``param``: its type, its declared values, or, for a
+    ``file=True`` parameter naming an existing path, that path not being a regular file."""
     if not value_has_type(value, param.type):
-        return f"wrong type: expected {param.type.__name__}, got {type(value).__name__} {value!r}"
+        return f"wrong type: expected {param.type.__name__}, got {type(value).__name__} {shown(value)}"
+    if param.file and isinstance(value, str) and os.path.lexists(value):
+        problem = kind_problem(value)
+        if problem:
+            return f"wrong value: {shown(value)}: {problem}"
     return param.problem(value)
 
 
@@ -446,7 +454,7 @@ def _apply_overrides(r: _Reader, stages: dict[str, StageNode], overrides: Sequen
         try:
             value = _parse_typed(raw, schema[pname].type)
         except (ValueError, yaml.YAMLError):
-            r.error(where, target, f"wrong type: expected {schema[pname].type.__name__}, got {raw!r}")
+            r.error(where, target, f"wrong type: expected {schema[pname].type.__name__}, got {shown(raw)}")
             continue
         problem = _param_problem(schema[pname], value)
         if problem:
@@ -503,6 +511,22 @@ def clip_inputs(pipeline: Pipeline) -> list[str]:
     return []
 
 
+def _input_problem(kind: PortType, path: Path) -> tuple[str, str] | None:
+    """Why ``path`` cannot be a pipeline input of type ``kind`` (``video`` and ``file``: a
+    regular file; ``dir``: a folder), as ``(what, why)``: ``("missing input", "no such
+    file")``, ``("wrong input", "a FIFO (named pipe), not a regular file")``; None if it can."""
+    if kind == "dir":
+        if path.is_dir():
+            return None
+        if not path.exists():
+            return "missing input", "no such folder"
+        return "wrong input", "a file, not a folder" if path.is_file() else (kind_problem(path) or "not a folder")
+    problem = kind_problem(path)
+    if problem is None:
+        return None
+    return ("missing input" if problem == "no such file" else "wrong input"), problem
+
+
 def bind_inputs(pipeline: Pipeline, *, clip: Path | None, named: list[str]) -> dict[str, Path]:
     """Paths for every pipeline input: ``--in`` for the clip input (:func:`clip_inputs`),
     ``--input NAME=PATH`` for any, else the declared default. Raises :class:`ConfigError` naming
@@ -539,11 +563,10 @@ def bind_inputs(pipeline: Pipeline, *, clip: Path | None, named: list[str]) -> d
         flag = "--in" if clip_names == [decl.name] else f"--input {decl.name}=PATH"
         if path is None:
             issues.append(Issue(decl.where, f"inputs.{decl.name}", f"missing input: no value given (use {flag})"))
-        elif decl.type in ("video", "file") and not path.is_file():
-            found = "a folder, not a file" if path.is_dir() else "no such file"
-            issues.append(Issue(decl.where, f"inputs.{decl.name}", f"missing input: {path}: {found}"))
-        elif decl.type == "dir" and not path.is_dir():
-            issues.append(Issue(decl.where, f"inputs.{decl.name}", f"missing input: {path}: no such folder"))
+        else:
+            problem = _input_problem(decl.type, path)
+            if problem:
+                issues.append(Issue(decl.where, f"inputs.{decl.name}", f"{problem[0]}: {path}: {problem[1]}"))
     if issues:
         raise ConfigError(issues)
     return cast("dict[str, Path]", values)  # a missing value is an issue above

@@ -19,6 +19,8 @@ from typing import Any
 
 import numpy as np
 
+from runner.files import open_regular
+
 # Distributions whose version can change a stage's numbers. The OpenCV wheel goes by several
 # distribution names; whichever are installed are recorded.
 RESULT_LIBRARIES = (
@@ -75,9 +77,10 @@ def bundle_digest(bundle: Mapping[str, np.ndarray]) -> str:
 
 
 def file_digest(path: Path) -> str:
-    """sha256 of a file's bytes."""
+    """sha256 of a regular file's bytes (:func:`runner.files.open_regular`: a FIFO or a device
+    is an :class:`OSError`, never read)."""
     h = hashlib.sha256()
-    with open(path, "rb") as f:
+    with open_regular(path) as f:
         while block := f.read(_BLOCK):
             h.update(block)
     return h.hexdigest()

@@ -63,7 +63,7 @@ from runner.lifecycle import Lifecycle
 from runner.outputs import entry_context, load_bundle, read_or_redo, save_outputs, verify_files
 from runner.plan import selected
 from runner.progress import Progress, Report
-from runner.publish import Published, conflicts, publish, remove_leftovers, unwritable
+from runner.publish import Published, conflicts, publish, refused, remove_leftovers, unwritable
 from runner.schedule import StreamingSchedule
 from runner.stage import FrameStage, StageError, StreamInfo, defines_stream_info
 from runner.timing import own_time
@@ -159,12 +159,14 @@ class Runner:
         Raises
         ------
         ConfigError
-            ``--out`` cannot be written, or holds something at a stage's folder that no
-            earlier publish wrote (checked before anything runs).
+            ``--out`` is a filesystem root, the home folder or the project's own, cannot be
+            written, or holds something at a stage's folder that no earlier publish wrote
+            (checked before anything runs).
         StageFailed
             A stage failed, or writing the cache or ``--out`` failed (disk full: the message
             names the stage and the file).
         """
+        self.store.keep_library_files()
         with notes.showing():  # each distinct warning line once on stderr
             try:
                 return self._run()
@@ -174,7 +176,7 @@ class Runner:
     def _run(self) -> list[Report]:
         publishing = [node for node in self.selected() if "files" in node.cls.outputs.values()]
         if self.opts.out is not None and publishing:
-            problem = unwritable(self.opts.out)
+            problem = refused(self.opts.out) or unwritable(self.opts.out)
             problems = [problem] if problem else conflicts(self.opts.out, [node.name for node in publishing])
             if problems:
                 raise ConfigError([Issue(Where("--out"), str(self.opts.out), p) for p in problems])

@@ -15,9 +15,7 @@ import contextlib
 import fcntl
 import hashlib
 import io
-import json
 import os
-import shutil
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -30,8 +28,8 @@ from runner.digest import array_digest, bundle_digest, cache_key, file_digest
 from runner.stage import Context, StageError, StreamInfo
 
 BUNDLE_FILE = "{port}.npz"
-VERIFIED = "verified.json"  # stat records of files found intact (see copy_verified)
 FICLONE = 0x40049409  # Linux ioctl: make the destination a copy-on-write clone of the source
+_BLOCK = 1 << 20  # bytes read at a time while a file is copied
 
 
 class Damaged(Exception):
@@ -85,7 +83,6 @@ def save_outputs(
         got = sorted(result) if isinstance(result, dict) else type(result).__name__
         raise StageError(f"returned {got}, expected outputs {sorted(declared)}")
     outputs: dict[str, dict[str, Any]] = {}
-    verified: dict[str, Any] = {}
     for port, kind in declared.items():
         value = result[port]
         if kind == "frames":
@@ -96,9 +93,7 @@ def save_outputs(
             folder = tmp / "files" / port
             folder.mkdir(parents=True, exist_ok=True)
             files = sorted(p for p in folder.rglob("*") if p.is_file())
-            stats = {path.relative_to(tmp).as_posix(): file_stat(path) for path in files}  # before hashing
             listed = [[path.relative_to(folder).as_posix(), path.stat().st_size, file_digest(path)] for path in files]
-            verified.update(stats)
             digest = cache_key([[rel, sha] for rel, _, sha in listed])
             outputs[port] = {"type": kind, "file": f"files/{port}", "digest": digest, "files": listed}
         else:
@@ -107,8 +102,6 @@ def save_outputs(
             with _naming(tmp / name):
                 np.savez(tmp / name, **arrays)  # type: ignore[arg-type]  # numpy declares the keyword arrays too narrowly
             outputs[port] = {"type": str(kind), "file": name, "digest": bundle_digest(arrays), "sha256": file_digest(tmp / name)}
-    if verified:
-        (tmp / VERIFIED).write_text(json.dumps(verified, sort_keys=True))
     return {"outputs": outputs}
 
 
@@ -173,66 +166,59 @@ def verify_files(entry: Entry, port: str) -> Path:
 
 
 def file_stat(path: Path) -> list[int]:
-    """``[size, mtime_ns, inode]`` of ``path``: what changes when a file is written or replaced."""
+    """``[size, mtime_ns, ctime_ns, inode]`` of ``path``: what changes when a file is written or
+    replaced. ``ctime`` cannot be set back (``utime`` itself sets it to now), so a file whose
+    bytes were changed and its times restored afterwards has another stat."""
     stat = os.stat(path)
-    return [stat.st_size, stat.st_mtime_ns, stat.st_ino]
+    return [stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns, stat.st_ino]
 
 
-def verified_stats(entry: Entry) -> dict[str, list[int]]:
-    """Per file of ``entry`` (path relative to the entry), its :func:`file_stat` when its
-    sha256 was last found equal to the recorded one (``verified.json``; empty if none)."""
-    try:
-        stats = json.loads((entry.path / VERIFIED).read_text())
-    except (OSError, ValueError):
-        return {}
-    return stats if isinstance(stats, dict) else {}
+def copy_verified(source: Path, dest: Path, sha256: str) -> None:
+    """Publish cache file ``source`` at ``dest``, hashing every byte on the way: a copy-on-write
+    clone (``FICLONE``: the two share their blocks until one is written; Btrfs, XFS, bcachefs)
+    is hashed where the filesystem makes one, else the bytes are hashed as they are copied. A
+    published file and its entry never share their bytes, so a tool that rewrites one in place
+    cannot damage the other.
 
-
-def save_verified_stats(entry: Entry, stats: dict[str, list[int]]) -> None:
-    """Replace ``entry``'s ``verified.json`` with ``stats`` (atomically; a failure to write it
-    only means the files are hashed again next time)."""
-    tmp = entry.path / f".{VERIFIED}.{os.getpid()}.tmp"
-    try:
-        tmp.write_text(json.dumps(stats, sort_keys=True))
-        os.replace(tmp, entry.path / VERIFIED)
-    except OSError:
-        tmp.unlink(missing_ok=True)
-
-
-def copy_verified(source: Path, dest: Path, sha256: str, *, stat: list[int] | None = None) -> list[int]:
-    """Publish cache file ``source`` at ``dest`` after checking its bytes against ``sha256``,
-    as a file of its own (:func:`clone_or_copy`): a published file and its entry never share
-    their bytes, so a tool that rewrites one in place cannot damage the other. Returns
-    ``source``'s :func:`file_stat`. :class:`Damaged` if ``source`` is missing or its bytes
-    differ.
-
-    ``stat``, the file's stat record when it was last verified: if the file's stat is still that
-    one, its bytes are not hashed again (as DVC does: writing a file changes its mtime).
+    Raises
+    ------
+    Damaged
+        ``source`` is missing, cannot be read or its bytes differ from ``sha256``.
+    OSError
+        Writing ``dest`` failed (a full disk); the error names ``dest``.
     """
     try:
-        now = file_stat(source)
-        if now != stat and file_digest(source) != sha256:
-            raise Damaged(source, "sha256 differs from the one recorded when it was stored")
-    except FileNotFoundError:
-        raise Damaged(source, "missing") from None
-    clone_or_copy(source, dest)
-    return now
+        src = open(source, "rb")
+    except OSError as exc:
+        raise Damaged(source, "missing" if isinstance(exc, FileNotFoundError) else f"cannot read ({exc.strerror})") from None
+    with src, _naming(dest), open(dest, "wb") as dst:
+        got = _clone_hashed(src, dst, dest) or _copy_hashed(src, dst, source)
+    if got != sha256:
+        raise Damaged(source, "sha256 differs from the one recorded when it was stored")
 
 
-def clone_or_copy(source: Path, dest: Path) -> None:
-    """Write a copy of ``source`` at ``dest``: a copy-on-write clone (``FICLONE``: the two share
-    their blocks until one is written; Btrfs, XFS, bcachefs) where the filesystem makes one, else
-    a copy of the bytes. An :class:`OSError` (a full disk) names ``dest``."""
+def _clone_hashed(src: io.BufferedReader, dst: io.BufferedWriter, dest: Path) -> str | None:
+    """Make ``dst`` a copy-on-write clone of ``src`` and return the clone's sha256, or None
+    where the filesystem makes no clone."""
     try:
-        with open(source, "rb") as src, open(dest, "wb") as dst:
-            try:
-                fcntl.ioctl(dst.fileno(), FICLONE, src.fileno())
-                return
-            except OSError:
-                pass
-        shutil.copyfile(source, dest)  # in the kernel (sendfile)
-    except OSError as exc:  # shutil names the source of a failed copy
-        raise OSError(exc.errno, exc.strerror or str(exc), str(dest)) from exc
+        fcntl.ioctl(dst.fileno(), FICLONE, src.fileno())
+    except OSError:
+        return None
+    return file_digest(dest)
+
+
+def _copy_hashed(src: io.BufferedReader, dst: io.BufferedWriter, source: Path) -> str:
+    """Copy ``src`` into ``dst`` block by block; the sha256 of the bytes copied."""
+    h = hashlib.sha256()
+    while True:
+        try:
+            block = src.read(_BLOCK)
+        except OSError as exc:
+            raise Damaged(source, f"cannot read ({exc.strerror or exc})") from None
+        if not block:
+            return h.hexdigest()
+        h.update(block)
+        dst.write(block)
 
 
 def read_or_redo(

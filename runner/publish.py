@@ -3,9 +3,8 @@ user's files, never sharing bytes with the cache.
 
 A stage's folder is built as ``--out/.<stage>.<pid>.tmp`` (holding a marker, :data:`MARKER`,
 that names this tool, the stage, the process and its host), each file hashed and compared with
-the sha256 its cache entry recorded (unless its size, mtime and inode are those recorded in the
-entry's ``verified.json`` when it was last found intact), then copied from the entry (a
-copy-on-write clone where the filesystem makes one: :func:`runner.outputs.clone_or_copy`), and
+the sha256 its cache entry recorded as it is copied from the entry (a copy-on-write clone,
+hashed, where the filesystem makes one: :func:`runner.outputs.copy_verified`), and
 ``manifest.json`` (the file list with sizes and sha256, and the entries' keys) written last;
 then the old folder is moved to ``.<stage>.<pid>.old`` (marked
 too), the new one into place, and the old one deleted, its marker last.
@@ -36,12 +35,14 @@ from pathlib import Path
 from typing import Any
 
 from runner.cache import Entry, holder_is_stale
-from runner.outputs import Damaged, copy_verified, file_stat, output_path, save_verified_stats, verified_stats
+from runner.outputs import Damaged, copy_verified, file_stat, output_path
 from runner.stage import StageError
 
 MANIFEST = "manifest.json"
 MARKER = ".runner-publish.json"  # in a temporary or replaced folder: the run of this tool that made it
 TOOL = "expression-mapping runner"
+# The project's own folders (beside ``runner/``): an --out there would mix outputs with its files.
+PROJECT_FOLDERS = ("runner", "stages", "editor", "lab", "scripts", "tests", "fixtures", "docs", "benchmarks")
 _LEFTOVER = re.compile(r"^\.(?P<stage>[A-Za-z0-9_-]+)\.(?P<pid>\d+)\.(tmp|old)$")
 
 
@@ -74,6 +75,25 @@ def conflicts(out: Path, stages: Iterable[str]) -> list[str]:
                 "(move it away or choose another --out)"
             )
     return problems
+
+
+def refused(out: Path) -> str | None:
+    """Why ``out`` may not be an ``--out`` at all, or None: a filesystem root, the home folder,
+    the project's folder or one of its own folders (:data:`PROJECT_FOLDERS`, and anything in
+    them), where the stage folders would land among the system's or the project's files."""
+    where = Path(out).expanduser().resolve()
+    project = Path(__file__).resolve().parents[1]
+    if where == Path(where.anchor):
+        what = "the filesystem root"
+    elif where == Path.home().resolve():
+        what = "the home folder"
+    elif where == project:
+        what = "the project's folder"
+    elif any(where.is_relative_to(project / name) for name in PROJECT_FOLDERS):
+        what = "inside the project's own folders"
+    else:
+        return None
+    return f"is {what}: a run writes one folder per stage there (choose a folder of its own)"
 
 
 def unwritable(out: Path) -> str | None:
@@ -170,9 +190,9 @@ def _remove_marked(folder: Path) -> None:
 
 def is_current(out: Path, item: Published, records: Path) -> bool:
     """True if ``out/<stage>`` was published from the same entries and every file is still
-    there as it was published: its stat record (size, mtime, inode) is the one kept in
+    there as it was published: its stat record (size, mtime, ctime, inode) is the one kept in
     ``records`` when it was written (a file damaged, rewritten or replaced since is published
-    again)."""
+    again, also when its times were set back: the ctime cannot be)."""
     final = Path(out) / item.stage
     keys = [e.key for e in item.entries]
     try:
@@ -287,11 +307,9 @@ class _DamagedEntry(Exception):
 
 
 def _copy(item: Published, tmp: Path) -> list[dict[str, Any]]:
-    """Put every file of ``item`` into ``tmp``, verified, as copies (:func:`runner.outputs.copy_verified`);
-    the manifest's file list."""
+    """Put every file of ``item`` into ``tmp`` as copies hashed while copied
+    (:func:`runner.outputs.copy_verified`); the manifest's file list."""
     listed = []
-    stats = [verified_stats(entry) for entry in item.entries]
-    checked = [dict(known) for known in stats]
     for port in item.ports:
         target = tmp if len(item.ports) == 1 else tmp / port
         for index, entry in enumerate(item.entries):
@@ -301,13 +319,9 @@ def _copy(item: Published, tmp: Path) -> list[dict[str, Any]]:
                 if dest.exists():
                     raise StageError(f"{port}: two chunks wrote the same file {rel!r}")
                 dest.parent.mkdir(parents=True, exist_ok=True)
-                name = (source / rel).relative_to(entry.path).as_posix()
                 try:
-                    checked[index][name] = copy_verified(source / rel, dest, sha256, stat=stats[index].get(name))
+                    copy_verified(source / rel, dest, sha256)
                 except Damaged as exc:
                     raise _DamagedEntry(index, exc) from None
                 listed.append({"path": dest.relative_to(tmp).as_posix(), "size": size, "sha256": sha256})
-    for entry, known, now in zip(item.entries, stats, checked):
-        if now != known:
-            save_verified_stats(entry, now)
     return listed

@@ -18,7 +18,7 @@ import importlib.metadata
 from collections.abc import Iterable, Mapping
 
 from runner.bundle import BundleType
-from runner.stage import RUNNER_TYPES, THREADING, FrameStage, Param, SequenceStage, Stage
+from runner.stage import RUNNER_TYPES, THREADING, FrameStage, Param, SequenceStage, Stage, value_has_type
 
 ENTRY_POINT_GROUP = "expression_mapping.stages"
 PARAM_TYPES = (int, float, str, bool, list)
@@ -138,13 +138,3 @@ def check_stage_class(stage_cls: type[Stage]) -> None:
         problem = param.problem(param.default)
         if problem:
             raise RegistryError(f"{where}: default of {param.name!r}: {problem}")
-
-
-def value_has_type(value: object, expected: type) -> bool:
-    """True if ``value`` is acceptable for a parameter of type ``expected`` (ints pass as floats;
-    bools never pass as numbers)."""
-    if isinstance(value, bool):
-        return expected is bool
-    if expected is float:
-        return isinstance(value, (int, float))
-    return isinstance(value, expected)

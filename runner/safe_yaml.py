@@ -19,7 +19,10 @@ from typing import Any
 
 import yaml
 
+from runner.files import read_limited
+
 MAX_DEPTH = 64  # collections inside collections; the tool's files nest fewer than 10 deep
+MAX_BYTES = 16 << 20  # a YAML file's size; the tool's own are under 100 kB
 
 
 class StrictLoader(yaml.SafeLoader):
@@ -68,16 +71,17 @@ class StrictLoader(yaml.SafeLoader):
 
 
 def read_text(path: str | Path) -> str:
-    """The text of the YAML file ``path``, which must be UTF-8.
+    """The text of the YAML file ``path``, which must be a regular file of at most
+    :data:`MAX_BYTES` bytes of UTF-8 (:func:`runner.files.read_limited`).
 
     Raises
     ------
     OSError
-        The file cannot be read.
+        The file cannot be read, is not a regular file (a FIFO, ``/dev/zero``) or is larger.
     yaml.MarkedYAMLError
         A byte sequence is not UTF-8; ``problem_mark`` is its line and column (bytes).
     """
-    data = Path(path).read_bytes()
+    data = read_limited(path, MAX_BYTES)
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError as exc:

@@ -56,8 +56,10 @@ records the file's digest with the entry and recomputes the entry when the file 
 
 from __future__ import annotations
 
+import builtins
 import logging
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, ClassVar, Iterator, Mapping, Protocol
@@ -71,12 +73,35 @@ RUNNER_TYPES = ("video", "file", "dir", "frames", "files")
 THREADING = ("reentrant", "single")  # the values of Stage.threading
 
 
+def value_has_type(value: object, expected: type) -> bool:
+    """True if ``value`` is acceptable for a parameter of type ``expected`` (ints pass as floats;
+    bools never pass as numbers)."""
+    if isinstance(value, bool):
+        return expected is bool
+    if expected is float:
+        return isinstance(value, (int, float))
+    return isinstance(value, expected)
+
+
+#: A file name a stage writes under its own folder: no folder part, not hidden, at most 100 characters.
+FILE_NAME = r"[A-Za-z0-9_][A-Za-z0-9_.+-]{0,99}"
+SHOWN = 80  # characters of a value quoted in a message (a longer one is cut, saying its length)
+
+
+def shown(value: Any) -> str:
+    """``repr(value)`` for a message, cut at :data:`SHOWN` characters."""
+    text = repr(value)
+    return text if len(text) <= SHOWN else f"{text[:SHOWN]}... ({len(text)} characters)"
+
+
 @dataclass(frozen=True)
 class Param:
     """One declared parameter: name, Python type (int, float, str, bool, list), default, help.
 
-    Allowed values: ``choices`` (the value must be one of them) and, for ``int`` and ``float``,
-    the closed range ``[min, max]`` (either bound may be None). The pipeline loader checks them
+    Allowed values: ``choices`` (the value must be one of them), for ``int`` and ``float`` the
+    closed range ``[min, max]`` (either bound may be None), for a ``str`` a ``pattern`` (a
+    regular expression the whole value must match, e.g. :data:`FILE_NAME`), and for a ``list``
+    of names ``items``: the type every item must have, each item given once. The pipeline loader checks them
     (and ``--set`` values) when the graph is loaded, so ``run``/``process`` never see a value
     outside them.
 
@@ -95,11 +120,22 @@ class Param:
     in_key: bool = True
     min: float | None = None
     max: float | None = None
+    items: builtins.type | None = None
+    pattern: str | None = None
+
+    @property
+    def type_name(self) -> str:
+        """The declared type as ``runner stages`` shows it: ``float``, ``list of str``."""
+        return self.type.__name__ + ("" if self.items is None else f" of {self.items.__name__}")
 
     def problem(self, value: Any) -> str | None:
         """Why ``value`` (already of the declared type) is not allowed, or None."""
+        if isinstance(value, list) and self.items is not None:
+            return self._items_problem(value, self.items)
+        if isinstance(value, str) and self.pattern is not None and not re.fullmatch(self.pattern, value):
+            return f"wrong value: expected {self.name} matching {self.pattern}, got {shown(value)}"
         if self.choices is not None and value not in self.choices:
-            return f"wrong value: expected one of {', '.join(map(repr, self.choices))}, got {value!r}"
+            return f"wrong value: expected one of {', '.join(map(repr, self.choices))}, got {shown(value)}"
         if isinstance(value, float) and not math.isfinite(value):
             return f"wrong value: expected a finite number, got {value!r}"
         below = self.min is not None and value < self.min
@@ -107,6 +143,15 @@ class Param:
             low = "" if self.min is None else f"{self.min!r} <= "
             high = "" if self.max is None else f" <= {self.max!r}"
             return f"out of range: expected {low}{self.name}{high}, got {value!r}"
+        return None
+
+    def _items_problem(self, value: list[Any], kind: builtins.type) -> str | None:
+        """Why list ``value`` has an item that is not of type ``kind``, or one given twice."""
+        for index, item in enumerate(value):
+            if not value_has_type(item, kind):
+                return f"wrong type: expected a list of {kind.__name__}, got item {index} {shown(item)}"
+            if item in value[:index]:
+                return f"wrong value: {shown(item)} is given twice"
         return None
 
 

@@ -59,6 +59,8 @@ def allowed(p: Param) -> str:
     """The values ``p`` takes beyond its type: its choices or its range."""
     if p.choices:
         return "one of " + ", ".join(f"`{c!r}`" for c in p.choices)
+    if p.pattern:
+        return f"matching `{p.pattern}`"
     if p.min is not None or p.max is not None:
         low = "" if p.min is None else f"{p.min!r} ≤ "
         high = "" if p.max is None else f" ≤ {p.max!r}"
@@ -86,7 +88,7 @@ def entry(cls: type[Stage], used_by: list[str]) -> list[str]:
         lines += ["| port | name | type |", "|---|---|---|"] + [f"| {d} | `{n}` | {k} |" for d, n, k in ports] + [""]
     if cls.params:
         lines += ["| parameter | type | default | allowed | what |", "|---|---|---|---|---|"]
-        lines += [f"| `{p.name}` | {p.type.__name__} | `{p.default!r}` | {allowed(p)} | {cell(p.help)} |" for p in cls.params]
+        lines += [f"| `{p.name}` | {p.type_name} | `{p.default!r}` | {allowed(p)} | {cell(p.help)} |" for p in cls.params]
         lines.append("")
     return lines
 

@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from runner.files import kind_problem
 from runner.stage import StageError
 from stages.image_header import ImageTooLarge, image_size
 from stages.layout import Layout, load_layout, read_yaml
@@ -48,6 +49,7 @@ MAX_PACK_PIXELS = 4096 * 4096  # image_size W x H (a pack holds ~20 images of th
 MAX_EXAMPLES = 64  # example expressions (the paper: 10-15)
 MAX_TEETH_EXAMPLES = 16
 MAX_CAPTURED = 256  # captured geometries (the paper: 30-40)
+MAX_FILE_BYTES = 256 << 20  # any one file of a pack (a 4096x4096 RGB PNG is under 50 MB)
 
 
 class PackError(StageError):
@@ -132,8 +134,13 @@ class _PackReader:
         path = self.root / value
         if Path(value).is_absolute() or not path.resolve().is_relative_to(self.root.resolve()):
             raise self.fail(self.manifest, field, f"{value!r} is outside the pack folder {self.root}")
-        if not path.is_file():
+        problem = kind_problem(path)
+        if problem == "no such file":
             raise self.fail(self.manifest, field, f"file not found: {path}")
+        if problem:
+            raise self.fail(self.manifest, field, f"{path}: {problem}")
+        if path.stat().st_size > MAX_FILE_BYTES:
+            raise self.fail(self.manifest, field, f"{path}: larger than the {MAX_FILE_BYTES} bytes a pack file may have")
         return path
 
     def read(self) -> ActorPack:
@@ -297,19 +304,25 @@ class _PackReader:
             x, y = flat[k]
             raise self.fail(path, field, f"point {name!r} at ({x:.1f}, {y:.1f}) is outside the {w}x{h} image")
 
-    def image(self, path: Path, field: str) -> np.ndarray:
-        import cv2
-
+    def check_header(self, path: Path, field: str, what: str) -> None:
+        """Refuse image file ``path`` unless its header declares the manifest's ``image_size``
+        (at most :data:`MAX_PACK_PIXELS`) and its PNG chunks are whole: checked before it is
+        decoded, as decoding allocates whatever size the header declares."""
         try:
             header = image_size(path, max_pixels=MAX_PACK_PIXELS, verify=True)
         except ImageTooLarge as exc:
-            raise self.fail(path, field, f"image is {exc}") from None
+            raise self.fail(path, field, f"{what} is {exc}") from None
         if header is None:
             raise self.fail(path, field, "cannot read image (not a PNG, JPEG, TIFF or WebP file)")
         if header != self.size:
             raise self.fail(
-                path, field, f"image is {header[0]}x{header[1]}, the manifest's image_size is {self.size[0]}x{self.size[1]}"
+                path, field, f"{what} is {header[0]}x{header[1]}, the manifest's image_size is {self.size[0]}x{self.size[1]}"
             )
+
+    def image(self, path: Path, field: str) -> np.ndarray:
+        import cv2
+
+        self.check_header(path, field, "image")
         img = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if img is None:
             raise self.fail(path, field, "cannot read image")
@@ -333,6 +346,7 @@ class _PackReader:
     def matte(self, path: Path, field: str) -> np.ndarray:
         import cv2
 
+        self.check_header(path, field, "matte")
         matte = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if matte is None:
             raise self.fail(path, field, "cannot read image")

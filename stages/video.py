@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from runner.stage import Context, FrameStage, Param, SequenceStage, StageError, StreamInfo
+from runner.stage import FILE_NAME, Context, FrameStage, Param, SequenceStage, StageError, StreamInfo
 from stages.color import luma_opencv, rgb_to_ycbcr420, to_uint8
 
 from typing import TYPE_CHECKING
@@ -416,12 +416,10 @@ class WriteVideo(SequenceStage):
             choices=X264_PRESETS,
         ),
         Param("threads", int, 2, "x264 slice threads (the bytes depend on the count); ignored by ffv1", min=1, max=16),
-        Param("filename", str, "video", "file name without extension"),
+        Param("filename", str, "video", "file name without extension", pattern=FILE_NAME),
     )
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
-        if not params["filename"] or "/" in params["filename"] or params["filename"].startswith("."):
-            raise StageError(f"write.video: filename {params['filename']!r} must be a plain file name")
         stream = inputs["frames"]
         info = stream.info
         path = ctx.files_dir("video") / f"{params['filename']}{CODECS[params['codec']][2]}"

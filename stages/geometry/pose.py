@@ -31,7 +31,7 @@ from stages.geometry.rotation import rodrigues_vector, rotation_rodrigues
 from stages.geometry.face_model import FaceModel, bundle_face_model, fit_face_model
 from stages.geometry.frontalize import adapt_to_reference, frontal_translation
 from stages.geometry.smooth import gaussian_smooth
-from stages.geometry.subset import named_columns, rigid_columns
+from stages.geometry.subset import param_columns, rigid_columns
 from stages.pack.bundles import camera_from_bundle, layout_from_bundle, model3d_from_bundle
 
 
@@ -279,6 +279,7 @@ class PnPPose(SequenceStage):
             [],
             "rigid model: names of the points used for PnP; empty: the layout's rigid points "
             "(hairline and inner eye corners, Sec. 12.1)",
+            items=str,
         ),
         Param(
             "min_points", int, 4, "fewest valid rigid points to solve a frame (else flagged and interpolated)", min=3, max=1000
@@ -301,7 +302,7 @@ class PnPPose(SequenceStage):
             raise StageError(f"{self.name}: input 'layout': {exc}") from None
         min_points = max(int(params["min_points"]), 4)
         if params["points"]:
-            columns = self.named(np.asarray(points["names"]), params["points"], layout)
+            columns = param_columns(np.asarray(points["names"]), params["points"], stage=self.name, param="points")
         else:
             columns = rigid_columns(np.asarray(points["names"]), layout, at_least=min_points, stage=self.name)
         camera = self.camera(points, inputs, params)
@@ -339,13 +340,6 @@ class PnPPose(SequenceStage):
             adapt=bool(params["adapt_model"]),
         )
         return {"pose": {**pose, "camera": camera}}
-
-    def named(self, names: np.ndarray, wanted: list[str], layout: Any) -> np.ndarray:
-        """Columns of the ``points`` parameter's names; an error naming any that are missing."""
-        missing = [n for n in wanted if n not in set(map(str, names)) or n not in layout.point_names]
-        if missing:
-            raise StageError(f"{self.name}: parameter points names {missing} that are not tracked points of the layout")
-        return named_columns(names, tuple(wanted))
 
     def camera(self, points: Mapping[str, np.ndarray], inputs: Mapping[str, Any], params: Mapping[str, Any]) -> np.ndarray:
         """The intrinsic matrix chosen by the ``intrinsics`` and ``focal_px`` parameters."""

@@ -53,7 +53,7 @@ from stages.geometry.compensate import compensate as similarity_2d
 from stages.geometry.neutral import REST, NeutralEstimate, estimate_neutral
 from stages.geometry.rotation import landmarker_rotation, rodrigues_vector, ypr_yxz
 from stages.geometry.signals import expression_signals
-from stages.geometry.subset import named_columns
+from stages.geometry.subset import param_columns
 
 #: Points of the zhang134 layout that move with the skull: eye corners, nose bridge, forehead,
 #: temples and the contour beside the eyes (the jaw's contour points move with the mouth).
@@ -425,7 +425,7 @@ class CompensateRigid3D(SequenceStage):
             min=1.0,
             max=90.0,
         ),
-        Param("rigid_points", list, list(RIGID_POINTS), "layout points aligned in 3D (they move with the skull)"),
+        Param("rigid_points", list, list(RIGID_POINTS), "layout points aligned in 3D (they move with the skull)", items=str),
         Param("huber_px", float, 2.0, "Huber threshold of the robust 3D fit, px", min=0.01, max=100.0),
         Param(
             "pose_rotation",
@@ -485,7 +485,7 @@ class CompensateRigid3D(SequenceStage):
                     frame_ok & ~hidden if (frame_ok & ~hidden).any() else frame_ok,
                     search_frames=search,
                 )
-            rigid = named_columns(names, tuple(params["rigid_points"]))
+            rigid = param_columns(names, params["rigid_points"], stage=self.name, param="rigid_points")
             # Frames without a face hold the nearest frame with one: the target keeps that expression
             # (displacements valid, ``held`` True) while the points and pose stay flagged invalid.
             held = nearest_valid(frame_ok)

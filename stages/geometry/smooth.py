@@ -392,9 +392,9 @@ class OneEuroSmooth(SequenceStage):
     inputs = {"points": POINTS}
     outputs = {"points": POINTS}
     params = (
-        Param("min_cutoff", float, 1.0, "cutoff frequency of a resting point, Hz", min=0.0, max=1000.0),
+        Param("min_cutoff", float, 1.0, "cutoff frequency of a resting point, Hz", min=0.001, max=1000.0),
         Param("beta", float, 1.5, "rise of the cutoff with the point's speed on the face, Hz per px/s", min=0.0, max=1000.0),
-        Param("d_cutoff", float, 3.0, "cutoff frequency of the speed estimate, Hz", min=0.0, max=1000.0),
+        Param("d_cutoff", float, 3.0, "cutoff frequency of the speed estimate, Hz", min=0.001, max=1000.0),
         Param("fps", float, 30.0, "frames per second when the points carry no 'fps'", min=1e-3, max=1000.0),
     )
 

@@ -30,8 +30,8 @@ class TrainHierarchicalPCA(SequenceStage):
             "variance_kept",
             float,
             1.0,
-            "also stop at this fraction of explained variance, in (0, 1] (1.0: off)",
-            min=0.0,
+            "also stop at this fraction of explained variance, in [0.01, 1] (1.0: off)",
+            min=0.01,
             max=1.0,
         ),
     )

@@ -43,6 +43,7 @@ ENTRY_POINTS = {
     "test.every_other": "tests.runner.helpers:EveryOtherFrame",
     "test.half_size": "tests.runner.helpers:HalfSize",
     "test.half_size_on_demand": "tests.runner.helpers:HalfSizeOnDemand",
+    "test.plot": "tests.runner.helpers:Plot",
 }
 
 
@@ -175,6 +176,25 @@ class SeriesTable(SequenceStage):
         values = [round(float(v), params["digits"]) for v in inputs["series"]["mean"]]
         (ctx.files_dir("table") / "series.json").write_text(json.dumps(values))
         return {"table": None}
+
+
+class Plot(SequenceStage):
+    """Draws a titled plot with matplotlib as ``plot.png`` (a ``files`` output): matplotlib
+    builds its font cache the first time it lays out text."""
+
+    name = "test.plot"
+    version = "1"
+    outputs = {"plot": "files"}
+
+    def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
+        figure = Figure(figsize=(2, 1))
+        FigureCanvasAgg(figure)
+        figure.add_subplot().set_title("plot")
+        figure.savefig(ctx.files_dir("plot") / "plot.png")
+        return {"plot": None}
 
 
 class SlowWriteVideo(WriteVideo):

@@ -231,6 +231,16 @@ def test_config_errors_exit_2_with_positions(tmp_path, monkeypatch):
     assert not (tmp_path / "cache").exists()
 
 
+def test_an_error_quoting_a_long_value_is_one_line_of_bounded_length(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("RUNNER_CACHE_DIR", str(tmp_path / "cache"))
+    code, _, err = cli_main("run", CHAIN, "--until", "x" * 100_000)
+    assert code == 2 and err.startswith("error: --until: xxx") and err.endswith(" more characters)\n")
+    assert len(err.splitlines()) == 1 and len(err) < 500
+    code, _, err = cli_main("run", CHAIN, "--set", f"write.crf={'9' * 5000}")
+    assert code == 2 and err == f"error: --set: write.crf: wrong type: expected int, got '{'9' * 79}... (5002 characters)\n"
+
+
 def test_a_head_pose_wired_to_a_stage_that_reads_the_other_one_fails_at_load(tmp_path, monkeypatch):
     """pose.pnp's pose is absolute (tvec mm, with its camera), compensate.rigid3d's relative to the
     head frame (tvec px, a scale): each reader takes one of them, checked before anything runs."""
@@ -402,3 +412,17 @@ def test_warnings_are_one_line_each_once_and_given_again_by_a_cached_run(env, tm
         events = read_log(tmp_path / f"{run}.jsonl")
         assert stage_status(events)["mean"] == ("ran" if run == "first" else "cached")
         assert [e["stage"] for e in events if e["event"] == "offload"] == (["mean"] if run == "first" else [])
+
+
+@pytest.mark.subprocess
+def test_a_run_writes_nothing_under_the_home_folder(env, tmp_path):
+    """matplotlib keeps its font cache and configuration in the tool's cache, not under $HOME."""
+    home = tmp_path / "home"
+    home.mkdir()
+    env = {k: v for k, v in env.items() if k not in ("MPLCONFIGDIR", "XDG_CACHE_HOME", "XDG_CONFIG_HOME")} | {"HOME": str(home)}
+    (tmp_path / "plot.yaml").write_text("stages:\n  plot: {uses: test.plot}\n")
+    result = run_cli("run", tmp_path / "plot.yaml", "--out", tmp_path / "out", env=env, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert (tmp_path / "out" / "plot" / "plot.png").stat().st_size > 0
+    assert list(home.iterdir()) == []
+    assert any((tmp_path / "cache" / "libraries" / "matplotlib").glob("fontlist-*.json"))

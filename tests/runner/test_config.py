@@ -3,6 +3,7 @@ input binding."""
 
 from __future__ import annotations
 
+import os
 import textwrap
 from pathlib import Path
 
@@ -344,3 +345,38 @@ def test_extends_problems_are_positioned(tmp_path, files, expected):
         load_pipeline(tmp_path / "p.yaml", REGISTRY)
     assert tmp_path == tmp_path.resolve()  # the cycle names resolved paths
     assert [str(i) for i in info.value.issues] == [f"{tmp_path}/{expected.format(tmp=tmp_path)}"]
+
+
+@pytest.mark.parametrize("special", ["/dev/zero", "fifo"])
+def test_a_pipeline_file_or_base_that_is_not_a_regular_file_is_refused_unread(tmp_path, special):
+    """A pipeline file, or the base it extends, that is /dev/zero or a FIFO: one positioned
+    line saying what it is, never read (reading /dev/zero never ends, a FIFO waits)."""
+    target = Path(special)
+    if special == "fifo":
+        target = tmp_path / "fifo"
+        os.mkfifo(target)
+    kind = "a character device" if special == "/dev/zero" else "a FIFO (named pipe)"
+    with pytest.raises(ConfigError) as info:
+        load_pipeline(target, REGISTRY)
+    assert [str(i) for i in info.value.issues] == [f"{target}: file: cannot read: {kind}, not a regular file"]
+    (tmp_path / "base.yaml").symlink_to(target)
+    found = issues(tmp_path, "extends: base.yaml\nstages: {}\n")
+    assert found == [f"1:10: extends: cannot read {tmp_path / 'base.yaml'}: {kind}, not a regular file"]
+
+
+def test_an_input_that_is_a_device_a_fifo_or_the_wrong_kind_says_what_it_is(tmp_path):
+    os.mkfifo(tmp_path / "fifo")
+    (tmp_path / "file").write_text("x")
+    pipeline = load(tmp_path, GOOD)
+    cases = {
+        "/dev/zero": "wrong input: /dev/zero: a character device, not a regular file",
+        str(tmp_path / "fifo"): f"wrong input: {tmp_path / 'fifo'}: a FIFO (named pipe), not a regular file",
+        str(tmp_path / "nothing"): f"missing input: {tmp_path / 'nothing'}: no such file",
+    }
+    for clip, message in cases.items():
+        with pytest.raises(ConfigError) as info:
+            bind_inputs(pipeline, clip=Path(clip), named=[f"pack={tmp_path}"])
+        assert [i.message for i in info.value.issues] == [message]
+    with pytest.raises(ConfigError) as info:
+        bind_inputs(pipeline, clip=tmp_path / "file", named=[f"pack={tmp_path / 'file'}"])
+    assert [i.message for i in info.value.issues] == [f"wrong input: {tmp_path / 'file'}: a file, not a folder"]

@@ -268,22 +268,42 @@ def test_stage_publishing_no_file_publishes_an_empty_folder(tmp_path):
     assert json.loads((tmp_path / "out" / "table" / "manifest.json").read_text())["files"] == []
 
 
-def test_publishing_hashes_a_file_only_when_its_stat_changed(tmp_path, monkeypatch):
-    """A cached run publishing to a new --out links the files without hashing them (their stat
-    is the one recorded when they were hashed at commit); a file whose bytes were rewritten with
-    the same size (a new mtime) is hashed, found damaged and recomputed."""
+def flip_keeping_times(path: Path) -> None:
+    """Flip one byte in the middle of ``path``, then set its access and modification times back
+    (bit rot, or a tool that restores times): its size, mtime and inode are unchanged."""
+    before = path.stat()
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0x01
+    with open(path, "r+b") as f:
+        f.write(data)
+    os.utime(path, ns=(before.st_atime_ns, before.st_mtime_ns))
+
+
+def test_cache_file_damaged_with_its_times_restored_is_recomputed_not_published(tmp_path):
+    """Publishing hashes every byte it copies: a cache file damaged in place with its size,
+    mtime and inode kept is caught when published into a new --out, its entry recomputed, and
+    the published bytes are the ones the manifest names."""
     run(tmp_path)
     cached = entry_files(tmp_path, "table", "sums.json")[0]
-    hashed: list[Path] = []
-    real = outputs.file_digest
-    monkeypatch.setattr(outputs, "file_digest", lambda path: hashed.append(Path(path)) or real(path))
-    run(tmp_path, out=tmp_path / "out2")
-    assert hashed == [] and json.loads((tmp_path / "out2" / "table" / "sums.json").read_text()) == EXPECTED
-    cached.write_text(cached.read_text().replace("1", "2"))  # same size, other bytes
+    flip_keeping_times(cached)
     recorder = Recorder()
-    run(tmp_path, out=tmp_path / "out3", recorder=recorder)
-    assert cached in hashed and len(recorder.warnings) == 1 and "'table'" in recorder.warnings[0]
-    assert json.loads((tmp_path / "out3" / "table" / "sums.json").read_text()) == EXPECTED
+    run(tmp_path, out=tmp_path / "out2", recorder=recorder)
+    published = tmp_path / "out2" / "table" / "sums.json"
+    assert published.read_bytes() == (tmp_path / "out" / "table" / "sums.json").read_bytes()
+    manifest = json.loads((tmp_path / "out2" / "table" / "manifest.json").read_text())
+    assert manifest["files"][0]["sha256"] == hashlib.sha256(published.read_bytes()).hexdigest()
+    assert len(recorder.warnings) == 1 and "'table'" in recorder.warnings[0] and "damaged" in recorder.warnings[0]
+
+
+def test_published_file_damaged_with_its_times_restored_is_published_again(tmp_path):
+    """A published file damaged in place with its size, mtime and inode kept has another ctime
+    (setting the times back sets it): a rerun into the same --out publishes it again."""
+    run(tmp_path)
+    published = tmp_path / "out" / "table" / "sums.json"
+    time.sleep(0.05)  # past the filesystem's timestamp granularity: the ctime moves
+    flip_keeping_times(published)
+    run(tmp_path)
+    assert published_sums(tmp_path) == EXPECTED
 
 
 # -- what is in a key -----------------------------------------------------------------------
@@ -408,25 +428,56 @@ def test_out_that_cannot_be_written_is_refused_before_anything_runs(tmp_path):
     assert list(CacheStore(tmp_path / "cache").iter_entries()) == []
 
 
+@pytest.mark.parametrize("where", ["root", "home", "project", "project folder"])
+def test_out_at_a_root_the_home_folder_or_the_project_is_refused(tmp_path, monkeypatch, where):
+    """--out /, the home folder itself and the project's own folders are refused before
+    anything runs, and nothing is written there."""
+    home = tmp_path / "home"
+    home.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    repo = Path(publish.__file__).resolve().parents[1]
+    out = {"root": Path("/"), "home": home, "project": repo, "project folder": repo / "fixtures" / "x"}[where]
+    before = sorted(p.name for p in out.iterdir()) if out.exists() else None
+    with pytest.raises(ConfigError) as info:
+        run(tmp_path, out=out)
+    [issue] = info.value.issues
+    assert str(issue).startswith(f"--out: {out}: is ") and "choose a folder of its own" in str(issue)
+    assert (sorted(p.name for p in out.iterdir()) if out.exists() else None) == before
+    assert list(CacheStore(tmp_path / "cache").iter_entries()) == []
+
+
+def test_out_beside_the_project_folders_is_accepted(tmp_path):
+    assert publish.refused(tmp_path / "out") is None
+    assert publish.refused(Path(publish.__file__).resolve().parents[1] / "out") is None
+
+
 def test_disk_full_while_publishing_names_the_destination_and_cleans_up(tmp_path, monkeypatch):
-    """A full --out disk while a file is copied (shutil names the source of a failed copy):
-    the error names the file written under --out, and no temporary folder is left there."""
-    real = os.sendfile
+    """A full --out disk while a file is copied: the error names the file written under --out,
+    and no temporary folder is left there."""
+    real = open
 
-    def full(out_fd, in_fd, offset, count):
-        real(out_fd, in_fd, offset, min(count, 3))
-        raise OSError(errno.ENOSPC, "No space left on device")
+    class Full:
+        def __init__(self, file):
+            self.file = file
 
-    class CrossDevice:  # the cache and --out on two filesystems: no hard link between them
-        def __getattr__(self, name):
-            return getattr(os, name)
+        def __enter__(self):
+            return self
 
-        @staticmethod
-        def link(*args, **kwargs):
-            raise OSError(errno.EXDEV, "Invalid cross-device link")
+        def __exit__(self, *exc):
+            self.file.close()
 
-    monkeypatch.setattr(os, "sendfile", full)
-    monkeypatch.setattr(outputs, "os", CrossDevice())
+        def fileno(self):
+            return self.file.fileno()
+
+        def write(self, block):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    def opening(path, mode="r", *args, **kwargs):
+        file = real(path, mode, *args, **kwargs)
+        return Full(file) if "w" in mode and str(tmp_path / "out") in str(path) else file
+
+    monkeypatch.setattr(outputs, "open", opening, raising=False)
+    monkeypatch.setattr(outputs, "FICLONE", 0)  # no clone: the bytes are copied
     with pytest.raises(StageFailed) as info:
         run(tmp_path)
     message = str(info.value)

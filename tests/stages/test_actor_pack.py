@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 from pathlib import Path
 
@@ -173,13 +174,19 @@ def test_yaml_aliases_in_a_manifest_are_refused_with_their_position(pack_dir):
 # -- bounds checked before anything large is read -------------------------------------------
 
 
+def decoded_names(monkeypatch) -> list[str]:
+    """The names of the files ``cv2.imread`` decodes from now on, as they are decoded."""
+    decoded: list[str] = []
+    real = cv2.imread
+    monkeypatch.setattr(cv2, "imread", lambda path, *args: decoded.append(Path(path).name) or real(path, *args))
+    return decoded
+
+
 def test_an_image_larger_than_its_manifest_says_is_refused_undecoded(pack_dir, monkeypatch):
     pack_dir = pack_dir[0]
     """A 12000x12000 PNG as the neutral image: refused from its header, never decoded."""
     big_png(pack_dir / "images" / "neutral.png", 12000, 12000)
-    decoded = []
-    real = cv2.imread
-    monkeypatch.setattr(cv2, "imread", lambda path, *args: decoded.append(Path(path).name) or real(path, *args))
+    decoded = decoded_names(monkeypatch)
     with pytest.raises(PackError) as info:
         load_pack(pack_dir)
     assert "neutral.image" in str(info.value) and "12000x12000" in str(info.value)
@@ -257,3 +264,51 @@ def test_image_size_of_booleans_is_refused(pack_dir):
     _replace(pack_dir / "pack.yaml", f"image_size: [{W}, {H}]", "image_size: [true, true]")
     with pytest.raises(PackError, match=r"field 'image_size': expected \[W, H\] positive integers, got \[True, True\]"):
         load_pack(pack_dir)
+
+
+def test_a_pack_file_that_is_a_fifo_is_refused_unread(pack_dir):
+    """A FIFO in the pack where a file is named: refused from its stat, never opened (opening
+    a FIFO waits for a writer)."""
+    pack_dir = pack_dir[0]
+    (pack_dir / "captured.npz").unlink()
+    os.mkfifo(pack_dir / "captured.npz")
+    with pytest.raises(PackError) as info:
+        load_pack(pack_dir)
+    where = f"actor pack {pack_dir / 'pack.yaml'}: field 'captured'"
+    assert str(info.value) == f"{where}: {pack_dir / 'captured.npz'}: a FIFO (named pipe), not a regular file"
+
+
+@pytest.mark.parametrize("special", ["/dev/zero", "fifo"])
+def test_a_manifest_that_is_not_a_regular_file_is_refused_unread(pack_dir, tmp_path, special):
+    """pack.yaml linked to /dev/zero (reading it never ends) or to a FIFO: refused unread."""
+    pack_dir = pack_dir[0]
+    target = Path(special)
+    if special == "fifo":
+        target = tmp_path / "fifo"
+        os.mkfifo(target)
+    kind = "a character device" if special == "/dev/zero" else "a FIFO (named pipe)"
+    (pack_dir / "pack.yaml").unlink()
+    (pack_dir / "pack.yaml").symlink_to(target)
+    with pytest.raises(PackError) as info:
+        load_pack(pack_dir)
+    assert str(info.value) == f"actor pack {pack_dir / 'pack.yaml'}: cannot read manifest ({kind}, not a regular file)"
+
+
+def test_a_layout_that_is_a_device_is_refused_unread():
+    with pytest.raises(StageError) as info:
+        load_layout("/dev/zero")
+    assert str(info.value) == "layout /dev/zero: cannot read file (a character device, not a regular file)"
+
+
+def test_a_matte_larger_than_its_manifest_says_is_refused_undecoded(pack_dir, monkeypatch):
+    """A 12000x12000 matte PNG (a few kB): refused from its header, never decoded."""
+    pack_dir = pack_dir[0]
+    _replace(pack_dir / "pack.yaml", "image: images/neutral.png,", "image: images/neutral.png, matte: matte.png,")
+    cv2.imwrite(str(pack_dir / "matte.png"), np.full((H, W), 255, np.uint8))
+    assert load_pack(pack_dir).neutral.matte.shape == (H, W)
+    big_png(pack_dir / "matte.png", 12000, 12000)
+    decoded = decoded_names(monkeypatch)
+    with pytest.raises(PackError) as info:
+        load_pack(pack_dir)
+    assert "field 'neutral.matte'" in str(info.value) and "matte is 12000x12000 px" in str(info.value)
+    assert "matte.png" not in decoded

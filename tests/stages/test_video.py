@@ -15,6 +15,7 @@ from runner.stage import Context, StageError, StreamInfo
 from runner.streams import chunk_ranges
 from scripts.make_test_clip import synthetic_frames, write_clip
 from tests.memory_stream import NpyStream
+from tests.runner.helpers import REPO
 from stages.color import luma_opencv
 from stages.video import ImageGray, VideoDecode, VideoWriter, WriteVideo, probe
 
@@ -140,8 +141,20 @@ def test_write_video_stage_encodes_a_stream(tmp_path, lossless):
     WriteVideo().run({"frames": stream}, {**defaults, "codec": "ffv1", "filename": "clip"}, ctx)
     np.testing.assert_array_equal(_decode_all(out / "clip.mkv"), truth)
     assert sum(done) == 37
-    with pytest.raises(StageError, match="plain file name"):
-        WriteVideo().run({"frames": stream}, {**defaults, "filename": "../x"}, ctx)
+
+
+@pytest.mark.parametrize("name", ["../../x", "/abs", "a/b", ".", "..", "", ".hidden", "x" * 300])
+def test_a_video_filename_that_is_not_a_plain_name_is_refused_at_load(name):
+    """Refused when the pipeline is loaded (exit 2), one line of bounded length, before
+    anything runs."""
+    from runner.config import ConfigError, load_pipeline
+    from runner.registry import Registry
+
+    with pytest.raises(ConfigError) as info:
+        load_pipeline(REPO / "pipeline.yaml", Registry.from_entry_points(), overrides=[f"video.filename={name}"])
+    [issue] = info.value.issues
+    assert str(issue).startswith("--set: video.filename: wrong value: expected filename matching ")
+    assert len(str(issue)) < 300
 
 
 def test_gray_matches_bt601_weights(lossless):

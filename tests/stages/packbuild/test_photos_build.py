@@ -49,7 +49,7 @@ def test_in_binds_the_photo_folder_and_a_folder_is_not_a_clip(tmp_path):
     photos = load_pipeline(REPO / "pack_build_photos.yaml", registry())
     assert bind_inputs(photos, clip=tmp_path, named=[]) == {"photos": tmp_path}
     video = load_pipeline(REPO / "pack_build.yaml", registry())
-    with pytest.raises(ConfigError, match=rf"inputs\.clip: missing input: {tmp_path}: a folder, not a file"):
+    with pytest.raises(ConfigError, match=rf"inputs\.clip: wrong input: {tmp_path}: a folder, not a file"):
         bind_inputs(video, clip=tmp_path, named=[])
 
 
