@@ -102,16 +102,35 @@ def align_to_reference(xy: np.ndarray, valid: np.ndarray, reference: np.ndarray,
     return out
 
 
+#: Pack framings: ``(fill, centre)``, the face box's share of the image (height or width,
+#: whichever is smaller) and the height of its centre as a fraction of the image's. ``face``: the
+#: face alone, edge to edge; ``head``: the whole head (hair, ears, the top of the neck) with a margin
+#: that a moving head stays inside; ``bust``: head and shoulders.
+FRAMINGS = {"face": (0.9, 0.5), "head": (0.6, 0.47), "bust": (0.42, 0.4)}
+
+
 def canvas_similarity(
-    neutral: np.ndarray, geometries: np.ndarray, layout: Layout, size: tuple[int, int], *, fill: float = 0.9
+    neutral: np.ndarray,
+    geometries: np.ndarray,
+    layout: Layout,
+    size: tuple[int, int],
+    *,
+    framing: str = "face",
+    footage: tuple[int, int] | None = None,
 ) -> np.ndarray:
-    """The similarity that puts the neutral face upright and the clip's faces centred in an image of ``size``.
+    """The similarity that puts the neutral face upright and the clip's faces in an image of ``size``.
 
     The neutral's eye line (outer eye corners, :data:`stages.geometry.signals.EYE_OUTER`) is made
     horizontal; the box spanned by the ``geometries`` (from the 1st percentile of the frames'
     smallest coordinates to the 99th of their largest: a rare landmark glitch does not shrink
-    the face) is scaled to ``fill`` of the image height or width, whichever is smaller, and
-    centred.
+    the face) is scaled to the ``framing``'s fill of the image height or width, whichever is
+    smaller, centred across and placed at the framing's height (:data:`FRAMINGS`).
+
+    Given the ``footage`` size ``(W, H)``, the image stays inside the footage where it can: it is
+    moved (the face box kept inside the image) and, where the footage is too small for the
+    framing, the face is enlarged towards the ``face`` framing's fill, the least that fits. Where
+    even that does not fit, the framing's own placement is kept (the pack's mattes mark what
+    lies beyond the footage).
 
     Parameters
     ----------
@@ -119,6 +138,9 @@ def canvas_similarity(
     geometries : (K, N, 2) float, px
         The usable frames' points, already aligned to the neutral's frame.
     size : (W, H) px
+    framing : ``"face" | "head" | "bust"``
+    footage : (W, H) px, optional
+        The frames' size, in the same pixels as ``neutral``.
 
     Returns
     -------
@@ -133,10 +155,45 @@ def canvas_similarity(
     z = (geometries[..., 0] + 1j * geometries[..., 1]) * rot
     x0, y0 = np.percentile(z.real.min(axis=-1), 1), np.percentile(z.imag.min(axis=-1), 1)
     x1, y1 = np.percentile(z.real.max(axis=-1), 99), np.percentile(z.imag.max(axis=-1), 99)
-    scale = fill * min(H / (y1 - y0), W / (x1 - x0))
-    c = rot * scale
-    t = complex((W - 1) / 2, (H - 1) / 2) - complex((x0 + x1) / 2, (y0 + y1) / 2) * scale
-    return np.array([c.real, c.imag, t.real, t.imag])
+    fill, centre = FRAMINGS[framing]
+    fills = [fill] if footage is None else np.linspace(fill, max(fill, FRAMINGS["face"][0]), 13)
+    placed = []
+    for f in fills:
+        scale = f * min(H / (y1 - y0), W / (x1 - x0))
+        c = rot * scale
+        t = complex((W - 1) / 2, centre * (H - 1)) - complex((x0 + x1) / 2, (y0 + y1) / 2) * scale
+        placed.append(np.array([c.real, c.imag, t.real, t.imag]))
+        if footage is not None:
+            box = np.array([[x0, y0], [x1, y1]]) * scale + [t.real, t.imag]  # the face box in the image (axes-aligned)
+            inside = inside_footage(placed[-1], size, footage, box)
+            if inside is not None:
+                return inside
+    return placed[0]
+
+
+def inside_footage(
+    params: np.ndarray, size: tuple[int, int], footage: tuple[int, int], face_box: np.ndarray
+) -> np.ndarray | None:
+    """``params`` (footage -> image similarity) moved so that the image of ``size`` lies inside the
+    footage of size ``footage``, the ``face_box`` ``(2, 2)`` (its corners in the image, px) staying
+    inside the image; None when no move does both (the image's axes-aligned extent in the footage
+    is what must fit)."""
+    W, H = size
+    c = complex(params[0], params[1])
+    t = complex(params[2], params[3])
+    corners = np.array([0, W - 1, (W - 1) + 1j * (H - 1), 1j * (H - 1)])
+    back = (corners - t) / c  # the image's corners in the footage
+    lo = np.array([back.real.min(), back.imag.min()])
+    hi = np.array([back.real.max(), back.imag.max()])
+    span = np.array(footage, np.float64)
+    if np.any(hi - lo > span - 1):
+        return None
+    shift = np.clip(lo, 0, None) - lo + np.clip(span - 1 - hi, None, 0)  # footage px, moving the window
+    t_new = t - c * complex(*shift)
+    moved = np.asarray(face_box, np.float64) + [(t_new - t).real, (t_new - t).imag]
+    if moved.min() < 0 or moved[:, 0].max() > W - 1 or moved[:, 1].max() > H - 1:
+        return None
+    return np.array([c.real, c.imag, t_new.real, t_new.imag])
 
 
 def k_center(
@@ -231,6 +288,8 @@ def select_frames(
     min_teeth_open: float = 0.08,
     min_teeth_fraction: float = 0.1,
     depth: np.ndarray | None = None,
+    framing: str = "face",
+    footage: tuple[int, int] | None = None,
 ) -> Selection:
     """Choose the pack's frames among the usable ones.
 
@@ -266,6 +325,10 @@ def select_frames(
     depth : (T, N) float, optional
         The points' depth from the landmarker, px (``landmarks.layout``'s ``z``): geometries are
         compared with the head rotation removed in 3D (module docstring).
+    framing : ``"face" | "head" | "bust"``
+        How much of the person the pack's image holds (:data:`FRAMINGS`).
+    footage : (W, H), optional
+        The frames' size: the pack's image stays inside it where it can (:func:`canvas_similarity`).
 
     Raises
     ------
@@ -296,7 +359,7 @@ def select_frames(
     columns = stable_columns(layout)
     to_neutral = align_to_reference(xy, keep, xy[neutral], columns)
     in_neutral = np.stack([apply_similarity(to_neutral[t], xy[t]) for t in usable])
-    canvas = canvas_similarity(xy[neutral], in_neutral, layout, size)
+    canvas = canvas_similarity(xy[neutral], in_neutral, layout, size, framing=framing, footage=footage)
     to_pack = compose_similarity(canvas, to_neutral)
     if depth is not None:
         xyz = np.concatenate(

@@ -19,7 +19,7 @@ from stages.landmarks.stage import layout_and_correspondence
 from stages.layout import load_layout
 from stages.packbuild.filters import CAUSES, KEEP, cause_counts, classify_frames, head_angles, measure_frames
 from stages.geometry.states import SEALED_GAP, coverage_record
-from stages.packbuild.selection import Selection, compose_similarity, select_frames
+from stages.packbuild.selection import FRAMINGS, Selection, compose_similarity, select_frames
 from stages.packbuild.writing import write_pack
 
 
@@ -153,13 +153,20 @@ class PackSelect(SequenceStage):
     """
 
     name = "pack.select"
-    version = "3"
+    version = "4"
     doc = "choose a pack's neutral, standard, examples (greedy k-center), teeth examples and captured geometries"
     inputs = {"points": POINTS, "landmarks": LANDMARKS, "filter": FRAME_FILTER}
     outputs = {"selection": PACK_SELECTION}
     params = (
         Param("width", int, 384, "pack image width, px", min=32, max=4096),
         Param("height", int, 512, "pack image height, px", min=32, max=4096),
+        Param(
+            "framing",
+            str,
+            "head",
+            "what the pack's images hold: the face edge to edge, the whole head with a margin, or head and shoulders",
+            choices=tuple(FRAMINGS),
+        ),
         Param("examples", int, 12, "example expressions (paper: 10-15)", min=2, max=MAX_EXAMPLES),
         Param("captured", int, 35, "captured geometries for PCA, examples included (paper: 30-40)", min=2, max=MAX_CAPTURED),
         Param("teeth", int, 4, "teeth examples (different mouth openings)", min=1, max=MAX_TEETH_EXAMPLES),
@@ -217,6 +224,8 @@ class PackSelect(SequenceStage):
                 min_teeth_open=params["min_teeth_open"],
                 min_teeth_fraction=params["min_teeth_fraction"],
                 depth=self._depth(inputs, params),
+                framing=params["framing"],
+                footage=tuple(int(v) for v in marks["size"]) if "size" in marks else None,
             )
         except ValueError as exc:
             raise StageError(f"{self.name}: {exc}") from None

@@ -270,6 +270,7 @@ class Synthesizer:
         self.face_outline = np.asarray(model["face_outline"], np.int64)
         self.triangles = np.asarray(model["triangles"])
         self.mouth_triangles = np.asarray(model["mouth_triangles"], bool)
+        self.surround_triangles = (self.triangles >= len(model["standard_points"])).any(axis=1)  # an anchor corner
         self.teeth_polygon = np.asarray(model["teeth_polygon"], np.int64)
         self.teeth_open_area = np.asarray(model["teeth_open_area"], np.float64)
         self.standard_np = np.asarray(model["standard_points"], np.float64)
@@ -486,7 +487,10 @@ class Synthesizer:
             weight = np.concatenate([np.ones(len(turn.depth)), motion_weights(self.anchor_kind)])
             A_out = scaled_intrinsics(turn.camera, self.out_size[0] / self.size[0])
             dst, z = turned_points(vertices, depth, weight, turn.camera, turn.R, turn.t, A_out=A_out)
-            return dst, [depth_order(self.triangles, z[b], behind=self.mouth_triangles) for b in range(B)]
+            order = [
+                depth_order(self.triangles, z[b], behind=self.mouth_triangles, under=self.surround_triangles) for b in range(B)
+            ]
+            return dst, order
         if similarity is not None:
             c_t = self.center if target_center is None else np.asarray(target_center, np.float64)
             c_s = c_t if source_center is None else np.asarray(source_center, np.float64)
@@ -683,7 +687,7 @@ class Synthesize(FrameStage):
     """
 
     name = "synthesis.synthesize"
-    version = "8"
+    version = "9"
     doc = (
         "per-subregion QP + compositing + blending + warp (head turned in depth): target points per frame -> "
         "half-float sRGB frames, face mask, head matte, filled matte, coefficients"

@@ -18,7 +18,10 @@ and the image is warped piecewise-affinely from the standard geometry to the pro
 (backward map, :mod:`stages.synthesis.warp`). Where the turned surface overlaps itself (the nose
 over the far cheek, the face over the hair behind it) the triangles are painted far to near
 (their mean depth after the motion), so the nearer surface is what shows; the triangles of the
-mouth opening count :data:`MOUTH_BEHIND_MM` farther, behind the lips that close over them.
+mouth opening count :data:`MOUTH_BEHIND_MM` farther, behind the lips that close over them, and
+the surround's triangles are painted before the face's: the anchors' depths are a fall-off
+behind the outline, not a surface, and a ring triangle that came nearer than the cheek beside it
+would paint hair over the face along its edges.
 """
 
 from __future__ import annotations
@@ -74,7 +77,9 @@ def turned_points(
     return project(X2, A if A_out is None else A_out)[0], X2[..., 2]
 
 
-def depth_order(triangles: np.ndarray, z: np.ndarray, *, behind: np.ndarray | None = None) -> np.ndarray:
+def depth_order(
+    triangles: np.ndarray, z: np.ndarray, *, behind: np.ndarray | None = None, under: np.ndarray | None = None
+) -> np.ndarray:
     """The triangles far to near (the painter's order of the warp, whose later triangles win).
 
     Parameters
@@ -83,6 +88,10 @@ def depth_order(triangles: np.ndarray, z: np.ndarray, *, behind: np.ndarray | No
     z : (P,) float, mm: camera depth of each vertex
     behind : (K,) bool, optional
         Triangles counted :data:`MOUTH_BEHIND_MM` farther (the mouth opening).
+    under : (K,) bool, optional
+        Triangles painted before all the others, far to near among themselves: the surround
+        (hair, ears, neck, background), which lies behind the face's outline whatever depth its
+        anchors are given, so that it never paints over the face.
 
     Returns
     -------
@@ -91,4 +100,7 @@ def depth_order(triangles: np.ndarray, z: np.ndarray, *, behind: np.ndarray | No
     key = np.asarray(z, np.float64)[triangles].mean(1)
     if behind is not None:
         key = key + MOUTH_BEHIND_MM * np.asarray(behind, bool)
-    return np.ascontiguousarray(triangles[np.argsort(-key, kind="stable")], np.int32)
+    order = np.argsort(-key, kind="stable")
+    if under is not None:
+        order = order[np.argsort(~np.asarray(under, bool)[order], kind="stable")]
+    return np.ascontiguousarray(triangles[order], np.int32)

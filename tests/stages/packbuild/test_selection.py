@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from stages.actor_pack import load_pack
 from stages.geometry.compensate import apply_similarity
 from stages.landmarks.landmarker import BLENDSHAPE_NAMES
-from stages.packbuild.selection import canvas_similarity, compose_similarity, k_center, select_frames
+from stages.packbuild.selection import FRAMINGS, canvas_similarity, compose_similarity, k_center, select_frames
 from tests.stages.synthesis.test_fixture_pack import PACK
 
 
@@ -77,19 +77,24 @@ def pack():
     return load_pack(PACK)
 
 
-def test_canvas_puts_the_eye_line_level_and_every_face_inside(pack):
+@pytest.mark.parametrize("framing", sorted(FRAMINGS))
+def test_canvas_puts_the_eye_line_level_and_every_face_inside_at_the_framings_size(pack, framing):
     neutral = pack.neutral.points
     theta = np.radians(12)
     tilted = apply_similarity(np.array([0.8 * np.cos(theta), 0.8 * np.sin(theta), 30.0, -10.0]), neutral)
     geometries = np.stack([tilted, tilted + (0, 15)])
-    params = canvas_similarity(tilted, geometries, pack.layout, (300, 400), fill=0.9)
+    params = canvas_similarity(tilted, geometries, pack.layout, (300, 400), framing=framing)
     placed = apply_similarity(params, geometries)
     left, right = (placed[0, pack.layout.index(n)] for n in ("eye_l_6", "eye_r_6"))
     assert abs(right[1] - left[1]) < 1e-9 and right[0] > left[0]
     lo, hi = placed.reshape(-1, 2).min(0), placed.reshape(-1, 2).max(0)
     assert np.all(lo >= -0.5) and hi[0] <= 299.5 and hi[1] <= 399.5
-    # the box is from percentiles of the frames (1st of the minima, 99th of the maxima): about the fill
-    assert max((hi[0] - lo[0]) / 300, (hi[1] - lo[1]) / 400) == pytest.approx(0.9, abs=0.005)
+    # the box is from percentiles of the frames (1st of the minima, 99th of the maxima): about the fill,
+    # centred across and its centre at the framing's height
+    fill, centre = FRAMINGS[framing]
+    assert max((hi[0] - lo[0]) / 300, (hi[1] - lo[1]) / 400) == pytest.approx(fill, abs=0.005)
+    assert (lo[0] + hi[0]) / 2 == pytest.approx(299 / 2, abs=1.0)
+    assert (lo[1] + hi[1]) / 2 == pytest.approx(centre * 399, abs=1.0)
 
 
 def moving_clip(pack, repeats=3, noise_px=0.01, seed=0):

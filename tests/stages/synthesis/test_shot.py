@@ -119,6 +119,27 @@ def test_turned_projection_is_the_3d_motion(pack, synth):
     np.testing.assert_allclose(dst[0, : len(depth)], p[:, :2] / p[:, 2:], atol=1e-9)
 
 
+@pytest.mark.parametrize("angles", [(30.0, 0.0, 0.0), (-30.0, 10.0, 0.0), (0.0, 0.0, 25.0)])
+def test_the_surround_never_paints_over_the_face(pack, synth, angles):
+    """Whatever depth the head ring's anchors are given, the pixels the turned face's triangles
+    cover are the face's: the painter's last triangle there has no anchor corner (the triangle
+    index map of the warp, painted in the returned order, read against the face triangles' own
+    coverage)."""
+    turn, _ = turn_about_pivot(pack, angles)
+    points = pack.neutral.points[None]
+    dst, order = synth._destinations(points, None, turn, source_center=None, target_center=None, motion_scale=1.0)
+    n = len(pack.layout.point_names)
+    surround = (order[0] >= n).any(axis=1)
+    assert surround.any() and (~surround).any()
+    assert not surround[np.argmax(~surround) :].any()  # every surround triangle before every face triangle
+    size = synth.out_size
+    winner = triangle_index_map(dst[0], order[0], size, uncovered=-1)
+    face_only = triangle_index_map(dst[0], order[0][~surround], size, uncovered=-1)
+    covered = face_only >= 0
+    assert covered.sum() > 1000
+    assert not surround[winner[covered]].any()
+
+
 def test_pixels_from_beyond_the_pack_image_are_marked_and_filled(pack, model):
     """A similarity moving the image 40 px right: the strip it leaves has no source. It is marked
     filled (1), the rest not (0), and its colour is no copy of the image's edge column."""
