@@ -141,7 +141,9 @@ def whole_head(model: Mapping[str, np.ndarray], depth: np.ndarray, A: np.ndarray
     if len(standard) != len(depth):
         raise StageError(f"{stage}: input 'model' has {len(standard)} points, the pack's layout {len(depth)}")
     anchors, kind = np.asarray(model["anchors"], np.float64), np.asarray(model["anchor_kind"])
-    z = anchor_depth(lift(standard, depth, A), kind, np.asarray(model["anchor_hull"]), np.asarray(model["face_outline"]))
+    z = anchor_depth(
+        lift(standard, depth, A), standard, anchors, kind, np.asarray(model["anchor_hull"]), np.asarray(model["face_outline"])
+    )
     return {
         "surround": lift(anchors, z, A),
         "surround_uv": anchors,

@@ -68,7 +68,7 @@ from stages.synthesis.bundles import SYNTHESIS_MODEL
 from stages.actor_pack import ActorPack, Expression
 from stages.layout import Layout, subregion_mask
 from stages.pack.bundles import images_from_bundle, layout_from_bundle
-from stages.synthesis.surround import head_matte, head_ring, surround_anchors, surround_triangles
+from stages.synthesis.surround import head_extent, head_matte, head_ring, surround_anchors, surround_triangles
 from stages.synthesis.warp import warp_images
 
 __all__ = [
@@ -226,8 +226,9 @@ def build_synthesis_model(
     S = len(layout.subregions)
     std = np.asarray(pack.standard.points, np.float64)
     face_points = np.array([not any(i in s.points for s in layout.subregions if s.teeth) for i in range(layout.n_points)])
+    head_scale = head_extent(pack.neutral.image, np.asarray(pack.neutral.points, np.float64), face_points)
     anchors, anchor_kind, anchor_hull = surround_anchors(
-        std, size, face=face_points, per_side=anchors_per_side, margin=anchor_margin
+        std, size, face=face_points, per_side=anchors_per_side, margin=anchor_margin, head_scale=head_scale
     )
     region = subregion_mask(layout, std, size).astype(np.int16)
     region[region < 0] = S
@@ -305,7 +306,7 @@ def build_synthesis_model(
         "standard": np.ascontiguousarray(pack.standard.image),
         "outside": outside[0],
         "valid": valid,
-        "head_matte": head_matte(std, face_points, size),
+        "head_matte": head_matte(std, face_points, size, head_scale),
         "neutral": np.ascontiguousarray(pack.neutral.image),
         "neutral_valid": matte(pack.neutral).astype(np.float32) / 255.0,
         "neutral_points": np.asarray(pack.neutral.points, np.float64),
@@ -333,7 +334,7 @@ class BuildSynthesis(SequenceStage):
     stands in for the :class:`ActorPack` of :func:`build_synthesis_model`)."""
 
     name = "synthesis.build"
-    version = "4"
+    version = "5"
     doc = "offline: align examples and teeth examples to the standard image, subregion mask, blend weight map"
     inputs = {"layout": LAYOUT, "images": PACK_IMAGES}
     outputs = {"model": SYNTHESIS_MODEL}

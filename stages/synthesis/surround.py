@@ -5,14 +5,17 @@ feature points and *anchor points*. The anchors here describe what lies around t
 standard geometry, in three kinds:
 
 ``RING_HEAD`` (kind 1)
-    The convex hull of the feature points scaled by ``RING_SCALES[0]`` about its centroid: hair,
-    ears, the top of the neck. It turns with the head (motion weight 1) and lies behind the face
-    outline, each point ``(s - 1) r`` behind the hull point it was scaled from (``r`` the face's
-    radius in mm: the RMS distance of the lifted hull points from their centroid across the image
-    plane), so the depth falls off from the face to the sides of the head.
+    The convex hull of the feature points scaled about its centroid, each hull point by its own
+    scale ``s``: where the head ends along that ray (:func:`head_extent`: the hair and ears of a
+    person segmented from the image, at least ``RING_SCALES[0]``), or ``RING_SCALES[0]`` below
+    the mouth, where the neck goes on into the shoulders. It turns with the head (motion weight
+    1) and lies behind the face outline, each point ``(s - 1) r`` behind the hull point it was
+    scaled from (``r`` the face's radius in mm: the RMS distance of the lifted hull points from
+    their centroid across the image plane), so the depth falls off from the face to the sides of
+    the head.
 ``RING_OUTER`` (kind 2)
-    The hull scaled by ``RING_SCALES[1]``: where the head ends. Static (weight 0), ``(s - 1) r``
-    behind its hull point as well.
+    The head ring's scale plus ``RING_SCALES[1] - RING_SCALES[0]``: the background beside the
+    head. Static (weight 0), ``(s - 1) r`` behind its hull point as well.
 ``BORDER`` (kind 0)
     Points on the image's outer pixel edges, and a rectangle further out
     (:func:`stages.synthesis.warp.border_anchors` with a margin, so that a warp moving every
@@ -26,10 +29,11 @@ edge is made of triangle edges: a warp that keeps the anchors where they are (th
 the examples to the standard geometry, Sec. 5.2) maps the image's edge onto itself and never
 reaches beyond it.
 
-Between the face and the outer ring (or the image's edge) the motion weight goes from 1 to 0:
-when the head turns or moves, that band is compressed on one side and stretched on the other, the
-background beyond it stays where it is. The *head matte* is the region inside the head ring
-(its points outside the image included), its edge softened.
+Between the head ring and the outer ring (or the image's edge) the motion weight goes from 1 to 0:
+when the head turns or moves, that band of background is compressed on one side and stretched on
+the other, the background beyond it stays where it is, and the head inside the ring, hair and
+ears included, moves as one body. The *head matte* is the region inside the head ring (its
+points outside the image included), its edge softened.
 """
 
 from __future__ import annotations
@@ -44,6 +48,7 @@ __all__ = [
     "RING_HEAD",
     "RING_OUTER",
     "head_ring",
+    "head_extent",
     "surround_anchors",
     "surround_triangles",
     "head_matte",
@@ -52,6 +57,9 @@ __all__ = [
 ]
 
 RING_SCALES = (1.3, 1.7)
+RING_MAX_SCALE = 2.2  # the largest head ring, times the face's hull
+RING_MARGIN = 0.06  # the head ring beyond where the segmented head ends, in hull scale
+SEGMENT_SIDE = 192  # px: the longer side of the image the head is segmented in
 BORDER, RING_HEAD, RING_OUTER = 0, 1, 2
 HEAD_MATTE_SOFTNESS = 0.04  # Gaussian sigma of the head matte's edge, fraction of the face's radius (px)
 EDGE_SPACING = 0.125  # points on the image's edge: this fraction of the longer side apart, at most
@@ -71,8 +79,80 @@ def head_ring(points: np.ndarray, face: np.ndarray) -> tuple[np.ndarray, np.ndar
     return ring_idx, np.asarray(points, np.float64)[ring_idx].mean(0)
 
 
+def head_extent(image: np.ndarray, points: np.ndarray, face: np.ndarray, *, iterations: int = 3) -> np.ndarray:
+    """Per hull point of the face, the scale about the hull's centroid at which the head ends.
+
+    The person is segmented from the image by GrabCut (Rother et al. 2004, OpenCV), seeded with
+    the face's hull as certain foreground, ``RING_MAX_SCALE`` times the hull as probable foreground,
+    the rest as probable background and a band along the top and the sides of the image as
+    certain background; the region connected to the face is the head. Along each ray from the
+    centroid through a hull point the head ends where the segment first leaves it; the head ring
+    lies ``RING_MARGIN`` beyond that, between ``RING_SCALES[0]`` and ``RING_MAX_SCALE``. Hull
+    points below the mouth (farther down than the hull's centroid by half the face's radius,
+    across the eye line) keep ``RING_SCALES[0]``: below them the neck goes on into the shoulders,
+    and the band there is what bends.
+
+    Parameters
+    ----------
+    image : (H, W, 3) uint8
+        RGB, the geometry of ``points`` (the pack's neutral).
+    points : (N, 2) float, px
+    face : (N,) bool
+        The points whose hull is the face outline.
+
+    Returns
+    -------
+    (N,) float64: the head ring's scale at each hull point (``RING_SCALES[0]`` at the others).
+    """
+    import cv2
+
+    points = np.asarray(points, np.float64)
+    H, W = image.shape[:2]
+    ring_idx, centre = head_ring(points, face)
+    hull = points[ring_idx]
+    f = min(1.0, SEGMENT_SIDE / max(W, H))  # segmented at most SEGMENT_SIDE px across
+    w, h = max(round(W * f), 1), max(round(H * f), 1)
+
+    def polygon(scale: float) -> np.ndarray:
+        return np.round(f * (centre + scale * (hull - centre))).astype(np.int32)
+
+    mask = np.full((h, w), cv2.GC_PR_BGD, np.uint8)
+    cv2.fillPoly(mask, [polygon(RING_MAX_SCALE)], cv2.GC_PR_FGD)
+    band = max(2, round(0.02 * max(w, h)))
+    mask[:band], mask[:, :band], mask[:, -band:] = cv2.GC_BGD, cv2.GC_BGD, cv2.GC_BGD
+    cv2.fillPoly(mask, [polygon(1.0)], cv2.GC_FGD)
+    bgd, fgd = np.zeros((1, 65)), np.zeros((1, 65))
+    small = cv2.resize(np.ascontiguousarray(image[..., ::-1]), (w, h), interpolation=cv2.INTER_AREA)
+    cv2.grabCut(small, mask, None, bgd, fgd, iterations, cv2.GC_INIT_WITH_MASK)
+    person = ((mask == cv2.GC_FGD) | (mask == cv2.GC_PR_FGD)).astype(np.uint8)
+    _, labels = cv2.connectedComponents(person)
+    inside = polygon(1.0).mean(0).astype(int)
+    head = labels == labels[np.clip(inside[1], 0, h - 1), np.clip(inside[0], 0, w - 1)]
+    steps = np.arange(1.0, RING_MAX_SCALE + 1e-9, 0.02)
+    rays = centre + steps[None, :, None] * (hull - centre)[:, None, :]  # (h, S, 2)
+    x = np.clip(np.round(f * rays[..., 0]).astype(int), 0, w - 1)
+    y = np.clip(np.round(f * rays[..., 1]).astype(int), 0, h - 1)
+    within = (rays[..., 0] >= 0) & (rays[..., 0] <= W - 1) & (rays[..., 1] >= 0) & (rays[..., 1] <= H - 1)
+    on = head[y, x] & within
+    first_off = np.where(~on.all(axis=1), np.argmin(on, axis=1), len(steps))
+    scale = np.clip(np.concatenate([[1.0], steps])[first_off] + RING_MARGIN, RING_SCALES[0], RING_MAX_SCALE)
+    radius = np.sqrt(((hull - centre) ** 2).sum(1).mean())
+    left, right = hull[np.argmin(hull[:, 0])], hull[np.argmax(hull[:, 0])]
+    down = np.array([-(right - left)[1], (right - left)[0]]) / max(np.linalg.norm(right - left), 1e-9)
+    scale[(hull - centre) @ down > 0.5 * radius] = RING_SCALES[0]
+    out = np.full(len(points), RING_SCALES[0])
+    out[ring_idx] = scale
+    return out
+
+
 def surround_anchors(
-    points: np.ndarray, size: tuple[int, int], *, face: np.ndarray, per_side: int = 4, margin: float = 0.25
+    points: np.ndarray,
+    size: tuple[int, int],
+    *,
+    face: np.ndarray,
+    per_side: int = 4,
+    margin: float = 0.25,
+    head_scale: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The anchors of the synthesis model: the two rings and the border (module docstring).
 
@@ -85,6 +165,9 @@ def surround_anchors(
         The points whose hull is the face outline (the layout's points but the teeth).
     per_side, margin
         The outer rectangle (:func:`stages.synthesis.warp.border_anchors`).
+    head_scale : (N,) float, optional
+        The head ring's scale at each hull point (:func:`head_extent`, computed on the same face
+        in any geometry); ``RING_SCALES[0]`` at every point when omitted.
 
     Returns
     -------
@@ -96,9 +179,10 @@ def surround_anchors(
     points = np.asarray(points, np.float64)
     W, H = size
     ring_idx, centre = head_ring(points, face)
+    head = np.full(len(ring_idx), RING_SCALES[0]) if head_scale is None else np.asarray(head_scale, np.float64)[ring_idx]
     anchors, kinds, hulls = [], [], []
-    for kind, scale in zip((RING_HEAD, RING_OUTER), RING_SCALES):
-        ring = centre + scale * (points[ring_idx] - centre)
+    for kind, scale in ((RING_HEAD, head), (RING_OUTER, head + RING_SCALES[1] - RING_SCALES[0])):
+        ring = centre + scale[:, None] * (points[ring_idx] - centre)
         inside = np.all((ring > 1.0) & (ring < np.array([W, H]) - 2.0), axis=1)
         anchors.append(ring[inside])
         kinds.append(np.full(int(inside.sum()), kind, np.int8))
@@ -221,17 +305,19 @@ def surround_triangles(
     return triangles, np.arange(len(triangles)) < int(opening.sum())
 
 
-def head_matte(points: np.ndarray, face: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+def head_matte(points: np.ndarray, face: np.ndarray, size: tuple[int, int], head_scale: np.ndarray | None = None) -> np.ndarray:
     """``(H, W) float32`` in [0, 1]: the inside of the head ring (the hull of the face points
-    ``points[face]`` scaled by ``RING_SCALES[0]``) in the standard geometry, its edge blurred by a
-    Gaussian of ``HEAD_MATTE_SOFTNESS`` times the face's radius."""
+    ``points[face]`` scaled by ``head_scale (N,)`` at each hull point, ``RING_SCALES[0]`` when omitted) in
+    the standard geometry, its edge blurred by a Gaussian of ``HEAD_MATTE_SOFTNESS`` times the
+    face's radius."""
     import cv2
 
     W, H = size
     points = np.asarray(points, np.float64)
     ring_idx, centre = head_ring(points, face)
     outline = points[ring_idx]
-    polygon = centre + RING_SCALES[0] * (outline - centre)
+    scale = np.full(len(ring_idx), RING_SCALES[0]) if head_scale is None else np.asarray(head_scale, np.float64)[ring_idx]
+    polygon = centre + scale[:, None] * (outline - centre)
     shift = 4
     mask = np.zeros((H, W), np.float32)
     cv2.fillPoly(mask, [np.round(polygon * (1 << shift)).astype(np.int32)], 1.0, cv2.LINE_AA, shift)
@@ -240,7 +326,9 @@ def head_matte(points: np.ndarray, face: np.ndarray, size: tuple[int, int]) -> n
     return np.clip(cv2.GaussianBlur(mask, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE), 0.0, 1.0)
 
 
-def anchor_depth(lifted: np.ndarray, kind: np.ndarray, hull: np.ndarray, outline: np.ndarray) -> np.ndarray:
+def anchor_depth(
+    lifted: np.ndarray, points: np.ndarray, anchors: np.ndarray, kind: np.ndarray, hull: np.ndarray, outline: np.ndarray
+) -> np.ndarray:
     """Camera depth of each anchor, mm (module docstring).
 
     Parameters
@@ -248,24 +336,33 @@ def anchor_depth(lifted: np.ndarray, kind: np.ndarray, hull: np.ndarray, outline
     lifted : (N, 3) float, mm
         The feature points of the standard geometry in the camera frame (lifted at the target
         model's depths).
-    kind, hull : (A,) from :func:`surround_anchors`
+    points : (N, 2) float, px
+        The same points in the image.
+    anchors, kind, hull : (A, 2), (A,), (A,) from :func:`surround_anchors`
     outline : (h,) int, the face outline's points (:func:`head_ring`)
 
     Returns
     -------
-    (A,) float64, mm: a ring point ``(s - 1) r`` behind the hull point it is scaled from; the
-    border at the outer ring's depth behind the farthest hull point (a background plane just behind
-    the head: a render of the mesh at rest reproduces its texture, and a triangle from the face to
-    the border does not reach so far back that perspective bends its texture).
+    (A,) float64, mm: a ring point ``(s - 1) r`` behind the hull point it is scaled from (``s`` its
+    distance from the hull's centroid over its hull point's); the border at the outer ring's
+    largest depth (a background plane just behind the head: a render of the mesh at rest
+    reproduces its texture, and a triangle from the face to the border does not reach so far back
+    that perspective bends its texture).
     """
     lifted = np.asarray(lifted, np.float64)
+    points = np.asarray(points, np.float64)
+    anchors = np.asarray(anchors, np.float64)
     ring_idx = np.asarray(outline, np.int64)
     xy = lifted[ring_idx, :2]
     radius = np.sqrt(((xy - xy.mean(0)) ** 2).sum(1).mean())
-    depth = np.full(len(kind), lifted[ring_idx, 2].max() + (RING_SCALES[1] - 1.0) * radius)
-    for k, scale in zip((RING_HEAD, RING_OUTER), RING_SCALES):
-        sel = kind == k
-        depth[sel] = lifted[hull[sel], 2] + (scale - 1.0) * radius
+    centre = points[ring_idx].mean(0)
+    ring = kind != BORDER
+    scale = np.linalg.norm(anchors[ring] - centre, axis=1) / np.maximum(np.linalg.norm(points[hull[ring]] - centre, axis=1), 1e-9)
+    depth = np.empty(len(kind))
+    depth[ring] = lifted[hull[ring], 2] + (scale - 1.0) * radius
+    outer = kind == RING_OUTER
+    far = depth[outer].max() if outer.any() else lifted[ring_idx, 2].max() + (RING_SCALES[1] - 1.0) * radius
+    depth[~ring] = max(far, lifted[ring_idx, 2].max() + (RING_SCALES[1] - 1.0) * radius)
     return depth
 
 

@@ -483,7 +483,12 @@ class Synthesizer:
             from stages.synthesis.turn import depth_order, turned_points
 
             lifted = lift(self.standard_np, turn.depth, turn.camera)
-            depth = np.concatenate([turn.depth, anchor_depth(lifted, self.anchor_kind, self.anchor_hull, self.face_outline)])
+            depth = np.concatenate(
+                [
+                    turn.depth,
+                    anchor_depth(lifted, self.standard_np, self.anchors, self.anchor_kind, self.anchor_hull, self.face_outline),
+                ]
+            )
             weight = np.concatenate([np.ones(len(turn.depth)), motion_weights(self.anchor_kind)])
             A_out = scaled_intrinsics(turn.camera, self.out_size[0] / self.size[0])
             dst, z = turned_points(vertices, depth, weight, turn.camera, turn.R, turn.t, A_out=A_out)

@@ -76,3 +76,27 @@ def test_pack_without_teeth_examples_is_an_error():
     pack.teeth_examples = []
     with pytest.raises(StageError, match="teeth_examples"):
         build_synthesis_model(pack)
+
+
+def test_the_head_ring_follows_a_head_wider_than_the_face_and_stays_at_the_neck():
+    """A face (a light oval of points) inside a dark head of hair 1.8 times its hull, on a plain
+    light background: the head ring's scale is where the hair ends (plus the margin) along the rays
+    above the mouth, and the default below it, where the neck goes on (GrabCut finds the head;
+    the truth is the drawn disc)."""
+    import cv2
+
+    from stages.synthesis.surround import RING_MARGIN, RING_SCALES, head_extent, head_ring
+
+    size, centre = (384, 512), np.array([192.0, 240.0])
+    angles = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    points = centre + np.column_stack([60 * np.cos(angles), 80 * np.sin(angles)])
+    image = np.full((size[1], size[0], 3), (200, 215, 230), np.uint8)  # a light blue wall
+    cv2.ellipse(image, tuple(centre.astype(int)), (108, 144), 0, 0, 360, (60, 40, 30), -1)  # hair: 1.8 x the face
+    cv2.ellipse(image, tuple(centre.astype(int)), (60, 80), 0, 0, 360, (225, 180, 160), -1)  # skin
+    face = np.ones(len(points), bool)
+    scale = head_extent(image, points, face)
+    ring_idx, hull_centre = head_ring(points, face)
+    below = (points[ring_idx] - hull_centre)[:, 1] > 0.5 * 70.0
+    assert below.any() and (~below).any()
+    np.testing.assert_allclose(scale[ring_idx][below], RING_SCALES[0])
+    np.testing.assert_allclose(scale[ring_idx][~below], 1.8 + RING_MARGIN, atol=0.08)
