@@ -12,7 +12,7 @@ import pytest
 
 from runner.depends import recording
 from runner.stage import StageError
-from stages.actor_pack import PackError, load_pack
+from stages.actor_pack import PackError, check_pack, load_pack
 from stages.layout import LAYOUT_DIR, load_layout
 from tests.stages.image_files import big_png
 
@@ -106,6 +106,10 @@ def _replace(path: Path, old: str, new: str) -> None:
         (lambda r: np.savez(r / "captured.npz", points=np.zeros((3, 100, 2))), ["captured.npz", "'captured'", "(..., 134, 2)"]),
         (lambda r: np.savez(r / "captured.npz", other=np.zeros(3)), ["captured.npz", "no array 'points'"]),
         (lambda r: _replace(r / "pack.yaml", "[0, 0, 1]]", "[0, 0, 2]]"), ["pack.yaml", "'intrinsics'"]),
+        (
+            lambda r: _replace(r / "pack.yaml", "[0, 50, 14.5]", "[0, .nan, 14.5]"),
+            ["pack.yaml", "'intrinsics[1][1]'", "expected a finite number, got nan"],
+        ),
         (lambda r: _replace(r / "pack.yaml", "image_size: [40, 30]", "image_size: [41, 30]"), ["neutral.png", "image is 40x30"]),
         (lambda r: _replace(r / "pack.yaml", "model3d: model3d.csv", "model3d: nothing.csv"), ["'model3d'", "file not found"]),
         (lambda r: _replace(r / "pack.yaml", "layout: zhang134", "layout: nosuchlayout"), ["nosuchlayout", "cannot read"]),
@@ -113,6 +117,7 @@ def _replace(path: Path, old: str, new: str) -> None:
     ],
 )
 def test_broken_pack_errors_name_file_and_field(pack_dir, breakage, expect):
+    """Loading the pack and checking it without decoding its images give the same one line."""
     root, _ = pack_dir
     breakage(root)
     with pytest.raises(StageError) as err:
@@ -121,6 +126,9 @@ def test_broken_pack_errors_name_file_and_field(pack_dir, breakage, expect):
     assert "\n" not in msg
     for part in expect:
         assert part in msg, (part, msg)
+    with pytest.raises(StageError) as checked:
+        check_pack(root)
+    assert str(checked.value) == msg
 
 
 def test_pack_error_is_a_stage_error(pack_dir):
