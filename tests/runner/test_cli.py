@@ -240,6 +240,15 @@ def test_an_error_quoting_a_long_value_is_one_line_of_bounded_length(tmp_path, m
     assert code == 2 and err == f"error: --set: write.crf: wrong type: expected int, got '{'9' * 79}... (5002 characters)\n"
 
 
+@pytest.mark.parametrize("days", ["nan", "inf", "-1"])
+def test_cache_gc_refuses_days_that_are_not_a_finite_number_of_zero_or_more(tmp_path, days):
+    entry = tmp_path / "cache" / "entries" / "ab" / "cd"
+    entry.mkdir(parents=True)
+    code, out, err = cli_main("cache", "gc", "--older-than", days, "--cache-dir", tmp_path / "cache", "--out", tmp_path / "o")
+    assert code == 2 and out == "" and "Invalid value for '--older-than'" in err
+    assert entry.is_dir() and not (tmp_path / "o").exists()
+
+
 def test_a_head_pose_wired_to_a_stage_that_reads_the_other_one_fails_at_load(tmp_path, monkeypatch):
     """pose.pnp's pose is absolute (tvec mm, with its camera), compensate.rigid3d's relative to the
     head frame (tvec px, a scale): each reader takes one of them, checked before anything runs."""

@@ -14,7 +14,7 @@ from runner.depends import recording
 from runner.stage import StageError
 from stages.actor_pack import PackError, check_pack, load_pack
 from stages.layout import LAYOUT_DIR, load_layout
-from tests.stages.image_files import big_png
+from tests.stages.image_files import big_png, rgb_png
 
 REPO = Path(__file__).resolve().parents[2]
 W, H = 40, 30
@@ -89,6 +89,10 @@ def _replace(path: Path, old: str, new: str) -> None:
     [
         (lambda r: (r / "images" / "ex1.png").unlink(), ["pack.yaml", "examples[1].image", "file not found"]),
         (lambda r: (r / "images" / "ex0.png").write_bytes(b"not a png"), ["ex0.png", "examples[0].image", "cannot read image"]),
+        (
+            lambda r: rgb_png(r / "images" / "ex0.png", np.zeros((30, 40, 3), np.uint8), extra=b"\0" * 10),
+            ["ex0.png", "examples[0].image", "cannot read image"],
+        ),
         (
             lambda r: _replace(r / "points" / "standard.csv", "\nchin,", "\nXchin,"),
             ["standard.csv", "standard.points", "unknown point name"],
