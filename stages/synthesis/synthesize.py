@@ -744,7 +744,7 @@ class Synthesize(FrameStage):
             int,
             0,
             "output width, px (the height keeps the pack's aspect ratio); 0: the pack's size; the "
-            f"output at most {MAX_OUTPUT_PIXELS} px in all",
+            f"output at most {MAX_OUTPUT_PIXELS / 1e6:.1f} MP (the memory a run takes: docs/synthesis.md)",
             min=0,
             max=MAX_OUTPUT_WIDTH,
         ),
