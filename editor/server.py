@@ -19,7 +19,9 @@ API (POST bodies are JSON)
 ``POST /api/inbetweens``   ``{client, seq, from, to}`` -> the five in-between images (Sec. 14.2,
                            JPEG) and the image of ``to`` (PNG)
 ``POST /api/export``       ``{fps, keyframes: [{time_s, points}]}`` -> the points file (.npz), at
-                           most ``MAX_EXPORT_FRAMES`` frames, built on a thread, one at a time
+                           most ``MAX_EXPORT_FRAMES`` frames, built on a thread, one at a time,
+                           and streamed; at most ``EXPORTS_PENDING`` exports held at once
+                           (built or being sent), a further one answered 503 with Retry-After
 
 Image answers are ``application/octet-stream``: a little-endian uint32 byte count, that many
 bytes of UTF-8 JSON (``points``, ``seq``, ``work_ms``: wall-clock time of propagation,
@@ -40,6 +42,7 @@ import asyncio
 import hmac
 import json
 import logging
+import sys
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -52,6 +55,7 @@ from editor.engine import EditorEngine
 from editor.geometry import interpolate_keyframes
 from stages.geometry.points_file import points_file_bytes
 from editor.renderers import Renderers
+from runner.notes import bounded
 
 STATIC = Path(__file__).resolve().parent / "static"
 MAX_BODY = 4 * 1024 * 1024  # bytes; an export of MAX_KEYFRAMES keyframes of 134 points fits
@@ -67,10 +71,16 @@ EXECUTOR = web.AppKey("executor", ThreadPoolExecutor)
 RENDERER = web.AppKey("renderer", Renderers)
 EXPORTS = web.AppKey("exports", asyncio.Semaphore)
 EXPORTS_AT_ONCE = 1  # exports built at once (each up to ~77 MB): the others wait their turn
+PENDING = web.AppKey("pending", list)
+EXPORTS_PENDING = 2  # exports held at once, from the request until the last byte is sent
+EXPORT_RETRY_S = 5  # the Retry-After of an export refused while EXPORTS_PENDING are held
+EXPORT_BLOCK = 1 << 20  # bytes of an export written at a time (each waits for the client to take them)
 
 
-def json_error(status: int, message: str) -> web.Response:
-    return web.json_response({"error": message}, status=status, headers={"Cache-Control": "no-store"})
+def json_error(status: int, message: str, headers: dict[str, str] | None = None) -> web.Response:
+    """``{"error": message}`` with ``status``; the message on one line, cut at 400 characters
+    (:func:`runner.notes.bounded`: a bad value is quoted, never echoed whole)."""
+    return web.json_response({"error": bounded(message)}, status=status, headers={"Cache-Control": "no-store", **(headers or {})})
 
 
 @web.middleware
@@ -92,11 +102,17 @@ async def guard(request: web.Request, handler: Callable[[web.Request], Awaitable
     except Exception:  # a fault of ours: logged, answered, and the server goes on
         log.exception("error serving %s %s", request.method, request.path)
         return json_error(500, "internal error (see the server's log)")
+    if not response.prepared:  # a streamed answer set its headers before its first byte
+        _secure(response)
+    return response
+
+
+def _secure(response: web.StreamResponse) -> None:
+    """The headers of every answer: no caching, no referrer, a restrictive content policy."""
     response.headers["Cache-Control"] = "no-store"
     response.headers["Referrer-Policy"] = "no-referrer"
     response.headers["X-Content-Type-Options"] = "nosniff"
     response.headers["Content-Security-Policy"] = "default-src 'self'; img-src 'self' blob: data:; frame-ancestors 'none'"
-    return response
 
 
 async def read_json(request: web.Request) -> Any:
@@ -106,9 +122,19 @@ async def read_json(request: web.Request) -> Any:
         raise web.HTTPUnsupportedMediaType(reason=f"expected Content-Type application/json, got {request.content_type!r}")
     text = await request.text()
     try:
-        return json.loads(text)
+        return json.loads(text, parse_int=_parse_int)
     except RecursionError:
         raise ValueError("the JSON body is nested too deeply") from None
+
+
+def _parse_int(text: str) -> int:
+    """An integer of a JSON body; one longer than Python converts (its digit limit) is a 400
+    saying so, not Python's own message."""
+    try:
+        return int(text)
+    except ValueError:
+        limit = sys.get_int_max_str_digits()
+        raise ValueError(f"an integer of {len(text)} characters in the JSON body: at most {limit} digits") from None
 
 
 def claim(app: web.Application, client: str, seq: int) -> bool:
@@ -175,17 +201,42 @@ def export_bytes(engine: EditorEngine, body: Any) -> bytes:
     return points_file_bytes(interpolate_keyframes(times, geometries, fps=fps), engine.layout.point_names, fps=fps)
 
 
-async def handle_export(request: web.Request) -> web.Response:
+async def handle_export(request: web.Request) -> web.StreamResponse:
     """The export, validated and built on a thread (``EXPORTS`` at once), not the event loop:
-    the other requests go on being answered meanwhile."""
-    body = await read_json(request)
-    async with request.app[EXPORTS]:
-        data = await asyncio.get_running_loop().run_in_executor(None, export_bytes, request.app[ENGINE], body)
-    return web.Response(
-        body=data,
-        content_type="application/octet-stream",
-        headers={"Content-Disposition": 'attachment; filename="keyframes.npz"'},
-    )
+    the other requests go on being answered meanwhile. Its bytes are held until the client
+    has taken the last of them, so at most :data:`EXPORTS_PENDING` exports are held at once
+    (a slow reader holds one); a further request is answered 503 with ``Retry-After``."""
+    pending = request.app[PENDING]
+    if len(pending) >= EXPORTS_PENDING:
+        message = f"{EXPORTS_PENDING} exports are being built or sent: try again in {EXPORT_RETRY_S} s"
+        return json_error(503, message, {"Retry-After": str(EXPORT_RETRY_S)})
+    pending.append(request)
+    try:
+        body = await read_json(request)
+        async with request.app[EXPORTS]:
+            data = await asyncio.get_running_loop().run_in_executor(None, export_bytes, request.app[ENGINE], body)
+        return await _send(request, data)
+    finally:
+        pending.remove(request)
+
+
+async def _send(request: web.Request, data: bytes) -> web.StreamResponse:
+    """Stream ``data`` as the export's download, :data:`EXPORT_BLOCK` bytes at a time, each
+    write waiting until the client has taken enough of the previous ones; a client that goes
+    away ends it."""
+    response = web.StreamResponse(headers={"Content-Disposition": 'attachment; filename="keyframes.npz"'})
+    response.content_type = "application/octet-stream"
+    response.content_length = len(data)
+    _secure(response)
+    await response.prepare(request)
+    view = memoryview(data)
+    try:
+        for start in range(0, len(data), EXPORT_BLOCK):
+            await response.write(view[start : start + EXPORT_BLOCK])
+        await response.write_eof()
+    except ConnectionResetError:  # the client went away: its export is let go
+        pass
+    return response
 
 
 async def handle_describe(request: web.Request) -> web.Response:
@@ -224,6 +275,7 @@ def make_app(engine: EditorEngine, *, token: str, processes: int = RENDERERS) ->
     app[EXECUTOR] = ThreadPoolExecutor(max_workers=processes or RENDERERS, thread_name_prefix="editor-render")
     app[RENDERER] = Renderers(engine, processes=processes)
     app[EXPORTS] = asyncio.Semaphore(EXPORTS_AT_ONCE)
+    app[PENDING] = []
     app.on_cleanup.append(_shutdown)
     app.router.add_get("/", handle_index)
     app.router.add_get("/api/describe", handle_describe)

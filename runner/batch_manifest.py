@@ -204,15 +204,18 @@ def _job(
         return None
     try:
         bind_inputs(loaded, clip=None if clip is None else Path(clip[0]), named=[f"{k}={v}" for k, (v, _) in named.items()])
-    except ConfigError as exc:  # an input left without a value (no default in the pipeline)
+    except ConfigError as exc:  # an input left without a value, or one a stage refuses (a bad pack)
         for issue in exc.issues:
-            r.error(knode, f"{key}: {issue.key}", f"{issue.message.split(' (use ')[0]} (give it in the job or in `defaults`)")
+            message = issue.message
+            if message.startswith("missing input: no value given"):
+                message = f"{message.split(' (use ')[0]} (give it in the job or in `defaults`)"
+            r.error(knode, f"{key}: {issue.key}", message)
         return None
 
     out = Path(own.values["out"] if "out" in own.values else base / "out" / name)
     publishing = [n for n, node in loaded.stages.items() if "files" in node.cls.outputs.values()]
-    for problem in conflicts(out, publishing):
-        r.error(own.nodes.get("out", knode), f"{key}.out", problem)
+    for folder, why in conflicts(out, publishing):
+        r.error(own.nodes.get("out", knode), f"{key}.out", f"{folder}: {why}")
     if len(r.issues) > count:
         return None
     return Job(

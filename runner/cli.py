@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import sys
 import time
 from collections.abc import Callable
@@ -326,8 +327,21 @@ def cache_ls(cache_dir: Path | None) -> int:
     return EXIT_OK
 
 
+def _days(ctx: click.Context, param: click.Parameter, value: float | None) -> float | None:
+    """``--older-than``: a finite number of days, 0 or more (click's range lets NaN through)."""
+    if value is not None and not math.isfinite(value):
+        raise click.BadParameter(f"expected a finite number of days, got {value}", ctx, param)
+    return value
+
+
 @cache.command("gc")
-@click.option("--older-than", type=click.FloatRange(min=0), metavar="DAYS", help="Also remove entries not used for DAYS days.")
+@click.option(
+    "--older-than",
+    type=click.FloatRange(min=0),
+    callback=_days,
+    metavar="DAYS",
+    help="Also remove entries not used for DAYS days.",
+)
 @click.option(
     "--out",
     type=click.Path(file_okay=False, path_type=Path),

@@ -527,10 +527,23 @@ def _input_problem(kind: PortType, path: Path) -> tuple[str, str] | None:
     return ("missing input" if problem == "no such file" else "wrong input"), problem
 
 
+def _readers_problems(pipeline: Pipeline, name: str, path: Path) -> list[str]:
+    """Why the stages that read pipeline input ``name`` cannot read ``path``
+    (:meth:`runner.stage.Stage.check_input`), one line per problem, each given once."""
+    problems = (
+        node.cls.check_input(port, path)
+        for node in pipeline.stages.values()
+        for port, ref in node.inputs.items()
+        if ref.stage is None and ref.port == name
+    )
+    return list(dict.fromkeys(f"wrong input: {why}" for why in problems if why is not None))
+
+
 def bind_inputs(pipeline: Pipeline, *, clip: Path | None, named: list[str]) -> dict[str, Path]:
     """Paths for every pipeline input: ``--in`` for the clip input (:func:`clip_inputs`),
     ``--input NAME=PATH`` for any, else the declared default. Raises :class:`ConfigError` naming
-    what is missing."""
+    what is missing, and what a stage reading an input finds wrong with it
+    (:meth:`runner.stage.Stage.check_input`: a pack's manifest)."""
     issues: list[Issue] = []
     values: dict[str, Path | None] = {}
     clip_names = clip_inputs(pipeline)
@@ -567,6 +580,10 @@ def bind_inputs(pipeline: Pipeline, *, clip: Path | None, named: list[str]) -> d
             problem = _input_problem(decl.type, path)
             if problem:
                 issues.append(Issue(decl.where, f"inputs.{decl.name}", f"{problem[0]}: {path}: {problem[1]}"))
+            else:
+                issues.extend(
+                    Issue(decl.where, f"inputs.{decl.name}", why) for why in _readers_problems(pipeline, decl.name, path)
+                )
     if issues:
         raise ConfigError(issues)
     return cast("dict[str, Path]", values)  # a missing value is an issue above

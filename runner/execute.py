@@ -43,6 +43,7 @@ import importlib
 import importlib.metadata
 import os
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -60,7 +61,7 @@ from runner.errors import StageFailed, stage_errors
 from runner.inputs import Inputs
 from runner.keys import Keys
 from runner.lifecycle import Lifecycle
-from runner.outputs import entry_context, load_bundle, read_or_redo, save_outputs, verify_files
+from runner.outputs import Damaged, entry_context, load_bundle, read_or_redo, save_outputs, verify_files
 from runner.plan import selected
 from runner.progress import Progress, Report
 from runner.publish import Published, conflicts, publish, refused, remove_leftovers, unwritable
@@ -177,9 +178,9 @@ class Runner:
         publishing = [node for node in self.selected() if "files" in node.cls.outputs.values()]
         if self.opts.out is not None and publishing:
             problem = refused(self.opts.out) or unwritable(self.opts.out)
-            problems = [problem] if problem else conflicts(self.opts.out, [node.name for node in publishing])
+            problems = [(self.opts.out, problem)] if problem else conflicts(self.opts.out, [n.name for n in publishing])
             if problems:
-                raise ConfigError([Issue(Where("--out"), str(self.opts.out), p) for p in problems])
+                raise ConfigError([Issue(Where("--out"), str(path), why) for path, why in problems])
             remove_leftovers(self.opts.out)
         reports: list[Report] = []
 
@@ -201,18 +202,29 @@ class Runner:
                 chunks.close()
         if self.opts.out is not None:
             for node in publishing:
-                ports = [p for p, kind in node.cls.outputs.items() if kind == "files"]
                 if self.entries.get(node.name):
-                    item = Published(node.name, node.uses, ports, self.entries[node.name], self.redo[node.name])
-                    with stage_errors(node):
-                        publish(
-                            self.opts.out,
-                            item,
-                            records=self.store.published_dir,
-                            on_damaged=lambda exc, n=node: self.progress.damaged(n, exc),
-                        )
+                    self._publish(node, emit)
         self.store.break_stale_locks()
         return reports
+
+    def _publish(self, node: StageNode, emit: Callable[[Report], None]) -> None:
+        """Publish ``node``'s ``files`` outputs to ``--out``. A stage whose entries publishing
+        found damaged and computed again is reported again, as ran, with the time that took."""
+        ports = [p for p, kind in node.cls.outputs.items() if kind == "files"]
+        item = Published(node.name, node.uses, ports, self.entries[node.name], self.redo[node.name])
+        damaged: list[Damaged] = []
+
+        def on_damaged(exc: Damaged) -> None:
+            damaged.append(exc)
+            self.progress.damaged(node, exc)
+
+        started = time.perf_counter()
+        with stage_errors(node):
+            publish(self.opts.out, item, records=self.store.published_dir, on_damaged=on_damaged)
+        if damaged:
+            entries = "entry" if len(damaged) == 1 else "entries"
+            reason = f"computed again to publish: {len(damaged)} damaged cache {entries}"
+            emit(Report(node.name, node.uses, "ran", reason, seconds=time.perf_counter() - started))
 
     def _close_frame_stages(self) -> None:
         """Close every frame stage that computed a chunk (:meth:`runner.stage.Stage.close`),

@@ -59,10 +59,10 @@ class Published:
     redo: Callable[[int], Entry]
 
 
-def conflicts(out: Path, stages: Iterable[str]) -> list[str]:
-    """Problems that forbid publishing ``stages`` under ``out``, one line each: a path that
-    exists at ``out/<stage>`` and was not written by an earlier publish (see the module
-    docstring)."""
+def conflicts(out: Path, stages: Iterable[str]) -> list[tuple[Path, str]]:
+    """Problems that forbid publishing ``stages`` under ``out``: per path that exists at
+    ``out/<stage>`` and was not written by an earlier publish (see the module docstring), the
+    path and why, one line."""
     problems = []
     for stage in stages:
         folder = Path(out) / stage
@@ -70,10 +70,7 @@ def conflicts(out: Path, stages: Iterable[str]) -> list[str]:
             continue
         reason = _not_ours(folder, stage)
         if reason:
-            problems.append(
-                f"{folder}: {reason}; it would be replaced by the outputs of stage {stage!r} "
-                "(move it away or choose another --out)"
-            )
+            problems.append((folder, f"{reason}; stage {stage!r} publishes there (move it away or choose another --out)"))
     return problems
 
 
@@ -297,7 +294,7 @@ def _build(out: Path, item: Published, tmp: Path, on_damaged: Callable[[Damaged]
     (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1))
     problems = conflicts(out, [item.stage])
     if problems:
-        raise StageError(problems[0])
+        raise StageError("{}: {}".format(*problems[0]))
     return listed
 
 

@@ -231,6 +231,17 @@ class Stage:
     # ("reentrant") or must call it one at a time ("single"); see "Lifecycle and threads" above.
     threading: ClassVar[str] = "reentrant"
 
+    @classmethod
+    def check_input(cls, port: str, path: Path) -> str | None:
+        """Why ``path``, the pipeline input bound to this stage's input ``port``, is not one the
+        stage can read (one line naming the file and the field), or None if it is.
+
+        The runner calls it when the inputs are bound, before anything runs (as the pipeline
+        file is checked): a non-None answer is a configuration error (exit 2). It runs on every
+        run, cached or not, so it checks what is cheap to check (a manifest, the files it names,
+        image headers), never decoding the data. By default None."""
+        return None
+
     def open(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> None:
         """Set up what every call of ``run`` / ``process`` of this run shares (a model prepared
         on ``ctx.device``, a GL context), from the same ``inputs`` and ``params`` they are

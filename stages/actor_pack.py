@@ -100,20 +100,38 @@ def load_pack(path: str | Path) -> ActorPack:
         unknown or missing point name, points outside the image, bad intrinsics; the message
         names the file and the field.
     """
+    return _reader(path, decode=True).read()
+
+
+def check_pack(path: str | Path) -> None:
+    """Validate an actor pack as :func:`load_pack` does, every file it names included, reading
+    each image's header but decoding no image (what a run checks before it starts).
+
+    Raises
+    ------
+    StageError
+        As :func:`load_pack` (a :class:`PackError`, or the layout's error), for all but an image
+        body that cannot be decoded.
+    """
+    _reader(path, decode=False).read()
+
+
+def _reader(path: str | Path, *, decode: bool) -> _PackReader:
+    """The reader of the pack at ``path`` (a folder or its ``pack.yaml``), its manifest read."""
     path = Path(path)
     manifest = path if path.is_file() else path / MANIFEST
-    root = manifest.parent
     data = read_yaml(manifest, what="actor pack", noun="manifest", error=PackError)
-    reader = _PackReader(root, manifest, data)
-    return reader.read()
+    return _PackReader(manifest.parent, manifest, data, decode=decode)
 
 
 class _PackReader:
-    """Reads one pack; ``fail`` builds the error naming the file and the field."""
+    """Reads one pack; ``fail`` builds the error naming the file and the field. With ``decode``
+    False, images are checked from their headers and left undecoded (empty arrays)."""
 
-    def __init__(self, root: Path, manifest: Path, data: Any) -> None:
+    def __init__(self, root: Path, manifest: Path, data: Any, *, decode: bool) -> None:
         self.root = root
         self.manifest = manifest
+        self.decode = decode
         if not isinstance(data, dict):
             raise PackError(f"actor pack {manifest}: expected a mapping at the top level")
         self.data = data
@@ -211,8 +229,11 @@ class _PackReader:
             a = np.asarray(value, dtype=np.float64)
         except (TypeError, ValueError):
             raise self.fail(self.manifest, "intrinsics", "expected a 3x3 list of numbers") from None
-        if a.shape != (3, 3) or not np.all(np.isfinite(a)):
-            raise self.fail(self.manifest, "intrinsics", f"expected a 3x3 matrix of finite numbers, got shape {a.shape}")
+        if a.shape != (3, 3):
+            raise self.fail(self.manifest, "intrinsics", f"expected a 3x3 matrix, got shape {a.shape}")
+        if not np.all(np.isfinite(a)):
+            row, col = np.argwhere(~np.isfinite(a))[0]
+            raise self.fail(self.manifest, f"intrinsics[{row}][{col}]", f"expected a finite number, got {a[row, col]}")
         if a[0, 0] <= 0 or a[1, 1] <= 0 or not np.allclose(a[2], (0, 0, 1)) or a[1, 0] != 0:
             raise self.fail(self.manifest, "intrinsics", "expected [[fx, s, u0], [0, fy, v0], [0, 0, 1]] with fx, fy > 0")
         return a
@@ -323,6 +344,8 @@ class _PackReader:
         import cv2
 
         self.check_header(path, field, "image")
+        if not self.decode:
+            return np.zeros((0, 0, 3), np.uint8)
         img = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if img is None:
             raise self.fail(path, field, "cannot read image")
@@ -347,6 +370,8 @@ class _PackReader:
         import cv2
 
         self.check_header(path, field, "matte")
+        if not self.decode:
+            return np.zeros((0, 0), np.uint8)
         matte = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if matte is None:
             raise self.fail(path, field, "cannot read image")

@@ -197,7 +197,7 @@ def estimate_neutral(
                 gap = signals[f"eye_open_{region[-1]}"]
                 level = np.percentile(gap[ok], 90)
                 preferred &= gap >= OPEN_FRACTION * level
-                known[region] = bool(level > 0.03 and preferred.sum() >= MIN_FRAMES)
+                known[region] = bool(level > 0.03 and preferred.sum() >= min(MIN_FRAMES, ok.sum()))
             elif region == "mouth":
                 sealed = preferred & (signals["mouth_open"] < SEALED_GAP)
                 if sealed.sum() >= MIN_FRAMES:

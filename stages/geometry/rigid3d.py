@@ -391,7 +391,7 @@ class CompensateRigid3D(SequenceStage):
     extension of Sec. 12 for real footage)."""
 
     name = "compensate.rigid3d"
-    version = "6"
+    version = "7"
     doc = (
         "neutral estimated from the whole clip (or a named frame); 3D similarity of the rigid points; "
         "displacements, pose, 2D similarity; occluded regions held"

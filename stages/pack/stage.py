@@ -9,11 +9,12 @@ reads the layout sees the layout file's content in its key.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any, Mapping
 
-from runner.stage import Context, SequenceStage
+from runner.stage import Context, SequenceStage, StageError
 from stages.pack.bundle_types import CAMERA, LAYOUT, PACK_GEOMETRY, PACK_IMAGES, PACK_MODEL3D
-from stages.actor_pack import load_pack
+from stages.actor_pack import check_pack, load_pack
 from stages.pack.bundles import pack_to_bundles
 
 
@@ -31,6 +32,16 @@ class LoadPack(SequenceStage):
         "model3d": PACK_MODEL3D,
         "camera": CAMERA,
     }
+
+    @classmethod
+    def check_input(cls, port: str, path: Path) -> str | None:
+        """The pack's manifest and every file it names (images by their headers,
+        :func:`stages.actor_pack.check_pack`), checked before a run starts."""
+        try:
+            check_pack(path)
+        except StageError as exc:  # a PackError, or a layout file's error
+            return str(exc)
+        return None
 
     def run(self, inputs: Mapping[str, Any], params: Mapping[str, Any], ctx: Context) -> dict[str, Any]:
         pack = load_pack(inputs["pack"])

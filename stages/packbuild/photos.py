@@ -31,6 +31,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from runner.files import kind_problem
 from runner.stage import Context, FrameStage, Param, SequenceStage, StageError, StreamInfo
 from stages.landmarks.bundles import LANDMARKS
 from stages.packbuild.bundles import PHOTO_IDENTITY
@@ -81,15 +82,20 @@ def _named(names: list[str]) -> str:
 
 
 def list_photos(folder: Path) -> list[Path]:
-    """The image files directly in ``folder`` (by suffix, case-insensitive; hidden files left
-    out), sorted by file name."""
+    """The image files directly in ``folder`` (by suffix, case-insensitive; hidden files and
+    sub-folders left out), sorted by file name. Raises ValueError for a folder that is not one,
+    or an image file that is not a regular file (a link to ``/dev/zero``, a FIFO, a broken link:
+    :func:`runner.files.kind_problem`), naming it and saying what it is."""
     folder = Path(folder)
     if not folder.is_dir():
         raise ValueError(f"expected a folder of photos, got {folder} (not a folder)")
-    return sorted(
-        (p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in PHOTO_SUFFIXES),
-        key=lambda p: p.name,
-    )
+    named = [p for p in folder.iterdir() if not p.name.startswith(".") and p.suffix.lower() in PHOTO_SUFFIXES]
+    photos = sorted((p for p in named if not p.is_dir()), key=lambda p: p.name)
+    for path in photos:
+        problem = kind_problem(path)
+        if problem:
+            raise ValueError(f"{path}: {problem}")
+    return photos
 
 
 def read_photo(path: Path) -> np.ndarray | None:
@@ -251,6 +257,16 @@ class PhotosDecode(FrameStage):
 
     def __init__(self) -> None:
         self._scanned: tuple[Path, int, PhotoSet] | None = None
+
+    @classmethod
+    def check_input(cls, port: str, path: Path) -> str | None:
+        """Each image file of the folder is a regular file (:func:`list_photos`), checked
+        before a run starts."""
+        try:
+            list_photos(path)
+        except ValueError as exc:
+            return str(exc)
+        return None
 
     def photos(self, folder: Path, max_side: int) -> PhotoSet:
         """The folder's :class:`PhotoSet`, scanned once per stage instance; the files skipped

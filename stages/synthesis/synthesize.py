@@ -61,6 +61,15 @@ RIDGE_PX = 0.0  # coefficient regularisation of the QPs (docs/synthesis.md, "Per
 COHERENCE_FRAMES = 2.0  # example weights coherent in time (stages.synthesis.coherence)
 COHERENCE_SIZE = 0.035
 MEMO_FRAMES = 2048  # frames whose QP coefficients a Synthesizer keeps (about 4 KB each)
+# Output size and memory (docs/synthesis.md, "Output size"): a run's peak memory grows with the
+# output's pixels (the synthesized chunks, and the writers and previews reading them). Measured
+# with /usr/bin/time on the bundled pipeline (fixtures/clips/calm.mp4, 2 cores, chunk_frames
+# 16): 2.03 GB at 960x1280, 3.86 GB at 1440x1920.
+GB_PER_OUTPUT_MEGAPIXEL = 1.2
+RUN_BASE_GB = 0.6
+RUN_BUDGET_GB = 8.0  # the estimated peak memory an output size may take
+MAX_OUTPUT_PIXELS = int((RUN_BUDGET_GB - RUN_BASE_GB) / GB_PER_OUTPUT_MEGAPIXEL * 1e6)  # 6.2 MP: 2160x2880, 3200x1800
+MAX_OUTPUT_WIDTH = 3840  # px, whatever the pack's aspect ratio
 
 
 def head_motion_points(
@@ -740,7 +749,13 @@ class Synthesize(FrameStage):
             max=100.0,
         ),
         Param(
-            "width", int, 0, "output width, px (the height keeps the pack's aspect ratio); 0: the pack's size", min=0, max=8192
+            "width",
+            int,
+            0,
+            "output width, px (the height keeps the pack's aspect ratio); 0: the pack's size; the "
+            f"output at most {MAX_OUTPUT_PIXELS / 1e6:.1f} MP (the memory a run takes: docs/synthesis.md)",
+            min=0,
+            max=MAX_OUTPUT_WIDTH,
         ),
         Param(
             "upscale",
@@ -934,18 +949,42 @@ def head_turn(head: Mapping[str, np.ndarray], model: Mapping[str, np.ndarray], s
     return HeadTurn(R[start:stop], t[start:stop], np.asarray(head["depth"], np.float64), np.asarray(head["camera"], np.float64))
 
 
+def run_memory_gb(size: tuple[int, int]) -> float:
+    """Estimated peak memory, GB, of a run of the bundled pipeline whose output is ``size = (W,
+    H)`` px: :data:`RUN_BASE_GB` plus :data:`GB_PER_OUTPUT_MEGAPIXEL` per megapixel."""
+    return RUN_BASE_GB + GB_PER_OUTPUT_MEGAPIXEL * size[0] * size[1] / 1e6
+
+
+def widest_output(size: tuple[int, int]) -> int:
+    """The largest output width, px, for pack images of ``size = (W, H)`` whose output has at most
+    :data:`MAX_OUTPUT_PIXELS` pixels."""
+    W, H = size
+    width = int(np.sqrt(MAX_OUTPUT_PIXELS * W / H))
+    while width > 1 and width * max(round(H * width / W), 1) > MAX_OUTPUT_PIXELS:
+        width -= 1
+    return width
+
+
 def output_size(model: Mapping[str, np.ndarray], width: int, *, upscale: bool) -> tuple[tuple[int, int], str]:
     """The output size for ``width`` (0: the pack's) and a note when it enlarges the footage.
 
     The footage holds ``1 / source_scale`` output px per pack px (``source_scale``: pack px per
     footage px, the model's); a pack without it (not cut from footage) holds its own size. An
     output wider than that is refused (``ValueError``, with the sizes) unless ``upscale``, when
-    the note says so.
+    the note says so. An output of more than :data:`MAX_OUTPUT_PIXELS` pixels is refused
+    (``ValueError``, with its estimated memory, :func:`run_memory_gb`, and the widest that fits).
     """
     W, H = (int(v) for v in model["size"])
     if width in (0, W):
         return (W, H), ""
     size = (width, max(round(H * width / W), 1))
+    if size[0] * size[1] > MAX_OUTPUT_PIXELS:
+        raise ValueError(
+            f"a {size[0]}x{size[1]} output ({size[0] * size[1] / 1e6:.1f} MP) would take about "
+            f"{run_memory_gb(size):.1f} GB ({GB_PER_OUTPUT_MEGAPIXEL} GB per output megapixel); at most "
+            f"{MAX_OUTPUT_PIXELS / 1e6:.1f} MP fit the {RUN_BUDGET_GB:.0f} GB a run may take: width <= "
+            f"{widest_output((W, H))} for the pack's {W}x{H} images"
+        )
     scale = float(model["source_scale"]) if "source_scale" in model else float("nan")
     held = W / scale if np.isfinite(scale) else float(W)
     if width <= held * (1 + 1e-9):

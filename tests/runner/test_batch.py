@@ -179,7 +179,7 @@ jobs:
         f"{at('nowhere.mp4')}: jobs.missing.clip: {tmp_path / 'nowhere.mp4'}: no such file",
         f"{at('out/ok')}: jobs.same_out.out: same output folder as job 'ok': {tmp_path / 'out' / 'ok'}",
         f"{at('user}')}: jobs.user.out: {tmp_path / 'user' / 'write'}: exists without a manifest.json of runner; "
-        "it would be replaced by the outputs of stage 'write' (move it away or choose another --out)",
+        "stage 'write' publishes there (move it away or choose another --out)",
         f"{at('[1, 2]')}: jobs.wrong.clip: wrong type: expected a path string, got [1, 2]",
         f"{at('{bogus')}: jobs.wrong.inputs: unknown pipeline input 'bogus' of {GRAPH} (declared: clip)",
     ]

@@ -6,7 +6,6 @@ import contextlib
 import importlib.metadata
 import io
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -21,7 +20,7 @@ from runner.cache import CacheStore
 from runner.cli import main
 from stages.color import luma_opencv
 from stages.video import VideoDecode
-from tests.runner.helpers import DATA, REPO, TINY, chunk_status, read_log, run_cli, runner_cmd, stage_status, tree_bytes
+from tests.runner.helpers import DATA, REPO, TINY, chunk_status, read_log, run_cli, stage_status, tree_bytes
 
 GRAPH = DATA / "graph.yaml"
 CHAIN = DATA / "chain.yaml"
@@ -241,6 +240,15 @@ def test_an_error_quoting_a_long_value_is_one_line_of_bounded_length(tmp_path, m
     assert code == 2 and err == f"error: --set: write.crf: wrong type: expected int, got '{'9' * 79}... (5002 characters)\n"
 
 
+@pytest.mark.parametrize("days", ["nan", "inf", "-1"])
+def test_cache_gc_refuses_days_that_are_not_a_finite_number_of_zero_or_more(tmp_path, days):
+    entry = tmp_path / "cache" / "entries" / "ab" / "cd"
+    entry.mkdir(parents=True)
+    code, out, err = cli_main("cache", "gc", "--older-than", days, "--cache-dir", tmp_path / "cache", "--out", tmp_path / "o")
+    assert code == 2 and out == "" and "Invalid value for '--older-than'" in err
+    assert entry.is_dir() and not (tmp_path / "o").exists()
+
+
 def test_a_head_pose_wired_to_a_stage_that_reads_the_other_one_fails_at_load(tmp_path, monkeypatch):
     """pose.pnp's pose is absolute (tvec mm, with its camera), compensate.rigid3d's relative to the
     head frame (tvec px, a scale): each reader takes one of them, checked before anything runs."""
@@ -334,27 +342,48 @@ def test_exit_now_waits_for_threads_and_flushes(tmp_path):
     assert marker.read_text() == "done"
 
 
-@pytest.mark.subprocess
-def test_empty_npz_in_a_pack_is_a_stage_failure_not_an_interrupt(tmp_path):
-    """A zero-byte ``captured.npz``: one line naming the stage and the file, exit 1 (its
-    EOFError is no interrupt, whatever click makes of it)."""
+PACK_PIPELINE = """\
+inputs:
+  clip: {type: video}
+  pack: {type: dir}
+stages:
+  decode: {uses: video.decode, inputs: {video: clip}}
+  load: {uses: pack.load, inputs: {pack: pack}}
+"""
+
+
+@pytest.mark.parametrize(
+    ("damage", "words"),
+    [
+        ("empty_npz", "captured.npz: field 'captured': "),
+        ("nan_intrinsics", "pack.yaml: field 'intrinsics[0][0]': expected a finite number, got nan"),
+        ("missing_image", "pack.yaml: field 'examples[1].image': file not found: "),
+    ],
+)
+def test_a_bad_pack_is_refused_before_anything_runs(tmp_path, monkeypatch, damage, words):
+    """A pack's manifest and the files it names are checked when the inputs are bound
+    (``pack.load``'s input check), as the pipeline file is: exit 2, one line naming the file and
+    the field, nothing decoded or stored, with or without --dry-run."""
+    monkeypatch.chdir(tmp_path)
     pack = tmp_path / "pack"
     shutil.copytree(REPO / "fixtures" / "packs" / "target", pack)
-    (pack / "captured.npz").write_bytes(b"")
+    manifest = pack / "pack.yaml"
+    if damage == "empty_npz":
+        (pack / "captured.npz").write_bytes(b"")
+    elif damage == "nan_intrinsics":
+        manifest.write_text(manifest.read_text().replace("[384.000000, 0.000000, 119.500000]", "[.nan, 0, 119.5]"))
+    else:
+        (pack / "images" / "cap04.png").unlink()
     pipeline = tmp_path / "p.yaml"
-    pipeline.write_text("inputs: {pack: {type: dir}}\nstages:\n  load: {uses: pack.load, inputs: {pack: pack}}\n")
-    env = {**{k: v for k, v in os.environ.items() if not k.startswith("RUNNER_")}, "PYTHONPATH": str(REPO)}
-    done = subprocess.run(
-        runner_cmd("run", pipeline, "--input", f"pack={pack}", "--cache-dir", tmp_path / "cache", "--out", tmp_path / "out"),
-        env=env,
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert done.returncode == 1, done.stderr
-    assert done.stderr.count("\n") == 1 and done.stderr.startswith("error: stage 'load' (pack.load): actor pack ")
-    assert f"{pack / 'captured.npz'}: field 'captured'" in done.stderr and "not a readable .npz" in done.stderr
+    pipeline.write_text(PACK_PIPELINE)
+    for dry in ((), ("--dry-run",)):
+        code, out, err = cli_main(
+            "run", pipeline, "--in", TINY, "--input", f"pack={pack}", "--cache-dir", tmp_path / "cache", *dry
+        )
+        assert code == 2, err
+        assert err.startswith(f"error: {pipeline}:3:3: inputs.pack: wrong input: actor pack {pack}/"), err
+        assert words in err and err.count("\n") == 1, err
+        assert out == "" and not (tmp_path / "cache").exists()
 
 
 def test_an_eof_error_of_a_stage_is_not_reported_as_an_interrupt(tmp_path, monkeypatch):

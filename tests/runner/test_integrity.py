@@ -293,6 +293,12 @@ def test_cache_file_damaged_with_its_times_restored_is_recomputed_not_published(
     manifest = json.loads((tmp_path / "out2" / "table" / "manifest.json").read_text())
     assert manifest["files"][0]["sha256"] == hashlib.sha256(published.read_bytes()).hexdigest()
     assert len(recorder.warnings) == 1 and "'table'" in recorder.warnings[0] and "damaged" in recorder.warnings[0]
+    assert [e["stage"] for e in recorder.events if e["event"] == "damaged"] == ["table"]
+    table = [e for e in recorder.events if e["event"] == "stage" and e["stage"] == "table"]
+    assert [(e["status"], e["reason"]) for e in table] == [
+        ("cached", ""),
+        ("ran", "computed again to publish: 1 damaged cache entry"),
+    ]
 
 
 def test_published_file_damaged_with_its_times_restored_is_published_again(tmp_path):
@@ -443,6 +449,19 @@ def test_out_at_a_root_the_home_folder_or_the_project_is_refused(tmp_path, monke
     [issue] = info.value.issues
     assert str(issue).startswith(f"--out: {out}: is ") and "choose a folder of its own" in str(issue)
     assert (sorted(p.name for p in out.iterdir()) if out.exists() else None) == before
+    assert list(CacheStore(tmp_path / "cache").iter_entries()) == []
+
+
+def test_a_user_folder_in_out_is_refused_naming_it_once(tmp_path):
+    """A folder of the user's at a stage's place in --out: one line naming that folder (not
+    --out again) and the stage, nothing run."""
+    (tmp_path / "out" / "table").mkdir(parents=True)
+    with pytest.raises(ConfigError) as info:
+        run(tmp_path)
+    assert [str(issue) for issue in info.value.issues] == [
+        f"--out: {tmp_path / 'out' / 'table'}: exists without a manifest.json of runner; "
+        "stage 'table' publishes there (move it away or choose another --out)"
+    ]
     assert list(CacheStore(tmp_path / "cache").iter_entries()) == []
 
 

@@ -12,9 +12,9 @@ import pytest
 
 from runner.depends import recording
 from runner.stage import StageError
-from stages.actor_pack import PackError, load_pack
+from stages.actor_pack import PackError, check_pack, load_pack
 from stages.layout import LAYOUT_DIR, load_layout
-from tests.stages.image_files import big_png
+from tests.stages.image_files import big_png, rgb_png
 
 REPO = Path(__file__).resolve().parents[2]
 W, H = 40, 30
@@ -90,6 +90,10 @@ def _replace(path: Path, old: str, new: str) -> None:
         (lambda r: (r / "images" / "ex1.png").unlink(), ["pack.yaml", "examples[1].image", "file not found"]),
         (lambda r: (r / "images" / "ex0.png").write_bytes(b"not a png"), ["ex0.png", "examples[0].image", "cannot read image"]),
         (
+            lambda r: rgb_png(r / "images" / "ex0.png", np.zeros((30, 40, 3), np.uint8), extra=b"\0" * 10),
+            ["ex0.png", "examples[0].image", "cannot read image"],
+        ),
+        (
             lambda r: _replace(r / "points" / "standard.csv", "\nchin,", "\nXchin,"),
             ["standard.csv", "standard.points", "unknown point name"],
         ),
@@ -106,6 +110,10 @@ def _replace(path: Path, old: str, new: str) -> None:
         (lambda r: np.savez(r / "captured.npz", points=np.zeros((3, 100, 2))), ["captured.npz", "'captured'", "(..., 134, 2)"]),
         (lambda r: np.savez(r / "captured.npz", other=np.zeros(3)), ["captured.npz", "no array 'points'"]),
         (lambda r: _replace(r / "pack.yaml", "[0, 0, 1]]", "[0, 0, 2]]"), ["pack.yaml", "'intrinsics'"]),
+        (
+            lambda r: _replace(r / "pack.yaml", "[0, 50, 14.5]", "[0, .nan, 14.5]"),
+            ["pack.yaml", "'intrinsics[1][1]'", "expected a finite number, got nan"],
+        ),
         (lambda r: _replace(r / "pack.yaml", "image_size: [40, 30]", "image_size: [41, 30]"), ["neutral.png", "image is 40x30"]),
         (lambda r: _replace(r / "pack.yaml", "model3d: model3d.csv", "model3d: nothing.csv"), ["'model3d'", "file not found"]),
         (lambda r: _replace(r / "pack.yaml", "layout: zhang134", "layout: nosuchlayout"), ["nosuchlayout", "cannot read"]),
@@ -113,6 +121,7 @@ def _replace(path: Path, old: str, new: str) -> None:
     ],
 )
 def test_broken_pack_errors_name_file_and_field(pack_dir, breakage, expect):
+    """Loading the pack and checking it without decoding its images give the same one line."""
     root, _ = pack_dir
     breakage(root)
     with pytest.raises(StageError) as err:
@@ -121,6 +130,9 @@ def test_broken_pack_errors_name_file_and_field(pack_dir, breakage, expect):
     assert "\n" not in msg
     for part in expect:
         assert part in msg, (part, msg)
+    with pytest.raises(StageError) as checked:
+        check_pack(root)
+    assert str(checked.value) == msg
 
 
 def test_pack_error_is_a_stage_error(pack_dir):

@@ -78,6 +78,19 @@ def test_eyes_shut_throughout_are_reported_as_unknown():
     assert estimate.eye_open_known == {"eye_l": False, "eye_r": True}
 
 
+def test_open_eyes_of_a_clip_under_five_frames_are_known_open():
+    """Three frames, eyes open in each: the open level is measured from them (not "shut in
+    every frame" for want of five frames); shut in all three, it is still unknown."""
+    layout = load_layout("zhang134")
+    neutral, xy, shapes = clip_without_a_neutral_start(layout)
+    short = xy[85:88]
+    estimate = estimate_neutral(short, layout.point_names, np.ones(3, bool), shapes[85:88], BLENDSHAPE_NAMES)
+    assert estimate.eye_open_known == {"eye_l": True, "eye_r": True}
+    assert np.abs(estimate.neutral - neutral).max() < 1.0
+    shut = estimate_neutral(xy[:3], layout.point_names, np.ones(3, bool), shapes[:3], BLENDSHAPE_NAMES)
+    assert shut.eye_open_known == {"eye_l": False, "eye_r": False}
+
+
 def test_point_regions_cover_every_point_once():
     layout = load_layout("zhang134")
     regions = point_regions(layout.point_names)

@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 from PIL import Image, ImageOps
 
+from runner.config import ConfigError, bind_inputs, load_pipeline
+from runner.registry import Registry
 from runner.stage import StageError
 from stages.packbuild.identity import face_signature, majority_outliers, signature_distance
 from stages.packbuild.photos import PhotosDecode, frame_size, letterbox, list_photos, photo_to_frame, read_photo, scan_photos
@@ -70,6 +72,27 @@ def test_frames_are_the_image_files_sorted_by_name(tmp_path):
     assert [p.name for p in list_photos(tmp_path)] == ["A.jpeg", "a10.webp", "a9.JPG", "b.png", "c.TIFF"]
     with pytest.raises(ValueError, match="not a folder"):
         list_photos(tmp_path / "b.png")
+
+
+def test_a_photo_that_is_not_a_regular_file_is_refused_before_the_run(tmp_path):
+    """A link to /dev/zero among the photos: the folder is refused in one line naming the file
+    and what it is, when the inputs are bound (never read, never skipped silently)."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    save(photos / "a.png", asymmetric_image())
+    (photos / "z.jpg").symlink_to("/dev/zero")
+    with pytest.raises(ValueError, match=rf"^{photos / 'z.jpg'}: a character device, not a regular file$"):
+        list_photos(photos)
+    pipeline = tmp_path / "p.yaml"
+    pipeline.write_text("inputs: {photos: {type: dir}}\nstages:\n  decode: {uses: photos.decode, inputs: {photos: photos}}\n")
+    loaded = load_pipeline(pipeline, Registry(classes=[PhotosDecode]))
+    with pytest.raises(ConfigError) as info:
+        bind_inputs(loaded, clip=photos, named=[])
+    assert str(info.value) == (
+        f"{pipeline}:1:10: inputs.photos: wrong input: {photos / 'z.jpg'}: a character device, not a regular file"
+    )
+    (photos / "z.jpg").unlink()
+    assert bind_inputs(loaded, clip=photos, named=[]) == {"photos": photos}
 
 
 def test_unreadable_files_are_named_and_skipped(tmp_path, caplog):
