@@ -183,7 +183,7 @@ def test_default_run_records_the_occluded_regions(default_run):
             1,
             "marked on a 320x240 frame, the clip's frames are 160x120",
         ),
-        ("pipeline.yaml", ["--input", "target=fixtures/clips"], 1, "pack.yaml"),
+        ("pipeline.yaml", ["--input", "target=fixtures/clips"], 2, "pack.yaml"),
         ("pipeline.yaml", ["--set", "synthesize.mode=bogus"], 2, "synthesize.mode"),
         ("pipeline.yaml", ["--set", "smooth.beta=nan"], 2, "expected a finite number"),
         ("pipeline_paper.yaml", ["--set", "smooth.sigma=nan"], 2, "expected a finite number"),
@@ -198,7 +198,7 @@ def test_bad_input_is_one_clear_line(pipeline, args, code, message, tmp_path):
     assert not any(tmp_path.glob("out/*/manifest.json"))
 
 
-def test_corrupt_pack_points_name_the_file(tmp_path):
+def test_corrupt_pack_points_name_the_file_before_anything_runs(tmp_path):
     pack = tmp_path / "target"
     shutil.copytree(REPO / "fixtures" / "packs" / "target", pack)
     points = pack / "captured.npz"
@@ -215,7 +215,8 @@ def test_corrupt_pack_points_name_the_file(tmp_path):
         "--until",
         "build",
     )
-    assert result.returncode == 1 and points.name in result.stderr and "Traceback" not in result.stderr
+    assert result.returncode == 2 and points.name in result.stderr and "Traceback" not in result.stderr
+    assert not (tmp_path / "cache").exists() or not any((tmp_path / "cache").rglob("*.npz"))
 
 
 def test_data_coefficients_are_those_of_the_synthesized_frames(tmp_path):
