@@ -144,6 +144,11 @@ def run(
 
     store = CacheStore(cache_dir or default_cache_dir())
     if dry_run:
+        from runner.publish import refused
+
+        why = refused(out)
+        if why:  # the plan of a run that would be refused
+            raise ConfigError([Issue(Where("--out"), str(out), why)])
         try:
             _print_plan(
                 pipeline, make_plan(loaded, bound, cache=store, device=resolved, force=frozenset(force), until=until), log

@@ -249,6 +249,16 @@ def test_cache_gc_refuses_days_that_are_not_a_finite_number_of_zero_or_more(tmp_
     assert entry.is_dir() and not (tmp_path / "o").exists()
 
 
+def test_the_dry_run_of_a_run_into_the_filesystem_root_is_refused_as_the_run_is(tmp_path):
+    code, out, err = cli_main("run", CHAIN, "--out", "/", "--dry-run", "--cache-dir", tmp_path / "cache")
+    assert (
+        code == 2
+        and out == ""
+        and err
+        == "error: --out: /: is the filesystem root: a run writes one folder per stage there (choose a folder of its own)\n"
+    )
+
+
 def test_a_head_pose_wired_to_a_stage_that_reads_the_other_one_fails_at_load(tmp_path, monkeypatch):
     """pose.pnp's pose is absolute (tvec mm, with its camera), compensate.rigid3d's relative to the
     head frame (tvec px, a scale): each reader takes one of them, checked before anything runs."""
