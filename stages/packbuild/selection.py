@@ -156,19 +156,21 @@ def canvas_similarity(
     x0, y0 = np.percentile(z.real.min(axis=-1), 1), np.percentile(z.imag.min(axis=-1), 1)
     x1, y1 = np.percentile(z.real.max(axis=-1), 99), np.percentile(z.imag.max(axis=-1), 99)
     fill, centre = FRAMINGS[framing]
-    fills = [fill] if footage is None else np.linspace(fill, max(fill, FRAMINGS["face"][0]), 13)
-    placed = []
-    for f in fills:
+
+    def placed(f: float) -> tuple[np.ndarray, np.ndarray]:
+        """The similarity at fill ``f`` and the face box ``(2, 2)`` it puts in the image."""
         scale = f * min(H / (y1 - y0), W / (x1 - x0))
-        c = rot * scale
         t = complex((W - 1) / 2, centre * (H - 1)) - complex((x0 + x1) / 2, (y0 + y1) / 2) * scale
-        placed.append(np.array([c.real, c.imag, t.real, t.imag]))
-        if footage is not None:
-            box = np.array([[x0, y0], [x1, y1]]) * scale + [t.real, t.imag]  # the face box in the image (axes-aligned)
-            inside = inside_footage(placed[-1], size, footage, box)
+        c = rot * scale
+        return np.array([c.real, c.imag, t.real, t.imag]), np.array([[x0, y0], [x1, y1]]) * scale + [t.real, t.imag]
+
+    if footage is not None:
+        for f in np.linspace(fill, max(fill, FRAMINGS["face"][0]), 13):
+            params, box = placed(f)
+            inside = inside_footage(params, size, footage, box)
             if inside is not None:
                 return inside
-    return placed[0]
+    return placed(fill)[0]
 
 
 def inside_footage(

@@ -201,6 +201,7 @@ class PackSelect(SequenceStage):
         keep = _field(filt, "keep", stage=self.name, port="filter").astype(bool)
         if keep.shape != (len(xy),):
             raise StageError(f"{self.name}: input 'filter' field 'keep': expected ({len(xy)},), got {keep.shape}")
+        angles = _field(filt, "angles", stage=self.name, port="filter")
         if params["captured"] < params["examples"]:
             raise StageError(
                 f"{self.name}: parameter 'captured' ({params['captured']}) must be at least 'examples' ({params['examples']})"
@@ -213,7 +214,7 @@ class PackSelect(SequenceStage):
                 blendshapes=_field(marks, "blendshapes", stage=self.name, port="landmarks"),
                 blendshape_names=_field(marks, "blendshape_names", stage=self.name, port="landmarks"),
                 matrix=_field(marks, "matrix", stage=self.name, port="landmarks"),
-                angles=_field(filt, "angles", stage=self.name, port="filter"),
+                angles=angles,
                 teeth_fraction=_field(filt, "teeth_fraction", stage=self.name, port="filter"),
                 size=(params["width"], params["height"]),
                 n_examples=params["examples"],
@@ -232,7 +233,7 @@ class PackSelect(SequenceStage):
         for line in chosen.warnings:
             ctx.log.warning("%s: %s", self.name, line)
         shown = ", ".join(f"{state.replace('_', ' ')} f{frame}" for state, frame in chosen.states.items())
-        yaw, pitch, roll = _field(filt, "angles", stage=self.name, port="filter")[chosen.neutral]
+        yaw, pitch, roll = angles[chosen.neutral]
         ctx.log.log(
             SUMMARY,
             "%s: neutral frame %d (head yaw %+.0f, pitch %+.0f, roll %+.0f deg), standard %d; %d examples "

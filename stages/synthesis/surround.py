@@ -134,8 +134,9 @@ def head_extent(image: np.ndarray, points: np.ndarray, face: np.ndarray, *, iter
     y = np.clip(np.round(f * rays[..., 1]).astype(int), 0, h - 1)
     within = (rays[..., 0] >= 0) & (rays[..., 0] <= W - 1) & (rays[..., 1] >= 0) & (rays[..., 1] <= H - 1)
     on = head[y, x] & within
-    first_off = np.where(~on.all(axis=1), np.argmin(on, axis=1), len(steps))
-    scale = np.clip(np.concatenate([[1.0], steps])[first_off] + RING_MARGIN, RING_SCALES[0], RING_MAX_SCALE)
+    first_off = np.where(~on.all(axis=1), np.argmin(on, axis=1), len(steps))  # per ray, the first step off the head
+    last_on = np.concatenate([[1.0], steps])[first_off]  # the step before it (the hull itself when none is on)
+    scale = np.clip(last_on + RING_MARGIN, RING_SCALES[0], RING_MAX_SCALE)
     radius = np.sqrt(((hull - centre) ** 2).sum(1).mean())
     left, right = hull[np.argmin(hull[:, 0])], hull[np.argmax(hull[:, 0])]
     down = np.array([-(right - left)[1], (right - left)[0]]) / max(np.linalg.norm(right - left), 1e-9)
